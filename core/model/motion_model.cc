@@ -1,0 +1,69 @@
+#include "core/model/motion_model.h"
+
+#include <algorithm>
+#include <cmath>
+
+namespace crowdmap {
+
+double WrapAngle(double a) {
+  a = std::remainder(a, 2.0 * M_PI);
+  return a <= -M_PI ? a + 2.0 * M_PI : a;
+}
+
+Pose2 BicycleStep(const Pose2& pose, double v, double xi, double dt, double wheelbase_m, Eigen::Matrix3d* d_pose,
+                  Eigen::Matrix<double, 3, 2>* d_input) {
+  const double turn = v * std::sin(xi) * dt / wheelbase_m;
+  const double phi = pose.z() + 0.5 * turn;
+  const double c = std::cos(phi), s = std::sin(phi);
+  if (d_pose) {
+    *d_pose << 1, 0, -v * dt * s,  //
+        0, 1, v * dt * c,          //
+        0, 0, 1;
+  }
+  if (d_input) {
+    const double dturn_dv = std::sin(xi) * dt / wheelbase_m;
+    const double dturn_dxi = v * std::cos(xi) * dt / wheelbase_m;
+    *d_input << dt * c - 0.5 * v * dt * s * dturn_dv, -0.5 * v * dt * s * dturn_dxi,  //
+        dt * s + 0.5 * v * dt * c * dturn_dv, 0.5 * v * dt * c * dturn_dxi,           //
+        dturn_dv, dturn_dxi;
+  }
+  return {pose.x() + v * dt * c, pose.y() + v * dt * s, pose.z() + turn};
+}
+
+RelativeMotion Preintegrate(const std::vector<OdometrySample>& odometry, double t0, double t1, double wheelbase_m,
+                            const NoiseModel& noise) {
+  RelativeMotion m;
+  m.duration_s = t1 - t0;
+  if (odometry.empty() || t1 <= t0) return m;
+  Eigen::Matrix2d input_cov = Eigen::Vector2d(noise.speed_sigma_mps * noise.speed_sigma_mps,
+                                              noise.steering_sigma_rad * noise.steering_sigma_rad)
+                                  .asDiagonal();
+  // First sample whose hold interval reaches past t0.
+  auto it = std::upper_bound(odometry.begin(), odometry.end(), t0,
+                             [](double t, const OdometrySample& o) { return t < o.t_s; });
+  size_t i = it == odometry.begin() ? 0 : static_cast<size_t>(it - odometry.begin()) - 1;
+  double t = t0;
+  Eigen::Matrix3d f;
+  Eigen::Matrix<double, 3, 2> g;
+  while (t < t1) {
+    const double end = i + 1 < odometry.size() ? std::min(odometry[i + 1].t_s, t1) : t1;
+    const double dt = end - t;
+    if (dt > 0.0) {
+      m.delta = BicycleStep(m.delta, odometry[i].speed_mps, odometry[i].steering_rad, dt, wheelbase_m, &f, &g);
+      m.cov = f * m.cov * f.transpose() + g * input_cov * g.transpose();
+    }
+    t = end;
+    if (i + 1 < odometry.size()) ++i;
+  }
+  m.delta.z() = WrapAngle(m.delta.z());
+  m.cov.diagonal().array() += kMotionCovarianceFloor * std::max(m.duration_s, 1e-3);
+  return m;
+}
+
+Pose2 ComposeMotion(const Pose2& start, const Pose2& delta) {
+  const double c = std::cos(start.z()), s = std::sin(start.z());
+  return {start.x() + c * delta.x() - s * delta.y(), start.y() + s * delta.x() + c * delta.y(),
+          WrapAngle(start.z() + delta.z())};
+}
+
+}  // namespace crowdmap

@@ -1,0 +1,45 @@
+#ifndef CROWDMAP_CORE_MODEL_MOTION_MODEL_H_
+#define CROWDMAP_CORE_MODEL_MOTION_MODEL_H_
+
+#include <vector>
+
+#include <Eigen/Core>
+
+#include "core/model/passage.h"
+
+namespace crowdmap {
+
+// Vehicle pose (x, y, theta) in a local East/North frame; theta is the heading from East (rad).
+using Pose2 = Eigen::Vector3d;
+
+// One bicycle-model step of duration dt_s with speed v and steering angle xi (thesis eq. 4.43):
+//   x += v dt cos(theta + v sin(xi) dt / (2R)),  y += v dt sin(...),  theta += v sin(xi) dt / R.
+// If the Jacobians are non-null they receive d(result)/d(pose) and d(result)/d(v, xi).
+Pose2 BicycleStep(const Pose2& pose, double speed_mps, double steering_rad, double dt_s, double wheelbase_m,
+                  Eigen::Matrix3d* d_pose = nullptr, Eigen::Matrix<double, 3, 2>* d_input = nullptr);
+
+// The motion between two times predicted by the encoders, in the frame of the earlier pose.
+struct RelativeMotion {
+  Pose2 delta = Pose2::Zero();                    // (dx, dy, dtheta) in the start pose's frame
+  Eigen::Matrix3d cov = Eigen::Matrix3d::Zero();  // first-order covariance of delta
+  double duration_s = 0.0;
+};
+
+// Composes the bicycle steps between t0_s and t1_s (t0 < t1). Each sample is held from its time
+// to the next sample's (the first sample also covers earlier times, the last one later times).
+// Speed and steering noise (independent per sample) are propagated to first order. A tiny floor
+// (kMotionCovarianceFloor per second) keeps the covariance invertible when the vehicle stands.
+RelativeMotion Preintegrate(const std::vector<OdometrySample>& odometry, double t0_s, double t1_s,
+                            double wheelbase_m, const NoiseModel& noise);
+
+// Pose reached from `start` after the relative motion `delta` (SE(2) composition).
+Pose2 ComposeMotion(const Pose2& start, const Pose2& delta);
+
+// Wraps an angle to (-pi, pi].
+double WrapAngle(double a);
+
+constexpr double kMotionCovarianceFloor = 1e-8;
+
+}  // namespace crowdmap
+
+#endif  // CROWDMAP_CORE_MODEL_MOTION_MODEL_H_

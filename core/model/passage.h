@@ -1,0 +1,75 @@
+#ifndef CROWDMAP_CORE_MODEL_PASSAGE_H_
+#define CROWDMAP_CORE_MODEL_PASSAGE_H_
+
+#include <cstdint>
+#include <string>
+#include <vector>
+
+#include <Eigen/Core>
+
+#include "absl/status/status.h"
+
+namespace crowdmap {
+
+using LandmarkId = int64_t;
+
+// Sensor placement and intrinsics of one vehicle. Vehicle frame: x forward, y left, origin at the
+// rear axle centre (the point the bicycle model moves).
+struct Calibration {
+  double wheelbase_m = 2.7;
+  Eigen::Vector2d gnss_lever_arm_m{0.5, 0.0};
+  Eigen::Vector2d camera_position_m{1.5, 0.0};
+  double camera_yaw_rad = 0.0;
+  double fx_px = 1000.0;
+  double cx_px = 960.0;
+  double image_width_px = 1920.0;
+};
+
+// Measurement noise the estimator assumes. Defaults: thesis Table 5.1.
+struct NoiseModel {
+  double speed_sigma_mps = 0.56;
+  double steering_sigma_rad = 0.044;
+  double pixel_sigma_px = 5.0;
+};
+
+// One wheel/steering encoder reading, held until the next sample.
+struct OdometrySample {
+  double t_s = 0.0;  // seconds since the passage start
+  double speed_mps = 0.0;
+  double steering_rad = 0.0;
+};
+
+// One GNSS fix with its East/North covariance (m^2) at the fix.
+struct GnssFix {
+  double t_s = 0.0;
+  double lat_deg = 0.0;
+  double lon_deg = 0.0;
+  Eigen::Matrix2d cov_en_m2 = Eigen::Matrix2d::Identity() * 100.0;
+};
+
+// One landmark detection: the horizontal pixel coordinate of a landmark with a known id.
+struct Detection {
+  double t_s = 0.0;
+  LandmarkId landmark_id = 0;
+  double u_px = 0.0;
+};
+
+// Everything a vehicle measured on one drive.
+struct Passage {
+  std::string vehicle_id;
+  std::string passage_id;  // client-chosen; (vehicle_id, passage_id) is the idempotency key
+  int64_t start_time_unix_ms = 0;
+  Calibration calibration;
+  NoiseModel noise;
+  std::vector<OdometrySample> odometry;
+  std::vector<GnssFix> gnss;
+  std::vector<Detection> detections;
+};
+
+// Checks a passage before it is accepted. The message names the offending field with its index,
+// e.g. "gnss[12].lat_deg: latitude 91.2 outside [-90, 90]". Returns InvalidArgument on failure.
+absl::Status ValidatePassage(const Passage& passage);
+
+}  // namespace crowdmap
+
+#endif  // CROWDMAP_CORE_MODEL_PASSAGE_H_

@@ -1,0 +1,91 @@
+#ifndef CROWDMAP_CORE_SIM_SCENARIO_H_
+#define CROWDMAP_CORE_SIM_SCENARIO_H_
+
+#include <cstdint>
+#include <string>
+#include <string_view>
+#include <vector>
+
+#include "absl/status/statusor.h"
+#include "core/geo/local_frame.h"
+#include "core/model/motion_model.h"
+#include "core/model/passage.h"
+
+namespace crowdmap {
+
+// Noise injected into the simulated measurements (thesis section 5.2.3).
+enum class NoiseConfig {
+  kWhite,         // "white": independent Gaussian noise everywhere
+  kGnssAr1,       // "gnss-ar1": GNSS error e_k = alpha e_(k-1) + beta w_k per axis
+  kYawBias,       // "yaw-bias": constant camera yaw calibration error
+  kGnssAr1YawBias // "ar1+yaw": both
+};
+
+absl::StatusOr<NoiseConfig> ParseNoiseConfig(std::string_view name);
+std::string_view NoiseConfigName(NoiseConfig config);
+
+// The thesis's reference scenario (DESIGN section 8). Defaults are the thesis values.
+struct ScenarioOptions {
+  int landmarks = 25;
+  NoiseConfig noise = NoiseConfig::kWhite;
+  uint64_t seed = 1;               // passage noise; passage i draws from (seed, i) only
+  LatLon origin{48.7128, 2.1700};  // WGS84 position of the route start
+  double duration_s = 165.0;
+  double odometry_rate_hz = 25.0;
+  double gnss_rate_hz = 1.0;
+  double camera_rate_hz = 2.0;
+  double gnss_sigma_m = 10.0;
+  double gnss_ar1_alpha = 0.988;   // beta = sqrt(1 - alpha^2) keeps the marginal sigma
+  double camera_yaw_bias_rad = 0.009;
+  double min_detection_range_m = 5.0;
+  double max_detection_range_m = 50.0;
+  Calibration calibration;         // true calibration (and what the vehicle reports)
+  NoiseModel noise_model;          // sigmas used both to draw noise and in the uploaded passage
+
+  absl::Status Validate() const;
+};
+
+struct TruthLandmark {
+  LandmarkId id = 0;
+  Eigen::Vector2d position_m;  // in the scenario frame (East/North at options.origin)
+  LatLon position;
+};
+
+// A road-like route driven by every simulated vehicle, landmarks along it, and deterministic
+// noisy passages. The route is generated with the bicycle model itself (so it is exactly
+// consistent with the estimator's motion model) and is the same for every seed; landmarks depend
+// only on their count, and the first landmarks of a larger scenario are those of a smaller one.
+class Scenario {
+ public:
+  static absl::StatusOr<Scenario> Create(const ScenarioOptions& options);
+
+  const ScenarioOptions& options() const { return options_; }
+  const LocalFrame& frame() const { return frame_; }
+  const std::vector<TruthLandmark>& landmarks() const { return landmarks_; }
+  // True rear-axle poses at the odometry rate, and the true inputs that produced them.
+  const std::vector<Pose2>& true_poses() const { return true_poses_; }
+  const std::vector<OdometrySample>& true_inputs() const { return true_inputs_; }
+  // Route length (m).
+  double route_length_m() const { return route_length_m_; }
+
+  // The passage of vehicle `index` (0-based), as the vehicle would upload it: passage_id
+  // "p<index>", vehicle_id "sim-<index % 1000>".
+  Passage MakePassage(int index) const;
+
+  // True pose at time t (seconds since start), by the same bicycle steps as the route.
+  Pose2 TruePoseAt(double t_s) const;
+
+ private:
+  explicit Scenario(const ScenarioOptions& options);
+
+  ScenarioOptions options_;
+  LocalFrame frame_;
+  std::vector<TruthLandmark> landmarks_;
+  std::vector<Pose2> true_poses_;
+  std::vector<OdometrySample> true_inputs_;
+  double route_length_m_ = 0.0;
+};
+
+}  // namespace crowdmap
+
+#endif  // CROWDMAP_CORE_SIM_SCENARIO_H_
