@@ -1,1 +1,49 @@
-// in progress
+#include "core/estimation/factors.h"
+
+#include <Eigen/Cholesky>
+
+namespace crowdmap {
+
+Eigen::MatrixXd SqrtInformation(const Eigen::MatrixXd& cov) {
+  // cov = L L^T  =>  cov^-1 = L^-T L^-1, so S = L^-1.
+  Eigen::LLT<Eigen::MatrixXd> llt(cov);
+  const Eigen::MatrixXd identity = Eigen::MatrixXd::Identity(cov.rows(), cov.cols());
+  return llt.matrixL().solve(identity);
+}
+
+ceres::CostFunction* OdometryFactor::Create(const RelativeMotion& motion) {
+  return new ceres::AutoDiffCostFunction<OdometryFactor, 3, 3, 3>(
+      new OdometryFactor(motion.delta, SqrtInformation(motion.cov)));
+}
+
+ceres::CostFunction* GnssFactor::Create(const Eigen::Vector2d& measured, const Eigen::Matrix2d& cov,
+                                        const Eigen::Vector2d& lever_arm) {
+  return new ceres::AutoDiffCostFunction<GnssFactor, 2, 3>(new GnssFactor(measured, lever_arm, SqrtInformation(cov)));
+}
+
+ceres::CostFunction* CameraFactor::Create(double u_px, double sigma_px, const Calibration& calib) {
+  return new ceres::AutoDiffCostFunction<CameraFactor, 1, 3, 2>(new CameraFactor(u_px, sigma_px, calib));
+}
+
+LandmarkPriorFactor::LandmarkPriorFactor(const Eigen::VectorXd& mean, const Eigen::MatrixXd& sqrt_info)
+    : mean_(mean), sqrt_info_(sqrt_info) {
+  set_num_residuals(static_cast<int>(mean.size()));
+  for (int i = 0; i < mean.size() / 2; ++i) mutable_parameter_block_sizes()->push_back(2);
+}
+
+bool LandmarkPriorFactor::Evaluate(double const* const* parameters, double* residuals, double** jacobians) const {
+  const int n = static_cast<int>(mean_.size());
+  Eigen::VectorXd x(n);
+  for (int i = 0; i < n / 2; ++i) x.segment<2>(2 * i) = Eigen::Map<const Eigen::Vector2d>(parameters[i]);
+  Eigen::Map<Eigen::VectorXd>(residuals, n) = sqrt_info_ * (x - mean_);
+  if (jacobians) {
+    for (int i = 0; i < n / 2; ++i) {
+      if (!jacobians[i]) continue;
+      Eigen::Map<Eigen::Matrix<double, Eigen::Dynamic, 2, Eigen::RowMajor>>(jacobians[i], n, 2) =
+          sqrt_info_.middleCols<2>(2 * i);
+    }
+  }
+  return true;
+}
+
+}  // namespace crowdmap

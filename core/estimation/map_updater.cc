@@ -1,1 +1,245 @@
-// in progress
+#include "core/estimation/map_updater.h"
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <map>
+#include <unordered_set>
+
+#include <ceres/ceres.h>
+#include <spdlog/spdlog.h>
+
+#include "absl/strings/str_cat.h"
+#include "absl/strings/str_format.h"
+#include "core/estimation/factors.h"
+#include "core/estimation/graph_builder.h"
+#include "core/estimation/landmark_update.h"
+#include "core/estimation/subdivision.h"
+#include "core/estimation/triangulation.h"
+
+namespace crowdmap {
+namespace {
+
+double MillisecondsSince(std::chrono::steady_clock::time_point start) {
+  return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
+}
+
+// Passage-wide bookkeeping across its subgraphs.
+struct PassageProgress {
+  std::unordered_set<LandmarkId> counted;  // passages_seen already incremented
+  std::unordered_set<LandmarkId> created;
+  std::unordered_set<LandmarkId> updated;
+  std::unordered_set<LandmarkId> conditioned;
+};
+
+// The detections of a subgraph grouped by landmark, with the landmarks' initial positions.
+// Landmarks that cannot be initialised (new with fewer than two usable rays) are left out, as
+// are detections whose landmark is not in front of the camera at the initial guess.
+struct SubgraphLandmarks {
+  std::vector<LandmarkId> ids;
+  std::vector<Eigen::Vector2d> initial;
+  std::vector<std::vector<const CameraObservation*>> detections;
+  int dropped = 0;
+};
+
+bool InFront(const Pose2& pose, const Eigen::Vector2d& landmark, const Calibration& calib) {
+  double u;
+  return ProjectLandmark(pose.data(), landmark.data(), calib, &u);
+}
+
+SubgraphLandmarks CollectLandmarks(const PassageGraph& graph, const NodeRange& range, const Calibration& calib,
+                                   const MapReaderInterface& map) {
+  std::map<LandmarkId, std::vector<const CameraObservation*>> by_landmark;
+  for (const CameraObservation& d : graph.detections) {
+    if (d.node >= range.first && d.node <= range.last) by_landmark[d.landmark_id].push_back(&d);
+  }
+  SubgraphLandmarks out;
+  for (auto& [id, detections] : by_landmark) {
+    const Landmark* known = map.FindLandmark(id);
+    Eigen::Vector2d initial;
+    if (known) {
+      initial = graph.frame.ToLocal(known->position);
+    } else {
+      RayIntersection lines;
+      for (const CameraObservation* d : detections) lines.Add(CameraRay(graph.initial_poses[d->node], calib, d->u_px));
+      std::optional<Eigen::Vector2d> p = lines.Solve();
+      if (!p) {
+        out.dropped += static_cast<int>(detections.size());
+        continue;
+      }
+      initial = *p;
+    }
+    std::vector<const CameraObservation*> usable;
+    for (const CameraObservation* d : detections) {
+      if (InFront(graph.initial_poses[d->node], initial, calib)) usable.push_back(d);
+    }
+    out.dropped += static_cast<int>(detections.size() - usable.size());
+    if (usable.empty() || (!known && usable.size() < 2)) {
+      out.dropped += static_cast<int>(usable.size());
+      continue;
+    }
+    out.ids.push_back(id);
+    out.initial.push_back(initial);
+    out.detections.push_back(std::move(usable));
+  }
+  return out;
+}
+
+// Builds, solves and commits one subgraph. No map change if it sees no landmark.
+absl::Status UpdateFromSubgraph(const Passage& passage, const PassageGraph& graph, const NodeRange& range,
+                                const MapUpdateOptions& options, MapOverlay* map, PassageProgress* progress,
+                                PassageUpdateSummary* summary) {
+  const Calibration& calib = passage.calibration;
+  SubgraphLandmarks landmarks = CollectLandmarks(graph, range, calib, *map);
+  summary->detections_dropped += landmarks.dropped;
+  if (landmarks.ids.empty()) return absl::OkStatus();
+
+  std::vector<Pose2> poses(graph.initial_poses.begin() + range.first, graph.initial_poses.begin() + range.last + 1);
+  auto pose = [&](int node) { return poses[node - range.first].data(); };
+
+  LandmarkUpdate update(graph.frame, map, landmarks.ids);
+  ceres::Problem problem;
+  for (Pose2& p : poses) problem.AddParameterBlock(p.data(), 3);
+  for (int i = 0; i < update.size(); ++i) {
+    if (!update.in_map(i)) Eigen::Map<Eigen::Vector2d>(update.block(i)) = landmarks.initial[i];
+    problem.AddParameterBlock(update.block(i), 2);
+  }
+  for (int k = range.first; k < range.last; ++k) {
+    problem.AddResidualBlock(OdometryFactor::Create(graph.motions[k]), nullptr, pose(k), pose(k + 1));
+  }
+  for (const GnssObservation& o : graph.gnss) {
+    if (o.node < range.first || o.node > range.last) continue;
+    problem.AddResidualBlock(GnssFactor::Create(o.position_m, o.cov_m2, calib.gnss_lever_arm_m), nullptr, pose(o.node));
+  }
+  for (int i = 0; i < update.size(); ++i) {
+    for (const CameraObservation* d : landmarks.detections[i]) {
+      problem.AddResidualBlock(CameraFactor::Create(d->u_px, passage.noise.pixel_sigma_px, calib), nullptr,
+                               pose(d->node), update.block(i));
+      ++summary->detections_used;
+    }
+  }
+  const bool correlated = options.strategy != UpdateStrategy::kDecorrelated;
+  if (absl::Status s = update.AddMapPrior(correlated, &problem); !s.ok()) return s;
+
+  ceres::Solver::Options solver_options;
+  solver_options.linear_solver_type = ceres::SPARSE_NORMAL_CHOLESKY;
+  solver_options.max_num_iterations = options.max_solver_iterations;
+  solver_options.function_tolerance = 1e-10;
+  solver_options.gradient_tolerance = 1e-12;
+  solver_options.parameter_tolerance = 1e-10;
+  solver_options.num_threads = 1;
+  ceres::Solver::Summary solver_summary;
+  const auto solve_start = std::chrono::steady_clock::now();
+  ceres::Solve(solver_options, &problem, &solver_summary);
+  summary->solve_ms += MillisecondsSince(solve_start);
+  summary->solver_iterations += static_cast<int>(solver_summary.iterations.size());
+  summary->final_cost += solver_summary.final_cost;
+  if (!solver_summary.IsSolutionUsable()) {
+    return absl::InternalError(absl::StrCat("solver result unusable: ", solver_summary.message));
+  }
+
+  const int64_t seen_ms = passage.start_time_unix_ms;
+  auto touch = [&](Landmark* record) {
+    if (!progress->counted.insert(record->id).second) return;
+    record->passages_seen += 1;
+    record->last_seen_unix_ms = std::max(record->last_seen_unix_ms, seen_ms);
+  };
+  LandmarkUpdateOptions update_options;
+  update_options.correlated = correlated;
+  update_options.correlation_radius_m = options.correlation_radius_m;
+  absl::StatusOr<LandmarkUpdateStats> stats = update.Commit(&problem, update_options, touch);
+  if (!stats.ok()) return stats.status();
+  summary->covariance_ms += stats->covariance_ms;
+  for (int i = 0; i < update.size(); ++i) {
+    if (update.in_map(i)) {
+      if (!progress->created.count(update.id(i))) progress->updated.insert(update.id(i));
+    } else {
+      progress->created.insert(update.id(i));
+    }
+  }
+  summary->landmarks_conditioned += stats->conditioned;
+  return absl::OkStatus();
+}
+
+}  // namespace
+
+absl::StatusOr<UpdateStrategy> ParseUpdateStrategy(std::string_view name) {
+  if (name == "cc") return UpdateStrategy::kCorrelated;
+  if (name == "dc") return UpdateStrategy::kDecorrelated;
+  if (name == "cc-gsd") return UpdateStrategy::kCorrelatedSubdivided;
+  return absl::InvalidArgumentError(absl::StrCat("strategy: unknown '", std::string(name), "' (expected cc, dc or cc-gsd)"));
+}
+
+const char* UpdateStrategyName(UpdateStrategy strategy) {
+  switch (strategy) {
+    case UpdateStrategy::kCorrelated:
+      return "cc";
+    case UpdateStrategy::kDecorrelated:
+      return "dc";
+    case UpdateStrategy::kCorrelatedSubdivided:
+      return "cc-gsd";
+  }
+  return "?";
+}
+
+absl::Status MapUpdateOptions::Validate() const {
+  if (max_subgraph_dim < 30) {
+    return absl::InvalidArgumentError(absl::StrCat("max_subgraph_dim: must be >= 30, got ", max_subgraph_dim));
+  }
+  if (detections_per_landmark < 0) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("detections_per_landmark: must be >= 0 (0 = all), got ", detections_per_landmark));
+  }
+  if (!(correlation_radius_m > 0.0)) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("correlation_radius_m: must be > 0 (inf = dense), got ", correlation_radius_m));
+  }
+  if (max_solver_iterations < 1) {
+    return absl::InvalidArgumentError(absl::StrCat("max_solver_iterations: must be >= 1, got ", max_solver_iterations));
+  }
+  return absl::OkStatus();
+}
+
+std::string PassageUpdateSummary::Brief() const {
+  return absl::StrFormat(
+      "nodes=%d subgraphs=%d updated=%d created=%d conditioned=%d detections=%d dropped=%d iterations=%d "
+      "solve_ms=%.2f covariance_ms=%.2f total_ms=%.2f version=%d",
+      nodes, subgraphs, landmarks_updated, landmarks_created, landmarks_conditioned, detections_used,
+      detections_dropped, solver_iterations, solve_ms, covariance_ms, total_ms, map_version);
+}
+
+absl::StatusOr<PassageUpdate> ComputePassageUpdate(const Passage& passage, const MapUpdateOptions& options,
+                                                   const MapReaderInterface& map) {
+  if (absl::Status s = options.Validate(); !s.ok()) return s;
+  const auto start = std::chrono::steady_clock::now();
+  GraphOptions graph_options;
+  graph_options.detections_per_landmark = options.detections_per_landmark;
+  absl::StatusOr<PassageGraph> graph = BuildPassageGraph(passage, graph_options);
+  if (!graph.ok()) return graph.status();
+
+  PassageUpdateSummary summary;
+  summary.nodes = graph->node_count();
+  summary.detections_dropped = graph->detections_dropped;
+  const int max_dim = options.strategy == UpdateStrategy::kCorrelatedSubdivided ? options.max_subgraph_dim : 0;
+  const std::vector<NodeRange> ranges = SubdivideGraph(*graph, max_dim);
+  summary.subgraphs = static_cast<int>(ranges.size());
+
+  MapOverlay overlay(map);
+  PassageProgress progress;
+  for (const NodeRange& range : ranges) {
+    if (absl::Status s = UpdateFromSubgraph(passage, *graph, range, options, &overlay, &progress, &summary); !s.ok()) {
+      return absl::Status(s.code(), absl::StrCat("passage ", passage.passage_id, " nodes ", range.first, "-",
+                                                 range.last, ": ", s.message()));
+    }
+  }
+  if (progress.counted.empty()) {
+    return absl::InvalidArgumentError("detections: no landmark of the passage could be estimated");
+  }
+  summary.landmarks_updated = static_cast<int>(progress.updated.size());
+  summary.landmarks_created = static_cast<int>(progress.created.size());
+  summary.map_version = overlay.version();
+  summary.total_ms = MillisecondsSince(start);
+  return PassageUpdate{overlay.TakeDelta(), summary};
+}
+
+}  // namespace crowdmap

@@ -20,7 +20,7 @@ enum class UpdateStrategy {
 };
 
 absl::StatusOr<UpdateStrategy> ParseUpdateStrategy(std::string_view name);
-std::string_view UpdateStrategyName(UpdateStrategy strategy);
+const char* UpdateStrategyName(UpdateStrategy strategy);
 
 struct MapUpdateOptions {
   UpdateStrategy strategy = UpdateStrategy::kCorrelatedSubdivided;

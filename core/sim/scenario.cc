@@ -1,1 +1,212 @@
-// in progress
+#include "core/sim/scenario.h"
+
+#include <algorithm>
+#include <cmath>
+#include <random>
+
+#include "absl/strings/str_cat.h"
+#include "core/model/camera_model.h"
+
+namespace crowdmap {
+namespace {
+
+// Route curvature profile: (duration s, curvature 1/m) pieces, blended smoothly. A road-like
+// loop segment: long straights, gentle bends, two tighter turns; about 165 s at about 12 m/s.
+struct CurvePiece {
+  double duration_s;
+  double curvature_per_m;
+};
+constexpr CurvePiece kRoute[] = {
+    {14.0, 0.0},        {9.0, 1.0 / 180.0}, {16.0, 0.0},          {11.0, -1.0 / 120.0}, {12.0, 0.0},
+    {7.0, 1.0 / 60.0},  {18.0, 0.0},        {10.0, -1.0 / 250.0}, {14.0, 0.0},          {8.0, 1.0 / 70.0},
+    {15.0, 0.0},        {9.0, -1.0 / 90.0}, {22.0, 0.0},
+};
+constexpr double kTransitionS = 3.0;  // curvature ramps (clothoid-like) between pieces
+constexpr double kMeanSpeedMps = 12.0;
+
+double CurvatureAt(double t) {
+  // Piecewise-constant profile smoothed with a raised-cosine ramp centred on each boundary.
+  double start = 0.0, value = kRoute[0].curvature_per_m;
+  for (size_t i = 1; i < std::size(kRoute); ++i) {
+    start += kRoute[i - 1].duration_s;
+    const double w = std::clamp((t - start + 0.5 * kTransitionS) / kTransitionS, 0.0, 1.0);
+    value += (kRoute[i].curvature_per_m - kRoute[i - 1].curvature_per_m) * 0.5 * (1.0 - std::cos(M_PI * w));
+  }
+  return value;
+}
+
+double SpeedAt(double t) { return kMeanSpeedMps + 1.5 * std::sin(2.0 * M_PI * t / 70.0) + 0.5 * std::sin(2.0 * M_PI * t / 23.0); }
+
+uint64_t SplitMix64(uint64_t x) {
+  x += 0x9E3779B97F4A7C15ull;
+  x = (x ^ (x >> 30)) * 0xBF58476D1CE4E5B9ull;
+  x = (x ^ (x >> 27)) * 0x94D049BB133111EBull;
+  return x ^ (x >> 31);
+}
+
+// The thesis's four real traffic signs stand at fixed places; the others are random but depend
+// only on their index, so a scenario with more landmarks extends one with fewer.
+struct LandmarkPlacement {
+  double arc_fraction;
+  double lateral_m;  // left of the road (negative: right)
+};
+constexpr LandmarkPlacement kFixedLandmarks[] = {{0.12, 4.5}, {0.37, -5.0}, {0.61, 3.5}, {0.86, -4.0}};
+
+LandmarkPlacement RandomPlacement(int index) {
+  std::mt19937_64 rng(SplitMix64(0xC0FFEEull + static_cast<uint64_t>(index)));
+  std::uniform_real_distribution<double> along(0.03, 0.97), offset(3.0, 8.0), side(0.0, 1.0);
+  const double arc = along(rng);
+  const double lateral = offset(rng) * (side(rng) < 0.5 ? 1.0 : -1.0);
+  return {arc, lateral};
+}
+
+}  // namespace
+
+absl::StatusOr<NoiseConfig> ParseNoiseConfig(std::string_view name) {
+  if (name == "white") return NoiseConfig::kWhite;
+  if (name == "gnss-ar1") return NoiseConfig::kGnssAr1;
+  if (name == "yaw-bias") return NoiseConfig::kYawBias;
+  if (name == "ar1+yaw") return NoiseConfig::kGnssAr1YawBias;
+  return absl::InvalidArgumentError(
+      absl::StrCat("noise: unknown '", std::string(name), "' (expected white, gnss-ar1, yaw-bias or ar1+yaw)"));
+}
+
+const char* NoiseConfigName(NoiseConfig config) {
+  switch (config) {
+    case NoiseConfig::kWhite:
+      return "white";
+    case NoiseConfig::kGnssAr1:
+      return "gnss-ar1";
+    case NoiseConfig::kYawBias:
+      return "yaw-bias";
+    case NoiseConfig::kGnssAr1YawBias:
+      return "ar1+yaw";
+  }
+  return "?";
+}
+
+absl::Status ScenarioOptions::Validate() const {
+  if (landmarks < 1) return absl::InvalidArgumentError(absl::StrCat("landmarks: must be >= 1, got ", landmarks));
+  if (!(duration_s > 1.0)) return absl::InvalidArgumentError("duration_s: must be > 1");
+  if (!(odometry_rate_hz > 0) || !(gnss_rate_hz > 0) || !(camera_rate_hz > 0)) {
+    return absl::InvalidArgumentError("sensor rates must be > 0");
+  }
+  if (!(gnss_sigma_m > 0)) return absl::InvalidArgumentError("gnss_sigma_m: must be > 0");
+  if (!(gnss_ar1_alpha >= 0.0 && gnss_ar1_alpha < 1.0)) {
+    return absl::InvalidArgumentError("gnss_ar1_alpha: must lie in [0, 1)");
+  }
+  if (std::abs(origin.lat_deg) > 85.0 || std::abs(origin.lon_deg) > 180.0) {
+    return absl::InvalidArgumentError("origin: latitude must lie in [-85, 85] and longitude in [-180, 180]");
+  }
+  return absl::OkStatus();
+}
+
+Scenario::Scenario(const ScenarioOptions& options) : options_(options), frame_(options.origin) {}
+
+absl::StatusOr<Scenario> Scenario::Create(const ScenarioOptions& options) {
+  if (absl::Status s = options.Validate(); !s.ok()) return s;
+  Scenario sc(options);
+  const double dt = 1.0 / options.odometry_rate_hz;
+  const double wheelbase = options.calibration.wheelbase_m;
+  const int steps = static_cast<int>(std::ceil(options.duration_s * options.odometry_rate_hz)) + 1;
+  // The route starts heading north-east; inputs are sampled at the odometry rate and held.
+  Pose2 pose(0.0, 0.0, M_PI / 4);
+  std::vector<double> arc(steps, 0.0);
+  for (int j = 0; j < steps; ++j) {
+    const double t = j * dt;
+    const double v = SpeedAt(t);
+    const double steering = std::asin(std::clamp(CurvatureAt(t) * wheelbase, -0.9, 0.9));
+    sc.true_poses_.push_back(pose);
+    sc.true_inputs_.push_back({t, v, steering});
+    if (j > 0) arc[j] = arc[j - 1] + sc.true_inputs_[j - 1].speed_mps * dt;
+    pose = BicycleStep(pose, v, steering, dt, wheelbase);
+  }
+  sc.route_length_m_ = arc.back();
+
+  for (int k = 0; k < options.landmarks; ++k) {
+    const LandmarkPlacement place = k < static_cast<int>(std::size(kFixedLandmarks)) ? kFixedLandmarks[k]
+                                                                                     : RandomPlacement(k);
+    const double s = place.arc_fraction * sc.route_length_m_;
+    const int j = static_cast<int>(std::lower_bound(arc.begin(), arc.end(), s) - arc.begin());
+    const Pose2& p = sc.true_poses_[std::min(j, steps - 1)];
+    TruthLandmark lm;
+    lm.id = k + 1;
+    lm.position_m = p.head<2>() + place.lateral_m * Eigen::Vector2d(-std::sin(p.z()), std::cos(p.z()));
+    lm.position = sc.frame_.ToGeo(lm.position_m);
+    sc.landmarks_.push_back(lm);
+  }
+  return sc;
+}
+
+Pose2 Scenario::TruePoseAt(double t) const {
+  const double dt = 1.0 / options_.odometry_rate_hz;
+  const int j = std::clamp(static_cast<int>(std::floor(t / dt + 1e-9)), 0, static_cast<int>(true_poses_.size()) - 1);
+  const double rest = t - true_inputs_[j].t_s;
+  if (rest <= 0.0) return true_poses_[j];
+  return BicycleStep(true_poses_[j], true_inputs_[j].speed_mps, true_inputs_[j].steering_rad, rest,
+                     options_.calibration.wheelbase_m);
+}
+
+Passage Scenario::MakePassage(int index) const {
+  const ScenarioOptions& o = options_;
+  std::mt19937_64 rng(SplitMix64(SplitMix64(o.seed) ^ static_cast<uint64_t>(index)));
+  std::normal_distribution<double> normal(0.0, 1.0);
+
+  Passage p;
+  p.vehicle_id = absl::StrCat("sim-", index % 1000);
+  p.passage_id = absl::StrCat("p", index);
+  p.start_time_unix_ms = 1767225600000LL + static_cast<int64_t>(index) * 200000;
+  p.calibration = o.calibration;
+  p.noise = o.noise_model;
+
+  for (const OdometrySample& truth : true_inputs_) {
+    if (truth.t_s > o.duration_s + 1e-9) break;
+    p.odometry.push_back({truth.t_s, truth.speed_mps + o.noise_model.speed_sigma_mps * normal(rng),
+                          truth.steering_rad + o.noise_model.steering_sigma_rad * normal(rng)});
+  }
+
+  const bool ar1 = o.noise == NoiseConfig::kGnssAr1 || o.noise == NoiseConfig::kGnssAr1YawBias;
+  const double beta = std::sqrt(1.0 - o.gnss_ar1_alpha * o.gnss_ar1_alpha);
+  Eigen::Vector2d error(o.gnss_sigma_m * normal(rng), o.gnss_sigma_m * normal(rng));  // stationary start
+  const int fixes = static_cast<int>(std::floor(o.duration_s * o.gnss_rate_hz + 1e-9)) + 1;
+  for (int k = 0; k < fixes; ++k) {
+    const double t = k / o.gnss_rate_hz;
+    if (k > 0) {
+      const Eigen::Vector2d w(o.gnss_sigma_m * normal(rng), o.gnss_sigma_m * normal(rng));
+      error = ar1 ? Eigen::Vector2d(o.gnss_ar1_alpha * error + beta * w) : w;
+    }
+    const Pose2 pose = TruePoseAt(t);
+    const double c = std::cos(pose.z()), s = std::sin(pose.z());
+    const Eigen::Vector2d& arm = o.calibration.gnss_lever_arm_m;
+    const Eigen::Vector2d antenna = pose.head<2>() + Eigen::Vector2d(c * arm.x() - s * arm.y(), s * arm.x() + c * arm.y());
+    const LatLon fix = frame_.ToGeo(antenna + error);
+    GnssFix g;
+    g.t_s = t;
+    g.lat_deg = fix.lat_deg;
+    g.lon_deg = fix.lon_deg;
+    g.cov_en_m2 = Eigen::Matrix2d::Identity() * o.gnss_sigma_m * o.gnss_sigma_m;
+    p.gnss.push_back(g);
+  }
+
+  const bool yaw_bias = o.noise == NoiseConfig::kYawBias || o.noise == NoiseConfig::kGnssAr1YawBias;
+  Calibration true_camera = o.calibration;
+  if (yaw_bias) true_camera.camera_yaw_rad += o.camera_yaw_bias_rad;
+  const int frames = static_cast<int>(std::floor(o.duration_s * o.camera_rate_hz + 1e-9)) + 1;
+  for (int k = 0; k < frames; ++k) {
+    const double t = k / o.camera_rate_hz;
+    const Pose2 pose = TruePoseAt(t);
+    for (const TruthLandmark& lm : landmarks_) {
+      const Eigen::Vector2d cam = LandmarkInCameraFrame(pose, lm.position_m, true_camera);
+      const double range = cam.norm();
+      if (cam.x() <= 0.0 || range < o.min_detection_range_m || range > o.max_detection_range_m) continue;
+      const double u_true = -true_camera.fx_px * cam.y() / cam.x() + true_camera.cx_px;
+      if (u_true < 0.0 || u_true > true_camera.image_width_px) continue;
+      const double u = u_true + o.noise_model.pixel_sigma_px * normal(rng);
+      if (u < 0.0 || u > true_camera.image_width_px) continue;  // a detector reports only inside the image
+      p.detections.push_back({t, lm.id, u});
+    }
+  }
+  return p;
+}
+
+}  // namespace crowdmap

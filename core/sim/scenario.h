@@ -22,7 +22,7 @@ enum class NoiseConfig {
 };
 
 absl::StatusOr<NoiseConfig> ParseNoiseConfig(std::string_view name);
-std::string_view NoiseConfigName(NoiseConfig config);
+const char* NoiseConfigName(NoiseConfig config);
 
 // The thesis's reference scenario (DESIGN section 8). Defaults are the thesis values.
 struct ScenarioOptions {

@@ -1,0 +1,128 @@
+#include "client/mapsim/experiment.h"
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <filesystem>
+#include <fstream>
+
+#include <spdlog/spdlog.h>
+
+#include "absl/strings/str_cat.h"
+#include "absl/strings/str_format.h"
+#include "client/mapsim/svg_plot.h"
+#include "core/estimation/triangulation.h"
+
+namespace crowdmap {
+namespace {
+
+double Median(std::vector<double> v) {
+  if (v.empty()) return 0.0;
+  std::nth_element(v.begin(), v.begin() + v.size() / 2, v.end());
+  return v[v.size() / 2];
+}
+
+std::string JsonNumber(double v) { return std::isfinite(v) ? absl::StrFormat("%.6g", v) : "null"; }
+
+}  // namespace
+
+absl::Status ExperimentOptions::Validate() const {
+  if (passages < 1) return absl::InvalidArgumentError(absl::StrCat("passages: must be >= 1, got ", passages));
+  if (strategy != "triangulation") {
+    absl::StatusOr<UpdateStrategy> s = ParseUpdateStrategy(strategy);
+    if (!s.ok()) return s.status();
+  }
+  if (absl::Status s = scenario.Validate(); !s.ok()) return s;
+  return update.Validate();
+}
+
+absl::StatusOr<ExperimentResult> RunExperiment(const ExperimentOptions& options, const ExperimentProgress& progress) {
+  if (absl::Status s = options.Validate(); !s.ok()) return s;
+  absl::StatusOr<Scenario> scenario = Scenario::Create(options.scenario);
+  if (!scenario.ok()) return scenario.status();
+
+  const bool triangulation = options.strategy == "triangulation";
+  MapUpdateOptions update = options.update;
+  if (!triangulation) update.strategy = *ParseUpdateStrategy(options.strategy);
+  TriangulationMapper triangulation_mapper;
+
+  ExperimentResult result;
+  std::vector<double> times;
+  for (int i = 0; i < options.passages; ++i) {
+    const Passage passage = scenario->MakePassage(i);
+    PassageRecord record;
+    record.passage = i + 1;
+    const auto start = std::chrono::steady_clock::now();
+    if (triangulation) {
+      if (absl::Status s = triangulation_mapper.AddPassage(passage); !s.ok()) {
+        ++result.failed_passages;
+        spdlog::warn("passage={} rejected: {}", passage.passage_id, s.ToString());
+      }
+      record.subgraphs = 1;
+    } else {
+      absl::StatusOr<PassageUpdate> u = ComputePassageUpdate(passage, update, result.final_map);
+      if (u.ok()) {
+        result.final_map.Apply(u->delta);
+        record.subgraphs = u->summary.subgraphs;
+      } else {
+        ++result.failed_passages;
+        spdlog::warn("passage={} rejected: {}", passage.passage_id, u.status().ToString());
+      }
+    }
+    record.solve_ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
+    record.metrics = EvaluateMap(triangulation ? triangulation_mapper.map() : result.final_map, scenario->landmarks());
+    times.push_back(record.solve_ms);
+    result.records.push_back(record);
+    if (progress) progress(record);
+  }
+  if (triangulation) result.final_map = triangulation_mapper.map();
+
+  const size_t tail = std::max<size_t>(1, result.records.size() / 10);
+  double nees = 0.0;
+  for (size_t k = result.records.size() - tail; k < result.records.size(); ++k) nees += result.records[k].metrics.nees_per_dof;
+  result.final_nees_per_dof = nees / tail;
+  result.final_mean_dist_err_m = result.records.back().metrics.mean_dist_err_m;
+  result.median_passage_ms = Median(times);
+  return result;
+}
+
+absl::Status WriteExperimentOutputs(const ExperimentOptions& options, const ExperimentResult& result,
+                                    const std::string& dir) {
+  std::error_code ec;
+  std::filesystem::create_directories(dir, ec);
+  if (ec) return absl::InternalError(absl::StrCat("cannot create ", dir, ": ", ec.message()));
+
+  std::ofstream csv(std::filesystem::path(dir) / "passages.csv");
+  csv << "passage,mean_dist_err_m,mean_east_err_m,mean_north_err_m,east_3sigma_m,north_3sigma_m,nees_per_dof,"
+         "solve_ms,subgraphs\n";
+  for (const PassageRecord& r : result.records) {
+    const MapErrorMetrics& m = r.metrics;
+    csv << absl::StrFormat("%d,%.6f,%.6f,%.6f,%.6f,%.6f,%.6f,%.3f,%d\n", r.passage, m.mean_dist_err_m,
+                           m.mean_east_err_m, m.mean_north_err_m, m.east_3sigma_m, m.north_3sigma_m, m.nees_per_dof,
+                           r.solve_ms, r.subgraphs);
+  }
+  if (!csv) return absl::InternalError(absl::StrCat("cannot write ", dir, "/passages.csv"));
+
+  std::ofstream json(std::filesystem::path(dir) / "summary.json");
+  json << "{\n"
+       << absl::StrFormat("  \"strategy\": \"%s\",\n", options.strategy)
+       << absl::StrFormat("  \"noise\": \"%s\",\n", NoiseConfigName(options.scenario.noise))
+       << absl::StrFormat("  \"seed\": %d,\n", options.scenario.seed)
+       << absl::StrFormat("  \"landmarks\": %d,\n", options.scenario.landmarks)
+       << absl::StrFormat("  \"passages\": %d,\n", options.passages)
+       << absl::StrFormat("  \"failed_passages\": %d,\n", result.failed_passages)
+       << absl::StrFormat("  \"max_subgraph_dim\": %d,\n", options.update.max_subgraph_dim)
+       << absl::StrFormat("  \"detections_per_landmark\": %d,\n", options.update.detections_per_landmark)
+       << "  \"final_mean_dist_err_m\": " << JsonNumber(result.final_mean_dist_err_m) << ",\n"
+       << "  \"final_nees_per_dof\": " << JsonNumber(result.final_nees_per_dof) << ",\n"
+       << "  \"median_passage_ms\": " << JsonNumber(result.median_passage_ms) << "\n"
+       << "}\n";
+  if (!json) return absl::InternalError(absl::StrCat("cannot write ", dir, "/summary.json"));
+
+  return WriteErrorPlot(result.records,
+                        absl::StrFormat("%s, N=%d, %s noise, seed %d", options.strategy, options.scenario.landmarks,
+                                        NoiseConfigName(options.scenario.noise), options.scenario.seed),
+                        (std::filesystem::path(dir) / "errors.svg").string());
+}
+
+}  // namespace crowdmap

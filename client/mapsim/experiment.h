@@ -1,0 +1,56 @@
+#ifndef CROWDMAP_CLIENT_MAPSIM_EXPERIMENT_H_
+#define CROWDMAP_CLIENT_MAPSIM_EXPERIMENT_H_
+
+#include <functional>
+#include <string>
+#include <vector>
+
+#include "absl/status/statusor.h"
+#include "core/estimation/map_updater.h"
+#include "core/map/map_state.h"
+#include "core/sim/metrics.h"
+#include "core/sim/scenario.h"
+
+namespace crowdmap {
+
+// One simulated crowdsourcing run: P passages of the thesis scenario applied in order to an
+// initially empty map with one strategy (cc, dc, cc-gsd, or the triangulation baseline).
+struct ExperimentOptions {
+  ScenarioOptions scenario;
+  int passages = 100;
+  std::string strategy = "cc-gsd";  // cc | dc | cc-gsd | triangulation
+  MapUpdateOptions update;          // strategy field is set from `strategy`
+
+  absl::Status Validate() const;
+};
+
+// Map quality after one passage, and what the passage cost.
+struct PassageRecord {
+  int passage = 0;  // 1-based
+  MapErrorMetrics metrics;
+  double solve_ms = 0.0;  // wall time to apply the passage (graph, solves, covariance, update)
+  int subgraphs = 0;
+};
+
+struct ExperimentResult {
+  std::vector<PassageRecord> records;
+  MapState final_map;
+  double final_mean_dist_err_m = 0.0;
+  double final_nees_per_dof = 0.0;  // mean over the last 10% of passages
+  double median_passage_ms = 0.0;
+  int failed_passages = 0;          // passages the estimator rejected (the map is unchanged by them)
+};
+
+// Called after each passage with the record; used for progress output.
+using ExperimentProgress = std::function<void(const PassageRecord&)>;
+
+absl::StatusOr<ExperimentResult> RunExperiment(const ExperimentOptions& options,
+                                               const ExperimentProgress& progress = nullptr);
+
+// Writes DIR/passages.csv, DIR/summary.json and DIR/errors.svg.
+absl::Status WriteExperimentOutputs(const ExperimentOptions& options, const ExperimentResult& result,
+                                    const std::string& dir);
+
+}  // namespace crowdmap
+
+#endif  // CROWDMAP_CLIENT_MAPSIM_EXPERIMENT_H_

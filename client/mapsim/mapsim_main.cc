@@ -1,0 +1,136 @@
+// mapsim: simulation front end. `experiment` runs simulated passages through the estimation core
+// in-process; `reproduce` runs the thesis's result grids.
+#include <iostream>
+#include <string>
+#include <vector>
+
+#include <spdlog/spdlog.h>
+
+#include "absl/strings/str_format.h"
+#include "client/common/flags.h"
+#include "client/mapsim/experiment.h"
+#include "client/mapsim/reproduce.h"
+
+namespace crowdmap {
+namespace {
+
+constexpr char kUsage[] = R"(mapsim: simulate crowdsourced landmark mapping (thesis scenario).
+
+Usage:
+  mapsim experiment [flags]   run passages through the estimation core in-process
+  mapsim reproduce  [flags]   run the thesis's table 5.2 and robustness grids
+
+experiment flags:
+  --landmarks N               landmarks along the 2 km route (default 25)
+  --passages P                simulated passages, applied in order (default 100)
+  --strategy S                cc | dc | cc-gsd | triangulation (default cc-gsd)
+  --noise X                   white | gnss-ar1 | yaw-bias | ar1+yaw (default white)
+  --seed S                    noise seed; the route and landmarks do not depend on it (default 1)
+  --out DIR                   output folder (default out/experiment): passages.csv, summary.json, errors.svg
+  --max-subgraph-dim D        cc-gsd state-dimension bound per subgraph (default 500)
+  --detections-per-landmark K last K detections per landmark and passage, 0 = all (default 5)
+  --correlation-radius-m R    keep cross-covariances only within R metres (default: dense)
+  --quiet                     no progress line
+
+reproduce flags:
+  --out DIR                   output folder (default out/reproduce); writes DIR/reproduction.md
+  --passages P                passages per experiment (default 1000)
+  --jobs J                    experiments run in parallel (default 2)
+  --seed S                    noise seed (default 1)
+)";
+
+absl::Status RunExperimentCommand(const std::vector<std::string>& args) {
+  absl::StatusOr<Flags> flags = Flags::Parse(args, {{"landmarks", true}, {"passages", true}, {"strategy", true},
+                                                    {"noise", true}, {"seed", true}, {"out", true},
+                                                    {"max-subgraph-dim", true}, {"detections-per-landmark", true},
+                                                    {"correlation-radius-m", true}, {"quiet", false}});
+  if (!flags.ok()) return flags.status();
+  ExperimentOptions options;
+  absl::StatusOr<long long> landmarks = flags->GetInt("landmarks", 25), passages = flags->GetInt("passages", 100),
+                            seed = flags->GetInt("seed", 1), dim = flags->GetInt("max-subgraph-dim", 500),
+                            per_landmark = flags->GetInt("detections-per-landmark", 5);
+  absl::StatusOr<double> radius = flags->GetDouble("correlation-radius-m", options.update.correlation_radius_m);
+  for (const absl::Status& s : {landmarks.status(), passages.status(), seed.status(), dim.status(),
+                                per_landmark.status(), radius.status()}) {
+    if (!s.ok()) return s;
+  }
+  absl::StatusOr<NoiseConfig> noise = ParseNoiseConfig(flags->GetString("noise", "white"));
+  if (!noise.ok()) return noise.status();
+  options.scenario.landmarks = static_cast<int>(*landmarks);
+  options.scenario.noise = *noise;
+  options.scenario.seed = static_cast<uint64_t>(*seed);
+  options.passages = static_cast<int>(*passages);
+  options.strategy = flags->GetString("strategy", "cc-gsd");
+  options.update.max_subgraph_dim = static_cast<int>(*dim);
+  options.update.detections_per_landmark = static_cast<int>(*per_landmark);
+  options.update.correlation_radius_m = *radius;
+  const std::string out = flags->GetString("out", "out/experiment");
+  const bool quiet = flags->Has("quiet");
+
+  const int every = std::max(1, options.passages / 20);
+  auto progress = [&](const PassageRecord& r) {
+    if (quiet || (r.passage % every != 0 && r.passage != options.passages)) return;
+    std::cerr << absl::StrFormat("\rpassage %d/%d  error %.3f m  nees %.2f  %.1f ms/passage   ", r.passage,
+                                 options.passages, r.metrics.mean_dist_err_m, r.metrics.nees_per_dof, r.solve_ms)
+              << std::flush;
+  };
+  absl::StatusOr<ExperimentResult> result = RunExperiment(options, progress);
+  if (!quiet) std::cerr << "\n";
+  if (!result.ok()) return result.status();
+  if (absl::Status s = WriteExperimentOutputs(options, *result, out); !s.ok()) return s;
+  std::cout << absl::StrFormat(
+      "strategy=%s noise=%s landmarks=%d passages=%d final_mean_dist_err_m=%.4f final_nees_per_dof=%.3f "
+      "median_passage_ms=%.2f failed=%d out=%s\n",
+      options.strategy, NoiseConfigName(options.scenario.noise), options.scenario.landmarks, options.passages,
+      result->final_mean_dist_err_m, result->final_nees_per_dof, result->median_passage_ms, result->failed_passages, out);
+  return absl::OkStatus();
+}
+
+absl::Status RunReproduceCommand(const std::vector<std::string>& args) {
+  absl::StatusOr<Flags> flags = Flags::Parse(args, {{"out", true}, {"passages", true}, {"jobs", true}, {"seed", true}});
+  if (!flags.ok()) return flags.status();
+  ReproduceOptions options;
+  absl::StatusOr<long long> passages = flags->GetInt("passages", options.passages),
+                            jobs = flags->GetInt("jobs", options.jobs), seed = flags->GetInt("seed", 1);
+  for (const absl::Status& s : {passages.status(), jobs.status(), seed.status()}) {
+    if (!s.ok()) return s;
+  }
+  options.out_dir = flags->GetString("out", options.out_dir);
+  options.passages = static_cast<int>(*passages);
+  options.jobs = static_cast<int>(*jobs);
+  options.seed = static_cast<uint64_t>(*seed);
+  return RunReproduction(options);
+}
+
+}  // namespace
+}  // namespace crowdmap
+
+int main(int argc, char** argv) {
+  std::vector<std::string> args(argv + 1, argv + argc);
+  if (args.empty() || args[0] == "--help" || args[0] == "-h" || args[0] == "help") {
+    std::cout << crowdmap::kUsage;
+    return args.empty() ? 2 : 0;
+  }
+  const std::string command = args[0];
+  args.erase(args.begin());
+  for (const std::string& a : args) {
+    if (a == "--help" || a == "-h") {
+      std::cout << crowdmap::kUsage;
+      return 0;
+    }
+  }
+  absl::Status status;
+  if (command == "experiment") {
+    status = crowdmap::RunExperimentCommand(args);
+  } else if (command == "reproduce") {
+    status = crowdmap::RunReproduceCommand(args);
+  } else {
+    std::cerr << "mapsim: unknown command '" << command << "' (see mapsim --help)\n";
+    return 2;
+  }
+  if (!status.ok()) {
+    std::cerr << "mapsim " << command << ": " << status.message() << "\n";
+    return 1;
+  }
+  return 0;
+}

@@ -1,0 +1,116 @@
+#ifndef CROWDMAP_CORE_ESTIMATION_FACTORS_H_
+#define CROWDMAP_CORE_ESTIMATION_FACTORS_H_
+
+#include <vector>
+
+#include <Eigen/Core>
+#include <ceres/ceres.h>
+
+#include "core/model/camera_model.h"
+#include "core/model/motion_model.h"
+#include "core/model/passage.h"
+
+namespace crowdmap {
+
+// Square-root information S of a covariance C (S^T S = C^-1), so that S r is whitened.
+Eigen::MatrixXd SqrtInformation(const Eigen::MatrixXd& cov);
+
+template <typename T>
+T NormalizeAngle(const T& a) {
+  using std::floor;
+  return a - T(2.0 * M_PI) * floor((a + T(M_PI)) / T(2.0 * M_PI));
+}
+
+// Relative motion between consecutive poses a -> b from preintegrated odometry. Residual, in the
+// frame of pose a: (R(theta_a)^T (p_b - p_a) - delta_xy, wrap(theta_b - theta_a - delta_theta)),
+// whitened by the preintegration covariance. Blocks: pose a (3), pose b (3).
+class OdometryFactor {
+ public:
+  OdometryFactor(const Pose2& delta, const Eigen::Matrix3d& sqrt_info) : delta_(delta), sqrt_info_(sqrt_info) {}
+
+  template <typename T>
+  bool operator()(const T* a, const T* b, T* residual) const {
+    const T c = cos(a[2]), s = sin(a[2]);
+    const T dx = b[0] - a[0], dy = b[1] - a[1];
+    Eigen::Matrix<T, 3, 1> r;
+    r << c * dx + s * dy - T(delta_.x()), -s * dx + c * dy - T(delta_.y()),
+        NormalizeAngle(b[2] - a[2] - T(delta_.z()));
+    Eigen::Map<Eigen::Matrix<T, 3, 1>> out(residual);
+    out = sqrt_info_.cast<T>() * r;
+    return true;
+  }
+
+  static ceres::CostFunction* Create(const RelativeMotion& motion);
+
+ private:
+  Pose2 delta_;
+  Eigen::Matrix3d sqrt_info_;
+};
+
+// GNSS antenna position: residual p + R(theta) lever_arm - y, whitened by the fix covariance
+// (expressed in the estimation frame). Block: pose (3).
+class GnssFactor {
+ public:
+  GnssFactor(const Eigen::Vector2d& measured, const Eigen::Vector2d& lever_arm, const Eigen::Matrix2d& sqrt_info)
+      : measured_(measured), lever_arm_(lever_arm), sqrt_info_(sqrt_info) {}
+
+  template <typename T>
+  bool operator()(const T* pose, T* residual) const {
+    const T c = cos(pose[2]), s = sin(pose[2]);
+    Eigen::Matrix<T, 2, 1> r;
+    r << pose[0] + c * T(lever_arm_.x()) - s * T(lever_arm_.y()) - T(measured_.x()),
+        pose[1] + s * T(lever_arm_.x()) + c * T(lever_arm_.y()) - T(measured_.y());
+    Eigen::Map<Eigen::Matrix<T, 2, 1>> out(residual);
+    out = sqrt_info_.cast<T>() * r;
+    return true;
+  }
+
+  static ceres::CostFunction* Create(const Eigen::Vector2d& measured, const Eigen::Matrix2d& cov,
+                                     const Eigen::Vector2d& lever_arm);
+
+ private:
+  Eigen::Vector2d measured_;
+  Eigen::Vector2d lever_arm_;
+  Eigen::Matrix2d sqrt_info_;
+};
+
+// One detection: residual (u_predicted - u_measured) / sigma_px. Blocks: pose (3), landmark (2).
+class CameraFactor {
+ public:
+  CameraFactor(double u_px, double sigma_px, const Calibration& calib)
+      : u_px_(u_px), inv_sigma_(1.0 / sigma_px), calib_(calib) {}
+
+  template <typename T>
+  bool operator()(const T* pose, const T* landmark, T* residual) const {
+    T u;
+    if (!ProjectLandmark(pose, landmark, calib_, &u)) return false;
+    residual[0] = (u - T(u_px_)) * T(inv_sigma_);
+    return true;
+  }
+
+  static ceres::CostFunction* Create(double u_px, double sigma_px, const Calibration& calib);
+
+ private:
+  double u_px_;
+  double inv_sigma_;
+  Calibration calib_;
+};
+
+// Gaussian prior on k landmarks jointly: residual S (x - mean), x the stacked landmark positions,
+// S the square-root information of their joint covariance. With k = 1 this is one DC prior; with
+// all map landmarks of a graph it is the CC prior. Blocks: k landmarks (2 each). Linear, so the
+// Jacobian is exact: the column block of S for each landmark.
+class LandmarkPriorFactor : public ceres::CostFunction {
+ public:
+  LandmarkPriorFactor(const Eigen::VectorXd& mean, const Eigen::MatrixXd& sqrt_info);
+
+  bool Evaluate(double const* const* parameters, double* residuals, double** jacobians) const override;
+
+ private:
+  Eigen::VectorXd mean_;
+  Eigen::MatrixXd sqrt_info_;
+};
+
+}  // namespace crowdmap
+
+#endif  // CROWDMAP_CORE_ESTIMATION_FACTORS_H_

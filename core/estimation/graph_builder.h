@@ -1,0 +1,52 @@
+#ifndef CROWDMAP_CORE_ESTIMATION_GRAPH_BUILDER_H_
+#define CROWDMAP_CORE_ESTIMATION_GRAPH_BUILDER_H_
+
+#include <vector>
+
+#include "absl/status/statusor.h"
+#include "core/geo/local_frame.h"
+#include "core/model/motion_model.h"
+#include "core/model/passage.h"
+
+namespace crowdmap {
+
+struct GraphOptions {
+  // Detections used per landmark: the last K of the passage (0 = all).
+  int detections_per_landmark = 5;
+  // Measurement times closer than this share one pose node.
+  double node_merge_tolerance_s = 1e-3;
+  int max_init_iterations = 50;
+};
+
+struct GnssObservation {
+  int node = 0;
+  Eigen::Vector2d position_m;  // antenna position in the graph frame
+  Eigen::Matrix2d cov_m2;      // in the graph frame
+};
+
+struct CameraObservation {
+  int node = 0;
+  LandmarkId landmark_id = 0;
+  double u_px = 0.0;
+};
+
+// A passage as a factor graph in its local East/North frame (origin: the first GNSS fix).
+struct PassageGraph {
+  LocalFrame frame{LatLon{}};
+  std::vector<double> node_times_s;            // union of GNSS and used-detection times
+  std::vector<Pose2> initial_poses;            // odometry + GNSS pose graph, solved
+  std::vector<RelativeMotion> motions;         // motions[k]: node k -> k+1
+  std::vector<GnssObservation> gnss;           // sorted by node
+  std::vector<CameraObservation> detections;   // used detections, sorted by node
+  int detections_dropped = 0;                  // detections not kept (beyond the last K)
+
+  int node_count() const { return static_cast<int>(node_times_s.size()); }
+};
+
+// Builds the graph of a validated passage and initialises its poses: positions and headings from
+// the GNSS track, then a Ceres solve of the odometry + GNSS pose graph (no landmarks).
+absl::StatusOr<PassageGraph> BuildPassageGraph(const Passage& passage, const GraphOptions& options);
+
+}  // namespace crowdmap
+
+#endif  // CROWDMAP_CORE_ESTIMATION_GRAPH_BUILDER_H_
