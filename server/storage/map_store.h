@@ -1,0 +1,151 @@
+#ifndef CROWDMAP_SERVER_STORAGE_MAP_STORE_H_
+#define CROWDMAP_SERVER_STORAGE_MAP_STORE_H_
+
+#include <cstdint>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include "absl/status/status.h"
+#include "absl/status/statusor.h"
+#include "core/geo/tiles.h"
+#include "core/map/map_state.h"
+
+namespace crowdmap {
+
+enum class PassageState { kQueued = 1, kProcessing = 2, kApplied = 3, kRejected = 4, kFailed = 5 };
+
+const char* PassageStateName(PassageState state);
+
+// Wall-clock time, milliseconds since the Unix epoch.
+int64_t NowUnixMs();
+
+// What applying a passage did (stored with the passage in the same transaction as the map change).
+struct PassageResult {
+  int nodes = 0;
+  int subgraphs = 0;
+  int landmarks_updated = 0;
+  int landmarks_created = 0;
+  int landmarks_conditioned = 0;
+  int detections_used = 0;
+  int detections_dropped = 0;
+  int solver_iterations = 0;
+  double final_cost = 0.0;
+  double solve_ms = 0.0;
+  double covariance_ms = 0.0;
+  double total_ms = 0.0;
+  int64_t map_version = 0;
+  std::string strategy;
+};
+
+// The store's record of one upload. `id` increases with arrival order.
+struct PassageRecord {
+  int64_t id = 0;
+  std::string vehicle_id;
+  std::string passage_id;
+  PassageState state = PassageState::kQueued;
+  int attempts = 0;
+  std::string error;
+  int64_t received_unix_ms = 0;
+  int64_t finished_unix_ms = 0;
+  int64_t size_bytes = 0;
+  std::optional<PassageResult> result;  // set when applied
+};
+
+// An upload to put on the queue: the idempotency key and the serialized passage.
+struct NewPassage {
+  std::string vehicle_id;
+  std::string passage_id;
+  std::string payload;
+  int64_t received_unix_ms = 0;
+};
+
+struct EnqueueOutcome {
+  PassageRecord record;
+  bool duplicate = false;  // the key existed: `record` is the original upload
+};
+
+// A passage the worker has taken off the queue (state processing, attempts incremented).
+struct ClaimedPassage {
+  PassageRecord record;
+  std::string payload;
+};
+
+struct PassageQuery {
+  int64_t after_id = 0;  // exclusive lower bound on the id (paging)
+  int limit = 100;
+  std::optional<PassageState> state;
+  std::string vehicle_id;  // empty = any
+};
+
+struct LandmarkPage {
+  std::vector<Landmark> landmarks;            // increasing id
+  std::vector<std::pair<LandmarkPair, Eigen::Matrix2d>> cross;  // among `landmarks`, first < second
+  int64_t map_version = 0;
+  bool more = false;  // further landmarks match after the last one returned
+};
+
+struct MapStats {
+  int64_t map_version = 0;
+  int64_t landmark_count = 0;
+  int64_t cross_count = 0;
+  int64_t passages_by_state[6] = {0, 0, 0, 0, 0, 0};  // indexed by PassageState
+  int64_t queue_depth() const { return passages_by_state[1] + passages_by_state[2]; }
+};
+
+// Persistent map and passage queue. Thread-safe: reads may run concurrently with one another and
+// with writes; writes are serialized. Every write is one durable transaction.
+class MapStoreInterface {
+ public:
+  virtual ~MapStoreInterface() = default;
+
+  // Commits new uploads in one transaction, in order. Per item: the outcome, or
+  // ResourceExhausted when the queue already holds `max_queue` passages (0 = unbounded).
+  // Duplicates of existing keys (or of earlier items) return the original record.
+  virtual absl::StatusOr<std::vector<absl::StatusOr<EnqueueOutcome>>> EnqueuePassages(
+      const std::vector<NewPassage>& passages, int64_t max_queue) = 0;
+
+  virtual absl::StatusOr<PassageRecord> GetPassage(int64_t id) = 0;
+  virtual absl::StatusOr<PassageRecord> FindPassage(const std::string& vehicle_id, const std::string& passage_id) = 0;
+  virtual absl::StatusOr<std::vector<PassageRecord>> ListPassages(const PassageQuery& query) = 0;
+  virtual absl::StatusOr<std::string> GetPassagePayload(int64_t id) = 0;
+
+  // Takes the oldest queued passage: state processing, attempts + 1. nullopt when none is queued.
+  virtual absl::StatusOr<std::optional<ClaimedPassage>> ClaimNextPassage() = 0;
+  // In one transaction: writes the map change, sets the map version to delta.version and marks
+  // the passage applied with its result. FailedPrecondition when the stored map version is not
+  // delta.base_version or the passage is not processing.
+  virtual absl::Status CommitPassageApplied(int64_t id, const MapDelta& delta, const PassageResult& result) = 0;
+  // Ends a processing passage without a map change: state `final_state` (rejected or failed)
+  // or queued (to retry), with the reason.
+  virtual absl::Status FinishPassageWithoutChange(int64_t id, PassageState state, const std::string& reason) = 0;
+  // Start-up recovery: every processing passage goes back to queued. Returns how many.
+  virtual absl::StatusOr<int> RequeueProcessingPassages() = 0;
+
+  // Loads the whole map (landmarks, cross blocks, version) into `map`.
+  virtual absl::Status LoadMap(MapState* map) = 0;
+  // Landmarks inside `box` with id > after_id, at most `limit`, with cross blocks on request.
+  virtual absl::StatusOr<LandmarkPage> QueryRegion(const BoundingBox& box, LandmarkId after_id, int limit,
+                                                   bool include_cross) = 0;
+  // Landmarks stored in the storage-zoom tile, with cross blocks on request.
+  virtual absl::StatusOr<LandmarkPage> GetTile(const TileId& tile, bool include_cross) = 0;
+  // Landmarks inside `box` whose version is greater than `since_version`.
+  virtual absl::StatusOr<LandmarkPage> ChangedLandmarks(const BoundingBox& box, int64_t since_version) = 0;
+  virtual absl::StatusOr<MapStats> GetStats() = 0;
+};
+
+struct SqliteMapStoreOptions {
+  int busy_timeout_ms = 5000;
+  // Upper bound on pooled read connections kept open (more may be opened under load).
+  int max_idle_readers = 32;
+
+  absl::Status Validate() const;
+};
+
+// Opens (creating and migrating when needed) the SQLite map store at `path`.
+absl::StatusOr<std::unique_ptr<MapStoreInterface>> CreateSqliteMapStore(const std::string& path,
+                                                                        const SqliteMapStoreOptions& options = {});
+
+}  // namespace crowdmap
+
+#endif  // CROWDMAP_SERVER_STORAGE_MAP_STORE_H_

@@ -1,0 +1,179 @@
+#include "server/storage/sqlite_db.h"
+
+#include <sqlite3.h>
+
+#include "absl/strings/str_cat.h"
+
+namespace crowdmap {
+namespace {
+
+absl::Status SqliteError(sqlite3* db, int rc, std::string_view what) {
+  const std::string message = absl::StrCat("sqlite ", std::string(what), ": ", db ? sqlite3_errmsg(db) : sqlite3_errstr(rc));
+  switch (rc & 0xff) {
+    case SQLITE_BUSY:
+    case SQLITE_LOCKED:
+      return absl::UnavailableError(message);
+    case SQLITE_CONSTRAINT:
+      return absl::AlreadyExistsError(message);
+    case SQLITE_CORRUPT:
+    case SQLITE_NOTADB:
+      return absl::DataLossError(message);
+    default:
+      return absl::InternalError(message);
+  }
+}
+
+}  // namespace
+
+SqliteStatement::~SqliteStatement() {
+  if (stmt_ == nullptr) return;
+  sqlite3_reset(stmt_);
+  sqlite3_clear_bindings(stmt_);
+}
+
+SqliteStatement& SqliteStatement::Bind(int index, int64_t value) {
+  sqlite3_bind_int64(stmt_, index, value);
+  return *this;
+}
+
+SqliteStatement& SqliteStatement::Bind(int index, double value) {
+  sqlite3_bind_double(stmt_, index, value);
+  return *this;
+}
+
+SqliteStatement& SqliteStatement::Bind(int index, std::string_view text) {
+  sqlite3_bind_text(stmt_, index, text.data(), static_cast<int>(text.size()), SQLITE_TRANSIENT);
+  return *this;
+}
+
+SqliteStatement& SqliteStatement::BindBlob(int index, std::string_view bytes) {
+  sqlite3_bind_blob64(stmt_, index, bytes.data(), bytes.size(), SQLITE_TRANSIENT);
+  return *this;
+}
+
+SqliteStatement& SqliteStatement::BindNull(int index) {
+  sqlite3_bind_null(stmt_, index);
+  return *this;
+}
+
+absl::StatusOr<bool> SqliteStatement::Step() {
+  const int rc = sqlite3_step(stmt_);
+  if (rc == SQLITE_ROW) return true;
+  if (rc == SQLITE_DONE) return false;
+  return SqliteError(db_, rc, absl::StrCat("step '", sqlite3_sql(stmt_), "'"));
+}
+
+absl::Status SqliteStatement::Run() {
+  auto row = Step();
+  if (!row.ok()) return row.status();
+  return absl::OkStatus();
+}
+
+int64_t SqliteStatement::Int(int column) const { return sqlite3_column_int64(stmt_, column); }
+double SqliteStatement::Double(int column) const { return sqlite3_column_double(stmt_, column); }
+bool SqliteStatement::IsNull(int column) const { return sqlite3_column_type(stmt_, column) == SQLITE_NULL; }
+
+std::string SqliteStatement::Text(int column) const {
+  const auto* p = reinterpret_cast<const char*>(sqlite3_column_text(stmt_, column));
+  return p ? std::string(p, sqlite3_column_bytes(stmt_, column)) : std::string();
+}
+
+std::string SqliteStatement::Blob(int column) const {
+  const auto* p = static_cast<const char*>(sqlite3_column_blob(stmt_, column));
+  return p ? std::string(p, sqlite3_column_bytes(stmt_, column)) : std::string();
+}
+
+absl::StatusOr<std::unique_ptr<SqliteConnection>> SqliteConnection::Open(const std::string& path,
+                                                                          int busy_timeout_ms, bool read_only) {
+  sqlite3* raw = nullptr;
+  // Readers open read-write (a WAL reader must be able to update the shared-memory index) and
+  // then switch to query_only.
+  const int flags = SQLITE_OPEN_READWRITE | (read_only ? 0 : SQLITE_OPEN_CREATE) | SQLITE_OPEN_NOMUTEX;
+  const int rc = sqlite3_open_v2(path.c_str(), &raw, flags, nullptr);
+  if (rc != SQLITE_OK) {
+    absl::Status status = SqliteError(raw, rc, absl::StrCat("open ", path));
+    sqlite3_close(raw);
+    return status;
+  }
+  std::unique_ptr<SqliteConnection> db(new SqliteConnection(raw));
+  sqlite3_extended_result_codes(raw, 1);
+  sqlite3_busy_timeout(raw, busy_timeout_ms);
+  // WAL lets readers proceed while the worker writes; FULL makes every commit durable before it
+  // is acknowledged. The journal mode is persistent, so read-only connections only check it.
+  if (!read_only) {
+    auto mode = db->Prepare("PRAGMA journal_mode=WAL");
+    if (!mode.ok()) return mode.status();
+    auto row = mode->Step();
+    if (!row.ok()) return row.status();
+    if (!*row || mode->Text(0) != "wal") return absl::InternalError(absl::StrCat("sqlite: cannot enable WAL on ", path));
+  }
+  if (auto s = db->Exec("PRAGMA synchronous=FULL; PRAGMA foreign_keys=ON;"); !s.ok()) return s;
+  if (read_only) {
+    if (auto s = db->Exec("PRAGMA query_only=1;"); !s.ok()) return s;
+  }
+  return db;
+}
+
+SqliteConnection::~SqliteConnection() {
+  for (auto& [sql, stmt] : cache_) sqlite3_finalize(stmt);
+  sqlite3_close(db_);
+}
+
+absl::Status SqliteConnection::Exec(const std::string& sql) {
+  char* error = nullptr;
+  const int rc = sqlite3_exec(db_, sql.c_str(), nullptr, nullptr, &error);
+  if (rc == SQLITE_OK) return absl::OkStatus();
+  absl::Status status = SqliteError(db_, rc, absl::StrCat("exec: ", error ? error : ""));
+  sqlite3_free(error);
+  return status;
+}
+
+absl::StatusOr<SqliteStatement> SqliteConnection::Prepare(const std::string& sql) {
+  auto it = cache_.find(sql);
+  if (it == cache_.end()) {
+    sqlite3_stmt* stmt = nullptr;
+    const int rc = sqlite3_prepare_v3(db_, sql.c_str(), static_cast<int>(sql.size()), SQLITE_PREPARE_PERSISTENT,
+                                      &stmt, nullptr);
+    if (rc != SQLITE_OK) return SqliteError(db_, rc, absl::StrCat("prepare '", sql, "'"));
+    it = cache_.emplace(sql, stmt).first;
+  }
+  return SqliteStatement(db_, it->second);
+}
+
+absl::StatusOr<int64_t> SqliteConnection::PragmaInt(const std::string& pragma) {
+  auto stmt = Prepare(absl::StrCat("PRAGMA ", pragma));
+  if (!stmt.ok()) return stmt.status();
+  auto row = stmt->Step();
+  if (!row.ok()) return row.status();
+  if (!*row) return absl::InternalError(absl::StrCat("PRAGMA ", pragma, " returned no row"));
+  return stmt->Int(0);
+}
+
+int64_t SqliteConnection::LastInsertRowId() const { return sqlite3_last_insert_rowid(db_); }
+int SqliteConnection::Changes() const { return sqlite3_changes(db_); }
+
+absl::StatusOr<SqliteWriteTransaction> SqliteWriteTransaction::Begin(SqliteConnection* db) {
+  if (auto s = db->Exec("BEGIN IMMEDIATE"); !s.ok()) return s;
+  return SqliteWriteTransaction(db);
+}
+
+SqliteWriteTransaction::~SqliteWriteTransaction() {
+  if (db_ != nullptr) db_->Exec("ROLLBACK").IgnoreError();
+}
+
+absl::Status SqliteWriteTransaction::Commit() {
+  absl::Status status = db_->Exec("COMMIT");
+  if (status.ok()) db_ = nullptr;
+  return status;
+}
+
+absl::StatusOr<SqliteReadTransaction> SqliteReadTransaction::Begin(SqliteConnection* db) {
+  if (auto s = db->Exec("BEGIN"); !s.ok()) return s;
+  return SqliteReadTransaction(db);
+}
+
+SqliteReadTransaction::~SqliteReadTransaction() {
+  if (db_ != nullptr) db_->Exec("COMMIT").IgnoreError();
+}
+
+}  // namespace crowdmap

@@ -1,0 +1,106 @@
+#ifndef CROWDMAP_SERVER_STORAGE_SQLITE_DB_H_
+#define CROWDMAP_SERVER_STORAGE_SQLITE_DB_H_
+
+#include <cstdint>
+#include <memory>
+#include <string>
+#include <string_view>
+#include <unordered_map>
+
+#include "absl/status/status.h"
+#include "absl/status/statusor.h"
+
+struct sqlite3;
+struct sqlite3_stmt;
+
+namespace crowdmap {
+
+// A prepared statement borrowed from a connection's cache; reset and unbound when it goes out of
+// scope so the next user starts clean. Bind indices are 1-based, column indices 0-based.
+class SqliteStatement {
+ public:
+  SqliteStatement(sqlite3* db, sqlite3_stmt* stmt) : db_(db), stmt_(stmt) {}
+  SqliteStatement(SqliteStatement&& other) noexcept : db_(other.db_), stmt_(other.stmt_) { other.stmt_ = nullptr; }
+  SqliteStatement(const SqliteStatement&) = delete;
+  SqliteStatement& operator=(const SqliteStatement&) = delete;
+  ~SqliteStatement();
+
+  SqliteStatement& Bind(int index, int64_t value);
+  SqliteStatement& Bind(int index, double value);
+  SqliteStatement& Bind(int index, std::string_view text);
+  SqliteStatement& BindBlob(int index, std::string_view bytes);
+  SqliteStatement& BindNull(int index);
+
+  // Advances; true when a row is available, false when done.
+  absl::StatusOr<bool> Step();
+  // Runs a statement that returns no rows.
+  absl::Status Run();
+
+  int64_t Int(int column) const;
+  double Double(int column) const;
+  std::string Text(int column) const;
+  std::string Blob(int column) const;
+  bool IsNull(int column) const;
+
+ private:
+  sqlite3* db_;
+  sqlite3_stmt* stmt_;
+};
+
+// One SQLite connection with a cache of prepared statements. Not thread-safe: one user at a time.
+class SqliteConnection {
+ public:
+  // Opens `path` (a writer creates it when missing and enables WAL), with busy_timeout and
+  // synchronous=FULL. A read-only connection requires an existing database.
+  static absl::StatusOr<std::unique_ptr<SqliteConnection>> Open(const std::string& path, int busy_timeout_ms,
+                                                                bool read_only);
+  ~SqliteConnection();
+  SqliteConnection(const SqliteConnection&) = delete;
+  SqliteConnection& operator=(const SqliteConnection&) = delete;
+
+  // Runs one or more statements without results.
+  absl::Status Exec(const std::string& sql);
+  // A cached prepared statement for `sql`.
+  absl::StatusOr<SqliteStatement> Prepare(const std::string& sql);
+  // Value of a pragma that returns one integer row (e.g. "user_version").
+  absl::StatusOr<int64_t> PragmaInt(const std::string& pragma);
+
+  int64_t LastInsertRowId() const;
+  int Changes() const;
+
+ private:
+  explicit SqliteConnection(sqlite3* db) : db_(db) {}
+  sqlite3* db_;
+  std::unordered_map<std::string, sqlite3_stmt*> cache_;
+};
+
+// BEGIN IMMEDIATE ... COMMIT; rolls back when destroyed uncommitted.
+class SqliteWriteTransaction {
+ public:
+  static absl::StatusOr<SqliteWriteTransaction> Begin(SqliteConnection* db);
+  SqliteWriteTransaction(SqliteWriteTransaction&& other) noexcept : db_(other.db_) { other.db_ = nullptr; }
+  SqliteWriteTransaction(const SqliteWriteTransaction&) = delete;
+  ~SqliteWriteTransaction();
+  absl::Status Commit();
+
+ private:
+  explicit SqliteWriteTransaction(SqliteConnection* db) : db_(db) {}
+  SqliteConnection* db_;
+};
+
+// BEGIN (deferred) ... COMMIT for a consistent multi-statement read snapshot.
+class SqliteReadTransaction {
+ public:
+  static absl::StatusOr<SqliteReadTransaction> Begin(SqliteConnection* db);
+  SqliteReadTransaction(SqliteReadTransaction&& other) noexcept : db_(other.db_) { other.db_ = nullptr; }
+  SqliteReadTransaction(const SqliteReadTransaction&) = delete;
+  ~SqliteReadTransaction();
+
+ private:
+  explicit SqliteReadTransaction(SqliteConnection* db) : db_(db) {}
+  SqliteConnection* db_;
+};
+
+}  // namespace crowdmap
+
+#endif  // CROWDMAP_SERVER_STORAGE_SQLITE_DB_H_

@@ -1,0 +1,345 @@
+// The map side of the SQLite map store: open, reader pool, map commit and map reads.
+#include "server/storage/sqlite_map_store.h"
+
+#include <cmath>
+#include <unordered_set>
+
+#include "absl/strings/str_cat.h"
+#include "server/storage/sqlite_schema.h"
+
+namespace crowdmap {
+namespace {
+
+constexpr char kLandmarkColumns[] =
+    "SELECT l.id, l.lat_deg, l.lon_deg, l.cov_ee, l.cov_en, l.cov_ne, l.cov_nn, l.version, l.passages_seen, "
+    "l.last_seen_unix_ms, l.state FROM landmarks l ";
+// Candidates from the R*Tree (float boxes, rounded outwards), then the exact test on the row.
+constexpr char kInBox[] =
+    "JOIN landmark_boxes b ON b.id = l.id "
+    "WHERE b.max_lat >= ?1 AND b.min_lat <= ?3 AND b.max_lon >= ?2 AND b.min_lon <= ?4 "
+    "AND l.lat_deg BETWEEN ?1 AND ?3 AND l.lon_deg BETWEEN ?2 AND ?4 ";
+
+Landmark LandmarkFromRow(const SqliteStatement& s) {
+  Landmark l;
+  l.id = s.Int(0);
+  l.position = LatLon{s.Double(1), s.Double(2)};
+  l.cov_en_m2 << s.Double(3), s.Double(4), s.Double(5), s.Double(6);
+  l.version = s.Int(7);
+  l.passages_seen = s.Int(8);
+  l.last_seen_unix_ms = s.Int(9);
+  l.state = static_cast<LandmarkState>(s.Int(10));
+  return l;
+}
+
+void BindBox(SqliteStatement& stmt, const BoundingBox& box) {
+  stmt.Bind(1, box.min_lat_deg).Bind(2, box.min_lon_deg).Bind(3, box.max_lat_deg).Bind(4, box.max_lon_deg);
+}
+
+absl::Status ReadLandmarks(SqliteStatement& stmt, LandmarkPage* page, int limit) {
+  while (true) {
+    auto row = stmt.Step();
+    if (!row.ok()) return row.status();
+    if (!*row) return absl::OkStatus();
+    if (limit > 0 && static_cast<int>(page->landmarks.size()) == limit) {
+      page->more = true;
+      return absl::OkStatus();
+    }
+    page->landmarks.push_back(LandmarkFromRow(stmt));
+  }
+}
+
+}  // namespace
+
+absl::Status SqliteMapStoreOptions::Validate() const {
+  if (busy_timeout_ms < 0) return absl::InvalidArgumentError("busy_timeout_ms must be >= 0");
+  if (max_idle_readers < 0) return absl::InvalidArgumentError("max_idle_readers must be >= 0");
+  return absl::OkStatus();
+}
+
+absl::StatusOr<std::unique_ptr<MapStoreInterface>> CreateSqliteMapStore(const std::string& path,
+                                                                        const SqliteMapStoreOptions& options) {
+  auto store = SqliteMapStore::Open(path, options);
+  if (!store.ok()) return store.status();
+  return std::unique_ptr<MapStoreInterface>(std::move(*store));
+}
+
+absl::StatusOr<std::unique_ptr<SqliteMapStore>> SqliteMapStore::Open(const std::string& path,
+                                                                    const SqliteMapStoreOptions& options) {
+  if (auto s = options.Validate(); !s.ok()) return s;
+  auto writer = SqliteConnection::Open(path, options.busy_timeout_ms, /*read_only=*/false);
+  if (!writer.ok()) return writer.status();
+  if (auto s = MigrateSchema(writer->get()); !s.ok()) return s;
+  return std::unique_ptr<SqliteMapStore>(new SqliteMapStore(path, options, std::move(*writer)));
+}
+
+SqliteMapStore::ReaderLease::~ReaderLease() {
+  if (db_ != nullptr) store_->ReleaseReader(std::move(db_));
+}
+
+absl::StatusOr<SqliteMapStore::ReaderLease> SqliteMapStore::AcquireReader() {
+  {
+    std::lock_guard<std::mutex> lock(readers_mu_);
+    if (!idle_readers_.empty()) {
+      std::unique_ptr<SqliteConnection> db = std::move(idle_readers_.back());
+      idle_readers_.pop_back();
+      return ReaderLease(this, std::move(db));
+    }
+  }
+  auto db = SqliteConnection::Open(path_, options_.busy_timeout_ms, /*read_only=*/true);
+  if (!db.ok()) return db.status();
+  return ReaderLease(this, std::move(*db));
+}
+
+void SqliteMapStore::ReleaseReader(std::unique_ptr<SqliteConnection> db) {
+  std::lock_guard<std::mutex> lock(readers_mu_);
+  if (static_cast<int>(idle_readers_.size()) < options_.max_idle_readers) idle_readers_.push_back(std::move(db));
+}
+
+absl::StatusOr<int64_t> SqliteMapStore::ReadMapVersion(SqliteConnection* db) {
+  auto stmt = db->Prepare("SELECT value FROM map_meta WHERE key = 'map_version'");
+  if (!stmt.ok()) return stmt.status();
+  auto row = stmt->Step();
+  if (!row.ok()) return row.status();
+  if (!*row) return absl::DataLossError("map_meta has no map_version");
+  return stmt->Int(0);
+}
+
+absl::Status SqliteMapStore::WriteLandmark(SqliteConnection* db, const Landmark& l) {
+  if (!std::isfinite(l.position.lat_deg) || !std::isfinite(l.position.lon_deg) || !l.cov_en_m2.allFinite()) {
+    return absl::InternalError(absl::StrCat("landmark ", l.id, " has a non-finite position or covariance"));
+  }
+  const TileId tile = TileContaining(l.position);
+  auto stmt = db->Prepare(
+      "INSERT OR REPLACE INTO landmarks (id, lat_deg, lon_deg, cov_ee, cov_en, cov_ne, cov_nn, version, "
+      "passages_seen, last_seen_unix_ms, state, tile_x, tile_y) "
+      "VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13)");
+  if (!stmt.ok()) return stmt.status();
+  stmt->Bind(1, static_cast<int64_t>(l.id))
+      .Bind(2, l.position.lat_deg)
+      .Bind(3, l.position.lon_deg)
+      .Bind(4, l.cov_en_m2(0, 0))
+      .Bind(5, l.cov_en_m2(0, 1))
+      .Bind(6, l.cov_en_m2(1, 0))
+      .Bind(7, l.cov_en_m2(1, 1))
+      .Bind(8, l.version)
+      .Bind(9, l.passages_seen)
+      .Bind(10, l.last_seen_unix_ms)
+      .Bind(11, static_cast<int64_t>(l.state))
+      .Bind(12, static_cast<int64_t>(tile.x))
+      .Bind(13, static_cast<int64_t>(tile.y));
+  if (auto s = stmt->Run(); !s.ok()) return s;
+  auto box = db->Prepare("INSERT OR REPLACE INTO landmark_boxes (id, min_lat, max_lat, min_lon, max_lon) "
+                         "VALUES (?1, ?2, ?2, ?3, ?3)");
+  if (!box.ok()) return box.status();
+  box->Bind(1, static_cast<int64_t>(l.id)).Bind(2, l.position.lat_deg).Bind(3, l.position.lon_deg);
+  return box->Run();
+}
+
+absl::Status SqliteMapStore::CommitPassageApplied(int64_t id, const MapDelta& delta, const PassageResult& result) {
+  std::lock_guard<std::mutex> lock(writer_mu_);
+  SqliteConnection* db = writer_.get();
+  auto txn = SqliteWriteTransaction::Begin(db);
+  if (!txn.ok()) return txn.status();
+  auto version = ReadMapVersion(db);
+  if (!version.ok()) return version.status();
+  if (*version != delta.base_version) {
+    return absl::FailedPreconditionError(absl::StrCat("map delta computed against version ", delta.base_version,
+                                                      " but the stored map is at version ", *version));
+  }
+  auto passage = ReadPassage(db, id);
+  if (!passage.ok()) return passage.status();
+  if (!passage->has_value() || (*passage)->state != PassageState::kProcessing) {
+    return absl::FailedPreconditionError(absl::StrCat("passage id ", id, " is not processing"));
+  }
+
+  for (const auto& [lid, landmark] : delta.landmarks) {
+    if (auto s = WriteLandmark(db, landmark); !s.ok()) return s;
+  }
+  for (const auto& [pair, block] : delta.cross) {
+    if (!(pair.first < pair.second) || !block.allFinite()) {
+      return absl::InternalError(absl::StrCat("invalid cross block (", pair.first, ", ", pair.second, ")"));
+    }
+    auto stmt = db->Prepare("INSERT OR REPLACE INTO cross_covariances (a, b, c_ee, c_en, c_ne, c_nn) "
+                            "VALUES (?1, ?2, ?3, ?4, ?5, ?6)");
+    if (!stmt.ok()) return stmt.status();
+    stmt->Bind(1, static_cast<int64_t>(pair.first))
+        .Bind(2, static_cast<int64_t>(pair.second))
+        .Bind(3, block(0, 0))
+        .Bind(4, block(0, 1))
+        .Bind(5, block(1, 0))
+        .Bind(6, block(1, 1));
+    if (auto s = stmt->Run(); !s.ok()) return s;
+  }
+  auto set_version = db->Prepare("UPDATE map_meta SET value = ?1 WHERE key = 'map_version'");
+  if (!set_version.ok()) return set_version.status();
+  set_version->Bind(1, std::max(delta.version, delta.base_version));
+  if (auto s = set_version->Run(); !s.ok()) return s;
+
+  auto mark = db->Prepare("UPDATE passages SET state = 3, error = '', finished_unix_ms = ?2 WHERE id = ?1");
+  if (!mark.ok()) return mark.status();
+  mark->Bind(1, id).Bind(2, NowUnixMs());
+  if (auto s = mark->Run(); !s.ok()) return s;
+  auto res = db->Prepare(
+      "INSERT OR REPLACE INTO passage_results (id, nodes, subgraphs, landmarks_updated, landmarks_created, "
+      "landmarks_conditioned, detections_used, detections_dropped, solver_iterations, final_cost, solve_ms, "
+      "covariance_ms, total_ms, map_version, strategy) "
+      "VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13, ?14, ?15)");
+  if (!res.ok()) return res.status();
+  res->Bind(1, id)
+      .Bind(2, static_cast<int64_t>(result.nodes))
+      .Bind(3, static_cast<int64_t>(result.subgraphs))
+      .Bind(4, static_cast<int64_t>(result.landmarks_updated))
+      .Bind(5, static_cast<int64_t>(result.landmarks_created))
+      .Bind(6, static_cast<int64_t>(result.landmarks_conditioned))
+      .Bind(7, static_cast<int64_t>(result.detections_used))
+      .Bind(8, static_cast<int64_t>(result.detections_dropped))
+      .Bind(9, static_cast<int64_t>(result.solver_iterations))
+      .Bind(10, result.final_cost)
+      .Bind(11, result.solve_ms)
+      .Bind(12, result.covariance_ms)
+      .Bind(13, result.total_ms)
+      .Bind(14, result.map_version)
+      .Bind(15, std::string_view(result.strategy));
+  if (auto s = res->Run(); !s.ok()) return s;
+  return txn->Commit();
+}
+
+absl::Status SqliteMapStore::LoadMap(MapState* map) {
+  auto db = AcquireReader();
+  if (!db.ok()) return db.status();
+  auto snapshot = SqliteReadTransaction::Begin(db->get());
+  if (!snapshot.ok()) return snapshot.status();
+  auto landmarks = (*db)->Prepare(absl::StrCat(kLandmarkColumns, "ORDER BY l.id"));
+  if (!landmarks.ok()) return landmarks.status();
+  while (true) {
+    auto row = landmarks->Step();
+    if (!row.ok()) return row.status();
+    if (!*row) break;
+    map->PutLandmark(LandmarkFromRow(*landmarks));
+  }
+  auto cross = (*db)->Prepare("SELECT a, b, c_ee, c_en, c_ne, c_nn FROM cross_covariances ORDER BY a, b");
+  if (!cross.ok()) return cross.status();
+  while (true) {
+    auto row = cross->Step();
+    if (!row.ok()) return row.status();
+    if (!*row) break;
+    Eigen::Matrix2d block;
+    block << cross->Double(2), cross->Double(3), cross->Double(4), cross->Double(5);
+    map->PutCrossCovariance(cross->Int(0), cross->Int(1), block);
+  }
+  auto version = ReadMapVersion(db->get());
+  if (!version.ok()) return version.status();
+  map->set_version(*version);
+  return absl::OkStatus();
+}
+
+absl::Status SqliteMapStore::AppendCrossAmong(SqliteConnection* db, LandmarkPage* page) {
+  std::unordered_set<LandmarkId> ids;
+  for (const Landmark& l : page->landmarks) ids.insert(l.id);
+  for (const Landmark& l : page->landmarks) {
+    auto stmt = db->Prepare("SELECT b, c_ee, c_en, c_ne, c_nn FROM cross_covariances WHERE a = ?1 ORDER BY b");
+    if (!stmt.ok()) return stmt.status();
+    stmt->Bind(1, static_cast<int64_t>(l.id));
+    while (true) {
+      auto row = stmt->Step();
+      if (!row.ok()) return row.status();
+      if (!*row) break;
+      const LandmarkId b = stmt->Int(0);
+      if (ids.count(b) == 0) continue;
+      Eigen::Matrix2d block;
+      block << stmt->Double(1), stmt->Double(2), stmt->Double(3), stmt->Double(4);
+      page->cross.emplace_back(LandmarkPair{l.id, b}, block);
+    }
+  }
+  return absl::OkStatus();
+}
+
+absl::StatusOr<LandmarkPage> SqliteMapStore::QueryRegion(const BoundingBox& box, LandmarkId after_id, int limit,
+                                                         bool include_cross) {
+  auto db = AcquireReader();
+  if (!db.ok()) return db.status();
+  auto snapshot = SqliteReadTransaction::Begin(db->get());
+  if (!snapshot.ok()) return snapshot.status();
+  LandmarkPage page;
+  auto version = ReadMapVersion(db->get());
+  if (!version.ok()) return version.status();
+  page.map_version = *version;
+  auto stmt = (*db)->Prepare(absl::StrCat(kLandmarkColumns, kInBox, "AND l.id > ?5 ORDER BY l.id LIMIT ?6"));
+  if (!stmt.ok()) return stmt.status();
+  BindBox(*stmt, box);
+  stmt->Bind(5, static_cast<int64_t>(after_id)).Bind(6, static_cast<int64_t>(limit) + 1);
+  if (auto s = ReadLandmarks(*stmt, &page, limit); !s.ok()) return s;
+  if (include_cross) {
+    if (auto s = AppendCrossAmong(db->get(), &page); !s.ok()) return s;
+  }
+  return page;
+}
+
+absl::StatusOr<LandmarkPage> SqliteMapStore::GetTile(const TileId& tile, bool include_cross) {
+  if (tile.z != kStorageZoom || !IsValidTile(tile)) {
+    return absl::InvalidArgumentError(absl::StrCat("tile: ", tile.z, "/", tile.x, "/", tile.y,
+                                                   " is not a valid tile at the storage zoom ", kStorageZoom));
+  }
+  auto db = AcquireReader();
+  if (!db.ok()) return db.status();
+  auto snapshot = SqliteReadTransaction::Begin(db->get());
+  if (!snapshot.ok()) return snapshot.status();
+  LandmarkPage page;
+  auto version = ReadMapVersion(db->get());
+  if (!version.ok()) return version.status();
+  page.map_version = *version;
+  auto stmt = (*db)->Prepare(absl::StrCat(kLandmarkColumns, "WHERE l.tile_x = ?1 AND l.tile_y = ?2 ORDER BY l.id"));
+  if (!stmt.ok()) return stmt.status();
+  stmt->Bind(1, static_cast<int64_t>(tile.x)).Bind(2, static_cast<int64_t>(tile.y));
+  if (auto s = ReadLandmarks(*stmt, &page, 0); !s.ok()) return s;
+  if (include_cross) {
+    if (auto s = AppendCrossAmong(db->get(), &page); !s.ok()) return s;
+  }
+  return page;
+}
+
+absl::StatusOr<LandmarkPage> SqliteMapStore::ChangedLandmarks(const BoundingBox& box, int64_t since_version) {
+  auto db = AcquireReader();
+  if (!db.ok()) return db.status();
+  auto snapshot = SqliteReadTransaction::Begin(db->get());
+  if (!snapshot.ok()) return snapshot.status();
+  LandmarkPage page;
+  auto version = ReadMapVersion(db->get());
+  if (!version.ok()) return version.status();
+  page.map_version = *version;
+  auto stmt = (*db)->Prepare(absl::StrCat(kLandmarkColumns, kInBox, "AND l.version > ?5 ORDER BY l.id"));
+  if (!stmt.ok()) return stmt.status();
+  BindBox(*stmt, box);
+  stmt->Bind(5, since_version);
+  if (auto s = ReadLandmarks(*stmt, &page, 0); !s.ok()) return s;
+  return page;
+}
+
+absl::StatusOr<MapStats> SqliteMapStore::GetStats() {
+  auto db = AcquireReader();
+  if (!db.ok()) return db.status();
+  auto snapshot = SqliteReadTransaction::Begin(db->get());
+  if (!snapshot.ok()) return snapshot.status();
+  MapStats stats;
+  auto version = ReadMapVersion(db->get());
+  if (!version.ok()) return version.status();
+  stats.map_version = *version;
+  auto counts = (*db)->Prepare(
+      "SELECT (SELECT COUNT(*) FROM landmarks), (SELECT COUNT(*) FROM cross_covariances)");
+  if (!counts.ok()) return counts.status();
+  if (auto row = counts->Step(); !row.ok()) return row.status();
+  stats.landmark_count = counts->Int(0);
+  stats.cross_count = counts->Int(1);
+  auto states = (*db)->Prepare("SELECT state, COUNT(*) FROM passages GROUP BY state");
+  if (!states.ok()) return states.status();
+  while (true) {
+    auto row = states->Step();
+    if (!row.ok()) return row.status();
+    if (!*row) break;
+    const int64_t state = states->Int(0);
+    if (state >= 1 && state <= 5) stats.passages_by_state[state] = states->Int(1);
+  }
+  return stats;
+}
+
+}  // namespace crowdmap

@@ -1,0 +1,344 @@
+#include "server/storage/map_store.h"
+
+#include <sqlite3.h>
+
+#include <memory>
+#include <string>
+
+#include "gtest/gtest.h"
+#include "server/testing/temp_dir.h"
+
+namespace crowdmap {
+namespace {
+
+NewPassage MakeUpload(const std::string& vehicle, const std::string& passage, const std::string& payload = "bytes") {
+  return NewPassage{vehicle, passage, payload, 1000};
+}
+
+Landmark MakeLandmark(LandmarkId id, double lat, double lon, int64_t version) {
+  Landmark l;
+  l.id = id;
+  l.position = {lat, lon};
+  l.cov_en_m2 << 0.5, 0.1, 0.1, 0.7;
+  l.version = version;
+  l.passages_seen = 1;
+  l.last_seen_unix_ms = 42;
+  return l;
+}
+
+std::unique_ptr<MapStoreInterface> OpenStore(const std::string& path) {
+  auto store = CreateSqliteMapStore(path);
+  EXPECT_TRUE(store.ok()) << store.status();
+  return store.ok() ? std::move(*store) : nullptr;
+}
+
+// Enqueues and claims one passage so that a map change can be committed for it.
+int64_t EnqueueAndClaim(MapStoreInterface* store, const std::string& passage_id) {
+  auto out = store->EnqueuePassages({MakeUpload("v", passage_id)}, 0);
+  EXPECT_TRUE(out.ok());
+  auto claimed = store->ClaimNextPassage();
+  EXPECT_TRUE(claimed.ok() && claimed->has_value());
+  return (*claimed)->record.id;
+}
+
+int64_t SqlInt(const std::string& path, const std::string& sql) {
+  sqlite3* db = nullptr;
+  sqlite3_open(path.c_str(), &db);
+  sqlite3_stmt* stmt = nullptr;
+  sqlite3_prepare_v2(db, sql.c_str(), -1, &stmt, nullptr);
+  int64_t v = -1;
+  if (sqlite3_step(stmt) == SQLITE_ROW) v = sqlite3_column_int64(stmt, 0);
+  sqlite3_finalize(stmt);
+  sqlite3_close(db);
+  return v;
+}
+
+std::string SqlText(const std::string& path, const std::string& sql) {
+  sqlite3* db = nullptr;
+  sqlite3_open(path.c_str(), &db);
+  sqlite3_stmt* stmt = nullptr;
+  sqlite3_prepare_v2(db, sql.c_str(), -1, &stmt, nullptr);
+  std::string v;
+  if (sqlite3_step(stmt) == SQLITE_ROW) v = reinterpret_cast<const char*>(sqlite3_column_text(stmt, 0));
+  sqlite3_finalize(stmt);
+  sqlite3_close(db);
+  return v;
+}
+
+TEST(SqliteMapStore, CreatesMigratedWalDatabaseOnFirstOpen) {
+  TempDir dir;
+  const std::string path = dir.File("map.db");
+  { auto store = OpenStore(path); }
+  EXPECT_GE(SqlInt(path, "PRAGMA user_version"), 1);
+  EXPECT_EQ(SqlText(path, "PRAGMA journal_mode"), "wal");
+  EXPECT_EQ(SqlInt(path, "SELECT COUNT(*) FROM sqlite_master WHERE name = 'landmark_boxes'"), 1);
+  // Reopening an up-to-date file runs no migration and keeps the data.
+  auto store = OpenStore(path);
+  ASSERT_TRUE(store->EnqueuePassages({MakeUpload("v", "p")}, 0).ok());
+  store.reset();
+  store = OpenStore(path);
+  EXPECT_TRUE(store->FindPassage("v", "p").ok());
+}
+
+TEST(SqliteMapStore, RefusesDatabaseFromNewerSchema) {
+  TempDir dir;
+  const std::string path = dir.File("map.db");
+  { auto store = OpenStore(path); }
+  sqlite3* db = nullptr;
+  sqlite3_open(path.c_str(), &db);
+  sqlite3_exec(db, "PRAGMA user_version = 999", nullptr, nullptr, nullptr);
+  sqlite3_close(db);
+  auto store = CreateSqliteMapStore(path);
+  EXPECT_EQ(store.status().code(), absl::StatusCode::kFailedPrecondition);
+}
+
+TEST(SqliteMapStore, EnqueueAssignsIdsInArrivalOrderAndStoresPayload) {
+  TempDir dir;
+  auto store = OpenStore(dir.File("map.db"));
+  auto out = store->EnqueuePassages({MakeUpload("v1", "a", "AAA"), MakeUpload("v2", "b", "BBBB")}, 0);
+  ASSERT_TRUE(out.ok());
+  ASSERT_EQ(out->size(), 2u);
+  ASSERT_TRUE((*out)[0].ok() && (*out)[1].ok());
+  EXPECT_LT((*out)[0]->record.id, (*out)[1]->record.id);
+  EXPECT_EQ((*out)[0]->record.state, PassageState::kQueued);
+  EXPECT_FALSE((*out)[0]->duplicate);
+  EXPECT_EQ((*out)[1]->record.size_bytes, 4);
+  auto payload = store->GetPassagePayload((*out)[1]->record.id);
+  ASSERT_TRUE(payload.ok());
+  EXPECT_EQ(*payload, "BBBB");
+}
+
+TEST(SqliteMapStore, DuplicateKeyReturnsOriginalRecordAndStoresNothingNew) {
+  TempDir dir;
+  const std::string path = dir.File("map.db");
+  auto store = OpenStore(path);
+  auto first = store->EnqueuePassages({MakeUpload("v", "p", "first")}, 0);
+  ASSERT_TRUE(first.ok() && (*first)[0].ok());
+  // Again later, and twice inside one batch.
+  auto again = store->EnqueuePassages({MakeUpload("v", "p", "second"), MakeUpload("w", "q"), MakeUpload("w", "q")}, 0);
+  ASSERT_TRUE(again.ok());
+  EXPECT_TRUE((*again)[0]->duplicate);
+  EXPECT_EQ((*again)[0]->record.id, (*first)[0]->record.id);
+  EXPECT_FALSE((*again)[1]->duplicate);
+  EXPECT_TRUE((*again)[2]->duplicate);
+  EXPECT_EQ((*again)[2]->record.id, (*again)[1]->record.id);
+  EXPECT_EQ(SqlInt(path, "SELECT COUNT(*) FROM passages"), 2);
+  EXPECT_EQ(*store->GetPassagePayload((*first)[0]->record.id), "first");
+}
+
+TEST(SqliteMapStore, FullQueueRejectsNewUploadsButAnswersDuplicates) {
+  TempDir dir;
+  const std::string path = dir.File("map.db");
+  auto store = OpenStore(path);
+  auto out = store->EnqueuePassages({MakeUpload("v", "1"), MakeUpload("v", "2"), MakeUpload("v", "3")}, 2);
+  ASSERT_TRUE(out.ok());
+  EXPECT_TRUE((*out)[0].ok());
+  EXPECT_TRUE((*out)[1].ok());
+  EXPECT_EQ((*out)[2].status().code(), absl::StatusCode::kResourceExhausted);
+  auto dup = store->EnqueuePassages({MakeUpload("v", "1")}, 2);
+  ASSERT_TRUE(dup.ok() && (*dup)[0].ok());
+  EXPECT_TRUE((*dup)[0]->duplicate);
+  EXPECT_EQ(SqlInt(path, "SELECT COUNT(*) FROM passages"), 2);
+  EXPECT_EQ(SqlInt(path, "SELECT COUNT(*) FROM passage_payloads"), 2);
+}
+
+TEST(SqliteMapStore, ClaimTakesOldestQueuedAndCountsAttempts) {
+  TempDir dir;
+  auto store = OpenStore(dir.File("map.db"));
+  ASSERT_TRUE(store->EnqueuePassages({MakeUpload("v", "1", "one"), MakeUpload("v", "2", "two")}, 0).ok());
+  auto first = store->ClaimNextPassage();
+  ASSERT_TRUE(first.ok() && first->has_value());
+  EXPECT_EQ((*first)->record.passage_id, "1");
+  EXPECT_EQ((*first)->record.state, PassageState::kProcessing);
+  EXPECT_EQ((*first)->record.attempts, 1);
+  EXPECT_EQ((*first)->payload, "one");
+  // A retry goes back to the queue and is taken again before the younger passage.
+  ASSERT_TRUE(store->FinishPassageWithoutChange((*first)->record.id, PassageState::kQueued, "try again").ok());
+  auto retry = store->ClaimNextPassage();
+  ASSERT_TRUE(retry.ok() && retry->has_value());
+  EXPECT_EQ((*retry)->record.passage_id, "1");
+  EXPECT_EQ((*retry)->record.attempts, 2);
+  ASSERT_TRUE(store->FinishPassageWithoutChange((*retry)->record.id, PassageState::kFailed, "solver unusable").ok());
+  auto failed = store->GetPassage((*retry)->record.id);
+  ASSERT_TRUE(failed.ok());
+  EXPECT_EQ(failed->state, PassageState::kFailed);
+  EXPECT_EQ(failed->error, "solver unusable");
+  EXPECT_GT(failed->finished_unix_ms, 0);
+  auto second = store->ClaimNextPassage();
+  ASSERT_TRUE(second.ok() && second->has_value());
+  EXPECT_EQ((*second)->record.passage_id, "2");
+  auto none = store->ClaimNextPassage();
+  ASSERT_TRUE(none.ok());
+  EXPECT_FALSE(none->has_value());
+}
+
+TEST(SqliteMapStore, ProcessingPassagesReturnToQueueOnRequeue) {
+  TempDir dir;
+  const std::string path = dir.File("map.db");
+  {
+    auto store = OpenStore(path);
+    ASSERT_TRUE(store->EnqueuePassages({MakeUpload("v", "1")}, 0).ok());
+    ASSERT_TRUE(store->ClaimNextPassage().ok());
+  }
+  auto store = OpenStore(path);
+  EXPECT_EQ(store->FindPassage("v", "1")->state, PassageState::kProcessing);
+  auto requeued = store->RequeueProcessingPassages();
+  ASSERT_TRUE(requeued.ok());
+  EXPECT_EQ(*requeued, 1);
+  EXPECT_EQ(store->FindPassage("v", "1")->state, PassageState::kQueued);
+}
+
+TEST(SqliteMapStore, CommitWritesMapVersionAndResultTogether) {
+  TempDir dir;
+  const std::string path = dir.File("map.db");
+  auto store = OpenStore(path);
+  const int64_t id = EnqueueAndClaim(store.get(), "p");
+  MapDelta delta;
+  delta.base_version = 0;
+  delta.version = 2;
+  delta.landmarks[7] = MakeLandmark(7, 48.7, 2.17, 2);
+  delta.landmarks[9] = MakeLandmark(9, 48.7001, 2.1701, 1);
+  Eigen::Matrix2d block;
+  block << 0.01, 0.02, 0.03, 0.04;
+  delta.cross[{7, 9}] = block;
+  PassageResult result;
+  result.landmarks_created = 2;
+  result.subgraphs = 2;
+  result.map_version = 2;
+  result.strategy = "cc-gsd";
+  ASSERT_TRUE(store->CommitPassageApplied(id, delta, result).ok());
+
+  auto record = store->GetPassage(id);
+  ASSERT_TRUE(record.ok());
+  EXPECT_EQ(record->state, PassageState::kApplied);
+  ASSERT_TRUE(record->result.has_value());
+  EXPECT_EQ(record->result->landmarks_created, 2);
+  EXPECT_EQ(record->result->strategy, "cc-gsd");
+
+  MapState map;
+  ASSERT_TRUE(store->LoadMap(&map).ok());
+  EXPECT_EQ(map.version(), 2);
+  ASSERT_EQ(map.landmark_count(), 2u);
+  EXPECT_EQ(map.FindLandmark(7)->position.lat_deg, 48.7);
+  EXPECT_EQ(map.FindLandmark(7)->cov_en_m2, delta.landmarks[7].cov_en_m2);
+  Eigen::Matrix2d got;
+  ASSERT_TRUE(map.CrossCovariance(9, 7, &got));
+  EXPECT_EQ(got, Eigen::Matrix2d(block.transpose()));
+  auto stats = store->GetStats();
+  ASSERT_TRUE(stats.ok());
+  EXPECT_EQ(stats->map_version, 2);
+  EXPECT_EQ(stats->landmark_count, 2);
+  EXPECT_EQ(stats->cross_count, 1);
+  EXPECT_EQ(stats->passages_by_state[static_cast<int>(PassageState::kApplied)], 1);
+  EXPECT_EQ(stats->queue_depth(), 0);
+}
+
+TEST(SqliteMapStore, CommitAgainstStaleVersionChangesNothing) {
+  TempDir dir;
+  const std::string path = dir.File("map.db");
+  auto store = OpenStore(path);
+  const int64_t id = EnqueueAndClaim(store.get(), "p");
+  MapDelta delta;
+  delta.base_version = 5;
+  delta.version = 6;
+  delta.landmarks[1] = MakeLandmark(1, 48.7, 2.17, 6);
+  EXPECT_EQ(store->CommitPassageApplied(id, delta, {}).code(), absl::StatusCode::kFailedPrecondition);
+  EXPECT_EQ(SqlInt(path, "SELECT COUNT(*) FROM landmarks"), 0);
+  EXPECT_EQ(SqlInt(path, "SELECT value FROM map_meta WHERE key = 'map_version'"), 0);
+  EXPECT_EQ(store->GetPassage(id)->state, PassageState::kProcessing);
+}
+
+TEST(SqliteMapStore, CommitTwiceForOnePassageIsRefused) {
+  TempDir dir;
+  auto store = OpenStore(dir.File("map.db"));
+  const int64_t id = EnqueueAndClaim(store.get(), "p");
+  MapDelta delta;
+  delta.version = 1;
+  delta.landmarks[1] = MakeLandmark(1, 48.7, 2.17, 1);
+  ASSERT_TRUE(store->CommitPassageApplied(id, delta, {}).ok());
+  delta.base_version = 1;
+  delta.version = 2;
+  EXPECT_EQ(store->CommitPassageApplied(id, delta, {}).code(), absl::StatusCode::kFailedPrecondition);
+}
+
+class SqliteMapStoreReads : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    store_ = OpenStore(dir_.File("map.db"));
+    const int64_t id = EnqueueAndClaim(store_.get(), "p");
+    MapDelta delta;
+    delta.version = 3;
+    // A 5 x 5 grid about 100 m apart; versions 1..3 by row.
+    for (int i = 0; i < 5; ++i) {
+      for (int j = 0; j < 5; ++j) {
+        const LandmarkId lid = 100 + i * 5 + j;
+        delta.landmarks[lid] = MakeLandmark(lid, 48.70 + 0.001 * i, 2.17 + 0.0015 * j, 1 + i % 3);
+      }
+    }
+    Eigen::Matrix2d block = Eigen::Matrix2d::Constant(0.01);
+    delta.cross[{100, 101}] = block;
+    delta.cross[{100, 124}] = block;
+    ASSERT_TRUE(store_->CommitPassageApplied(id, delta, {}).ok());
+  }
+
+  TempDir dir_;
+  std::unique_ptr<MapStoreInterface> store_;
+};
+
+TEST_F(SqliteMapStoreReads, QueryRegionReturnsExactlyTheLandmarksInsideTheBox) {
+  // Rows 0..1 and columns 0..2.
+  BoundingBox box{48.6995, 2.1695, 48.7015, 2.1735};
+  auto page = store_->QueryRegion(box, 0, 100, true);
+  ASSERT_TRUE(page.ok());
+  std::vector<LandmarkId> ids;
+  for (const Landmark& l : page->landmarks) ids.push_back(l.id);
+  EXPECT_EQ(ids, (std::vector<LandmarkId>{100, 101, 102, 105, 106, 107}));
+  EXPECT_FALSE(page->more);
+  EXPECT_EQ(page->map_version, 3);
+  // Only the block whose both ends are returned.
+  ASSERT_EQ(page->cross.size(), 1u);
+  EXPECT_EQ(page->cross[0].first, (LandmarkPair{100, 101}));
+}
+
+TEST_F(SqliteMapStoreReads, QueryRegionPagesInIdOrder) {
+  BoundingBox box{48.0, 2.0, 49.0, 3.0};
+  std::vector<LandmarkId> ids;
+  LandmarkId after = 0;
+  int pages = 0;
+  while (true) {
+    auto page = store_->QueryRegion(box, after, 10, false);
+    ASSERT_TRUE(page.ok());
+    ++pages;
+    for (const Landmark& l : page->landmarks) ids.push_back(l.id);
+    if (!page->more) break;
+    after = page->landmarks.back().id;
+  }
+  EXPECT_EQ(pages, 3);
+  ASSERT_EQ(ids.size(), 25u);
+  EXPECT_TRUE(std::is_sorted(ids.begin(), ids.end()));
+}
+
+TEST_F(SqliteMapStoreReads, TileHoldsTheLandmarksItContains) {
+  const TileId tile = TileContaining({48.70, 2.17});
+  auto page = store_->GetTile(tile, false);
+  ASSERT_TRUE(page.ok());
+  ASSERT_FALSE(page->landmarks.empty());
+  for (const Landmark& l : page->landmarks) EXPECT_EQ(TileContaining(l.position), tile);
+  int expected = 0;
+  for (int i = 0; i < 5; ++i)
+    for (int j = 0; j < 5; ++j) expected += TileContaining({48.70 + 0.001 * i, 2.17 + 0.0015 * j}) == tile;
+  EXPECT_EQ(static_cast<int>(page->landmarks.size()), expected);
+  EXPECT_EQ(store_->GetTile(TileId{15, 1, 1}, false).status().code(), absl::StatusCode::kInvalidArgument);
+}
+
+TEST_F(SqliteMapStoreReads, ChangedLandmarksAreThoseAboveTheVersion) {
+  BoundingBox box{48.0, 2.0, 49.0, 3.0};
+  auto page = store_->ChangedLandmarks(box, 2);
+  ASSERT_TRUE(page.ok());
+  ASSERT_FALSE(page->landmarks.empty());
+  for (const Landmark& l : page->landmarks) EXPECT_EQ(l.version, 3);
+  EXPECT_EQ(page->landmarks.size(), 5u);  // row i = 2
+}
+
+}  // namespace
+}  // namespace crowdmap

@@ -1,0 +1,260 @@
+// The durable passage queue of the SQLite map store.
+#include "absl/strings/str_cat.h"
+#include "absl/time/clock.h"
+#include "server/storage/sqlite_map_store.h"
+
+namespace crowdmap {
+namespace {
+
+constexpr char kPassageColumns[] =
+    "SELECT p.id, p.vehicle_id, p.passage_id, p.state, p.attempts, p.error, p.received_unix_ms, "
+    "p.finished_unix_ms, p.size_bytes, r.nodes, r.subgraphs, r.landmarks_updated, r.landmarks_created, "
+    "r.landmarks_conditioned, r.detections_used, r.detections_dropped, r.solver_iterations, r.final_cost, "
+    "r.solve_ms, r.covariance_ms, r.total_ms, r.map_version, r.strategy "
+    "FROM passages p LEFT JOIN passage_results r ON r.id = p.id ";
+
+PassageRecord PassageFromRow(const SqliteStatement& s) {
+  PassageRecord p;
+  p.id = s.Int(0);
+  p.vehicle_id = s.Text(1);
+  p.passage_id = s.Text(2);
+  p.state = static_cast<PassageState>(s.Int(3));
+  p.attempts = static_cast<int>(s.Int(4));
+  p.error = s.Text(5);
+  p.received_unix_ms = s.Int(6);
+  p.finished_unix_ms = s.Int(7);
+  p.size_bytes = s.Int(8);
+  if (!s.IsNull(9)) {
+    PassageResult r;
+    r.nodes = static_cast<int>(s.Int(9));
+    r.subgraphs = static_cast<int>(s.Int(10));
+    r.landmarks_updated = static_cast<int>(s.Int(11));
+    r.landmarks_created = static_cast<int>(s.Int(12));
+    r.landmarks_conditioned = static_cast<int>(s.Int(13));
+    r.detections_used = static_cast<int>(s.Int(14));
+    r.detections_dropped = static_cast<int>(s.Int(15));
+    r.solver_iterations = static_cast<int>(s.Int(16));
+    r.final_cost = s.Double(17);
+    r.solve_ms = s.Double(18);
+    r.covariance_ms = s.Double(19);
+    r.total_ms = s.Double(20);
+    r.map_version = s.Int(21);
+    r.strategy = s.Text(22);
+    p.result = r;
+  }
+  return p;
+}
+
+absl::StatusOr<std::optional<PassageRecord>> ReadOne(SqliteStatement& stmt) {
+  auto row = stmt.Step();
+  if (!row.ok()) return row.status();
+  if (!*row) return std::optional<PassageRecord>();
+  return std::optional<PassageRecord>(PassageFromRow(stmt));
+}
+
+absl::StatusOr<int64_t> CountActive(SqliteConnection* db) {
+  auto stmt = db->Prepare("SELECT COUNT(*) FROM passages WHERE state IN (1, 2)");
+  if (!stmt.ok()) return stmt.status();
+  if (auto row = stmt->Step(); !row.ok()) return row.status();
+  return stmt->Int(0);
+}
+
+}  // namespace
+
+int64_t NowUnixMs() { return absl::ToUnixMillis(absl::Now()); }
+
+const char* PassageStateName(PassageState state) {
+  switch (state) {
+    case PassageState::kQueued: return "queued";
+    case PassageState::kProcessing: return "processing";
+    case PassageState::kApplied: return "applied";
+    case PassageState::kRejected: return "rejected";
+    case PassageState::kFailed: return "failed";
+  }
+  return "unknown";
+}
+
+absl::StatusOr<std::optional<PassageRecord>> SqliteMapStore::ReadPassage(SqliteConnection* db, int64_t id) {
+  auto stmt = db->Prepare(absl::StrCat(kPassageColumns, "WHERE p.id = ?1"));
+  if (!stmt.ok()) return stmt.status();
+  stmt->Bind(1, id);
+  return ReadOne(*stmt);
+}
+
+absl::StatusOr<std::optional<PassageRecord>> SqliteMapStore::ReadPassageByKey(SqliteConnection* db,
+                                                                             const std::string& vehicle_id,
+                                                                             const std::string& passage_id) {
+  auto stmt = db->Prepare(absl::StrCat(kPassageColumns, "WHERE p.vehicle_id = ?1 AND p.passage_id = ?2"));
+  if (!stmt.ok()) return stmt.status();
+  stmt->Bind(1, std::string_view(vehicle_id)).Bind(2, std::string_view(passage_id));
+  return ReadOne(*stmt);
+}
+
+absl::StatusOr<std::vector<absl::StatusOr<EnqueueOutcome>>> SqliteMapStore::EnqueuePassages(
+    const std::vector<NewPassage>& passages, int64_t max_queue) {
+  std::lock_guard<std::mutex> lock(writer_mu_);
+  SqliteConnection* db = writer_.get();
+  auto txn = SqliteWriteTransaction::Begin(db);
+  if (!txn.ok()) return txn.status();
+  auto depth = CountActive(db);
+  if (!depth.ok()) return depth.status();
+
+  std::vector<absl::StatusOr<EnqueueOutcome>> outcomes;
+  outcomes.reserve(passages.size());
+  for (const NewPassage& p : passages) {
+    auto existing = ReadPassageByKey(db, p.vehicle_id, p.passage_id);
+    if (!existing.ok()) return existing.status();
+    if (existing->has_value()) {
+      outcomes.push_back(EnqueueOutcome{**existing, true});
+      continue;
+    }
+    if (max_queue > 0 && *depth >= max_queue) {
+      outcomes.push_back(absl::ResourceExhaustedError(
+          absl::StrCat("passage queue is full (", *depth, " of ", max_queue, " passages); retry later")));
+      continue;
+    }
+    auto insert = db->Prepare(
+        "INSERT INTO passages (vehicle_id, passage_id, state, received_unix_ms, size_bytes) "
+        "VALUES (?1, ?2, 1, ?3, ?4)");
+    if (!insert.ok()) return insert.status();
+    insert->Bind(1, std::string_view(p.vehicle_id))
+        .Bind(2, std::string_view(p.passage_id))
+        .Bind(3, p.received_unix_ms)
+        .Bind(4, static_cast<int64_t>(p.payload.size()));
+    if (auto s = insert->Run(); !s.ok()) return s;
+    const int64_t id = db->LastInsertRowId();
+    auto payload = db->Prepare("INSERT INTO passage_payloads (id, payload) VALUES (?1, ?2)");
+    if (!payload.ok()) return payload.status();
+    payload->Bind(1, id).BindBlob(2, p.payload);
+    if (auto s = payload->Run(); !s.ok()) return s;
+    ++*depth;
+
+    PassageRecord record;
+    record.id = id;
+    record.vehicle_id = p.vehicle_id;
+    record.passage_id = p.passage_id;
+    record.state = PassageState::kQueued;
+    record.received_unix_ms = p.received_unix_ms;
+    record.size_bytes = static_cast<int64_t>(p.payload.size());
+    outcomes.push_back(EnqueueOutcome{std::move(record), false});
+  }
+  if (auto s = txn->Commit(); !s.ok()) return s;
+  return outcomes;
+}
+
+absl::StatusOr<PassageRecord> SqliteMapStore::GetPassage(int64_t id) {
+  auto db = AcquireReader();
+  if (!db.ok()) return db.status();
+  auto record = ReadPassage(db->get(), id);
+  if (!record.ok()) return record.status();
+  if (!record->has_value()) return absl::NotFoundError(absl::StrCat("passage id ", id, " not found"));
+  return **record;
+}
+
+absl::StatusOr<PassageRecord> SqliteMapStore::FindPassage(const std::string& vehicle_id,
+                                                          const std::string& passage_id) {
+  auto db = AcquireReader();
+  if (!db.ok()) return db.status();
+  auto record = ReadPassageByKey(db->get(), vehicle_id, passage_id);
+  if (!record.ok()) return record.status();
+  if (!record->has_value()) {
+    return absl::NotFoundError(absl::StrCat("passage ", vehicle_id, "/", passage_id, " not found"));
+  }
+  return **record;
+}
+
+absl::StatusOr<std::vector<PassageRecord>> SqliteMapStore::ListPassages(const PassageQuery& query) {
+  auto db = AcquireReader();
+  if (!db.ok()) return db.status();
+  auto stmt = (*db)->Prepare(absl::StrCat(kPassageColumns,
+                                          "WHERE p.id > ?1 AND (?2 = 0 OR p.state = ?2) "
+                                          "AND (?3 = '' OR p.vehicle_id = ?3) ORDER BY p.id LIMIT ?4"));
+  if (!stmt.ok()) return stmt.status();
+  stmt->Bind(1, query.after_id)
+      .Bind(2, static_cast<int64_t>(query.state ? static_cast<int>(*query.state) : 0))
+      .Bind(3, std::string_view(query.vehicle_id))
+      .Bind(4, static_cast<int64_t>(query.limit));
+  std::vector<PassageRecord> out;
+  while (true) {
+    auto row = stmt->Step();
+    if (!row.ok()) return row.status();
+    if (!*row) break;
+    out.push_back(PassageFromRow(*stmt));
+  }
+  return out;
+}
+
+absl::StatusOr<std::string> SqliteMapStore::GetPassagePayload(int64_t id) {
+  auto db = AcquireReader();
+  if (!db.ok()) return db.status();
+  auto stmt = (*db)->Prepare("SELECT payload FROM passage_payloads WHERE id = ?1");
+  if (!stmt.ok()) return stmt.status();
+  stmt->Bind(1, id);
+  auto row = stmt->Step();
+  if (!row.ok()) return row.status();
+  if (!*row) return absl::NotFoundError(absl::StrCat("payload of passage id ", id, " not found"));
+  return stmt->Blob(0);
+}
+
+absl::StatusOr<std::optional<ClaimedPassage>> SqliteMapStore::ClaimNextPassage() {
+  std::lock_guard<std::mutex> lock(writer_mu_);
+  SqliteConnection* db = writer_.get();
+  auto txn = SqliteWriteTransaction::Begin(db);
+  if (!txn.ok()) return txn.status();
+  auto next = db->Prepare("SELECT id FROM passages WHERE state = 1 ORDER BY id LIMIT 1");
+  if (!next.ok()) return next.status();
+  auto row = next->Step();
+  if (!row.ok()) return row.status();
+  if (!*row) return std::optional<ClaimedPassage>();
+  const int64_t id = next->Int(0);
+
+  auto update = db->Prepare("UPDATE passages SET state = 2, attempts = attempts + 1 WHERE id = ?1");
+  if (!update.ok()) return update.status();
+  update->Bind(1, id);
+  if (auto s = update->Run(); !s.ok()) return s;
+
+  ClaimedPassage claimed;
+  auto record = ReadPassage(db, id);
+  if (!record.ok()) return record.status();
+  claimed.record = **record;
+  auto payload = db->Prepare("SELECT payload FROM passage_payloads WHERE id = ?1");
+  if (!payload.ok()) return payload.status();
+  payload->Bind(1, id);
+  auto payload_row = payload->Step();
+  if (!payload_row.ok()) return payload_row.status();
+  if (!*payload_row) return absl::DataLossError(absl::StrCat("payload of passage id ", id, " is missing"));
+  claimed.payload = payload->Blob(0);
+  if (auto s = txn->Commit(); !s.ok()) return s;
+  return std::optional<ClaimedPassage>(std::move(claimed));
+}
+
+absl::Status SqliteMapStore::FinishPassageWithoutChange(int64_t id, PassageState state, const std::string& reason) {
+  if (state == PassageState::kApplied || state == PassageState::kProcessing) {
+    return absl::InvalidArgumentError("FinishPassageWithoutChange: state must be queued, rejected or failed");
+  }
+  std::lock_guard<std::mutex> lock(writer_mu_);
+  SqliteConnection* db = writer_.get();
+  auto txn = SqliteWriteTransaction::Begin(db);
+  if (!txn.ok()) return txn.status();
+  auto update = db->Prepare(
+      "UPDATE passages SET state = ?2, error = ?3, finished_unix_ms = CASE WHEN ?2 = 1 THEN 0 ELSE ?4 END "
+      "WHERE id = ?1 AND state = 2");
+  if (!update.ok()) return update.status();
+  update->Bind(1, id).Bind(2, static_cast<int64_t>(state)).Bind(3, std::string_view(reason)).Bind(4, NowUnixMs());
+  if (auto s = update->Run(); !s.ok()) return s;
+  if (db->Changes() != 1) return absl::FailedPreconditionError(absl::StrCat("passage id ", id, " is not processing"));
+  return txn->Commit();
+}
+
+absl::StatusOr<int> SqliteMapStore::RequeueProcessingPassages() {
+  std::lock_guard<std::mutex> lock(writer_mu_);
+  SqliteConnection* db = writer_.get();
+  auto txn = SqliteWriteTransaction::Begin(db);
+  if (!txn.ok()) return txn.status();
+  if (auto s = db->Exec("UPDATE passages SET state = 1 WHERE state = 2"); !s.ok()) return s;
+  const int changed = db->Changes();
+  if (auto s = txn->Commit(); !s.ok()) return s;
+  return changed;
+}
+
+}  // namespace crowdmap
