@@ -30,6 +30,8 @@ experiment flags:
   --max-subgraph-dim D        cc-gsd state-dimension bound per subgraph (default 500)
   --detections-per-landmark K last K detections per landmark and passage, 0 = all (default 5)
   --correlation-radius-m R    keep cross-covariances only within R metres (default: dense)
+  --max-chi2-per-dof X        refuse a solve whose chi2 exceeds X per degree of freedom, 0 = never
+                              (default 4)
   --quiet                     no progress line
 
 reproduce flags:
@@ -43,15 +45,17 @@ absl::Status RunExperimentCommand(const std::vector<std::string>& args) {
   absl::StatusOr<Flags> flags = Flags::Parse(args, {{"landmarks", true}, {"passages", true}, {"strategy", true},
                                                     {"noise", true}, {"seed", true}, {"out", true},
                                                     {"max-subgraph-dim", true}, {"detections-per-landmark", true},
-                                                    {"correlation-radius-m", true}, {"quiet", false}});
+                                                    {"correlation-radius-m", true}, {"max-chi2-per-dof", true},
+                                                    {"quiet", false}});
   if (!flags.ok()) return flags.status();
   ExperimentOptions options;
   absl::StatusOr<long long> landmarks = flags->GetInt("landmarks", 25), passages = flags->GetInt("passages", 100),
                             seed = flags->GetInt("seed", 1), dim = flags->GetInt("max-subgraph-dim", 500),
                             per_landmark = flags->GetInt("detections-per-landmark", 5);
-  absl::StatusOr<double> radius = flags->GetDouble("correlation-radius-m", options.update.correlation_radius_m);
+  absl::StatusOr<double> radius = flags->GetDouble("correlation-radius-m", options.update.correlation_radius_m),
+                         chi2 = flags->GetDouble("max-chi2-per-dof", options.update.max_chi2_per_dof);
   for (const absl::Status& s : {landmarks.status(), passages.status(), seed.status(), dim.status(),
-                                per_landmark.status(), radius.status()}) {
+                                per_landmark.status(), radius.status(), chi2.status()}) {
     if (!s.ok()) return s;
   }
   absl::StatusOr<NoiseConfig> noise = ParseNoiseConfig(flags->GetString("noise", "white"));
@@ -64,6 +68,7 @@ absl::Status RunExperimentCommand(const std::vector<std::string>& args) {
   options.update.max_subgraph_dim = static_cast<int>(*dim);
   options.update.detections_per_landmark = static_cast<int>(*per_landmark);
   options.update.correlation_radius_m = *radius;
+  options.update.max_chi2_per_dof = *chi2;
   const std::string out = flags->GetString("out", "out/experiment");
   const bool quiet = flags->Has("quiet");
 

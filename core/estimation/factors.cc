@@ -1,5 +1,7 @@
 #include "core/estimation/factors.h"
 
+#include <cmath>
+
 #include <Eigen/Cholesky>
 
 namespace crowdmap {
@@ -23,6 +25,17 @@ ceres::CostFunction* GnssFactor::Create(const Eigen::Vector2d& measured, const E
 
 ceres::CostFunction* CameraFactor::Create(double u_px, double sigma_px, const Calibration& calib) {
   return new ceres::AutoDiffCostFunction<CameraFactor, 1, 3, 2>(new CameraFactor(u_px, sigma_px, calib));
+}
+
+BearingFactor::BearingFactor(double u_px, double sigma_px, const Calibration& calib)
+    : bearing_rad_(std::atan2(calib.cx_px - u_px, calib.fx_px)), calib_(calib) {
+  // du/db = -fx / cos^2(b) = -(fx^2 + (u - cx)^2) / fx.
+  const double du_db = (calib.fx_px * calib.fx_px + (u_px - calib.cx_px) * (u_px - calib.cx_px)) / calib.fx_px;
+  inv_sigma_rad_ = du_db / sigma_px;
+}
+
+ceres::CostFunction* BearingFactor::Create(double u_px, double sigma_px, const Calibration& calib) {
+  return new ceres::AutoDiffCostFunction<BearingFactor, 1, 3, 2>(new BearingFactor(u_px, sigma_px, calib));
 }
 
 LandmarkPriorFactor::LandmarkPriorFactor(const Eigen::VectorXd& mean, const Eigen::MatrixXd& sqrt_info)

@@ -96,6 +96,31 @@ class CameraFactor {
   Calibration calib_;
 };
 
+// Bearing form of a detection, used to localise a passage against the map before the pixel
+// model is solved: residual wrap(atan2(c_y, c_x) - b) / sigma_b, with b = atan2(cx - u, fx) and
+// sigma_b the pixel sigma mapped through the projection at u (first order). Unlike the pixel
+// residual it is bounded and defined for landmarks behind the camera, so it converges from
+// initial guesses tens of metres off. Blocks: pose (3), landmark (2).
+class BearingFactor {
+ public:
+  BearingFactor(double u_px, double sigma_px, const Calibration& calib);
+
+  template <typename T>
+  bool operator()(const T* pose, const T* landmark, T* residual) const {
+    using std::atan2;
+    const Eigen::Matrix<T, 2, 1> cam = LandmarkInCamera(pose, landmark, calib_);
+    residual[0] = NormalizeAngle(atan2(cam.y(), cam.x()) - T(bearing_rad_)) * T(inv_sigma_rad_);
+    return true;
+  }
+
+  static ceres::CostFunction* Create(double u_px, double sigma_px, const Calibration& calib);
+
+ private:
+  double bearing_rad_;
+  double inv_sigma_rad_;
+  Calibration calib_;
+};
+
 // Gaussian prior on k landmarks jointly: residual S (x - mean), x the stacked landmark positions,
 // S the square-root information of their joint covariance. With k = 1 this is one DC prior; with
 // all map landmarks of a graph it is the CC prior. Blocks: k landmarks (2 each). Linear, so the

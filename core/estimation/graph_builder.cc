@@ -41,36 +41,54 @@ int NodeIndex(const std::vector<double>& nodes, double t, double tolerance) {
   return static_cast<int>(it - nodes.begin());
 }
 
-// Antenna track interpolated at time t (clamped at the ends).
-Eigen::Vector2d TrackAt(const std::vector<double>& times, const std::vector<Eigen::Vector2d>& track, double t) {
-  if (t <= times.front()) return track.front();
-  if (t >= times.back()) return track.back();
-  const size_t j = static_cast<size_t>(std::upper_bound(times.begin(), times.end(), t) - times.begin());
-  const double w = (t - times[j - 1]) / (times[j] - times[j - 1]);
-  return (1.0 - w) * track[j - 1] + w * track[j];
-}
-
-// Initial poses: heading from the GNSS track over a +-2 s window, position from the track minus
-// the lever arm. Good to a few metres and a few tenths of a radian: enough for the pose graph.
-std::vector<Pose2> PosesFromTrack(const PassageGraph& g, const std::vector<double>& fix_times,
-                                  const std::vector<Eigen::Vector2d>& track, const Calibration& calib) {
-  std::vector<Pose2> poses(g.node_times_s.size());
-  double heading = 0.0;
-  bool have_heading = false;
-  for (size_t k = 0; k < poses.size(); ++k) {
-    const double t = g.node_times_s[k];
-    const Eigen::Vector2d ahead = TrackAt(fix_times, track, t + 2.0), behind = TrackAt(fix_times, track, t - 2.0);
-    if ((ahead - behind).norm() > 1.0) {
-      heading = std::atan2(ahead.y() - behind.y(), ahead.x() - behind.x());
-      have_heading = true;
-    } else if (have_heading && k > 0) {
-      heading = WrapAngle(poses[k - 1].z() + g.motions[k - 1].delta.z());
+// Initial poses: the odometry dead-reckoning, aligned to the GNSS fixes by a rigid 2D fit over a
+// sliding window around each node (the dead-reckoned heading drifts, so one fit for the whole
+// passage is not enough; a window of a few hundred metres fixes rotation and position robustly,
+// where headings from differences of noisy fixes can flip).
+std::vector<Pose2> AlignDeadReckoning(const PassageGraph& g, const Calibration& calib, double window_s) {
+  const int n = g.node_count();
+  std::vector<Pose2> dead_reckoning(n);
+  dead_reckoning[0] = Pose2::Zero();
+  for (int k = 0; k + 1 < n; ++k) dead_reckoning[k + 1] = ComposeMotion(dead_reckoning[k], g.motions[k].delta);
+  std::vector<Eigen::Vector2d> antenna(g.gnss.size());
+  for (size_t j = 0; j < g.gnss.size(); ++j) {
+    const Pose2& p = dead_reckoning[g.gnss[j].node];
+    const double c = std::cos(p.z()), s = std::sin(p.z());
+    antenna[j] = p.head<2>() + Eigen::Vector2d(c * calib.gnss_lever_arm_m.x() - s * calib.gnss_lever_arm_m.y(),
+                                               s * calib.gnss_lever_arm_m.x() + c * calib.gnss_lever_arm_m.y());
+  }
+  std::vector<Pose2> poses(n);
+  for (int k = 0; k < n; ++k) {
+    // Widen the window until the dead-reckoned track spans enough to fix a rotation.
+    for (double half = 0.5 * window_s;; half *= 2.0) {
+      Eigen::Vector2d mean_dr = Eigen::Vector2d::Zero(), mean_fix = Eigen::Vector2d::Zero();
+      int count = 0;
+      for (size_t j = 0; j < g.gnss.size(); ++j) {
+        if (std::abs(g.node_times_s[g.gnss[j].node] - g.node_times_s[k]) > half) continue;
+        mean_dr += antenna[j];
+        mean_fix += g.gnss[j].position_m;
+        ++count;
+      }
+      if (count == 0) continue;
+      mean_dr /= count;
+      mean_fix /= count;
+      double dot = 0.0, cross = 0.0, spread = 0.0;
+      for (size_t j = 0; j < g.gnss.size(); ++j) {
+        if (std::abs(g.node_times_s[g.gnss[j].node] - g.node_times_s[k]) > half) continue;
+        const Eigen::Vector2d a = antenna[j] - mean_dr, b = g.gnss[j].position_m - mean_fix;
+        dot += a.dot(b);
+        cross += a.x() * b.y() - a.y() * b.x();
+        spread += a.squaredNorm();
+      }
+      const bool whole_passage = half > 2.0 * (g.node_times_s.back() - g.node_times_s.front());
+      if (spread < 50.0 * 50.0 * count && !whole_passage) continue;  // RMS spread under 50 m
+      const double rotation = std::atan2(cross, dot);
+      const double c = std::cos(rotation), s = std::sin(rotation);
+      const Eigen::Vector2d rel = dead_reckoning[k].head<2>() - mean_dr;
+      poses[k] << mean_fix + Eigen::Vector2d(c * rel.x() - s * rel.y(), s * rel.x() + c * rel.y()),
+          WrapAngle(dead_reckoning[k].z() + rotation);
+      break;
     }
-    const double c = std::cos(heading), s = std::sin(heading);
-    const Eigen::Vector2d antenna = TrackAt(fix_times, track, t);
-    const Eigen::Vector2d arm(c * calib.gnss_lever_arm_m.x() - s * calib.gnss_lever_arm_m.y(),
-                              s * calib.gnss_lever_arm_m.x() + c * calib.gnss_lever_arm_m.y());
-    poses[k] = Pose2(antenna.x() - arm.x(), antenna.y() - arm.y(), heading);
   }
   return poses;
 }
@@ -121,8 +139,6 @@ absl::StatusOr<PassageGraph> BuildPassageGraph(const Passage& passage, const Gra
     g.motions.push_back(Preintegrate(passage.odometry, g.node_times_s[k], g.node_times_s[k + 1], wheelbase, passage.noise));
   }
 
-  std::vector<double> fix_times;
-  std::vector<Eigen::Vector2d> track;
   for (const GnssFix& f : passage.gnss) {
     const LatLon p{f.lat_deg, f.lon_deg};
     const Eigen::Matrix2d r = g.frame.EnToLocal(p);
@@ -131,8 +147,6 @@ absl::StatusOr<PassageGraph> BuildPassageGraph(const Passage& passage, const Gra
     o.position_m = g.frame.ToLocal(p);
     o.cov_m2 = r * f.cov_en_m2 * r.transpose();
     g.gnss.push_back(o);
-    fix_times.push_back(f.t_s);
-    track.push_back(o.position_m);
   }
   for (const Detection* d : used) {
     g.detections.push_back({NodeIndex(g.node_times_s, d->t_s, options.node_merge_tolerance_s), d->landmark_id, d->u_px});
@@ -140,7 +154,7 @@ absl::StatusOr<PassageGraph> BuildPassageGraph(const Passage& passage, const Gra
   std::stable_sort(g.detections.begin(), g.detections.end(),
                    [](const CameraObservation& a, const CameraObservation& b) { return a.node < b.node; });
 
-  g.initial_poses = PosesFromTrack(g, fix_times, track, passage.calibration);
+  g.initial_poses = AlignDeadReckoning(g, passage.calibration, options.alignment_window_s);
   if (absl::Status s = SolvePoseGraph(passage.calibration, options.max_init_iterations, &g); !s.ok()) return s;
   return g;
 }

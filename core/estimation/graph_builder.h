@@ -16,6 +16,8 @@ struct GraphOptions {
   // Measurement times closer than this share one pose node.
   double node_merge_tolerance_s = 1e-3;
   int max_init_iterations = 50;
+  // Window of GNSS fixes (s) the dead-reckoning is aligned to around each node.
+  double alignment_window_s = 30.0;
 };
 
 struct GnssObservation {
@@ -43,8 +45,8 @@ struct PassageGraph {
   int node_count() const { return static_cast<int>(node_times_s.size()); }
 };
 
-// Builds the graph of a validated passage and initialises its poses: positions and headings from
-// the GNSS track, then a Ceres solve of the odometry + GNSS pose graph (no landmarks).
+// Builds the graph of a validated passage and initialises its poses: odometry dead-reckoning
+// aligned to the GNSS fixes, then a Ceres solve of the odometry + GNSS pose graph (no landmarks).
 absl::StatusOr<PassageGraph> BuildPassageGraph(const Passage& passage, const GraphOptions& options);
 
 }  // namespace crowdmap

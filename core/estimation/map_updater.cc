@@ -32,23 +32,15 @@ struct PassageProgress {
   std::unordered_set<LandmarkId> conditioned;
 };
 
-// The detections of a subgraph grouped by landmark, with the landmarks' initial positions.
-// Landmarks that cannot be initialised (new with fewer than two usable rays) are left out, as
-// are detections whose landmark is not in front of the camera at the initial guess.
+// The detections of one subgraph grouped by landmark, with the landmarks' initial positions.
 struct SubgraphLandmarks {
   std::vector<LandmarkId> ids;
+  std::vector<bool> known;  // in the map
   std::vector<Eigen::Vector2d> initial;
   std::vector<std::vector<const CameraObservation*>> detections;
-  int dropped = 0;
 };
 
-bool InFront(const Pose2& pose, const Eigen::Vector2d& landmark, const Calibration& calib) {
-  double u;
-  return ProjectLandmark(pose.data(), landmark.data(), calib, &u);
-}
-
-SubgraphLandmarks CollectLandmarks(const PassageGraph& graph, const NodeRange& range, const Calibration& calib,
-                                   const MapReaderInterface& map) {
+SubgraphLandmarks GroupDetections(const PassageGraph& graph, const NodeRange& range, const MapReaderInterface& map) {
   std::map<LandmarkId, std::vector<const CameraObservation*>> by_landmark;
   for (const CameraObservation& d : graph.detections) {
     if (d.node >= range.first && d.node <= range.last) by_landmark[d.landmark_id].push_back(&d);
@@ -56,33 +48,96 @@ SubgraphLandmarks CollectLandmarks(const PassageGraph& graph, const NodeRange& r
   SubgraphLandmarks out;
   for (auto& [id, detections] : by_landmark) {
     const Landmark* known = map.FindLandmark(id);
-    Eigen::Vector2d initial;
-    if (known) {
-      initial = graph.frame.ToLocal(known->position);
-    } else {
+    out.ids.push_back(id);
+    out.known.push_back(known != nullptr);
+    out.initial.push_back(known ? graph.frame.ToLocal(known->position) : Eigen::Vector2d::Zero());
+    out.detections.push_back(std::move(detections));
+  }
+  return out;
+}
+
+ceres::Solver::Options SolverOptions(int max_iterations) {
+  ceres::Solver::Options options;
+  options.linear_solver_type = ceres::SPARSE_NORMAL_CHOLESKY;
+  options.max_num_iterations = max_iterations;
+  options.function_tolerance = 1e-10;
+  options.gradient_tolerance = 1e-12;
+  options.parameter_tolerance = 1e-10;
+  options.num_threads = 1;
+  options.logging_type = ceres::SILENT;
+  return options;
+}
+
+void AddMotionAndGnss(const PassageGraph& graph, const NodeRange& range, const Calibration& calib,
+                      std::vector<Pose2>* poses, ceres::Problem* problem) {
+  auto pose = [&](int node) { return (*poses)[node - range.first].data(); };
+  for (Pose2& p : *poses) problem->AddParameterBlock(p.data(), 3);
+  for (int k = range.first; k < range.last; ++k) {
+    problem->AddResidualBlock(OdometryFactor::Create(graph.motions[k]), nullptr, pose(k), pose(k + 1));
+  }
+  for (const GnssObservation& o : graph.gnss) {
+    if (o.node < range.first || o.node > range.last) continue;
+    problem->AddResidualBlock(GnssFactor::Create(o.position_m, o.cov_m2, calib.gnss_lever_arm_m), nullptr, pose(o.node));
+  }
+}
+
+// Moves the subgraph's initial poses onto the map: odometry + GNSS + the bearings of the map
+// landmarks held fixed. The pixel model alone cannot start from poses tens of metres off (with
+// coloured GNSS noise the GNSS-aligned guess often is), the bounded bearing residual can.
+void LocalizeAgainstMap(const PassageGraph& graph, const NodeRange& range, const Passage& passage,
+                        SubgraphLandmarks* landmarks, std::vector<Pose2>* poses) {
+  ceres::Problem problem;
+  AddMotionAndGnss(graph, range, passage.calibration, poses, &problem);
+  for (size_t i = 0; i < landmarks->ids.size(); ++i) {
+    if (!landmarks->known[i]) continue;
+    for (const CameraObservation* d : landmarks->detections[i]) {
+      problem.AddResidualBlock(BearingFactor::Create(d->u_px, passage.noise.pixel_sigma_px, passage.calibration),
+                               nullptr, (*poses)[d->node - range.first].data(), landmarks->initial[i].data());
+    }
+    problem.SetParameterBlockConstant(landmarks->initial[i].data());
+  }
+  ceres::Solver::Summary summary;
+  ceres::Solve(SolverOptions(50), &problem, &summary);
+  // An unusable localisation leaves the poses as they were; the full solve still runs.
+}
+
+// Initial positions of the new landmarks (intersection of their rays) and the detections usable
+// at the initial guess (landmark in front of the camera). Landmarks that cannot be initialised,
+// new ones with fewer than two usable rays, are left out. Returns the detections dropped.
+int InitializeLandmarks(const std::vector<Pose2>& poses, const NodeRange& range, const Calibration& calib,
+                        SubgraphLandmarks* landmarks) {
+  SubgraphLandmarks kept;
+  int dropped = 0;
+  for (size_t i = 0; i < landmarks->ids.size(); ++i) {
+    const auto& detections = landmarks->detections[i];
+    Eigen::Vector2d initial = landmarks->initial[i];
+    if (!landmarks->known[i]) {
       RayIntersection lines;
-      for (const CameraObservation* d : detections) lines.Add(CameraRay(graph.initial_poses[d->node], calib, d->u_px));
+      for (const CameraObservation* d : detections) lines.Add(CameraRay(poses[d->node - range.first], calib, d->u_px));
       std::optional<Eigen::Vector2d> p = lines.Solve();
       if (!p) {
-        out.dropped += static_cast<int>(detections.size());
+        dropped += static_cast<int>(detections.size());
         continue;
       }
       initial = *p;
     }
     std::vector<const CameraObservation*> usable;
     for (const CameraObservation* d : detections) {
-      if (InFront(graph.initial_poses[d->node], initial, calib)) usable.push_back(d);
+      double u;
+      if (ProjectLandmark(poses[d->node - range.first].data(), initial.data(), calib, &u)) usable.push_back(d);
     }
-    out.dropped += static_cast<int>(detections.size() - usable.size());
-    if (usable.empty() || (!known && usable.size() < 2)) {
-      out.dropped += static_cast<int>(usable.size());
+    if (usable.empty() || (!landmarks->known[i] && usable.size() < 2)) {
+      dropped += static_cast<int>(detections.size());
       continue;
     }
-    out.ids.push_back(id);
-    out.initial.push_back(initial);
-    out.detections.push_back(std::move(usable));
+    dropped += static_cast<int>(detections.size() - usable.size());
+    kept.ids.push_back(landmarks->ids[i]);
+    kept.known.push_back(landmarks->known[i]);
+    kept.initial.push_back(initial);
+    kept.detections.push_back(std::move(usable));
   }
-  return out;
+  *landmarks = std::move(kept);
+  return dropped;
 }
 
 // Builds, solves and commits one subgraph. No map change if it sees no landmark.
@@ -90,52 +145,45 @@ absl::Status UpdateFromSubgraph(const Passage& passage, const PassageGraph& grap
                                 const MapUpdateOptions& options, MapOverlay* map, PassageProgress* progress,
                                 PassageUpdateSummary* summary) {
   const Calibration& calib = passage.calibration;
-  SubgraphLandmarks landmarks = CollectLandmarks(graph, range, calib, *map);
-  summary->detections_dropped += landmarks.dropped;
+  SubgraphLandmarks landmarks = GroupDetections(graph, range, *map);
   if (landmarks.ids.empty()) return absl::OkStatus();
-
   std::vector<Pose2> poses(graph.initial_poses.begin() + range.first, graph.initial_poses.begin() + range.last + 1);
-  auto pose = [&](int node) { return poses[node - range.first].data(); };
+  const auto solve_start = std::chrono::steady_clock::now();
+  if (std::find(landmarks.known.begin(), landmarks.known.end(), true) != landmarks.known.end()) {
+    LocalizeAgainstMap(graph, range, passage, &landmarks, &poses);
+  }
+  summary->detections_dropped += InitializeLandmarks(poses, range, calib, &landmarks);
+  if (landmarks.ids.empty()) return absl::OkStatus();
 
   LandmarkUpdate update(graph.frame, map, landmarks.ids);
   ceres::Problem problem;
-  for (Pose2& p : poses) problem.AddParameterBlock(p.data(), 3);
+  AddMotionAndGnss(graph, range, calib, &poses, &problem);
   for (int i = 0; i < update.size(); ++i) {
     if (!update.in_map(i)) Eigen::Map<Eigen::Vector2d>(update.block(i)) = landmarks.initial[i];
     problem.AddParameterBlock(update.block(i), 2);
-  }
-  for (int k = range.first; k < range.last; ++k) {
-    problem.AddResidualBlock(OdometryFactor::Create(graph.motions[k]), nullptr, pose(k), pose(k + 1));
-  }
-  for (const GnssObservation& o : graph.gnss) {
-    if (o.node < range.first || o.node > range.last) continue;
-    problem.AddResidualBlock(GnssFactor::Create(o.position_m, o.cov_m2, calib.gnss_lever_arm_m), nullptr, pose(o.node));
-  }
-  for (int i = 0; i < update.size(); ++i) {
     for (const CameraObservation* d : landmarks.detections[i]) {
       problem.AddResidualBlock(CameraFactor::Create(d->u_px, passage.noise.pixel_sigma_px, calib), nullptr,
-                               pose(d->node), update.block(i));
+                               poses[d->node - range.first].data(), update.block(i));
       ++summary->detections_used;
     }
   }
   const bool correlated = options.strategy != UpdateStrategy::kDecorrelated;
   if (absl::Status s = update.AddMapPrior(correlated, &problem); !s.ok()) return s;
 
-  ceres::Solver::Options solver_options;
-  solver_options.linear_solver_type = ceres::SPARSE_NORMAL_CHOLESKY;
-  solver_options.max_num_iterations = options.max_solver_iterations;
-  solver_options.function_tolerance = 1e-10;
-  solver_options.gradient_tolerance = 1e-12;
-  solver_options.parameter_tolerance = 1e-10;
-  solver_options.num_threads = 1;
   ceres::Solver::Summary solver_summary;
-  const auto solve_start = std::chrono::steady_clock::now();
-  ceres::Solve(solver_options, &problem, &solver_summary);
+  ceres::Solve(SolverOptions(options.max_solver_iterations), &problem, &solver_summary);
   summary->solve_ms += MillisecondsSince(solve_start);
   summary->solver_iterations += static_cast<int>(solver_summary.iterations.size());
   summary->final_cost += solver_summary.final_cost;
   if (!solver_summary.IsSolutionUsable()) {
     return absl::InternalError(absl::StrCat("solver result unusable: ", solver_summary.message));
+  }
+  const int dof = problem.NumResiduals() - problem.NumParameters();
+  const double chi2 = 2.0 * solver_summary.final_cost;
+  if (options.max_chi2_per_dof > 0.0 && dof > 0 && chi2 > options.max_chi2_per_dof * dof) {
+    return absl::FailedPreconditionError(absl::StrFormat(
+        "solution inconsistent with the measurements: chi2=%.1f for %d degrees of freedom (limit %.1f per dof)",
+        chi2, dof, options.max_chi2_per_dof));
   }
 
   const int64_t seen_ms = passage.start_time_unix_ms;
@@ -193,6 +241,9 @@ absl::Status MapUpdateOptions::Validate() const {
   if (!(correlation_radius_m > 0.0)) {
     return absl::InvalidArgumentError(
         absl::StrCat("correlation_radius_m: must be > 0 (inf = dense), got ", correlation_radius_m));
+  }
+  if (!(max_chi2_per_dof >= 0.0)) {
+    return absl::InvalidArgumentError(absl::StrCat("max_chi2_per_dof: must be >= 0 (0 = off), got ", max_chi2_per_dof));
   }
   if (max_solver_iterations < 1) {
     return absl::InvalidArgumentError(absl::StrCat("max_solver_iterations: must be >= 1, got ", max_solver_iterations));

@@ -31,6 +31,10 @@ struct MapUpdateOptions {
   // Cross-covariance blocks are kept only between landmarks closer than this (infinity = dense).
   double correlation_radius_m = std::numeric_limits<double>::infinity();
   int max_solver_iterations = 100;
+  // A (sub)graph solve whose chi-square (2 x final cost) exceeds this many times its degrees of
+  // freedom is refused rather than committed: the solver found a wrong minimum or the data hold
+  // gross errors. About 1 for a sound solve; 0 disables the check.
+  double max_chi2_per_dof = 4.0;
 
   absl::Status Validate() const;
 };
