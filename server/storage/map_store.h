@@ -119,6 +119,9 @@ class MapStoreInterface {
   // Ends a processing passage without a map change: state `final_state` (rejected or failed)
   // or queued (to retry), with the reason.
   virtual absl::Status FinishPassageWithoutChange(int64_t id, PassageState state, const std::string& reason) = 0;
+  // Records a failed attempt of a processing passage that stays processing (retried in place):
+  // attempts + 1 and the reason. Returns the new attempt count.
+  virtual absl::StatusOr<int> RecordFailedAttempt(int64_t id, const std::string& reason) = 0;
   // Start-up recovery: every processing passage goes back to queued. Returns how many.
   virtual absl::StatusOr<int> RequeueProcessingPassages() = 0;
 

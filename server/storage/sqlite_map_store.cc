@@ -4,6 +4,8 @@
 #include <cmath>
 #include <unordered_set>
 
+#include <Eigen/LU>
+
 #include "absl/strings/str_cat.h"
 #include "server/storage/sqlite_schema.h"
 
@@ -107,6 +109,10 @@ absl::StatusOr<int64_t> SqliteMapStore::ReadMapVersion(SqliteConnection* db) {
 absl::Status SqliteMapStore::WriteLandmark(SqliteConnection* db, const Landmark& l) {
   if (!std::isfinite(l.position.lat_deg) || !std::isfinite(l.position.lon_deg) || !l.cov_en_m2.allFinite()) {
     return absl::InternalError(absl::StrCat("landmark ", l.id, " has a non-finite position or covariance"));
+  }
+  // A map with a non-positive-definite marginal cannot serve as a prior: refuse to store it.
+  if (l.cov_en_m2(0, 0) <= 0.0 || l.cov_en_m2(1, 1) <= 0.0 || l.cov_en_m2.determinant() <= 0.0) {
+    return absl::InternalError(absl::StrCat("landmark ", l.id, " covariance is not positive definite"));
   }
   const TileId tile = TileContaining(l.position);
   auto stmt = db->Prepare(

@@ -28,6 +28,7 @@ class SqliteMapStore : public MapStoreInterface {
   absl::StatusOr<std::optional<ClaimedPassage>> ClaimNextPassage() override;
   absl::Status CommitPassageApplied(int64_t id, const MapDelta& delta, const PassageResult& result) override;
   absl::Status FinishPassageWithoutChange(int64_t id, PassageState state, const std::string& reason) override;
+  absl::StatusOr<int> RecordFailedAttempt(int64_t id, const std::string& reason) override;
   absl::StatusOr<int> RequeueProcessingPassages() override;
 
   absl::Status LoadMap(MapState* map) override;

@@ -246,6 +246,22 @@ absl::Status SqliteMapStore::FinishPassageWithoutChange(int64_t id, PassageState
   return txn->Commit();
 }
 
+absl::StatusOr<int> SqliteMapStore::RecordFailedAttempt(int64_t id, const std::string& reason) {
+  std::lock_guard<std::mutex> lock(writer_mu_);
+  SqliteConnection* db = writer_.get();
+  auto txn = SqliteWriteTransaction::Begin(db);
+  if (!txn.ok()) return txn.status();
+  auto update = db->Prepare("UPDATE passages SET attempts = attempts + 1, error = ?2 WHERE id = ?1 AND state = 2");
+  if (!update.ok()) return update.status();
+  update->Bind(1, id).Bind(2, std::string_view(reason));
+  if (auto s = update->Run(); !s.ok()) return s;
+  if (db->Changes() != 1) return absl::FailedPreconditionError(absl::StrCat("passage id ", id, " is not processing"));
+  auto record = ReadPassage(db, id);
+  if (!record.ok()) return record.status();
+  if (auto s = txn->Commit(); !s.ok()) return s;
+  return (*record)->attempts;
+}
+
 absl::StatusOr<int> SqliteMapStore::RequeueProcessingPassages() {
   std::lock_guard<std::mutex> lock(writer_mu_);
   SqliteConnection* db = writer_.get();

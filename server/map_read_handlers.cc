@@ -1,0 +1,116 @@
+// MapService handlers that read the map.
+#include <algorithm>
+#include <chrono>
+
+#include "absl/strings/str_cat.h"
+#include "server/map_service.h"
+#include "server/request_log.h"
+
+namespace crowdmap {
+namespace {
+
+constexpr int kDefaultRegionPage = 1000;
+constexpr int kMaxRegionPage = 10000;
+constexpr std::chrono::milliseconds kWatchPoll{500};
+
+template <typename Response>
+void AddLandmarks(const LandmarkPage& page, Response* response) {
+  for (const Landmark& l : page.landmarks) LandmarkToProto(l, response->add_landmarks());
+  for (const auto& [pair, block] : page.cross) CrossToProto(pair, block, response->add_cross_covariances());
+}
+
+}  // namespace
+
+grpc::Status MapService::GetTile(grpc::ServerContext* ctx, const pb::GetTileRequest* request,
+                                 pb::GetTileResponse* response) {
+  RequestLog log("GetTile", ctx);
+  const TileId tile{request->tile().z(), request->tile().x(), request->tile().y()};
+  log.Add(absl::StrCat("tile=", tile.z, "/", tile.x, "/", tile.y));
+  if (tile.z != kStorageZoom || !IsValidTile(tile)) {
+    return log.Done(absl::InvalidArgumentError(
+        absl::StrCat("tile: ", tile.z, "/", tile.x, "/", tile.y, " is not a tile at the storage zoom ", kStorageZoom)));
+  }
+  absl::StatusOr<LandmarkPage> page = context_->store->GetTile(tile, request->include_cross_covariance());
+  if (!page.ok()) return log.Done(page.status());
+  *response->mutable_tile() = request->tile();
+  int64_t tile_version = 0;
+  for (const Landmark& l : page->landmarks) tile_version = std::max(tile_version, l.version);
+  response->set_tile_version(tile_version);
+  response->set_map_version(page->map_version);
+  AddLandmarks(*page, response);
+  log.Add(absl::StrCat("landmarks=", page->landmarks.size()));
+  return log.Done(absl::OkStatus());
+}
+
+grpc::Status MapService::QueryRegion(grpc::ServerContext* ctx, const pb::QueryRegionRequest* request,
+                                     pb::QueryRegionResponse* response) {
+  RequestLog log("QueryRegion", ctx);
+  absl::StatusOr<BoundingBox> box = BoundingBoxFromProto(request->box(), "box");
+  if (!box.ok()) return log.Done(box.status());
+  if (request->page_size() < 0 || request->page_size() > kMaxRegionPage) {
+    return log.Done(absl::InvalidArgumentError(absl::StrCat("page_size: must lie in [0, ", kMaxRegionPage, "]")));
+  }
+  absl::StatusOr<int64_t> after = ParsePageToken(request->page_token());
+  if (!after.ok()) return log.Done(after.status());
+  const int limit = request->page_size() == 0 ? kDefaultRegionPage : request->page_size();
+  absl::StatusOr<LandmarkPage> page =
+      context_->store->QueryRegion(*box, *after, limit, request->include_cross_covariance());
+  if (!page.ok()) return log.Done(page.status());
+  response->set_map_version(page->map_version);
+  AddLandmarks(*page, response);
+  if (page->more) response->set_next_page_token(MakePageToken(page->landmarks.back().id));
+  log.Add(absl::StrCat("landmarks=", page->landmarks.size(), " cross=", page->cross.size()));
+  return log.Done(absl::OkStatus());
+}
+
+grpc::Status MapService::WatchRegion(grpc::ServerContext* ctx, const pb::WatchRegionRequest* request,
+                                     grpc::ServerWriter<pb::WatchRegionResponse>* writer) {
+  RequestLog log("WatchRegion", ctx);
+  absl::StatusOr<BoundingBox> box = BoundingBoxFromProto(request->box(), "box");
+  if (!box.ok()) return log.Done(box.status());
+  if (request->since_version() < 0) return log.Done(absl::InvalidArgumentError("since_version: must be >= 0"));
+  int64_t since = request->since_version();
+  int messages = 0;
+  // The first message is always sent (it tells the client the current version); later ones only
+  // when landmarks in the box changed.
+  while (!ctx->IsCancelled()) {
+    absl::StatusOr<LandmarkPage> page = context_->store->ChangedLandmarks(*box, since);
+    if (!page.ok()) return log.Done(page.status());
+    if (messages == 0 || !page->landmarks.empty()) {
+      pb::WatchRegionResponse response;
+      response.set_map_version(page->map_version);
+      for (const Landmark& l : page->landmarks) LandmarkToProto(l, response.add_landmarks());
+      if (!writer->Write(response)) break;
+      ++messages;
+    }
+    since = std::max(since, page->map_version);
+    if (context_->notifier->closed()) {
+      log.Add(absl::StrCat("messages=", messages));
+      return log.Done(absl::UnavailableError("server is shutting down"));
+    }
+    context_->notifier->WaitAbove(since, kWatchPoll);
+  }
+  log.Add(absl::StrCat("messages=", messages));
+  return log.Done(absl::CancelledError("client cancelled"));
+}
+
+grpc::Status MapService::GetMapInfo(grpc::ServerContext* ctx, const pb::GetMapInfoRequest* request,
+                                    pb::MapInfo* response) {
+  RequestLog log("GetMapInfo", ctx);
+  absl::StatusOr<MapStats> stats = context_->store->GetStats();
+  if (!stats.ok()) return log.Done(stats.status());
+  response->set_map_version(stats->map_version);
+  response->set_landmark_count(stats->landmark_count);
+  response->set_cross_covariance_count(stats->cross_count);
+  response->set_queue_depth(stats->queue_depth());
+  response->set_passages_queued(stats->passages_by_state[static_cast<int>(PassageState::kQueued)]);
+  response->set_passages_processing(stats->passages_by_state[static_cast<int>(PassageState::kProcessing)]);
+  response->set_passages_applied(stats->passages_by_state[static_cast<int>(PassageState::kApplied)]);
+  response->set_passages_rejected(stats->passages_by_state[static_cast<int>(PassageState::kRejected)]);
+  response->set_passages_failed(stats->passages_by_state[static_cast<int>(PassageState::kFailed)]);
+  response->set_strategy(context_->strategy);
+  log.Add(absl::StrCat("map_version=", stats->map_version, " queue_depth=", stats->queue_depth()));
+  return log.Done(absl::OkStatus());
+}
+
+}  // namespace crowdmap

@@ -1,0 +1,97 @@
+#include "server/map_server.h"
+
+#include <filesystem>
+
+#include <grpcpp/ext/proto_server_reflection_plugin.h>
+#include <grpcpp/health_check_service_interface.h>
+#include <grpcpp/security/server_credentials.h>
+#include <grpcpp/server_builder.h>
+#include <spdlog/spdlog.h>
+
+#include "absl/strings/str_cat.h"
+
+namespace crowdmap {
+
+absl::Status MapServerOptions::Validate() const {
+  if (listen.empty()) return absl::InvalidArgumentError("listen: must not be empty");
+  if (db_path.empty()) return absl::InvalidArgumentError("db: must not be empty");
+  if (max_queue < 0) return absl::InvalidArgumentError(absl::StrCat("max_queue: must be >= 0, got ", max_queue));
+  if (max_message_mb < 1 || max_message_mb > 2047) {
+    return absl::InvalidArgumentError(absl::StrCat("max_message_mb: must lie in [1, 2047], got ", max_message_mb));
+  }
+  if (max_passage_mb < 1 || max_passage_mb > 2047) {
+    return absl::InvalidArgumentError(absl::StrCat("max_passage_mb: must lie in [1, 2047], got ", max_passage_mb));
+  }
+  return worker.Validate();
+}
+
+absl::StatusOr<std::unique_ptr<MapServer>> MapServer::Start(const MapServerOptions& options) {
+  if (auto s = options.Validate(); !s.ok()) return s;
+  std::unique_ptr<MapServer> server(new MapServer());
+  server->options_ = options;
+
+  const std::filesystem::path db_dir = std::filesystem::path(options.db_path).parent_path();
+  std::error_code ec;
+  if (!db_dir.empty()) std::filesystem::create_directories(db_dir, ec);
+  if (ec) return absl::FailedPreconditionError(absl::StrCat("db: cannot create ", db_dir.string(), ": ", ec.message()));
+  auto store = CreateSqliteMapStore(options.db_path);
+  if (!store.ok()) return store.status();
+  server->store_ = std::move(*store);
+  server->committer_ = std::make_unique<UploadCommitter>(server->store_.get(), options.max_queue);
+  auto worker = MapWorker::Create(server->store_.get(), options.worker, &server->notifier_);
+  if (!worker.ok()) return worker.status();
+  server->worker_ = std::move(*worker);
+
+  MapServiceContext& context = server->context_;
+  context.store = server->store_.get();
+  context.committer = server->committer_.get();
+  context.worker = server->worker_.get();
+  context.notifier = &server->notifier_;
+  context.limits.max_passage_bytes = static_cast<size_t>(options.max_passage_mb) << 20;
+  context.strategy = UpdateStrategyName(options.worker.update.strategy);
+  server->service_ = std::make_unique<MapService>(&context);
+
+  grpc::EnableDefaultHealthCheckService(true);
+  grpc::reflection::InitProtoReflectionServerBuilderPlugin();
+  grpc::ServerBuilder builder;
+  builder.AddListeningPort(options.listen, grpc::InsecureServerCredentials(), &server->port_);
+  builder.SetMaxReceiveMessageSize(options.max_message_mb << 20);
+  builder.RegisterService(server->service_.get());
+  server->server_ = builder.BuildAndStart();
+  if (server->server_ == nullptr || server->port_ == 0) {
+    return absl::UnavailableError(absl::StrCat("listen: cannot bind ", options.listen));
+  }
+  server->server_->GetHealthCheckService()->SetServingStatus(true);
+  if (options.start_worker) server->worker_->Start();
+  spdlog::info("event=started listen={} port={} db={} strategy={} workers={} max_queue={}", options.listen,
+               server->port_, options.db_path, context.strategy, options.worker.workers, options.max_queue);
+  return server;
+}
+
+MapServer::~MapServer() { Shutdown(std::chrono::milliseconds(0)); }
+
+std::string MapServer::address() const {
+  const std::string& listen = options_.listen;
+  const size_t colon = listen.rfind(':');
+  std::string host = colon == std::string::npos ? listen : listen.substr(0, colon);
+  if (host.empty() || host == "0.0.0.0" || host == "[::]") host = "127.0.0.1";
+  return absl::StrCat(host, ":", port_);
+}
+
+void MapServer::Shutdown(std::chrono::milliseconds grace) {
+  std::lock_guard<std::mutex> lock(shutdown_mu_);
+  if (shut_down_) return;
+  shut_down_ = true;
+  spdlog::info("event=shutting_down");
+  if (server_ != nullptr) server_->GetHealthCheckService()->SetServingStatus(false);
+  context_.accepting_uploads = false;
+  if (worker_ != nullptr) worker_->Stop();
+  notifier_.Close();
+  if (server_ != nullptr) {
+    server_->Shutdown(std::chrono::system_clock::now() + grace);
+    server_->Wait();
+  }
+  spdlog::info("event=stopped");
+}
+
+}  // namespace crowdmap

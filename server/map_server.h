@@ -1,0 +1,69 @@
+#ifndef CROWDMAP_SERVER_MAP_SERVER_H_
+#define CROWDMAP_SERVER_MAP_SERVER_H_
+
+#include <chrono>
+#include <cstdint>
+#include <memory>
+#include <mutex>
+#include <string>
+
+#include <grpcpp/server.h>
+
+#include "absl/status/statusor.h"
+#include "server/map_service.h"
+#include "server/map_worker.h"
+#include "server/storage/map_store.h"
+#include "server/upload_committer.h"
+#include "server/version_notifier.h"
+
+namespace crowdmap {
+
+struct MapServerOptions {
+  std::string listen = "127.0.0.1:50051";  // host:port; port 0 picks a free one
+  std::string db_path = "./var/map.db";    // created (with its directory) on first start
+  MapWorkerOptions worker;
+  int64_t max_queue = 10000;  // passages queued or processing before uploads get RESOURCE_EXHAUSTED
+  int max_message_mb = 4;     // gRPC receive limit per message
+  int max_passage_mb = 64;    // largest accepted passage (chunked uploads)
+  bool start_worker = true;   // false: accept and queue uploads, apply nothing
+
+  absl::Status Validate() const;
+};
+
+// The map service process: store, upload committer, worker and gRPC server (with health checking
+// and reflection), started together and shut down in order.
+class MapServer {
+ public:
+  static absl::StatusOr<std::unique_ptr<MapServer>> Start(const MapServerOptions& options);
+  ~MapServer();
+  MapServer(const MapServer&) = delete;
+  MapServer& operator=(const MapServer&) = delete;
+
+  int port() const { return port_; }
+  // "host:port" a client on this machine can dial.
+  std::string address() const;
+  MapStoreInterface* store() { return store_.get(); }
+
+  // Health NOT_SERVING, refuse uploads, finish the passage being applied, end streams, stop gRPC
+  // (in-flight calls get `grace`). Idempotent.
+  void Shutdown(std::chrono::milliseconds grace = std::chrono::milliseconds(5000));
+
+ private:
+  MapServer() = default;
+
+  MapServerOptions options_;
+  std::unique_ptr<MapStoreInterface> store_;
+  VersionNotifier notifier_;
+  std::unique_ptr<UploadCommitter> committer_;
+  std::unique_ptr<MapWorker> worker_;
+  MapServiceContext context_;
+  std::unique_ptr<MapService> service_;
+  std::unique_ptr<grpc::Server> server_;
+  int port_ = 0;
+  std::mutex shutdown_mu_;
+  bool shut_down_ = false;
+};
+
+}  // namespace crowdmap
+
+#endif  // CROWDMAP_SERVER_MAP_SERVER_H_

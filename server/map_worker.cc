@@ -1,0 +1,193 @@
+#include "server/map_worker.h"
+
+#include <spdlog/spdlog.h>
+
+#include "absl/strings/str_cat.h"
+#include "server/wire_convert.h"
+
+namespace crowdmap {
+namespace {
+
+PassageResult ResultFromSummary(const PassageUpdateSummary& s, UpdateStrategy strategy) {
+  PassageResult r;
+  r.nodes = s.nodes;
+  r.subgraphs = s.subgraphs;
+  r.landmarks_updated = s.landmarks_updated;
+  r.landmarks_created = s.landmarks_created;
+  r.landmarks_conditioned = s.landmarks_conditioned;
+  r.detections_used = s.detections_used;
+  r.detections_dropped = s.detections_dropped;
+  r.solver_iterations = s.solver_iterations;
+  r.final_cost = s.final_cost;
+  r.solve_ms = s.solve_ms;
+  r.covariance_ms = s.covariance_ms;
+  r.total_ms = s.total_ms;
+  r.map_version = s.map_version;
+  r.strategy = UpdateStrategyName(strategy);
+  return r;
+}
+
+}  // namespace
+
+absl::Status MapWorkerOptions::Validate() const {
+  if (workers < 1) return absl::InvalidArgumentError(absl::StrCat("workers: must be >= 1, got ", workers));
+  if (max_attempts < 1) return absl::InvalidArgumentError(absl::StrCat("max_attempts: must be >= 1, got ", max_attempts));
+  return update.Validate();
+}
+
+absl::StatusOr<std::unique_ptr<MapWorker>> MapWorker::Create(MapStoreInterface* store,
+                                                             const MapWorkerOptions& options,
+                                                             VersionNotifier* notifier) {
+  if (auto s = options.Validate(); !s.ok()) return s;
+  std::unique_ptr<MapWorker> worker(new MapWorker(store, options, notifier));
+  auto requeued = store->RequeueProcessingPassages();
+  if (!requeued.ok()) return requeued.status();
+  if (*requeued > 0) spdlog::warn("event=requeue passages={} reason=\"processing at start-up\"", *requeued);
+  if (auto s = store->LoadMap(&worker->map_); !s.ok()) return s;
+  notifier->Publish(worker->map_.version());
+  spdlog::info("event=map_loaded landmarks={} cross_blocks={} map_version={}", worker->map_.landmark_count(),
+               worker->map_.cross_block_count(), worker->map_.version());
+  return worker;
+}
+
+MapWorker::~MapWorker() { Stop(); }
+
+void MapWorker::Start() {
+  for (int i = 0; i < options_.workers; ++i) threads_.emplace_back([this] { Run(); });
+}
+
+void MapWorker::Wake() {
+  {
+    std::lock_guard<std::mutex> lock(wake_mu_);
+    wake_pending_ = true;
+  }
+  wake_cv_.notify_one();
+}
+
+void MapWorker::Stop() {
+  stopping_ = true;
+  wake_cv_.notify_all();
+  turn_cv_.notify_all();
+  for (std::thread& t : threads_) t.join();
+  threads_.clear();
+}
+
+bool MapWorker::WaitForWork() {
+  std::unique_lock<std::mutex> lock(wake_mu_);
+  wake_cv_.wait_for(lock, options_.idle_poll, [this] { return wake_pending_ || stopping_.load(); });
+  wake_pending_ = false;
+  return !stopping_;
+}
+
+void MapWorker::Run() {
+  while (!stopping_) {
+    std::optional<ClaimedPassage> claimed;
+    uint64_t ticket = 0;
+    {
+      std::lock_guard<std::mutex> lock(claim_mu_);
+      if (stopping_) break;
+      auto next = store_->ClaimNextPassage();
+      if (!next.ok()) {
+        spdlog::error("event=claim_failed error=\"{}\"", next.status().ToString());
+      } else if (next->has_value()) {
+        claimed = std::move(*next);
+        ticket = next_ticket_++;
+      }
+    }
+    if (!claimed) {
+      if (!WaitForWork()) break;
+      continue;
+    }
+    Process(std::move(*claimed), ticket);
+  }
+}
+
+void MapWorker::Process(ClaimedPassage claimed, uint64_t ticket) {
+  // Decoding runs in parallel; the map update waits for this passage's turn.
+  pb::Passage wire;
+  absl::StatusOr<Passage> passage = absl::InvalidArgumentError("passage: stored payload does not parse");
+  if (wire.ParseFromString(claimed.payload)) passage = PassageFromProto(wire);
+  claimed.payload.clear();
+
+  std::unique_lock<std::mutex> lock(turn_mu_);
+  turn_cv_.wait(lock, [&] { return serving_ticket_ == ticket; });
+  lock.unlock();
+  const PassageRecord& record = claimed.record;
+  if (stopping_ && record.attempts <= options_.max_attempts) {
+    Finish(record, PassageState::kQueued, "");  // not started: back to the queue, in order
+  } else if (!passage.ok()) {
+    Finish(record, PassageState::kRejected, std::string(passage.status().message()));
+  } else if (record.attempts > options_.max_attempts) {
+    Finish(record, PassageState::kFailed,
+           absl::StrCat("gave up after ", record.attempts - 1, " attempts; last: ", record.error));
+  } else {
+    Apply(claimed, *passage);
+  }
+  lock.lock();
+  ++serving_ticket_;
+  lock.unlock();
+  turn_cv_.notify_all();
+}
+
+void MapWorker::Apply(const ClaimedPassage& claimed, const Passage& passage) {
+  const PassageRecord& record = claimed.record;
+  int attempts = record.attempts;
+  while (true) {
+    std::string error;
+    auto update = ComputePassageUpdate(passage, options_.update, map_);
+    if (update.ok()) {
+      const PassageResult result = ResultFromSummary(update->summary, options_.update.strategy);
+      absl::Status committed = store_->CommitPassageApplied(record.id, update->delta, result);
+      if (committed.ok()) {
+        map_.Apply(update->delta);
+        notifier_->Publish(map_.version());
+        spdlog::info(
+            "event=applied passage={} vehicle={} id={} nodes={} subgraphs={} landmarks_updated={} "
+            "landmarks_created={} landmarks_conditioned={} solve_ms={:.1f} total_ms={:.1f} map_version={}",
+            record.passage_id, record.vehicle_id, record.id, result.nodes, result.subgraphs,
+            result.landmarks_updated, result.landmarks_created, result.landmarks_conditioned, result.solve_ms,
+            result.total_ms, map_.version());
+        return;
+      }
+      error = absl::StrCat("commit: ", committed.ToString());
+      if (committed.code() == absl::StatusCode::kFailedPrecondition) {
+        // The mirror disagrees with the store: reload it before the next attempt.
+        MapState reloaded;
+        if (store_->LoadMap(&reloaded).ok()) map_ = std::move(reloaded);
+      }
+    } else if (update.status().code() == absl::StatusCode::kInvalidArgument) {
+      Finish(record, PassageState::kRejected, std::string(update.status().message()));
+      return;
+    } else {
+      error = update.status().ToString();
+    }
+    spdlog::warn("event=attempt_failed passage={} vehicle={} id={} attempt={} error=\"{}\"", record.passage_id,
+                 record.vehicle_id, record.id, attempts, error);
+    if (attempts >= options_.max_attempts) {
+      Finish(record, PassageState::kFailed, absl::StrCat("failed ", attempts, " times; last: ", error));
+      return;
+    }
+    if (stopping_) {
+      Finish(record, PassageState::kQueued, error);
+      return;
+    }
+    auto recorded = store_->RecordFailedAttempt(record.id, error);
+    attempts = recorded.ok() ? *recorded : attempts + 1;
+  }
+}
+
+void MapWorker::Finish(const PassageRecord& record, PassageState state, const std::string& reason) {
+  absl::Status s = store_->FinishPassageWithoutChange(record.id, state, reason);
+  if (!s.ok()) {
+    spdlog::error("event=finish_failed passage={} id={} error=\"{}\"", record.passage_id, record.id, s.ToString());
+    return;
+  }
+  if (state == PassageState::kQueued) {
+    spdlog::info("event=returned passage={} vehicle={} id={}", record.passage_id, record.vehicle_id, record.id);
+  } else {
+    spdlog::warn("event={} passage={} vehicle={} id={} reason=\"{}\"", PassageStateName(state), record.passage_id,
+                 record.vehicle_id, record.id, reason);
+  }
+}
+
+}  // namespace crowdmap

@@ -1,0 +1,84 @@
+#ifndef CROWDMAP_SERVER_MAP_WORKER_H_
+#define CROWDMAP_SERVER_MAP_WORKER_H_
+
+#include <atomic>
+#include <chrono>
+#include <condition_variable>
+#include <cstdint>
+#include <memory>
+#include <mutex>
+#include <thread>
+#include <vector>
+
+#include "absl/status/statusor.h"
+#include "core/estimation/map_updater.h"
+#include "core/map/map_state.h"
+#include "server/storage/map_store.h"
+#include "server/version_notifier.h"
+
+namespace crowdmap {
+
+struct MapWorkerOptions {
+  MapUpdateOptions update;
+  // Worker threads. They claim and decode passages in parallel, but the map update itself is
+  // serialized in arrival order, so any count gives exactly the sequential result.
+  int workers = 1;
+  // Attempts (including start-ups interrupted while processing) before a passage is failed.
+  int max_attempts = 3;
+  std::chrono::milliseconds idle_poll{200};
+
+  absl::Status Validate() const;
+};
+
+// Applies queued passages to the map, in arrival order. Keeps an in-memory mirror of the stored
+// map (this process owns the database): each passage's update is computed against the mirror,
+// committed with the passage's result and the new version in one transaction, and only then
+// applied to the mirror.
+class MapWorker {
+ public:
+  // Loads the map and puts passages left processing by an earlier run back on the queue.
+  static absl::StatusOr<std::unique_ptr<MapWorker>> Create(MapStoreInterface* store, const MapWorkerOptions& options,
+                                                          VersionNotifier* notifier);
+  ~MapWorker();
+  MapWorker(const MapWorker&) = delete;
+  MapWorker& operator=(const MapWorker&) = delete;
+
+  void Start();
+  // A new passage was queued.
+  void Wake();
+  // Finishes the passages being applied, returns claimed but unstarted ones to the queue, joins.
+  void Stop();
+
+ private:
+  MapWorker(MapStoreInterface* store, const MapWorkerOptions& options, VersionNotifier* notifier)
+      : store_(store), options_(options), notifier_(notifier) {}
+
+  void Run();
+  // Waits for a wake-up or the idle poll; false when stopping.
+  bool WaitForWork();
+  void Process(ClaimedPassage claimed, uint64_t ticket);
+  void Apply(const ClaimedPassage& claimed, const Passage& passage);
+  void Finish(const PassageRecord& record, PassageState state, const std::string& reason);
+
+  MapStoreInterface* const store_;
+  const MapWorkerOptions options_;
+  VersionNotifier* const notifier_;
+  MapState map_;  // touched only by the thread whose ticket is being served
+
+  std::atomic<bool> stopping_{false};
+  std::mutex wake_mu_;
+  std::condition_variable wake_cv_;
+  bool wake_pending_ = false;
+
+  std::mutex claim_mu_;  // claim + ticket assignment, so tickets follow arrival order
+  uint64_t next_ticket_ = 0;
+  std::mutex turn_mu_;
+  std::condition_variable turn_cv_;
+  uint64_t serving_ticket_ = 0;
+
+  std::vector<std::thread> threads_;
+};
+
+}  // namespace crowdmap
+
+#endif  // CROWDMAP_SERVER_MAP_WORKER_H_

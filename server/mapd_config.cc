@@ -1,0 +1,171 @@
+#include "server/mapd_config.h"
+
+#include <cmath>
+#include <fstream>
+#include <map>
+
+#include "absl/strings/ascii.h"
+#include "absl/strings/numbers.h"
+#include "absl/strings/str_cat.h"
+#include "absl/strings/str_replace.h"
+#include "absl/strings/strip.h"
+
+namespace crowdmap {
+namespace {
+
+const std::vector<std::string>& SettingNames() {
+  static const std::vector<std::string> kNames = {
+      "listen", "db", "strategy", "max-subgraph-dim", "correlation-radius-m", "workers",
+      "max-queue", "max-message-mb", "max-passage-mb", "log-level"};
+  return kNames;
+}
+
+bool IsSetting(const std::string& name) {
+  for (const std::string& n : SettingNames()) {
+    if (n == name) return true;
+  }
+  return false;
+}
+
+std::string EnvName(const std::string& flag) {
+  return absl::StrCat("MAPD_", absl::AsciiStrToUpper(absl::StrReplaceAll(flag, {{"-", "_"}})));
+}
+
+absl::Status ReadConfigFile(const std::string& path, std::map<std::string, std::string>* values) {
+  std::ifstream in(path);
+  if (!in) return absl::NotFoundError(absl::StrCat("config: cannot read ", path));
+  std::string line;
+  int number = 0;
+  while (std::getline(in, line)) {
+    ++number;
+    absl::string_view text = line;
+    if (const size_t hash = text.find('#'); hash != absl::string_view::npos) text = text.substr(0, hash);
+    text = absl::StripAsciiWhitespace(text);
+    if (text.empty()) continue;
+    const size_t eq = text.find_first_of("=:");
+    if (eq == absl::string_view::npos) {
+      return absl::InvalidArgumentError(absl::StrCat(path, ":", number, ": expected \"name = value\""));
+    }
+    std::string name(absl::StripAsciiWhitespace(text.substr(0, eq)));
+    std::string value(absl::StripAsciiWhitespace(text.substr(eq + 1)));
+    absl::StrReplaceAll({{"_", "-"}}, &name);
+    if (!IsSetting(name)) return absl::InvalidArgumentError(absl::StrCat(path, ":", number, ": unknown setting ", name));
+    (*values)[name] = value;
+  }
+  return absl::OkStatus();
+}
+
+absl::StatusOr<int64_t> ToInt(const std::string& name, const std::string& value) {
+  int64_t v = 0;
+  if (!absl::SimpleAtoi(value, &v)) return absl::InvalidArgumentError(absl::StrCat("--", name, ": expected an integer, got '", value, "'"));
+  return v;
+}
+
+absl::StatusOr<double> ToDouble(const std::string& name, const std::string& value) {
+  if (value == "inf" || value == "infinity") return std::numeric_limits<double>::infinity();
+  double v = 0;
+  if (!absl::SimpleAtod(value, &v)) return absl::InvalidArgumentError(absl::StrCat("--", name, ": expected a number, got '", value, "'"));
+  return v;
+}
+
+}  // namespace
+
+std::string MapdUsage() {
+  return R"(mapd: the crowdsourced landmark map service (gRPC, mapservice.v1).
+
+Usage: mapd [--flag value | --flag=value]...
+
+  --listen ADDR               host:port to serve on (default 127.0.0.1:50051)
+  --db PATH                   SQLite map database, created on first start (default ./var/map.db)
+  --strategy NAME             map update strategy: cc | dc | cc-gsd (default cc-gsd)
+  --max-subgraph-dim N        largest subgraph state dimension with cc-gsd (default 500)
+  --correlation-radius-m M    keep cross-covariances only between landmarks closer than M metres
+                              (default inf: dense)
+  --workers N                 worker threads (default 1). They claim and decode passages in
+                              parallel, but map updates are applied one at a time in arrival
+                              order, so the map is the same for any N.
+  --max-queue N               passages queued or processing before uploads get
+                              RESOURCE_EXHAUSTED (default 10000; 0 = unbounded)
+  --max-message-mb N          gRPC receive limit per message, MiB (default 4); larger passages
+                              use UploadPassageChunked
+  --max-passage-mb N          largest accepted passage, MiB (default 64)
+  --log-level LEVEL           trace | debug | info | warn | error | off (default info)
+  --config PATH               settings file: "name = value" lines with the names above
+  --help                      this text
+
+Every setting also reads the environment (MAPD_LISTEN, MAPD_DB, MAPD_MAX_QUEUE, ...; MAPD_CONFIG for
+the file). Precedence: flag, environment, config file, default.
+SIGTERM / SIGINT: health turns NOT_SERVING, uploads are refused (UNAVAILABLE), the passage being
+applied is finished, and mapd exits 0.
+)";
+}
+
+absl::StatusOr<MapdConfig> ParseMapdConfig(const std::vector<std::string>& args, const EnvLookup& env) {
+  std::map<std::string, std::string> flags;
+  std::string config_path;
+  MapdConfig config;
+  for (size_t i = 0; i < args.size(); ++i) {
+    const std::string& a = args[i];
+    if (a == "--help" || a == "-h") {
+      config.help = true;
+      continue;
+    }
+    if (a.rfind("--", 0) != 0) return absl::InvalidArgumentError(absl::StrCat("unexpected argument '", a, "'"));
+    std::string name = a.substr(2), value;
+    if (const size_t eq = name.find('='); eq != std::string::npos) {
+      value = name.substr(eq + 1);
+      name = name.substr(0, eq);
+    } else {
+      if (i + 1 >= args.size()) return absl::InvalidArgumentError(absl::StrCat("--", name, ": needs a value"));
+      value = args[++i];
+    }
+    if (name == "config") {
+      config_path = value;
+    } else if (IsSetting(name)) {
+      flags[name] = value;
+    } else {
+      return absl::InvalidArgumentError(absl::StrCat("unknown flag --", name, " (see --help)"));
+    }
+  }
+
+  std::map<std::string, std::string> values;
+  if (config_path.empty() && env("MAPD_CONFIG") != nullptr) config_path = env("MAPD_CONFIG");
+  if (!config_path.empty()) {
+    if (auto s = ReadConfigFile(config_path, &values); !s.ok()) return s;
+  }
+  for (const std::string& name : SettingNames()) {
+    if (const char* v = env(EnvName(name).c_str()); v != nullptr) values[name] = v;
+  }
+  for (const auto& [name, value] : flags) values[name] = value;
+
+  MapServerOptions& o = config.server;
+  for (const auto& [name, value] : values) {
+    if (name == "listen") {
+      o.listen = value;
+    } else if (name == "db") {
+      o.db_path = value;
+    } else if (name == "strategy") {
+      auto strategy = ParseUpdateStrategy(value);
+      if (!strategy.ok()) return absl::InvalidArgumentError(absl::StrCat("--strategy: ", strategy.status().message()));
+      o.worker.update.strategy = *strategy;
+    } else if (name == "log-level") {
+      config.log_level = value;
+    } else if (name == "correlation-radius-m") {
+      auto v = ToDouble(name, value);
+      if (!v.ok()) return v.status();
+      o.worker.update.correlation_radius_m = *v;
+    } else {
+      auto v = ToInt(name, value);
+      if (!v.ok()) return v.status();
+      if (name == "max-subgraph-dim") o.worker.update.max_subgraph_dim = static_cast<int>(*v);
+      if (name == "workers") o.worker.workers = static_cast<int>(*v);
+      if (name == "max-queue") o.max_queue = *v;
+      if (name == "max-message-mb") o.max_message_mb = static_cast<int>(*v);
+      if (name == "max-passage-mb") o.max_passage_mb = static_cast<int>(*v);
+    }
+  }
+  if (auto s = o.Validate(); !s.ok()) return s;
+  return config;
+}
+
+}  // namespace crowdmap

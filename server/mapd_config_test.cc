@@ -1,0 +1,59 @@
+#include "server/mapd_config.h"
+
+#include <fstream>
+#include <map>
+
+#include "gtest/gtest.h"
+#include "server/testing/temp_dir.h"
+
+namespace crowdmap {
+namespace {
+
+EnvLookup FakeEnv(std::map<std::string, std::string> vars) {
+  auto shared = std::make_shared<std::map<std::string, std::string>>(std::move(vars));
+  return [shared](const char* name) -> const char* {
+    auto it = shared->find(name);
+    return it == shared->end() ? nullptr : it->second.c_str();
+  };
+}
+
+TEST(MapdConfig, DefaultsMatchTheDocumentedOnes) {
+  auto c = ParseMapdConfig({}, FakeEnv({}));
+  ASSERT_TRUE(c.ok()) << c.status();
+  EXPECT_EQ(c->server.listen, "127.0.0.1:50051");
+  EXPECT_EQ(c->server.db_path, "./var/map.db");
+  EXPECT_EQ(c->server.worker.update.strategy, UpdateStrategy::kCorrelatedSubdivided);
+  EXPECT_EQ(c->server.max_message_mb, 4);
+}
+
+TEST(MapdConfig, FlagBeatsEnvironmentBeatsConfigFile) {
+  TempDir dir;
+  const std::string path = dir.File("mapd.conf");
+  std::ofstream(path) << "# comment\nmax_queue = 11\nworkers = 3\nstrategy: dc\nlisten = 0.0.0.0:1\n";
+  auto c = ParseMapdConfig({"--config", path, "--max-queue=33"},
+                           FakeEnv({{"MAPD_MAX_QUEUE", "22"}, {"MAPD_WORKERS", "2"}, {"MAPD_DB", "/x/y.db"}}));
+  ASSERT_TRUE(c.ok()) << c.status();
+  EXPECT_EQ(c->server.max_queue, 33);
+  EXPECT_EQ(c->server.worker.workers, 2);
+  EXPECT_EQ(c->server.worker.update.strategy, UpdateStrategy::kDecorrelated);
+  EXPECT_EQ(c->server.listen, "0.0.0.0:1");
+  EXPECT_EQ(c->server.db_path, "/x/y.db");
+}
+
+TEST(MapdConfig, RejectsUnknownFlagsAndBadValues) {
+  EXPECT_FALSE(ParseMapdConfig({"--bogus", "1"}, FakeEnv({})).ok());
+  EXPECT_FALSE(ParseMapdConfig({"--workers", "many"}, FakeEnv({})).ok());
+  EXPECT_FALSE(ParseMapdConfig({"--workers", "0"}, FakeEnv({})).ok());
+  EXPECT_FALSE(ParseMapdConfig({"--strategy", "best"}, FakeEnv({})).ok());
+  EXPECT_FALSE(ParseMapdConfig({"--max-message-mb=0"}, FakeEnv({})).ok());
+}
+
+TEST(MapdConfig, ReadsUpdateOptions) {
+  auto c = ParseMapdConfig({"--max-subgraph-dim", "300", "--correlation-radius-m", "150.5"}, FakeEnv({}));
+  ASSERT_TRUE(c.ok()) << c.status();
+  EXPECT_EQ(c->server.worker.update.max_subgraph_dim, 300);
+  EXPECT_EQ(c->server.worker.update.correlation_radius_m, 150.5);
+}
+
+}  // namespace
+}  // namespace crowdmap

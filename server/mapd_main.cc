@@ -1,0 +1,54 @@
+// mapd: serves the map until SIGTERM/SIGINT, then shuts down in order and exits 0.
+#include <pthread.h>
+#include <signal.h>
+
+#include <cstdlib>
+#include <iostream>
+
+#include <spdlog/sinks/stdout_color_sinks.h>
+#include <spdlog/spdlog.h>
+
+#include "server/map_server.h"
+#include "server/mapd_config.h"
+
+int main(int argc, char** argv) {
+  // Block the shutdown signals in every thread; the main thread takes them with sigwait.
+  sigset_t signals;
+  sigemptyset(&signals);
+  sigaddset(&signals, SIGTERM);
+  sigaddset(&signals, SIGINT);
+  pthread_sigmask(SIG_BLOCK, &signals, nullptr);
+
+  std::vector<std::string> args(argv + 1, argv + argc);
+  auto config = crowdmap::ParseMapdConfig(args, [](const char* name) { return std::getenv(name); });
+  if (!config.ok()) {
+    std::cerr << "mapd: " << config.status().message() << "\n";
+    return 2;
+  }
+  if (config->help) {
+    std::cout << crowdmap::MapdUsage();
+    return 0;
+  }
+  auto logger = spdlog::stderr_color_mt("mapd");
+  spdlog::set_default_logger(logger);
+  spdlog::set_pattern("%Y-%m-%dT%H:%M:%S.%e %l %v");
+  const auto level = spdlog::level::from_str(config->log_level);
+  if (level == spdlog::level::off && config->log_level != "off") {
+    std::cerr << "mapd: --log-level: unknown level '" << config->log_level << "'\n";
+    return 2;
+  }
+  spdlog::set_level(level);
+  spdlog::flush_on(spdlog::level::info);
+
+  auto server = crowdmap::MapServer::Start(config->server);
+  if (!server.ok()) {
+    spdlog::critical("event=start_failed error=\"{}\"", server.status().ToString());
+    return 1;
+  }
+  int signal_number = 0;
+  sigwait(&signals, &signal_number);
+  spdlog::info("event=signal signal={}", signal_number == SIGTERM ? "SIGTERM" : "SIGINT");
+  (*server)->Shutdown();
+  server->reset();
+  return 0;
+}

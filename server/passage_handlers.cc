@@ -1,0 +1,125 @@
+// MapService handlers for uploads and the passage queue.
+#include <spdlog/spdlog.h>
+
+#include "absl/strings/numbers.h"
+#include "absl/strings/str_cat.h"
+#include "server/map_service.h"
+#include "server/request_log.h"
+
+namespace crowdmap {
+namespace {
+
+constexpr char kPageTokenPrefix[] = "after:";
+constexpr int kDefaultPassagePage = 100;
+constexpr int kMaxPassagePage = 1000;
+
+}  // namespace
+
+std::string MakePageToken(int64_t last_id) { return absl::StrCat(kPageTokenPrefix, last_id); }
+
+absl::StatusOr<int64_t> ParsePageToken(const std::string& token) {
+  if (token.empty()) return 0;
+  int64_t id = 0;
+  const std::string prefix = kPageTokenPrefix;
+  if (token.rfind(prefix, 0) != 0 || !absl::SimpleAtoi(token.substr(prefix.size()), &id) || id < 0) {
+    return absl::InvalidArgumentError("page_token: malformed; pass the next_page_token of a previous response");
+  }
+  return id;
+}
+
+absl::Status MapService::AcceptUpload(const pb::Passage& wire, size_t wire_bytes, std::string payload,
+                                      pb::UploadPassageResponse* response) {
+  if (!context_->accepting_uploads) return absl::UnavailableError("server is shutting down; retry on another replica or later");
+  if (auto s = CheckPassageSize(wire_bytes, context_->limits); !s.ok()) return s;
+  absl::StatusOr<Passage> passage = PassageFromProto(wire);
+  if (!passage.ok()) return passage.status();
+  NewPassage upload{passage->vehicle_id, passage->passage_id, std::move(payload), NowUnixMs()};
+  absl::StatusOr<EnqueueOutcome> outcome = context_->committer->Commit(std::move(upload));
+  if (!outcome.ok()) return outcome.status();
+  if (!outcome->duplicate && context_->worker != nullptr) context_->worker->Wake();
+  PassageRecordToProto(outcome->record, response->mutable_status());
+  response->set_duplicate(outcome->duplicate);
+  return absl::OkStatus();
+}
+
+grpc::Status MapService::UploadPassage(grpc::ServerContext* ctx, const pb::UploadPassageRequest* request,
+                                       pb::UploadPassageResponse* response) {
+  RequestLog log("UploadPassage", ctx);
+  const pb::Passage& wire = request->passage();
+  log.Add(absl::StrCat("passage=", wire.passage_id(), " vehicle=", wire.vehicle_id()));
+  absl::Status s = AcceptUpload(wire, wire.ByteSizeLong(), wire.SerializeAsString(), response);
+  if (s.ok()) {
+    log.Add(absl::StrCat("id=", response->status().id(), " duplicate=", response->duplicate() ? "true" : "false"));
+  }
+  return log.Done(s);
+}
+
+grpc::Status MapService::UploadPassageChunked(grpc::ServerContext* ctx,
+                                              grpc::ServerReader<pb::UploadPassageChunk>* reader,
+                                              pb::UploadPassageResponse* response) {
+  RequestLog log("UploadPassageChunked", ctx);
+  std::string bytes;
+  pb::UploadPassageChunk chunk;
+  int chunks = 0;
+  while (reader->Read(&chunk)) {
+    ++chunks;
+    bytes += chunk.data();
+    if (absl::Status s = CheckPassageSize(bytes.size(), context_->limits); !s.ok()) return log.Done(s);
+  }
+  log.Add(absl::StrCat("chunks=", chunks, " bytes=", bytes.size()));
+  pb::Passage wire;
+  if (bytes.empty() || !wire.ParseFromString(bytes)) {
+    return log.Done(absl::InvalidArgumentError("passage: the chunks do not form a serialized Passage"));
+  }
+  log.Add(absl::StrCat("passage=", wire.passage_id(), " vehicle=", wire.vehicle_id()));
+  const size_t size = bytes.size();
+  absl::Status s = AcceptUpload(wire, size, std::move(bytes), response);
+  if (s.ok()) {
+    log.Add(absl::StrCat("id=", response->status().id(), " duplicate=", response->duplicate() ? "true" : "false"));
+  }
+  return log.Done(s);
+}
+
+grpc::Status MapService::GetPassage(grpc::ServerContext* ctx, const pb::GetPassageRequest* request,
+                                    pb::PassageStatus* response) {
+  RequestLog log("GetPassage", ctx);
+  absl::StatusOr<PassageRecord> record;
+  if (request->id() != 0) {
+    log.Add(absl::StrCat("id=", request->id()));
+    record = context_->store->GetPassage(request->id());
+  } else if (!request->vehicle_id().empty() && !request->passage_id().empty()) {
+    log.Add(absl::StrCat("passage=", request->passage_id(), " vehicle=", request->vehicle_id()));
+    record = context_->store->FindPassage(request->vehicle_id(), request->passage_id());
+  } else {
+    record = absl::InvalidArgumentError("id: give the passage id, or vehicle_id and passage_id");
+  }
+  if (record.ok()) PassageRecordToProto(*record, response);
+  return log.Done(record.status());
+}
+
+grpc::Status MapService::ListPassages(grpc::ServerContext* ctx, const pb::ListPassagesRequest* request,
+                                      pb::ListPassagesResponse* response) {
+  RequestLog log("ListPassages", ctx);
+  if (request->page_size() < 0 || request->page_size() > kMaxPassagePage) {
+    return log.Done(absl::InvalidArgumentError(absl::StrCat("page_size: must lie in [0, ", kMaxPassagePage, "]")));
+  }
+  absl::StatusOr<int64_t> after = ParsePageToken(request->page_token());
+  if (!after.ok()) return log.Done(after.status());
+  absl::StatusOr<std::optional<PassageState>> state = PassageStateFromProto(request->state());
+  if (!state.ok()) return log.Done(state.status());
+  PassageQuery query;
+  query.after_id = *after;
+  query.limit = (request->page_size() == 0 ? kDefaultPassagePage : request->page_size()) + 1;
+  query.state = *state;
+  query.vehicle_id = request->vehicle_id();
+  absl::StatusOr<std::vector<PassageRecord>> records = context_->store->ListPassages(query);
+  if (!records.ok()) return log.Done(records.status());
+  const bool more = static_cast<int>(records->size()) == query.limit;
+  if (more) records->pop_back();
+  for (const PassageRecord& r : *records) PassageRecordToProto(r, response->add_passages());
+  if (more) response->set_next_page_token(MakePageToken(records->back().id));
+  log.Add(absl::StrCat("returned=", records->size()));
+  return log.Done(absl::OkStatus());
+}
+
+}  // namespace crowdmap

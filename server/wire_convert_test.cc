@@ -1,0 +1,139 @@
+#include "server/wire_convert.h"
+
+#include <cmath>
+
+#include "gtest/gtest.h"
+
+namespace crowdmap {
+namespace {
+
+Passage SmallPassage() {
+  Passage p;
+  p.vehicle_id = "veh";
+  p.passage_id = "p1";
+  p.start_time_unix_ms = 1700000000000;
+  p.calibration.camera_yaw_rad = 0.01;
+  p.noise.pixel_sigma_px = 3.0;
+  for (int i = 0; i < 10; ++i) p.odometry.push_back({0.1 * i, 12.0, 0.01});
+  for (int i = 0; i < 3; ++i) {
+    GnssFix g;
+    g.t_s = 0.5 * i;
+    g.lat_deg = 48.7 + 1e-5 * i;
+    g.lon_deg = 2.17;
+    g.cov_en_m2 << 4.0, 0.5, 0.5, 9.0;
+    p.gnss.push_back(g);
+  }
+  p.detections.push_back({0.2, 7, 900.0});
+  p.detections.push_back({0.4, 8, 1000.0});
+  return p;
+}
+
+TEST(WireConvert, PassageRoundTripKeepsEveryField) {
+  const Passage p = SmallPassage();
+  pb::Passage wire;
+  PassageToProto(p, &wire);
+  auto back = PassageFromProto(wire);
+  ASSERT_TRUE(back.ok()) << back.status();
+  EXPECT_EQ(back->vehicle_id, p.vehicle_id);
+  EXPECT_EQ(back->passage_id, p.passage_id);
+  EXPECT_EQ(back->start_time_unix_ms, p.start_time_unix_ms);
+  EXPECT_EQ(back->calibration.camera_yaw_rad, 0.01);
+  EXPECT_EQ(back->calibration.gnss_lever_arm_m, p.calibration.gnss_lever_arm_m);
+  EXPECT_EQ(back->noise.pixel_sigma_px, 3.0);
+  ASSERT_EQ(back->odometry.size(), p.odometry.size());
+  EXPECT_EQ(back->odometry[3].t_s, p.odometry[3].t_s);
+  ASSERT_EQ(back->gnss.size(), 3u);
+  EXPECT_EQ(back->gnss[2].lat_deg, p.gnss[2].lat_deg);
+  EXPECT_EQ(back->gnss[1].cov_en_m2, p.gnss[1].cov_en_m2);
+  ASSERT_EQ(back->detections.size(), 2u);
+  EXPECT_EQ(back->detections[1].landmark_id, 8);
+  EXPECT_EQ(back->detections[1].u_px, 1000.0);
+}
+
+TEST(WireConvert, MissingCalibrationIsRejectedByName) {
+  pb::Passage wire;
+  PassageToProto(SmallPassage(), &wire);
+  wire.clear_calibration();
+  auto p = PassageFromProto(wire);
+  EXPECT_EQ(p.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_EQ(p.status().message().substr(0, 12), "calibration:");
+}
+
+TEST(WireConvert, AbsentNoiseFieldsTakeTheThesisDefaults) {
+  pb::Passage wire;
+  PassageToProto(SmallPassage(), &wire);
+  wire.clear_noise();
+  auto p = PassageFromProto(wire);
+  ASSERT_TRUE(p.ok()) << p.status();
+  const NoiseModel defaults;
+  EXPECT_EQ(p->noise.speed_sigma_mps, defaults.speed_sigma_mps);
+  EXPECT_EQ(p->noise.steering_sigma_rad, defaults.steering_sigma_rad);
+  EXPECT_EQ(p->noise.pixel_sigma_px, defaults.pixel_sigma_px);
+}
+
+TEST(WireConvert, GnssSigmaStandsInForAMissingCovariance) {
+  pb::Passage wire;
+  PassageToProto(SmallPassage(), &wire);
+  wire.mutable_gnss(1)->clear_cov_en_m2();
+  wire.mutable_gnss(1)->set_sigma_m(3.0);
+  auto p = PassageFromProto(wire);
+  ASSERT_TRUE(p.ok()) << p.status();
+  EXPECT_EQ(p->gnss[1].cov_en_m2, Eigen::Matrix2d::Identity() * 9.0);
+
+  wire.mutable_gnss(1)->clear_sigma_m();
+  p = PassageFromProto(wire);
+  EXPECT_EQ(p.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_NE(p.status().message().find("gnss[1].cov_en_m2"), absl::string_view::npos) << p.status();
+}
+
+TEST(WireConvert, CoreValidationNamesTheWireField) {
+  pb::Passage wire;
+  PassageToProto(SmallPassage(), &wire);
+  wire.mutable_gnss(2)->set_lat_deg(91.0);
+  auto p = PassageFromProto(wire);
+  EXPECT_EQ(p.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_NE(p.status().message().find("gnss[2].lat_deg"), absl::string_view::npos) << p.status();
+}
+
+TEST(WireConvert, OversizePassageIsRejected) {
+  WireLimits limits;
+  limits.max_passage_bytes = 100;
+  EXPECT_TRUE(CheckPassageSize(100, limits).ok());
+  absl::Status s = CheckPassageSize(101, limits);
+  EXPECT_EQ(s.code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_EQ(s.message().substr(0, 8), "passage:");
+}
+
+TEST(WireConvert, LandmarkCovarianceTravelsAsStored) {
+  Landmark l;
+  l.id = 12;
+  l.position = {48.71, 2.18};
+  l.cov_en_m2 << 0.3, 0.01, 0.0100000001, 0.2;
+  l.version = 9;
+  l.passages_seen = 4;
+  pb::Landmark wire;
+  LandmarkToProto(l, &wire);
+  EXPECT_EQ(wire.tile().z(), kStorageZoom);
+  const Landmark back = LandmarkFromProto(wire);
+  EXPECT_EQ(back.cov_en_m2, l.cov_en_m2);
+  EXPECT_EQ(back.position.lat_deg, l.position.lat_deg);
+  EXPECT_EQ(back.version, 9);
+  EXPECT_EQ(back.passages_seen, 4);
+}
+
+TEST(WireConvert, BoundingBoxOutOfRangeNamesTheField) {
+  pb::BoundingBox box;
+  box.set_min_lat_deg(10);
+  box.set_max_lat_deg(11);
+  box.set_min_lon_deg(10);
+  box.set_max_lon_deg(200);
+  auto b = BoundingBoxFromProto(box, "box");
+  EXPECT_EQ(b.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_NE(b.status().message().find("box.max_lon_deg"), absl::string_view::npos);
+  box.set_max_lon_deg(9);
+  b = BoundingBoxFromProto(box, "box");
+  EXPECT_NE(b.status().message().find("box.min_lon_deg"), absl::string_view::npos);
+}
+
+}  // namespace
+}  // namespace crowdmap
