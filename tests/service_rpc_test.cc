@@ -1,0 +1,328 @@
+// Every RPC of mapservice.v1 against an in-process server on an ephemeral port and a temporary
+// SQLite file.
+#include <grpcpp/generic/generic_stub.h>
+
+#include <future>
+#include <set>
+#include <thread>
+
+#include "server/testing/temp_dir.h"
+#include "server/wire_convert.h"
+#include "tests/support/mock_vehicle.h"
+#include "tests/support/test_server.h"
+
+namespace crowdmap {
+namespace {
+
+class ServiceRpc : public ::testing::Test {
+ protected:
+  void Start(bool worker, int64_t max_queue = 10000) {
+    MapServerOptions options = TestServerOptions(dir_.File("map.db"), worker);
+    options.max_queue = max_queue;
+    server_ = StartTestServer(options);
+    ASSERT_NE(server_, nullptr);
+    client_ = std::make_unique<MockVehicle>(server_->address());
+  }
+
+  pb::UploadPassageResponse MustUpload(const Passage& p) {
+    auto r = client_->Upload(p);
+    EXPECT_TRUE(r.ok()) << r.status();
+    return r.ok() ? *r : pb::UploadPassageResponse();
+  }
+
+  TempDir dir_;
+  Scenario scenario_ = ShortScenario();
+  std::unique_ptr<MapServer> server_;
+  std::unique_ptr<MockVehicle> client_;
+};
+
+TEST_F(ServiceRpc, UploadPassageAcknowledgesQueuedWithItsId) {
+  Start(/*worker=*/false);
+  const pb::UploadPassageResponse r = MustUpload(scenario_.MakePassage(0));
+  EXPECT_GT(r.status().id(), 0);
+  EXPECT_EQ(r.status().state(), pb::PASSAGE_STATE_QUEUED);
+  EXPECT_FALSE(r.duplicate());
+  // The acknowledgement follows the commit: the store has it.
+  auto stored = server_->store()->GetPassage(r.status().id());
+  ASSERT_TRUE(stored.ok());
+  EXPECT_EQ(stored->passage_id, "p0");
+}
+
+TEST_F(ServiceRpc, ChunkedUploadCarriesPassagesAboveTheUnaryLimit) {
+  MapServerOptions options = TestServerOptions(dir_.File("map.db"), false);
+  options.max_message_mb = 1;
+  server_ = StartTestServer(options);
+  client_ = std::make_unique<MockVehicle>(server_->address());
+  ScenarioOptions big;
+  big.landmarks = 4;
+  big.duration_s = 165;
+  big.odometry_rate_hz = 400;  // about 66000 samples, about 2 MiB
+  auto scenario = Scenario::Create(big);
+  ASSERT_TRUE(scenario.ok());
+  pb::Passage wire;
+  PassageToProto(scenario->MakePassage(0), &wire);
+  ASSERT_GT(wire.ByteSizeLong(), 1u << 20);
+  EXPECT_EQ(client_->UploadOnce(wire).status().code(), absl::StatusCode::kResourceExhausted);
+  auto r = client_->UploadChunked(wire, 256 << 10);
+  ASSERT_TRUE(r.ok()) << r.status();
+  EXPECT_EQ(r->status().state(), pb::PASSAGE_STATE_QUEUED);
+  EXPECT_EQ(r->status().size_bytes(), static_cast<int64_t>(wire.ByteSizeLong()));
+  auto payload = server_->store()->GetPassagePayload(r->status().id());
+  ASSERT_TRUE(payload.ok());
+  pb::Passage back;
+  ASSERT_TRUE(back.ParseFromString(*payload));
+  EXPECT_EQ(back.odometry_size(), wire.odometry_size());
+}
+
+TEST_F(ServiceRpc, GetPassageFindsByIdAndByKeyAndReportsNotFound) {
+  Start(false);
+  const int64_t id = MustUpload(scenario_.MakePassage(0)).status().id();
+  auto by_key = client_->GetPassage("sim-0", "p0");
+  ASSERT_TRUE(by_key.ok()) << by_key.status();
+  EXPECT_EQ(by_key->id(), id);
+  grpc::ClientContext ctx;
+  pb::GetPassageRequest request;
+  request.set_id(id);
+  pb::PassageStatus by_id;
+  ASSERT_TRUE(client_->stub()->GetPassage(&ctx, request, &by_id).ok());
+  EXPECT_EQ(by_id.passage_id(), "p0");
+  EXPECT_EQ(client_->GetPassage("sim-0", "nope").status().code(), absl::StatusCode::kNotFound);
+  grpc::ClientContext ctx2;
+  EXPECT_EQ(client_->stub()->GetPassage(&ctx2, pb::GetPassageRequest(), &by_id).error_code(),
+            grpc::StatusCode::INVALID_ARGUMENT);
+}
+
+TEST_F(ServiceRpc, ListPassagesPagesInArrivalOrderAndFilters) {
+  Start(false);
+  for (int i = 0; i < 5; ++i) MustUpload(scenario_.MakePassage(i));
+  std::vector<std::string> seen;
+  std::string token;
+  int pages = 0;
+  do {
+    grpc::ClientContext ctx;
+    pb::ListPassagesRequest request;
+    request.set_page_size(2);
+    request.set_page_token(token);
+    pb::ListPassagesResponse response;
+    ASSERT_TRUE(client_->stub()->ListPassages(&ctx, request, &response).ok());
+    for (const auto& p : response.passages()) seen.push_back(p.passage_id());
+    token = response.next_page_token();
+    ++pages;
+  } while (!token.empty());
+  EXPECT_EQ(pages, 3);
+  EXPECT_EQ(seen, (std::vector<std::string>{"p0", "p1", "p2", "p3", "p4"}));
+
+  grpc::ClientContext ctx;
+  pb::ListPassagesRequest applied_only;
+  applied_only.set_state(pb::PASSAGE_STATE_APPLIED);
+  pb::ListPassagesResponse none;
+  ASSERT_TRUE(client_->stub()->ListPassages(&ctx, applied_only, &none).ok());
+  EXPECT_EQ(none.passages_size(), 0);
+  grpc::ClientContext bad_ctx;
+  pb::ListPassagesRequest bad;
+  bad.set_page_token("garbage");
+  EXPECT_EQ(client_->stub()->ListPassages(&bad_ctx, bad, &none).error_code(), grpc::StatusCode::INVALID_ARGUMENT);
+}
+
+TEST_F(ServiceRpc, WorkerAppliesPassagesAndMapInfoCountsThem) {
+  Start(true);
+  for (int i = 0; i < 3; ++i) MustUpload(scenario_.MakePassage(i));
+  auto info = client_->WaitUntilIdle();
+  ASSERT_TRUE(info.ok()) << info.status();
+  EXPECT_EQ(info->passages_applied(), 3);
+  EXPECT_EQ(info->queue_depth(), 0);
+  EXPECT_EQ(info->landmark_count(), 6);
+  EXPECT_GT(info->map_version(), 0);
+  EXPECT_EQ(info->strategy(), "cc-gsd");
+  auto status = client_->GetPassage("sim-2", "p2");
+  ASSERT_TRUE(status.ok());
+  EXPECT_EQ(status->state(), pb::PASSAGE_STATE_APPLIED);
+  EXPECT_EQ(status->result().map_version(), info->map_version());
+  EXPECT_GT(status->result().landmarks_updated(), 0);
+  EXPECT_GT(status->result().nodes(), 0);
+  EXPECT_EQ(client_->GetPassage("sim-0", "p0")->result().landmarks_created(), 6);
+}
+
+TEST_F(ServiceRpc, QueryRegionPagesCoverTheMapWithCovariances) {
+  Start(true);
+  for (int i = 0; i < 3; ++i) MustUpload(scenario_.MakePassage(i));
+  ASSERT_TRUE(client_->WaitUntilIdle().ok());
+  auto full = client_->DownloadMap(MockVehicle::World());
+  ASSERT_TRUE(full.ok()) << full.status();
+  ASSERT_EQ(full->landmark_count(), 6u);
+  std::set<int64_t> ids;
+  std::string token;
+  do {
+    grpc::ClientContext ctx;
+    pb::QueryRegionRequest request;
+    *request.mutable_box() = MockVehicle::World();
+    request.set_page_size(4);
+    request.set_page_token(token);
+    request.set_include_cross_covariance(true);
+    pb::QueryRegionResponse response;
+    ASSERT_TRUE(client_->stub()->QueryRegion(&ctx, request, &response).ok());
+    for (const pb::Landmark& l : response.landmarks()) {
+      ids.insert(l.id());
+      const Landmark& expected = *full->FindLandmark(l.id());
+      EXPECT_EQ(l.cov_en_m2().ee(), expected.cov_en_m2(0, 0));
+      EXPECT_GT(l.cov_en_m2().ee(), 0.0);
+      EXPECT_EQ(l.tile().z(), 16);
+    }
+    for (const pb::CrossCovariance& c : response.cross_covariances()) {
+      EXPECT_LT(c.first_id(), c.second_id());
+      Eigen::Matrix2d block;
+      ASSERT_TRUE(full->CrossCovariance(c.first_id(), c.second_id(), &block));
+      EXPECT_EQ(c.cov_m2().en(), block(0, 1));
+    }
+    token = response.next_page_token();
+  } while (!token.empty());
+  EXPECT_EQ(ids.size(), 6u);
+  // The single-page download returns the cross blocks among all landmarks (the map is dense).
+  EXPECT_GT(full->cross_block_count(), 0u);
+}
+
+TEST_F(ServiceRpc, GetTileReturnsItsLandmarksAndVersion) {
+  Start(true);
+  MustUpload(scenario_.MakePassage(0));
+  ASSERT_TRUE(client_->WaitUntilIdle().ok());
+  const TileId tile = TileContaining(scenario_.landmarks()[0].position);
+  grpc::ClientContext ctx;
+  pb::GetTileRequest request;
+  request.mutable_tile()->set_z(tile.z);
+  request.mutable_tile()->set_x(tile.x);
+  request.mutable_tile()->set_y(tile.y);
+  request.set_include_cross_covariance(true);
+  pb::GetTileResponse response;
+  ASSERT_TRUE(client_->stub()->GetTile(&ctx, request, &response).ok());
+  ASSERT_GT(response.landmarks_size(), 0);
+  int64_t max_version = 0;
+  for (const pb::Landmark& l : response.landmarks()) {
+    EXPECT_EQ(l.tile().x(), tile.x);
+    EXPECT_EQ(l.tile().y(), tile.y);
+    max_version = std::max(max_version, l.version());
+  }
+  EXPECT_EQ(response.tile_version(), max_version);
+  EXPECT_GE(response.map_version(), max_version);
+
+  grpc::ClientContext bad_ctx;
+  request.mutable_tile()->set_z(15);
+  EXPECT_EQ(client_->stub()->GetTile(&bad_ctx, request, &response).error_code(), grpc::StatusCode::INVALID_ARGUMENT);
+}
+
+TEST_F(ServiceRpc, WatchRegionStreamsLandmarksChangedAfterTheVersion) {
+  Start(true);
+  MustUpload(scenario_.MakePassage(0));
+  auto info = client_->WaitUntilIdle();
+  ASSERT_TRUE(info.ok());
+  const int64_t since = info->map_version();
+
+  grpc::ClientContext ctx;
+  ctx.set_deadline(std::chrono::system_clock::now() + std::chrono::seconds(30));
+  pb::WatchRegionRequest request;
+  *request.mutable_box() = MockVehicle::World();
+  request.set_since_version(since);
+  auto reader = client_->stub()->WatchRegion(&ctx, request);
+  pb::WatchRegionResponse first;
+  ASSERT_TRUE(reader->Read(&first));
+  EXPECT_EQ(first.map_version(), since);
+  EXPECT_EQ(first.landmarks_size(), 0);
+
+  MustUpload(scenario_.MakePassage(1));
+  pb::WatchRegionResponse change;
+  ASSERT_TRUE(reader->Read(&change));
+  EXPECT_GT(change.map_version(), since);
+  ASSERT_GT(change.landmarks_size(), 0);
+  for (const pb::Landmark& l : change.landmarks()) EXPECT_GT(l.version(), since);
+  ctx.TryCancel();
+  reader->Finish();
+}
+
+TEST_F(ServiceRpc, SamePassageUploadedTwiceIsQueuedOnceAndAppliedOnce) {
+  Start(true);
+  const Passage p = scenario_.MakePassage(0);
+  const pb::UploadPassageResponse first = MustUpload(p);
+  const pb::UploadPassageResponse second = MustUpload(p);
+  EXPECT_FALSE(first.duplicate());
+  EXPECT_TRUE(second.duplicate());
+  EXPECT_EQ(first.status().id(), second.status().id());
+  auto info = client_->WaitUntilIdle();
+  ASSERT_TRUE(info.ok());
+  EXPECT_EQ(info->passages_applied(), 1);
+  auto map = client_->DownloadMap(MockVehicle::World());
+  ASSERT_TRUE(map.ok());
+  map->ForEachLandmark([](const Landmark& l) { EXPECT_EQ(l.passages_seen, 1); });
+}
+
+TEST_F(ServiceRpc, ConcurrentDuplicateUploadsGetOneRecord) {
+  Start(true);
+  const Passage p = scenario_.MakePassage(0);
+  constexpr int kClients = 8;
+  std::vector<pb::UploadPassageResponse> responses(kClients);
+  std::vector<std::thread> threads;
+  for (int i = 0; i < kClients; ++i) {
+    threads.emplace_back([&, i] {
+      MockVehicle vehicle(server_->address());
+      auto r = vehicle.Upload(p);
+      ASSERT_TRUE(r.ok()) << r.status();
+      responses[i] = *r;
+    });
+  }
+  for (auto& t : threads) t.join();
+  int originals = 0;
+  for (const auto& r : responses) {
+    EXPECT_EQ(r.status().id(), responses[0].status().id());
+    originals += !r.duplicate();
+  }
+  EXPECT_EQ(originals, 1);
+  auto info = client_->WaitUntilIdle();
+  ASSERT_TRUE(info.ok());
+  EXPECT_EQ(info->passages_applied(), 1);
+  EXPECT_EQ(info->passages_queued() + info->passages_processing() + info->passages_failed(), 0);
+}
+
+TEST_F(ServiceRpc, FullQueueAnswersResourceExhausted) {
+  Start(false, /*max_queue=*/2);
+  MustUpload(scenario_.MakePassage(0));
+  MustUpload(scenario_.MakePassage(1));
+  pb::Passage third;
+  PassageToProto(scenario_.MakePassage(2), &third);
+  EXPECT_EQ(client_->UploadOnce(third).status().code(), absl::StatusCode::kResourceExhausted);
+  EXPECT_EQ(client_->GetMapInfo()->queue_depth(), 2);
+}
+
+// Status from grpc.health.v1.Health/Check for the whole server, via the generic stub (the
+// response is HealthCheckResponse{status = 1 (SERVING) | 2 (NOT_SERVING)}).
+absl::StatusOr<int> HealthStatus(const std::shared_ptr<grpc::Channel>& channel) {
+  grpc::GenericStub generic(channel);
+  grpc::ClientContext ctx;
+  ctx.set_deadline(std::chrono::system_clock::now() + std::chrono::seconds(5));
+  grpc::Slice empty("");
+  grpc::ByteBuffer request(&empty, 1), response;
+  std::promise<grpc::Status> done;
+  generic.UnaryCall(&ctx, "/grpc.health.v1.Health/Check", grpc::StubOptions(), &request, &response,
+                    [&](grpc::Status s) { done.set_value(s); });
+  grpc::Status s = done.get_future().get();
+  if (!s.ok()) return FromGrpcStatus(s);
+  std::vector<grpc::Slice> slices;
+  if (!response.Dump(&slices).ok()) return absl::InternalError("bad health response");
+  std::string bytes;
+  for (const auto& slice : slices) bytes.append(reinterpret_cast<const char*>(slice.begin()), slice.size());
+  if (bytes.size() != 2 || bytes[0] != 0x08) return absl::InternalError("unexpected health response");
+  return static_cast<int>(bytes[1]);
+}
+
+TEST_F(ServiceRpc, HealthIsServingUntilShutdownThenUploadsAreRefused) {
+  Start(false);
+  auto health = HealthStatus(client_->channel());
+  ASSERT_TRUE(health.ok()) << health.status();
+  EXPECT_EQ(*health, 1);
+  server_->Shutdown(std::chrono::milliseconds(100));
+  pb::Passage wire;
+  PassageToProto(scenario_.MakePassage(0), &wire);
+  EXPECT_EQ(client_->UploadOnce(wire).status().code(), absl::StatusCode::kUnavailable);
+  EXPECT_FALSE(HealthStatus(client_->channel()).ok());
+  EXPECT_FALSE(server_->store()->FindPassage("sim-0", "p0").ok());
+}
+
+}  // namespace
+}  // namespace crowdmap
