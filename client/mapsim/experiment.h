@@ -36,7 +36,8 @@ struct ExperimentResult {
   std::vector<PassageRecord> records;
   MapState final_map;
   double final_mean_dist_err_m = 0.0;
-  double final_nees_per_dof = 0.0;  // mean over the last 10% of passages
+  double final_nees_per_dof = 0.0;        // mean over the last 10% of passages
+  double final_joint_nees_per_dof = 0.0;  // likewise, joint NEES with the cross-covariances
   double median_passage_ms = 0.0;
   int failed_passages = 0;          // passages the estimator rejected (the map is unchanged by them)
 };

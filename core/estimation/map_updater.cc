@@ -68,16 +68,17 @@ ceres::Solver::Options SolverOptions(int max_iterations) {
   return options;
 }
 
+// `loss` (may be null) weights every measurement residual; the map prior is never weighted.
 void AddMotionAndGnss(const PassageGraph& graph, const NodeRange& range, const Calibration& calib,
-                      std::vector<Pose2>* poses, ceres::Problem* problem) {
+                      ceres::LossFunction* loss, std::vector<Pose2>* poses, ceres::Problem* problem) {
   auto pose = [&](int node) { return (*poses)[node - range.first].data(); };
   for (Pose2& p : *poses) problem->AddParameterBlock(p.data(), 3);
   for (int k = range.first; k < range.last; ++k) {
-    problem->AddResidualBlock(OdometryFactor::Create(graph.motions[k]), nullptr, pose(k), pose(k + 1));
+    problem->AddResidualBlock(OdometryFactor::Create(graph.motions[k]), loss, pose(k), pose(k + 1));
   }
   for (const GnssObservation& o : graph.gnss) {
     if (o.node < range.first || o.node > range.last) continue;
-    problem->AddResidualBlock(GnssFactor::Create(o.position_m, o.cov_m2, calib.gnss_lever_arm_m), nullptr, pose(o.node));
+    problem->AddResidualBlock(GnssFactor::Create(o.position_m, o.cov_m2, calib.gnss_lever_arm_m), loss, pose(o.node));
   }
 }
 
@@ -87,7 +88,7 @@ void AddMotionAndGnss(const PassageGraph& graph, const NodeRange& range, const C
 void LocalizeAgainstMap(const PassageGraph& graph, const NodeRange& range, const Passage& passage,
                         SubgraphLandmarks* landmarks, std::vector<Pose2>* poses) {
   ceres::Problem problem;
-  AddMotionAndGnss(graph, range, passage.calibration, poses, &problem);
+  AddMotionAndGnss(graph, range, passage.calibration, nullptr, poses, &problem);
   for (size_t i = 0; i < landmarks->ids.size(); ++i) {
     if (!landmarks->known[i]) continue;
     for (const CameraObservation* d : landmarks->detections[i]) {
@@ -156,14 +157,18 @@ absl::Status UpdateFromSubgraph(const Passage& passage, const PassageGraph& grap
   if (landmarks.ids.empty()) return absl::OkStatus();
 
   LandmarkUpdate update(graph.frame, map, landmarks.ids);
-  ceres::Problem problem;
-  AddMotionAndGnss(graph, range, calib, &poses, &problem);
+  // Weight of the passage's measurements: 1 until the consistency test asks for inflation.
+  ceres::LossFunctionWrapper measurement_weight(new ceres::TrivialLoss(), ceres::TAKE_OWNERSHIP);
+  ceres::Problem::Options problem_options;
+  problem_options.loss_function_ownership = ceres::DO_NOT_TAKE_OWNERSHIP;
+  ceres::Problem problem(problem_options);
+  AddMotionAndGnss(graph, range, calib, &measurement_weight, &poses, &problem);
   for (int i = 0; i < update.size(); ++i) {
     if (!update.in_map(i)) Eigen::Map<Eigen::Vector2d>(update.block(i)) = landmarks.initial[i];
     problem.AddParameterBlock(update.block(i), 2);
     for (const CameraObservation* d : landmarks.detections[i]) {
-      problem.AddResidualBlock(CameraFactor::Create(d->u_px, passage.noise.pixel_sigma_px, calib), nullptr,
-                               poses[d->node - range.first].data(), update.block(i));
+      problem.AddResidualBlock(CameraFactor::Create(d->u_px, passage.noise.pixel_sigma_px, calib),
+                               &measurement_weight, poses[d->node - range.first].data(), update.block(i));
       ++summary->detections_used;
     }
   }
@@ -172,14 +177,27 @@ absl::Status UpdateFromSubgraph(const Passage& passage, const PassageGraph& grap
 
   ceres::Solver::Summary solver_summary;
   ceres::Solve(SolverOptions(options.max_solver_iterations), &problem, &solver_summary);
-  summary->solve_ms += MillisecondsSince(solve_start);
   summary->solver_iterations += static_cast<int>(solver_summary.iterations.size());
-  summary->final_cost += solver_summary.final_cost;
   if (!solver_summary.IsSolutionUsable()) {
     return absl::InternalError(absl::StrCat("solver result unusable: ", solver_summary.message));
   }
   const int dof = problem.NumResiduals() - problem.NumParameters();
-  const double chi2 = 2.0 * solver_summary.final_cost;
+  double chi2 = 2.0 * solver_summary.final_cost;
+  if (options.inflation_test_sigmas > 0.0 && dof > 0 &&
+      chi2 > dof + options.inflation_test_sigmas * std::sqrt(2.0 * dof)) {
+    const double variance_factor = chi2 / dof;
+    summary->max_variance_factor = std::max(summary->max_variance_factor, variance_factor);
+    measurement_weight.Reset(new ceres::ScaledLoss(nullptr, 1.0 / variance_factor, ceres::TAKE_OWNERSHIP),
+                             ceres::TAKE_OWNERSHIP);
+    ceres::Solve(SolverOptions(options.max_solver_iterations), &problem, &solver_summary);
+    summary->solver_iterations += static_cast<int>(solver_summary.iterations.size());
+    if (!solver_summary.IsSolutionUsable()) {
+      return absl::InternalError(absl::StrCat("solver result unusable after inflation: ", solver_summary.message));
+    }
+    chi2 = 2.0 * solver_summary.final_cost;
+  }
+  summary->solve_ms += MillisecondsSince(solve_start);
+  summary->final_cost += solver_summary.final_cost;
   if (options.max_chi2_per_dof > 0.0 && dof > 0 && chi2 > options.max_chi2_per_dof * dof) {
     return absl::FailedPreconditionError(absl::StrFormat(
         "solution inconsistent with the measurements: chi2=%.1f for %d degrees of freedom (limit %.1f per dof)",
@@ -242,6 +260,10 @@ absl::Status MapUpdateOptions::Validate() const {
     return absl::InvalidArgumentError(
         absl::StrCat("correlation_radius_m: must be > 0 (inf = dense), got ", correlation_radius_m));
   }
+  if (!(inflation_test_sigmas >= 0.0)) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("inflation_test_sigmas: must be >= 0 (0 = off), got ", inflation_test_sigmas));
+  }
   if (!(max_chi2_per_dof >= 0.0)) {
     return absl::InvalidArgumentError(absl::StrCat("max_chi2_per_dof: must be >= 0 (0 = off), got ", max_chi2_per_dof));
   }
@@ -254,9 +276,9 @@ absl::Status MapUpdateOptions::Validate() const {
 std::string PassageUpdateSummary::Brief() const {
   return absl::StrFormat(
       "nodes=%d subgraphs=%d updated=%d created=%d conditioned=%d detections=%d dropped=%d iterations=%d "
-      "solve_ms=%.2f covariance_ms=%.2f total_ms=%.2f version=%d",
+      "variance_factor=%.2f solve_ms=%.2f covariance_ms=%.2f total_ms=%.2f version=%d",
       nodes, subgraphs, landmarks_updated, landmarks_created, landmarks_conditioned, detections_used,
-      detections_dropped, solver_iterations, solve_ms, covariance_ms, total_ms, map_version);
+      detections_dropped, solver_iterations, max_variance_factor, solve_ms, covariance_ms, total_ms, map_version);
 }
 
 absl::StatusOr<PassageUpdate> ComputePassageUpdate(const Passage& passage, const MapUpdateOptions& options,

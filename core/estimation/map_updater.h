@@ -31,10 +31,15 @@ struct MapUpdateOptions {
   // Cross-covariance blocks are kept only between landmarks closer than this (infinity = dense).
   double correlation_radius_m = std::numeric_limits<double>::infinity();
   int max_solver_iterations = 100;
-  // A (sub)graph solve whose chi-square (2 x final cost) exceeds this many times its degrees of
-  // freedom is refused rather than committed: the solver found a wrong minimum or the data hold
-  // gross errors. About 1 for a sound solve; 0 disables the check.
-  double max_chi2_per_dof = 4.0;
+  // Adaptive covariance inflation: when a (sub)graph solve's chi-square (2 x final cost) exceeds
+  // its degrees of freedom by more than this many standard deviations (sqrt(2 dof)), the data
+  // contradict the noise model (e.g. coloured GNSS errors); the passage's measurement covariances
+  // are then scaled by the variance factor chi2/dof and the solve is repeated, so the passage
+  // enters the map with an honest weight. 0 disables it.
+  double inflation_test_sigmas = 4.0;
+  // A solve whose chi2 per degree of freedom (after any inflation) exceeds this is refused rather
+  // than committed. 0 disables the check.
+  double max_chi2_per_dof = 0.0;
 
   absl::Status Validate() const;
 };
@@ -50,6 +55,7 @@ struct PassageUpdateSummary {
   int detections_dropped = 0;     // e.g. behind the camera at the initial guess
   int solver_iterations = 0;
   double final_cost = 0.0;
+  double max_variance_factor = 1.0;  // largest inflation applied to a subgraph (1 = none)
   double solve_ms = 0.0;
   double covariance_ms = 0.0;
   double total_ms = 0.0;

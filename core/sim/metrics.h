@@ -19,6 +19,9 @@ struct MapErrorMetrics {
   double north_3sigma_m = 0.0;
   double nees_per_dof = 0.0;      // mean of e^T Sigma^-1 e over landmarks, divided by 2 (NaN
                                   // when the map has no covariance); 1 for a consistent map
+  double joint_nees_per_dof = 0.0;  // e^T Sigma^-1 e over all landmarks with the cross-covariances,
+                                    // divided by 2N: chi2(2N)/2N when consistent, so a steadier
+                                    // test than the per-landmark mean when errors are correlated
 };
 
 MapErrorMetrics EvaluateMap(const MapReaderInterface& map, const std::vector<TruthLandmark>& truth);
