@@ -112,7 +112,7 @@ void MapWorker::Process(ClaimedPassage claimed, uint64_t ticket) {
   std::unique_lock<std::mutex> lock(turn_mu_);
   turn_cv_.wait(lock, [&] { return serving_ticket_ == ticket; });
   lock.unlock();
-  const PassageRecord& record = claimed.record;
+  const StoredPassage& record = claimed.record;
   if (stopping_ && record.attempts <= options_.max_attempts) {
     Finish(record, PassageState::kQueued, "");  // not started: back to the queue, in order
   } else if (!passage.ok()) {
@@ -130,7 +130,7 @@ void MapWorker::Process(ClaimedPassage claimed, uint64_t ticket) {
 }
 
 void MapWorker::Apply(const ClaimedPassage& claimed, const Passage& passage) {
-  const PassageRecord& record = claimed.record;
+  const StoredPassage& record = claimed.record;
   int attempts = record.attempts;
   while (true) {
     std::string error;
@@ -176,7 +176,7 @@ void MapWorker::Apply(const ClaimedPassage& claimed, const Passage& passage) {
   }
 }
 
-void MapWorker::Finish(const PassageRecord& record, PassageState state, const std::string& reason) {
+void MapWorker::Finish(const StoredPassage& record, PassageState state, const std::string& reason) {
   absl::Status s = store_->FinishPassageWithoutChange(record.id, state, reason);
   if (!s.ok()) {
     spdlog::error("event=finish_failed passage={} id={} error=\"{}\"", record.passage_id, record.id, s.ToString());

@@ -58,7 +58,7 @@ class MapWorker {
   bool WaitForWork();
   void Process(ClaimedPassage claimed, uint64_t ticket);
   void Apply(const ClaimedPassage& claimed, const Passage& passage);
-  void Finish(const PassageRecord& record, PassageState state, const std::string& reason);
+  void Finish(const StoredPassage& record, PassageState state, const std::string& reason);
 
   MapStoreInterface* const store_;
   const MapWorkerOptions options_;

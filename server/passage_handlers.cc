@@ -37,7 +37,7 @@ absl::Status MapService::AcceptUpload(const pb::Passage& wire, size_t wire_bytes
   absl::StatusOr<EnqueueOutcome> outcome = context_->committer->Commit(std::move(upload));
   if (!outcome.ok()) return outcome.status();
   if (!outcome->duplicate && context_->worker != nullptr) context_->worker->Wake();
-  PassageRecordToProto(outcome->record, response->mutable_status());
+  StoredPassageToProto(outcome->record, response->mutable_status());
   response->set_duplicate(outcome->duplicate);
   return absl::OkStatus();
 }
@@ -83,7 +83,7 @@ grpc::Status MapService::UploadPassageChunked(grpc::ServerContext* ctx,
 grpc::Status MapService::GetPassage(grpc::ServerContext* ctx, const pb::GetPassageRequest* request,
                                     pb::PassageStatus* response) {
   RequestLog log("GetPassage", ctx);
-  absl::StatusOr<PassageRecord> record;
+  absl::StatusOr<StoredPassage> record;
   if (request->id() != 0) {
     log.Add(absl::StrCat("id=", request->id()));
     record = context_->store->GetPassage(request->id());
@@ -93,7 +93,7 @@ grpc::Status MapService::GetPassage(grpc::ServerContext* ctx, const pb::GetPassa
   } else {
     record = absl::InvalidArgumentError("id: give the passage id, or vehicle_id and passage_id");
   }
-  if (record.ok()) PassageRecordToProto(*record, response);
+  if (record.ok()) StoredPassageToProto(*record, response);
   return log.Done(record.status());
 }
 
@@ -112,11 +112,11 @@ grpc::Status MapService::ListPassages(grpc::ServerContext* ctx, const pb::ListPa
   query.limit = (request->page_size() == 0 ? kDefaultPassagePage : request->page_size()) + 1;
   query.state = *state;
   query.vehicle_id = request->vehicle_id();
-  absl::StatusOr<std::vector<PassageRecord>> records = context_->store->ListPassages(query);
+  absl::StatusOr<std::vector<StoredPassage>> records = context_->store->ListPassages(query);
   if (!records.ok()) return log.Done(records.status());
   const bool more = static_cast<int>(records->size()) == query.limit;
   if (more) records->pop_back();
-  for (const PassageRecord& r : *records) PassageRecordToProto(r, response->add_passages());
+  for (const StoredPassage& r : *records) StoredPassageToProto(r, response->add_passages());
   if (more) response->set_next_page_token(MakePageToken(records->back().id));
   log.Add(absl::StrCat("returned=", records->size()));
   return log.Done(absl::OkStatus());

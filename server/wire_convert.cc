@@ -201,7 +201,7 @@ absl::StatusOr<std::optional<PassageState>> PassageStateFromProto(pb::PassageSta
   }
 }
 
-void PassageRecordToProto(const PassageRecord& r, pb::PassageStatus* wire) {
+void StoredPassageToProto(const StoredPassage& r, pb::PassageStatus* wire) {
   wire->set_id(r.id);
   wire->set_vehicle_id(r.vehicle_id);
   wire->set_passage_id(r.passage_id);

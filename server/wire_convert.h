@@ -36,7 +36,7 @@ void LandmarkToProto(const Landmark& landmark, pb::Landmark* wire);
 Landmark LandmarkFromProto(const pb::Landmark& wire);
 void CrossToProto(const LandmarkPair& pair, const Eigen::Matrix2d& block, pb::CrossCovariance* wire);
 
-void PassageRecordToProto(const PassageRecord& record, pb::PassageStatus* wire);
+void StoredPassageToProto(const StoredPassage& record, pb::PassageStatus* wire);
 pb::PassageState PassageStateToProto(PassageState state);
 // nullopt for UNSPECIFIED; InvalidArgument for values outside the enum.
 absl::StatusOr<std::optional<PassageState>> PassageStateFromProto(pb::PassageState state);

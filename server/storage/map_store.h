@@ -39,7 +39,7 @@ struct PassageResult {
 };
 
 // The store's record of one upload. `id` increases with arrival order.
-struct PassageRecord {
+struct StoredPassage {
   int64_t id = 0;
   std::string vehicle_id;
   std::string passage_id;
@@ -61,13 +61,13 @@ struct NewPassage {
 };
 
 struct EnqueueOutcome {
-  PassageRecord record;
+  StoredPassage record;
   bool duplicate = false;  // the key existed: `record` is the original upload
 };
 
 // A passage the worker has taken off the queue (state processing, attempts incremented).
 struct ClaimedPassage {
-  PassageRecord record;
+  StoredPassage record;
   std::string payload;
 };
 
@@ -105,9 +105,9 @@ class MapStoreInterface {
   virtual absl::StatusOr<std::vector<absl::StatusOr<EnqueueOutcome>>> EnqueuePassages(
       const std::vector<NewPassage>& passages, int64_t max_queue) = 0;
 
-  virtual absl::StatusOr<PassageRecord> GetPassage(int64_t id) = 0;
-  virtual absl::StatusOr<PassageRecord> FindPassage(const std::string& vehicle_id, const std::string& passage_id) = 0;
-  virtual absl::StatusOr<std::vector<PassageRecord>> ListPassages(const PassageQuery& query) = 0;
+  virtual absl::StatusOr<StoredPassage> GetPassage(int64_t id) = 0;
+  virtual absl::StatusOr<StoredPassage> FindPassage(const std::string& vehicle_id, const std::string& passage_id) = 0;
+  virtual absl::StatusOr<std::vector<StoredPassage>> ListPassages(const PassageQuery& query) = 0;
   virtual absl::StatusOr<std::string> GetPassagePayload(int64_t id) = 0;
 
   // Takes the oldest queued passage: state processing, attempts + 1. nullopt when none is queued.

@@ -21,9 +21,9 @@ class SqliteMapStore : public MapStoreInterface {
 
   absl::StatusOr<std::vector<absl::StatusOr<EnqueueOutcome>>> EnqueuePassages(const std::vector<NewPassage>& passages,
                                                                               int64_t max_queue) override;
-  absl::StatusOr<PassageRecord> GetPassage(int64_t id) override;
-  absl::StatusOr<PassageRecord> FindPassage(const std::string& vehicle_id, const std::string& passage_id) override;
-  absl::StatusOr<std::vector<PassageRecord>> ListPassages(const PassageQuery& query) override;
+  absl::StatusOr<StoredPassage> GetPassage(int64_t id) override;
+  absl::StatusOr<StoredPassage> FindPassage(const std::string& vehicle_id, const std::string& passage_id) override;
+  absl::StatusOr<std::vector<StoredPassage>> ListPassages(const PassageQuery& query) override;
   absl::StatusOr<std::string> GetPassagePayload(int64_t id) override;
   absl::StatusOr<std::optional<ClaimedPassage>> ClaimNextPassage() override;
   absl::Status CommitPassageApplied(int64_t id, const MapDelta& delta, const PassageResult& result) override;
@@ -60,8 +60,8 @@ class SqliteMapStore : public MapStoreInterface {
   void ReleaseReader(std::unique_ptr<SqliteConnection> db);
 
   // Helpers running on a connection the caller holds (inside its transaction when needed).
-  static absl::StatusOr<std::optional<PassageRecord>> ReadPassage(SqliteConnection* db, int64_t id);
-  static absl::StatusOr<std::optional<PassageRecord>> ReadPassageByKey(SqliteConnection* db,
+  static absl::StatusOr<std::optional<StoredPassage>> ReadPassage(SqliteConnection* db, int64_t id);
+  static absl::StatusOr<std::optional<StoredPassage>> ReadPassageByKey(SqliteConnection* db,
                                                                       const std::string& vehicle_id,
                                                                       const std::string& passage_id);
   static absl::StatusOr<int64_t> ReadMapVersion(SqliteConnection* db);

@@ -13,8 +13,8 @@ constexpr char kPassageColumns[] =
     "r.solve_ms, r.covariance_ms, r.total_ms, r.map_version, r.strategy "
     "FROM passages p LEFT JOIN passage_results r ON r.id = p.id ";
 
-PassageRecord PassageFromRow(const SqliteStatement& s) {
-  PassageRecord p;
+StoredPassage PassageFromRow(const SqliteStatement& s) {
+  StoredPassage p;
   p.id = s.Int(0);
   p.vehicle_id = s.Text(1);
   p.passage_id = s.Text(2);
@@ -45,11 +45,11 @@ PassageRecord PassageFromRow(const SqliteStatement& s) {
   return p;
 }
 
-absl::StatusOr<std::optional<PassageRecord>> ReadOne(SqliteStatement& stmt) {
+absl::StatusOr<std::optional<StoredPassage>> ReadOne(SqliteStatement& stmt) {
   auto row = stmt.Step();
   if (!row.ok()) return row.status();
-  if (!*row) return std::optional<PassageRecord>();
-  return std::optional<PassageRecord>(PassageFromRow(stmt));
+  if (!*row) return std::optional<StoredPassage>();
+  return std::optional<StoredPassage>(PassageFromRow(stmt));
 }
 
 absl::StatusOr<int64_t> CountActive(SqliteConnection* db) {
@@ -74,14 +74,14 @@ const char* PassageStateName(PassageState state) {
   return "unknown";
 }
 
-absl::StatusOr<std::optional<PassageRecord>> SqliteMapStore::ReadPassage(SqliteConnection* db, int64_t id) {
+absl::StatusOr<std::optional<StoredPassage>> SqliteMapStore::ReadPassage(SqliteConnection* db, int64_t id) {
   auto stmt = db->Prepare(absl::StrCat(kPassageColumns, "WHERE p.id = ?1"));
   if (!stmt.ok()) return stmt.status();
   stmt->Bind(1, id);
   return ReadOne(*stmt);
 }
 
-absl::StatusOr<std::optional<PassageRecord>> SqliteMapStore::ReadPassageByKey(SqliteConnection* db,
+absl::StatusOr<std::optional<StoredPassage>> SqliteMapStore::ReadPassageByKey(SqliteConnection* db,
                                                                              const std::string& vehicle_id,
                                                                              const std::string& passage_id) {
   auto stmt = db->Prepare(absl::StrCat(kPassageColumns, "WHERE p.vehicle_id = ?1 AND p.passage_id = ?2"));
@@ -129,7 +129,7 @@ absl::StatusOr<std::vector<absl::StatusOr<EnqueueOutcome>>> SqliteMapStore::Enqu
     if (auto s = payload->Run(); !s.ok()) return s;
     ++*depth;
 
-    PassageRecord record;
+    StoredPassage record;
     record.id = id;
     record.vehicle_id = p.vehicle_id;
     record.passage_id = p.passage_id;
@@ -142,7 +142,7 @@ absl::StatusOr<std::vector<absl::StatusOr<EnqueueOutcome>>> SqliteMapStore::Enqu
   return outcomes;
 }
 
-absl::StatusOr<PassageRecord> SqliteMapStore::GetPassage(int64_t id) {
+absl::StatusOr<StoredPassage> SqliteMapStore::GetPassage(int64_t id) {
   auto db = AcquireReader();
   if (!db.ok()) return db.status();
   auto record = ReadPassage(db->get(), id);
@@ -151,7 +151,7 @@ absl::StatusOr<PassageRecord> SqliteMapStore::GetPassage(int64_t id) {
   return **record;
 }
 
-absl::StatusOr<PassageRecord> SqliteMapStore::FindPassage(const std::string& vehicle_id,
+absl::StatusOr<StoredPassage> SqliteMapStore::FindPassage(const std::string& vehicle_id,
                                                           const std::string& passage_id) {
   auto db = AcquireReader();
   if (!db.ok()) return db.status();
@@ -163,7 +163,7 @@ absl::StatusOr<PassageRecord> SqliteMapStore::FindPassage(const std::string& veh
   return **record;
 }
 
-absl::StatusOr<std::vector<PassageRecord>> SqliteMapStore::ListPassages(const PassageQuery& query) {
+absl::StatusOr<std::vector<StoredPassage>> SqliteMapStore::ListPassages(const PassageQuery& query) {
   auto db = AcquireReader();
   if (!db.ok()) return db.status();
   auto stmt = (*db)->Prepare(absl::StrCat(kPassageColumns,
@@ -174,7 +174,7 @@ absl::StatusOr<std::vector<PassageRecord>> SqliteMapStore::ListPassages(const Pa
       .Bind(2, static_cast<int64_t>(query.state ? static_cast<int>(*query.state) : 0))
       .Bind(3, std::string_view(query.vehicle_id))
       .Bind(4, static_cast<int64_t>(query.limit));
-  std::vector<PassageRecord> out;
+  std::vector<StoredPassage> out;
   while (true) {
     auto row = stmt->Step();
     if (!row.ok()) return row.status();

@@ -1,0 +1,71 @@
+// Stopping the server and starting it on the same file keeps the map, its versions and the queue.
+#include "server/testing/temp_dir.h"
+#include "tests/support/map_compare.h"
+#include "tests/support/mock_vehicle.h"
+#include "tests/support/test_server.h"
+
+namespace crowdmap {
+namespace {
+
+TEST(ServiceRestart, MapVersionsAndQueueSurviveARestart) {
+  TempDir dir;
+  const std::string db = dir.File("map.db");
+  const Scenario scenario = ShortScenario();
+  MapState map_before;
+  pb::MapInfo info_before;
+  {
+    auto server = StartTestServer(TestServerOptions(db, /*start_worker=*/true));
+    MockVehicle client(server->address());
+    for (int i = 0; i < 3; ++i) ASSERT_TRUE(client.Upload(scenario.MakePassage(i)).ok());
+    auto info = client.WaitUntilIdle();
+    ASSERT_TRUE(info.ok());
+    info_before = *info;
+    auto map = client.DownloadMap(MockVehicle::World());
+    ASSERT_TRUE(map.ok());
+    map_before = std::move(*map);
+    server->Shutdown();
+  }
+  {
+    // Same file, no worker: the map is intact, and new uploads wait in the queue.
+    auto server = StartTestServer(TestServerOptions(db, /*start_worker=*/false));
+    MockVehicle client(server->address());
+    auto info = client.GetMapInfo();
+    ASSERT_TRUE(info.ok());
+    EXPECT_EQ(info->map_version(), info_before.map_version());
+    EXPECT_EQ(info->landmark_count(), info_before.landmark_count());
+    EXPECT_EQ(info->passages_applied(), 3);
+    auto map = client.DownloadMap(MockVehicle::World());
+    ASSERT_TRUE(map.ok());
+    EXPECT_TRUE(MapsMatch(map_before, *map, 0.0, 0.0));
+    EXPECT_EQ(map->version(), map_before.version());
+    for (int i = 3; i < 5; ++i) ASSERT_TRUE(client.Upload(scenario.MakePassage(i)).ok());
+    // A re-sent old passage is still recognised after the restart.
+    auto again = client.Upload(scenario.MakePassage(0));
+    ASSERT_TRUE(again.ok());
+    EXPECT_TRUE(again->duplicate());
+    EXPECT_EQ(again->status().state(), pb::PASSAGE_STATE_APPLIED);
+    server->Shutdown();
+  }
+  {
+    auto server = StartTestServer(TestServerOptions(db, /*start_worker=*/false));
+    MockVehicle client(server->address());
+    auto info = client.GetMapInfo();
+    ASSERT_TRUE(info.ok());
+    EXPECT_EQ(info->passages_queued(), 2);
+    EXPECT_EQ(info->map_version(), info_before.map_version());
+    server->Shutdown();
+  }
+  {
+    // With the worker the queued passages are applied, after the three earlier ones.
+    auto server = StartTestServer(TestServerOptions(db, /*start_worker=*/true));
+    MockVehicle client(server->address());
+    auto info = client.WaitUntilIdle();
+    ASSERT_TRUE(info.ok());
+    EXPECT_EQ(info->passages_applied(), 5);
+    EXPECT_GT(info->map_version(), info_before.map_version());
+    EXPECT_GT(client.GetPassage("sim-4", "p4")->id(), client.GetPassage("sim-2", "p2")->id());
+  }
+}
+
+}  // namespace
+}  // namespace crowdmap
