@@ -4,6 +4,7 @@
 #include <string>
 #include <vector>
 
+#include <glog/logging.h>
 #include <spdlog/spdlog.h>
 
 #include "absl/strings/str_format.h"
@@ -116,6 +117,9 @@ absl::Status RunReproduceCommand(const std::vector<std::string>& args) {
 }  // namespace crowdmap
 
 int main(int argc, char** argv) {
+  // Ceres reports rejected trial steps through glog; only errors are worth an operator's eye.
+  google::InitGoogleLogging(argv[0]);
+  FLAGS_minloglevel = google::GLOG_ERROR;
   std::vector<std::string> args(argv + 1, argv + argc);
   if (args.empty() || args[0] == "--help" || args[0] == "-h" || args[0] == "help") {
     std::cout << crowdmap::kUsage;

@@ -1,0 +1,91 @@
+#include "client/mapsim/experiment.h"
+
+#include <filesystem>
+#include <fstream>
+#include <string>
+
+#include <gtest/gtest.h>
+
+namespace crowdmap {
+namespace {
+
+TEST(Experiment, ErrorFallsAndCovarianceStaysConsistentOverThirtyPassages) {
+  ExperimentOptions options;
+  options.scenario.landmarks = 25;
+  options.passages = 30;
+  options.strategy = "cc-gsd";
+  absl::StatusOr<ExperimentResult> result = RunExperiment(options);
+  ASSERT_TRUE(result.ok()) << result.status();
+  ASSERT_EQ(result->records.size(), 30u);
+  EXPECT_EQ(result->failed_passages, 0);
+  EXPECT_EQ(result->records.front().metrics.landmarks_evaluated, 25);
+  const double first = result->records.front().metrics.mean_dist_err_m;
+  const double last = result->records.back().metrics.mean_dist_err_m;
+  // One passage maps to a few metres; thirty should at least halve that.
+  EXPECT_GT(first, 1.0);
+  EXPECT_LT(last, 0.5 * first);
+  for (const PassageRecord& r : result->records) {
+    EXPECT_GT(r.metrics.nees_per_dof, 0.2) << "passage " << r.passage;
+    EXPECT_LT(r.metrics.nees_per_dof, 3.0) << "passage " << r.passage;
+    EXPECT_GE(r.subgraphs, 1);
+  }
+}
+
+TEST(Experiment, DecorrelatedMapKeepsNoCrossCovariances) {
+  ExperimentOptions options;
+  options.scenario.landmarks = 10;
+  options.passages = 3;
+  options.strategy = "dc";
+  absl::StatusOr<ExperimentResult> result = RunExperiment(options);
+  ASSERT_TRUE(result.ok()) << result.status();
+  EXPECT_EQ(result->final_map.cross_block_count(), 0u);
+  EXPECT_EQ(result->final_map.landmark_count(), 10u);
+}
+
+TEST(Experiment, TriangulationBaselineHasNoCovariance) {
+  ExperimentOptions options;
+  options.scenario.landmarks = 4;
+  options.passages = 5;
+  options.strategy = "triangulation";
+  absl::StatusOr<ExperimentResult> result = RunExperiment(options);
+  ASSERT_TRUE(result.ok()) << result.status();
+  EXPECT_LT(result->final_mean_dist_err_m, 10.0);
+  EXPECT_TRUE(std::isnan(result->final_nees_per_dof));
+}
+
+TEST(Experiment, RejectsAnUnknownStrategy) {
+  ExperimentOptions options;
+  options.strategy = "kalman";
+  absl::StatusOr<ExperimentResult> result = RunExperiment(options);
+  ASSERT_FALSE(result.ok());
+  EXPECT_NE(result.status().message().find("strategy"), std::string::npos);
+}
+
+TEST(Experiment, WritesCsvSummaryAndPlot) {
+  ExperimentOptions options;
+  options.scenario.landmarks = 4;
+  options.passages = 3;
+  absl::StatusOr<ExperimentResult> result = RunExperiment(options);
+  ASSERT_TRUE(result.ok()) << result.status();
+  const std::filesystem::path dir = std::filesystem::path(testing::TempDir()) / "experiment_outputs";
+  ASSERT_TRUE(WriteExperimentOutputs(options, *result, dir.string()).ok());
+  std::ifstream csv(dir / "passages.csv");
+  std::string header;
+  std::getline(csv, header);
+  EXPECT_EQ(header.rfind("passage,mean_dist_err_m,mean_east_err_m,mean_north_err_m,east_3sigma_m,north_3sigma_m,"
+                         "nees_per_dof,solve_ms,subgraphs", 0),
+            0u);
+  int rows = 0;
+  for (std::string line; std::getline(csv, line);) ++rows;
+  EXPECT_EQ(rows, 3);
+  std::ifstream json(dir / "summary.json");
+  const std::string summary((std::istreambuf_iterator<char>(json)), std::istreambuf_iterator<char>());
+  for (const char* key : {"final_mean_dist_err_m", "final_nees_per_dof", "median_passage_ms", "\"passages\": 3",
+                          "\"landmarks\": 4", "\"strategy\": \"cc-gsd\"", "\"noise\": \"white\"", "\"seed\": 1"}) {
+    EXPECT_NE(summary.find(key), std::string::npos) << key;
+  }
+  EXPECT_GT(std::filesystem::file_size(dir / "errors.svg"), 1000u);
+}
+
+}  // namespace
+}  // namespace crowdmap

@@ -1,0 +1,46 @@
+// Time to apply one thesis-sized passage to a map that already holds the route's landmarks.
+//   build/core/map_updater_benchmark --benchmark_repetitions=5 --benchmark_report_aggregates_only=true
+#include <benchmark/benchmark.h>
+
+#include "core/estimation/map_updater.h"
+#include "core/sim/scenario.h"
+
+namespace crowdmap {
+namespace {
+
+constexpr int kWarmUpPassages = 50;  // the map prior is then dense and tight, as in a mature map
+
+void BM_ApplyPassage(benchmark::State& state) {
+  ScenarioOptions scenario_options;
+  scenario_options.landmarks = static_cast<int>(state.range(0));
+  const Scenario scenario = *Scenario::Create(scenario_options);
+  MapUpdateOptions options;
+  options.strategy = static_cast<UpdateStrategy>(state.range(1));
+  MapState map;
+  for (int i = 0; i < kWarmUpPassages; ++i) {
+    absl::StatusOr<PassageUpdate> u = ComputePassageUpdate(scenario.MakePassage(i), options, map);
+    if (u.ok()) map.Apply(u->delta);
+  }
+  std::vector<Passage> passages;
+  for (int i = 0; i < 20; ++i) passages.push_back(scenario.MakePassage(kWarmUpPassages + i));
+  size_t next = 0;
+  for (auto _ : state) {
+    absl::StatusOr<PassageUpdate> u = ComputePassageUpdate(passages[next++ % passages.size()], options, map);
+    if (!u.ok()) state.SkipWithError(u.status().ToString().c_str());
+    benchmark::DoNotOptimize(u);
+  }
+  state.SetLabel(UpdateStrategyName(options.strategy));
+}
+
+BENCHMARK(BM_ApplyPassage)
+    ->ArgNames({"landmarks", "strategy"})
+    ->Args({100, static_cast<int>(UpdateStrategy::kCorrelatedSubdivided)})
+    ->Args({100, static_cast<int>(UpdateStrategy::kCorrelated)})
+    ->Args({100, static_cast<int>(UpdateStrategy::kDecorrelated)})
+    ->Args({25, static_cast<int>(UpdateStrategy::kCorrelatedSubdivided)})
+    ->Unit(benchmark::kMillisecond);
+
+}  // namespace
+}  // namespace crowdmap
+
+BENCHMARK_MAIN();
