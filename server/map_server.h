@@ -45,8 +45,9 @@ class MapServer {
   MapStoreInterface* store() { return store_.get(); }
 
   // Health NOT_SERVING, refuse uploads, finish the passage being applied, end streams, stop gRPC
-  // (in-flight calls get `grace`). Idempotent.
-  void Shutdown(std::chrono::milliseconds grace = std::chrono::milliseconds(5000));
+  // (in-flight calls get `grace`; gRPC also waits that long for idle client connections to
+  // close, so keep it short: uploads are refused by then and reads take milliseconds). Idempotent.
+  void Shutdown(std::chrono::milliseconds grace = std::chrono::milliseconds(1000));
 
  private:
   MapServer() = default;
