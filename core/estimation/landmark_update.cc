@@ -3,13 +3,14 @@
 #include <algorithm>
 #include <chrono>
 
+#include <Eigen/SparseCholesky>
+#include <Eigen/SparseCore>
+
 #include "absl/strings/str_cat.h"
 #include "core/estimation/factors.h"
 
 namespace crowdmap {
 namespace {
-
-using RowMajorMatrix = Eigen::Matrix<double, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor>;
 
 double MillisecondsSince(std::chrono::steady_clock::time_point start) {
   return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
@@ -88,21 +89,54 @@ absl::Status LandmarkUpdate::AddMapPrior(bool correlated, ceres::Problem* proble
 }
 
 absl::StatusOr<Eigen::MatrixXd> LandmarkUpdate::GraphCovariance(ceres::Problem* problem) const {
-  ceres::Covariance::Options options;
-  options.num_threads = 1;
-  ceres::Covariance covariance(options);
-  std::vector<const double*> blocks;
-  for (const Eigen::Vector2d& p : positions_) blocks.push_back(p.data());
-  // A failed Compute must not be followed by a read: that aborts the process.
-  if (!covariance.Compute(blocks, problem)) {
-    return absl::InternalError("landmark covariance could not be computed (graph rank deficient)");
+  // Landmark marginal of the Gauss-Newton covariance (J^T J)^-1 at the solution, with the
+  // Jacobian as Ceres evaluates it (loss weights applied). Columns: other blocks first, then the
+  // landmarks, so H = [A B; B^T C] and Sigma_LL = (C - B^T A^-1 B)^-1: a sparse Cholesky of the
+  // banded pose block and a small dense one. Same result as ceres::Covariance, several times
+  // faster on these graphs; a rank-deficient graph fails at either factorisation.
+  std::vector<double*> all;
+  problem->GetParameterBlocks(&all);
+  std::vector<double*> ordered;
+  int other_dim = 0;
+  for (double* block : all) {
+    bool landmark = false;
+    for (const Eigen::Vector2d& p : positions_) landmark |= block == p.data();
+    if (!landmark) {
+      ordered.push_back(block);
+      other_dim += problem->ParameterBlockSize(block);
+    }
   }
-  RowMajorMatrix cov(2 * size(), 2 * size());
-  if (!covariance.GetCovarianceMatrix(blocks, cov.data())) {
-    return absl::InternalError("landmark covariance could not be read");
+  for (const Eigen::Vector2d& p : positions_) ordered.push_back(const_cast<double*>(p.data()));
+  ceres::Problem::EvaluateOptions evaluate;
+  evaluate.parameter_blocks = ordered;
+  evaluate.num_threads = 1;
+  ceres::CRSMatrix crs;
+  if (!problem->Evaluate(evaluate, nullptr, nullptr, nullptr, &crs)) {
+    return absl::InternalError("landmark covariance: the Jacobian could not be evaluated");
   }
+  const Eigen::Map<const Eigen::SparseMatrix<double, Eigen::RowMajor>> jacobian(
+      crs.num_rows, crs.num_cols, static_cast<int>(crs.values.size()), crs.rows.data(), crs.cols.data(),
+      crs.values.data());
+  const Eigen::SparseMatrix<double> h = Eigen::SparseMatrix<double>(jacobian.transpose()) * jacobian;
+  const int landmark_dim = 2 * size();
+  const Eigen::SparseMatrix<double> a = h.topLeftCorner(other_dim, other_dim);
+  const Eigen::MatrixXd b = Eigen::MatrixXd(h.topRightCorner(other_dim, landmark_dim));
+  const Eigen::MatrixXd c = Eigen::MatrixXd(h.bottomRightCorner(landmark_dim, landmark_dim));
+  Eigen::MatrixXd schur = c;
+  if (other_dim > 0) {
+    Eigen::SimplicialLLT<Eigen::SparseMatrix<double>> poses(a);
+    if (poses.info() != Eigen::Success) {
+      return absl::InternalError("landmark covariance could not be computed (pose block rank deficient)");
+    }
+    schur -= b.transpose() * poses.solve(b);
+  }
+  Eigen::LLT<Eigen::MatrixXd> landmarks(schur);
+  if (landmarks.info() != Eigen::Success) {
+    return absl::InternalError("landmark covariance could not be computed (landmarks not observable)");
+  }
+  Eigen::MatrixXd cov = landmarks.solve(Eigen::MatrixXd::Identity(landmark_dim, landmark_dim));
   if (!cov.allFinite()) return absl::InternalError("landmark covariance is not finite");
-  return Eigen::MatrixXd(cov);
+  return Eigen::MatrixXd(0.5 * (cov + cov.transpose()));
 }
 
 void LandmarkUpdate::WriteLandmark(Landmark record, const Eigen::Vector2d& mean, const Eigen::Matrix2d& cov,

@@ -97,8 +97,12 @@ void LocalizeAgainstMap(const PassageGraph& graph, const NodeRange& range, const
     }
     problem.SetParameterBlockConstant(landmarks->initial[i].data());
   }
+  // Only an initial guess: it must reach the basin of the full solve, not converge tightly.
+  ceres::Solver::Options options = SolverOptions(20);
+  options.function_tolerance = 1e-6;
+  options.parameter_tolerance = 1e-6;
   ceres::Solver::Summary summary;
-  ceres::Solve(SolverOptions(50), &problem, &summary);
+  ceres::Solve(options, &problem, &summary);
   // An unusable localisation leaves the poses as they were; the full solve still runs.
 }
 
