@@ -3,15 +3,8 @@
 #include <cmath>
 #include <string>
 
-#include <Eigen/LU>
-
 #include "absl/strings/str_cat.h"
 #include "core/geo/tiles.h"
-
-// ValidatePassage (core/model/passage.cc) calls Matrix2d::determinant() but its translation unit
-// does not include <Eigen/LU>, which defines it; this explicit instantiation provides the symbol
-// (weak, so harmless once the core includes the header itself).
-template double Eigen::MatrixBase<Eigen::Matrix2d>::determinant() const;
 
 namespace crowdmap {
 namespace {

@@ -3,6 +3,8 @@
 #include <cmath>
 #include <string>
 
+#include <Eigen/LU>
+
 #include "absl/strings/str_cat.h"
 
 namespace crowdmap {
