@@ -155,7 +155,9 @@ absl::StatusOr<PassageGraph> BuildPassageGraph(const Passage& passage, const Gra
                    [](const CameraObservation& a, const CameraObservation& b) { return a.node < b.node; });
 
   g.initial_poses = AlignDeadReckoning(g, passage.calibration, options.alignment_window_s);
-  if (absl::Status s = SolvePoseGraph(passage.calibration, options.max_init_iterations, &g); !s.ok()) return s;
+  if (options.refine_initial_poses) {
+    if (absl::Status s = SolvePoseGraph(passage.calibration, options.max_init_iterations, &g); !s.ok()) return s;
+  }
   return g;
 }
 

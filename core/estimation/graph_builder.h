@@ -16,6 +16,9 @@ struct GraphOptions {
   // Measurement times closer than this share one pose node.
   double node_merge_tolerance_s = 1e-3;
   int max_init_iterations = 50;
+  // Refine the aligned dead-reckoning with a Ceres solve of the odometry + GNSS pose graph. The
+  // map updater skips it: it refines each subgraph's poses itself, together with the map.
+  bool refine_initial_poses = true;
   // Window of GNSS fixes (s) the dead-reckoning is aligned to around each node.
   double alignment_window_s = 30.0;
 };
@@ -46,7 +49,7 @@ struct PassageGraph {
 };
 
 // Builds the graph of a validated passage and initialises its poses: odometry dead-reckoning
-// aligned to the GNSS fixes, then a Ceres solve of the odometry + GNSS pose graph (no landmarks).
+// aligned to the GNSS fixes, then (optionally) a Ceres solve of the odometry + GNSS pose graph.
 absl::StatusOr<PassageGraph> BuildPassageGraph(const Passage& passage, const GraphOptions& options);
 
 }  // namespace crowdmap

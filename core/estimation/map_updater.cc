@@ -82,10 +82,10 @@ void AddMotionAndGnss(const PassageGraph& graph, const NodeRange& range, const C
   }
 }
 
-// Moves the subgraph's initial poses onto the map: odometry + GNSS + the bearings of the map
-// landmarks held fixed. The pixel model alone cannot start from poses tens of metres off (with
-// coloured GNSS noise the GNSS-aligned guess often is), the bounded bearing residual can.
-void LocalizeAgainstMap(const PassageGraph& graph, const NodeRange& range, const Passage& passage,
+// Refines the subgraph's initial poses: odometry + GNSS + the bearings of the map landmarks held
+// fixed, if any. The pixel model alone cannot start from poses tens of metres off (with coloured
+// GNSS noise the GNSS-aligned guess often is), the bounded bearing residual can.
+void InitializePoses(const PassageGraph& graph, const NodeRange& range, const Passage& passage,
                         SubgraphLandmarks* landmarks, std::vector<Pose2>* poses) {
   ceres::Problem problem;
   AddMotionAndGnss(graph, range, passage.calibration, nullptr, poses, &problem);
@@ -154,9 +154,7 @@ absl::Status UpdateFromSubgraph(const Passage& passage, const PassageGraph& grap
   if (landmarks.ids.empty()) return absl::OkStatus();
   std::vector<Pose2> poses(graph.initial_poses.begin() + range.first, graph.initial_poses.begin() + range.last + 1);
   const auto solve_start = std::chrono::steady_clock::now();
-  if (std::find(landmarks.known.begin(), landmarks.known.end(), true) != landmarks.known.end()) {
-    LocalizeAgainstMap(graph, range, passage, &landmarks, &poses);
-  }
+  InitializePoses(graph, range, passage, &landmarks, &poses);
   summary->detections_dropped += InitializeLandmarks(poses, range, calib, &landmarks);
   if (landmarks.ids.empty()) return absl::OkStatus();
 
@@ -291,6 +289,7 @@ absl::StatusOr<PassageUpdate> ComputePassageUpdate(const Passage& passage, const
   const auto start = std::chrono::steady_clock::now();
   GraphOptions graph_options;
   graph_options.detections_per_landmark = options.detections_per_landmark;
+  graph_options.refine_initial_poses = false;  // done per subgraph, with the map
   absl::StatusOr<PassageGraph> graph = BuildPassageGraph(passage, graph_options);
   if (!graph.ok()) return graph.status();
 
