@@ -152,6 +152,39 @@ TEST(CameraFactor, ResidualIsZeroForTheProjectedPixel) {
   EXPECT_NEAR(r, 0.0, 1e-12);
 }
 
+TEST(BearingFactor, JacobianMatchesFiniteDifferences) {
+  std::mt19937 rng(6);
+  std::uniform_real_distribution<double> u(-1.0, 1.0);
+  Calibration calib;
+  calib.camera_yaw_rad = -0.03;
+  for (int trial = 0; trial < 20; ++trial) {
+    const Pose2 pose(u(rng), u(rng), u(rng));
+    // Anywhere around the vehicle, behind the camera included: the bearing form is defined there.
+    const double range = 20.0 + 15.0 * u(rng), bearing = 3.0 * u(rng);
+    const std::vector<double> landmark{pose.x() + range * std::cos(bearing), pose.y() + range * std::sin(bearing)};
+    std::unique_ptr<ceres::CostFunction> cost(BearingFactor::Create(960.0 + 800 * u(rng), 5.0, calib));
+    ExpectJacobiansMatchFiniteDifferences(*cost, {{pose.x(), pose.y(), pose.z()}, landmark}, 1e-5);
+  }
+}
+
+TEST(BearingFactor, AgreesWithThePixelResidualToFirstOrder) {
+  // Near the measurement the whitened bearing residual has the magnitude of the whitened pixel
+  // residual (opposite sign: u decreases as the bearing increases), so both give the same cost.
+  Calibration calib;
+  const Pose2 pose(0.0, 0.0, 0.2);
+  const Eigen::Vector2d landmark(25.0, 9.0);
+  double u;
+  ASSERT_TRUE(ProjectLandmark(pose.data(), landmark.data(), calib, &u));
+  const double measured = u + 2.0;  // 0.4 sigma off
+  std::unique_ptr<ceres::CostFunction> bearing(BearingFactor::Create(measured, 5.0, calib));
+  std::unique_ptr<ceres::CostFunction> pixel(CameraFactor::Create(measured, 5.0, calib));
+  const double* params[] = {pose.data(), landmark.data()};
+  double rb, rp;
+  ASSERT_TRUE(bearing->Evaluate(params, &rb, nullptr));
+  ASSERT_TRUE(pixel->Evaluate(params, &rp, nullptr));
+  EXPECT_NEAR(std::abs(rb), std::abs(rp), 0.01 * std::abs(rp));
+}
+
 TEST(LandmarkPriorFactor, JacobianMatchesFiniteDifferencesForAJointPrior) {
   std::mt19937 rng(5);
   std::normal_distribution<double> n(0.0, 1.0);
