@@ -14,7 +14,6 @@ PACKAGES=(
   libsqlite3-dev sqlite3 libspdlog-dev libfmt-dev
   libgtest-dev libgmock-dev libbenchmark-dev
   libgeographiclib-dev libabsl-dev
-  python3 python3-numpy python3-matplotlib python3-grpcio
 )
 
 missing=()
