@@ -2,6 +2,7 @@
 #include "server/storage/sqlite_map_store.h"
 
 #include <cmath>
+#include <functional>
 #include <unordered_set>
 
 #include <Eigen/LU>
@@ -260,20 +261,21 @@ absl::Status SqliteMapStore::AppendCrossAmong(SqliteConnection* db, LandmarkPage
   return absl::OkStatus();
 }
 
-absl::StatusOr<LandmarkPage> SqliteMapStore::QueryRegion(const BoundingBox& box, LandmarkId after_id, int limit,
-                                                         bool include_cross) {
+absl::StatusOr<LandmarkPage> SqliteMapStore::ReadPage(const std::string& where,
+                                                      const std::function<void(SqliteStatement&)>& bind, int limit,
+                                                      bool include_cross) {
   auto db = AcquireReader();
   if (!db.ok()) return db.status();
+  // One read transaction: the version, the landmarks and their blocks come from the same commit.
   auto snapshot = SqliteReadTransaction::Begin(db->get());
   if (!snapshot.ok()) return snapshot.status();
   LandmarkPage page;
   auto version = ReadMapVersion(db->get());
   if (!version.ok()) return version.status();
   page.map_version = *version;
-  auto stmt = (*db)->Prepare(absl::StrCat(kLandmarkColumns, kInBox, "AND l.id > ?5 ORDER BY l.id LIMIT ?6"));
+  auto stmt = (*db)->Prepare(absl::StrCat(kLandmarkColumns, where));
   if (!stmt.ok()) return stmt.status();
-  BindBox(*stmt, box);
-  stmt->Bind(5, static_cast<int64_t>(after_id)).Bind(6, static_cast<int64_t>(limit) + 1);
+  bind(*stmt);
   if (auto s = ReadLandmarks(*stmt, &page, limit); !s.ok()) return s;
   if (include_cross) {
     if (auto s = AppendCrossAmong(db->get(), &page); !s.ok()) return s;
@@ -281,44 +283,36 @@ absl::StatusOr<LandmarkPage> SqliteMapStore::QueryRegion(const BoundingBox& box,
   return page;
 }
 
+absl::StatusOr<LandmarkPage> SqliteMapStore::QueryRegion(const BoundingBox& box, LandmarkId after_id, int limit,
+                                                         bool include_cross) {
+  return ReadPage(
+      absl::StrCat(kInBox, "AND l.id > ?5 ORDER BY l.id LIMIT ?6"),
+      [&](SqliteStatement& stmt) {
+        BindBox(stmt, box);
+        stmt.Bind(5, static_cast<int64_t>(after_id)).Bind(6, static_cast<int64_t>(limit) + 1);
+      },
+      limit, include_cross);
+}
+
 absl::StatusOr<LandmarkPage> SqliteMapStore::GetTile(const TileId& tile, bool include_cross) {
   if (tile.z != kStorageZoom || !IsValidTile(tile)) {
     return absl::InvalidArgumentError(absl::StrCat("tile: ", tile.z, "/", tile.x, "/", tile.y,
                                                    " is not a valid tile at the storage zoom ", kStorageZoom));
   }
-  auto db = AcquireReader();
-  if (!db.ok()) return db.status();
-  auto snapshot = SqliteReadTransaction::Begin(db->get());
-  if (!snapshot.ok()) return snapshot.status();
-  LandmarkPage page;
-  auto version = ReadMapVersion(db->get());
-  if (!version.ok()) return version.status();
-  page.map_version = *version;
-  auto stmt = (*db)->Prepare(absl::StrCat(kLandmarkColumns, "WHERE l.tile_x = ?1 AND l.tile_y = ?2 ORDER BY l.id"));
-  if (!stmt.ok()) return stmt.status();
-  stmt->Bind(1, static_cast<int64_t>(tile.x)).Bind(2, static_cast<int64_t>(tile.y));
-  if (auto s = ReadLandmarks(*stmt, &page, 0); !s.ok()) return s;
-  if (include_cross) {
-    if (auto s = AppendCrossAmong(db->get(), &page); !s.ok()) return s;
-  }
-  return page;
+  return ReadPage(
+      "WHERE l.tile_x = ?1 AND l.tile_y = ?2 ORDER BY l.id",
+      [&](SqliteStatement& stmt) { stmt.Bind(1, static_cast<int64_t>(tile.x)).Bind(2, static_cast<int64_t>(tile.y)); },
+      0, include_cross);
 }
 
 absl::StatusOr<LandmarkPage> SqliteMapStore::ChangedLandmarks(const BoundingBox& box, int64_t since_version) {
-  auto db = AcquireReader();
-  if (!db.ok()) return db.status();
-  auto snapshot = SqliteReadTransaction::Begin(db->get());
-  if (!snapshot.ok()) return snapshot.status();
-  LandmarkPage page;
-  auto version = ReadMapVersion(db->get());
-  if (!version.ok()) return version.status();
-  page.map_version = *version;
-  auto stmt = (*db)->Prepare(absl::StrCat(kLandmarkColumns, kInBox, "AND l.version > ?5 ORDER BY l.id"));
-  if (!stmt.ok()) return stmt.status();
-  BindBox(*stmt, box);
-  stmt->Bind(5, since_version);
-  if (auto s = ReadLandmarks(*stmt, &page, 0); !s.ok()) return s;
-  return page;
+  return ReadPage(
+      absl::StrCat(kInBox, "AND l.version > ?5 ORDER BY l.id"),
+      [&](SqliteStatement& stmt) {
+        BindBox(stmt, box);
+        stmt.Bind(5, since_version);
+      },
+      0, /*include_cross=*/false);
 }
 
 absl::StatusOr<MapStats> SqliteMapStore::GetStats() {

@@ -1,6 +1,7 @@
 #ifndef CROWDMAP_SERVER_STORAGE_SQLITE_MAP_STORE_H_
 #define CROWDMAP_SERVER_STORAGE_SQLITE_MAP_STORE_H_
 
+#include <functional>
 #include <memory>
 #include <mutex>
 #include <string>
@@ -67,6 +68,10 @@ class SqliteMapStore : public MapStoreInterface {
   static absl::StatusOr<int64_t> ReadMapVersion(SqliteConnection* db);
   static absl::Status WriteLandmark(SqliteConnection* db, const Landmark& landmark);
   static absl::Status AppendCrossAmong(SqliteConnection* db, LandmarkPage* page);
+  // Landmarks selected by `where` (after the common column list), bound by `bind`, read in one
+  // snapshot with the map version; limit 0 = all.
+  absl::StatusOr<LandmarkPage> ReadPage(const std::string& where, const std::function<void(SqliteStatement&)>& bind,
+                                        int limit, bool include_cross);
 
   const std::string path_;
   const SqliteMapStoreOptions options_;
