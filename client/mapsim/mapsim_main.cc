@@ -1,5 +1,6 @@
 // mapsim: simulation front end. `experiment` runs simulated passages through the estimation core
-// in-process; `reproduce` runs the thesis's result grids.
+// in-process; `reproduce` runs the thesis's result grids; `fleet`, `export-passages` and `bench`
+// drive a running mapd.
 #include <iostream>
 #include <string>
 #include <vector>
@@ -7,9 +8,14 @@
 #include <glog/logging.h>
 #include <spdlog/spdlog.h>
 
+#include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
 #include "client/common/flags.h"
 #include "client/mapsim/experiment.h"
+#if CROWDMAP_MAPSIM_SERVICE
+#include "client/mapsim/bench.h"
+#include "client/mapsim/fleet.h"
+#endif
 #include "client/mapsim/reproduce.h"
 
 namespace crowdmap {
@@ -20,6 +26,10 @@ constexpr char kUsage[] = R"(mapsim: simulate crowdsourced landmark mapping (the
 Usage:
   mapsim experiment [flags]   run passages through the estimation core in-process
   mapsim reproduce  [flags]   run the thesis's table 5.2 and robustness grids
+  mapsim fleet      [flags]   upload simulated passages to a running mapd from concurrent vehicles,
+                              wait until applied, read the map back, write the experiment outputs
+  mapsim export-passages [flags]  write simulated passages as files for `mapctl upload`
+  mapsim bench      [flags]   load-test a running mapd (use a scratch database)
 
 experiment flags:
   --landmarks N               landmarks along the 2 km route (default 25)
@@ -36,6 +46,27 @@ experiment flags:
   --max-chi2-per-dof X        refuse a solve whose chi2 exceeds X per degree of freedom, 0 = never
                               (default 0)
   --quiet                     no progress line
+
+fleet flags (and --landmarks, --noise, --seed, --quiet as for experiment):
+  --server HOST:PORT          mapd address (default 127.0.0.1:50051)
+  --passages P                passages 0..P-1 of the scenario (default 40)
+  --vehicles V                concurrent vehicles; vehicle v uploads passages v, v+V, ... (default 4)
+  --strategy S                fail unless the server runs strategy S (default: accept the server's)
+  --sample-ms MS              read the map back and evaluate it this often while applying (default 250)
+  --out DIR                   output folder (default out/fleet): passages.csv (one row per sampled
+                              map; the last row is the final map), summary.json, errors.svg, map.geojson
+
+export-passages flags (and --landmarks, --noise, --seed):
+  --passages P                passages 0..P-1 (default 40)
+  --format F                  json | binary (default json)
+  --out DIR                   output folder (default out/passages): passage-00000.json, ...
+
+bench flags (and --landmarks, --seed):
+  --server HOST:PORT          mapd address (default 127.0.0.1:50051)
+  --clients K                 concurrent uploading clients (default 8)
+  --passages P                passages uploaded (default 400)
+  --readers R                 concurrent QueryRegion / GetTile readers (default 8)
+  --seconds S                 read phase, while the worker applies the queue (default 10)
 
 reproduce flags:
   --out DIR                   output folder (default out/reproduce); writes DIR/reproduction.md
@@ -97,6 +128,112 @@ absl::Status RunExperimentCommand(const std::vector<std::string>& args) {
   return absl::OkStatus();
 }
 
+#if CROWDMAP_MAPSIM_SERVICE
+absl::StatusOr<ScenarioOptions> ScenarioFromFlags(const Flags& flags) {
+  ScenarioOptions scenario;
+  absl::StatusOr<long long> landmarks = flags.GetInt("landmarks", 25), seed = flags.GetInt("seed", 1);
+  if (!landmarks.ok()) return landmarks.status();
+  if (!seed.ok()) return seed.status();
+  absl::StatusOr<NoiseConfig> noise = ParseNoiseConfig(flags.GetString("noise", "white"));
+  if (!noise.ok()) return noise.status();
+  scenario.landmarks = static_cast<int>(*landmarks);
+  scenario.seed = static_cast<uint64_t>(*seed);
+  scenario.noise = *noise;
+  return scenario;
+}
+
+absl::Status RunFleetCommand(const std::vector<std::string>& args) {
+  absl::StatusOr<Flags> flags = Flags::Parse(args, {{"server", true}, {"landmarks", true}, {"passages", true},
+                                                    {"noise", true}, {"seed", true}, {"vehicles", true},
+                                                    {"strategy", true}, {"sample-ms", true}, {"out", true},
+                                                    {"quiet", false}});
+  if (!flags.ok()) return flags.status();
+  absl::StatusOr<ScenarioOptions> scenario = ScenarioFromFlags(*flags);
+  if (!scenario.ok()) return scenario.status();
+  absl::StatusOr<long long> passages = flags->GetInt("passages", 40), vehicles = flags->GetInt("vehicles", 4),
+                            sample_ms = flags->GetInt("sample-ms", 250);
+  for (const absl::Status& s : {passages.status(), vehicles.status(), sample_ms.status()}) {
+    if (!s.ok()) return s;
+  }
+  FleetOptions options;
+  options.server = flags->GetString("server", options.server);
+  options.scenario = *scenario;
+  options.passages = static_cast<int>(*passages);
+  options.vehicles = static_cast<int>(*vehicles);
+  options.strategy = flags->GetString("strategy", "");
+  options.sample_interval = std::chrono::milliseconds(*sample_ms);
+  const std::string out = flags->GetString("out", "out/fleet");
+  const bool quiet = flags->Has("quiet");
+  auto progress = [&](const FleetProgress& p) {
+    if (quiet) return;
+    std::cerr << absl::StrFormat("\ruploaded %d/%d  applied %d/%d  error %s   ", p.uploaded, p.total, p.applied,
+                                 p.total, p.mean_dist_err_m < 0 ? std::string("-") : absl::StrFormat("%.3f m", p.mean_dist_err_m))
+              << std::flush;
+  };
+  absl::StatusOr<FleetResult> result = RunFleet(options, progress);
+  if (!quiet) std::cerr << "\n";
+  if (!result.ok()) return result.status();
+  if (absl::Status s = WriteFleetOutputs(options, *result, out); !s.ok()) return s;
+  std::cout << result->Brief() << " vehicles=" << options.vehicles << " out=" << out << "\n";
+  return absl::OkStatus();
+}
+
+absl::Status RunExportPassagesCommand(const std::vector<std::string>& args) {
+  absl::StatusOr<Flags> flags = Flags::Parse(args, {{"landmarks", true}, {"passages", true}, {"noise", true},
+                                                    {"seed", true}, {"format", true}, {"out", true}});
+  if (!flags.ok()) return flags.status();
+  absl::StatusOr<ScenarioOptions> scenario = ScenarioFromFlags(*flags);
+  if (!scenario.ok()) return scenario.status();
+  absl::StatusOr<long long> passages = flags->GetInt("passages", 40);
+  if (!passages.ok()) return passages.status();
+  const std::string format = flags->GetString("format", "json");
+  if (format != "json" && format != "binary") {
+    return absl::InvalidArgumentError(absl::StrCat("--format: '", format, "' is not json or binary"));
+  }
+  const std::string out = flags->GetString("out", "out/passages");
+  if (absl::Status s = ExportPassages(*scenario, static_cast<int>(*passages), format == "binary", out); !s.ok()) return s;
+  std::cout << absl::StrFormat("wrote %d passages to %s\n", *passages, out);
+  return absl::OkStatus();
+}
+
+absl::Status RunBenchCommand(const std::vector<std::string>& args) {
+  absl::StatusOr<Flags> flags = Flags::Parse(args, {{"server", true}, {"landmarks", true}, {"seed", true},
+                                                    {"clients", true}, {"passages", true}, {"readers", true},
+                                                    {"seconds", true}});
+  if (!flags.ok()) return flags.status();
+  absl::StatusOr<ScenarioOptions> scenario = ScenarioFromFlags(*flags);
+  if (!scenario.ok()) return scenario.status();
+  BenchOptions options;
+  absl::StatusOr<long long> clients = flags->GetInt("clients", options.clients),
+                            passages = flags->GetInt("passages", options.passages),
+                            readers = flags->GetInt("readers", options.readers);
+  absl::StatusOr<double> seconds = flags->GetDouble("seconds", options.read_seconds);
+  for (const absl::Status& s : {clients.status(), passages.status(), readers.status(), seconds.status()}) {
+    if (!s.ok()) return s;
+  }
+  options.server = flags->GetString("server", options.server);
+  options.scenario = *scenario;
+  options.clients = static_cast<int>(*clients);
+  options.passages = static_cast<int>(*passages);
+  options.readers = static_cast<int>(*readers);
+  options.read_seconds = *seconds;
+  absl::StatusOr<BenchResult> result = RunBench(options);
+  if (!result.ok()) return result.status();
+  std::cout << absl::StrFormat(
+      "durable uploads:  %.1f passages/s (%d clients, %d passages in %.2f s)\n"
+      "applied:          %.1f passages/s (first upload to queue drained, %.2f s)\n"
+      "QueryRegion:      p50 %.2f ms  p99 %.2f ms  (%d calls, %d landmarks, %d readers, worker applying)\n"
+      "GetTile:          p50 %.2f ms  p99 %.2f ms  (%d calls)\n",
+      result->uploads_per_s, options.clients, result->passages, result->upload_s, result->applied_per_s,
+      result->apply_s, result->query_region.p50_ms, result->query_region.p99_ms, result->query_region.calls,
+      result->landmarks_in_box, options.readers, result->get_tile.p50_ms, result->get_tile.p99_ms,
+      result->get_tile.calls);
+  std::cout << result->Brief() << "\n";
+  return absl::OkStatus();
+}
+
+#endif  // CROWDMAP_MAPSIM_SERVICE
+
 absl::Status RunReproduceCommand(const std::vector<std::string>& args) {
   absl::StatusOr<Flags> flags = Flags::Parse(args, {{"out", true}, {"passages", true}, {"jobs", true}, {"seed", true}});
   if (!flags.ok()) return flags.status();
@@ -138,6 +275,14 @@ int main(int argc, char** argv) {
     status = crowdmap::RunExperimentCommand(args);
   } else if (command == "reproduce") {
     status = crowdmap::RunReproduceCommand(args);
+#if CROWDMAP_MAPSIM_SERVICE
+  } else if (command == "fleet") {
+    status = crowdmap::RunFleetCommand(args);
+  } else if (command == "export-passages") {
+    status = crowdmap::RunExportPassagesCommand(args);
+  } else if (command == "bench") {
+    status = crowdmap::RunBenchCommand(args);
+#endif
   } else {
     std::cerr << "mapsim: unknown command '" << command << "' (see mapsim --help)\n";
     return 2;

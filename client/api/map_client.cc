@@ -1,0 +1,218 @@
+#include "client/api/map_client.h"
+
+#include <algorithm>
+#include <thread>
+
+#include "absl/strings/str_cat.h"
+#include "server/wire_convert.h"
+
+namespace crowdmap {
+namespace {
+
+bool IsTransient(absl::StatusCode code) {
+  return code == absl::StatusCode::kUnavailable || code == absl::StatusCode::kResourceExhausted;
+}
+
+}  // namespace
+
+absl::Status MapClientOptions::Validate() const {
+  if (server.empty()) return absl::InvalidArgumentError("server: empty address");
+  if (call_deadline.count() <= 0) return absl::InvalidArgumentError("call_deadline: must be > 0");
+  if (max_attempts < 1) return absl::InvalidArgumentError("max_attempts: must be >= 1");
+  if (initial_backoff.count() < 0 || max_backoff < initial_backoff) {
+    return absl::InvalidArgumentError("backoff: need 0 <= initial_backoff <= max_backoff");
+  }
+  if (max_message_mb < 1) return absl::InvalidArgumentError("max_message_mb: must be >= 1");
+  return absl::OkStatus();
+}
+
+absl::Status FromGrpcStatus(const grpc::Status& status) {
+  if (status.ok()) return absl::OkStatus();
+  return absl::Status(static_cast<absl::StatusCode>(status.error_code()), status.error_message());
+}
+
+pb::BoundingBox WorldBox() {
+  pb::BoundingBox box;
+  box.set_min_lat_deg(-90);
+  box.set_max_lat_deg(90);
+  box.set_min_lon_deg(-180);
+  box.set_max_lon_deg(180);
+  return box;
+}
+
+absl::StatusOr<std::unique_ptr<MapClient>> MapClient::Create(const MapClientOptions& options) {
+  if (absl::Status s = options.Validate(); !s.ok()) return s;
+  return std::unique_ptr<MapClient>(new MapClient(options));
+}
+
+MapClient::MapClient(const MapClientOptions& options) : options_(options) {
+  grpc::ChannelArguments args;
+  args.SetMaxReceiveMessageSize(options.max_message_mb << 20);
+  args.SetMaxSendMessageSize(options.max_message_mb << 20);
+  channel_ = grpc::CreateCustomChannel(options.server, grpc::InsecureChannelCredentials(), args);
+  stub_ = pb::MapService::NewStub(channel_);
+}
+
+void MapClient::SetDeadline(grpc::ClientContext* ctx) const {
+  ctx->set_deadline(std::chrono::system_clock::now() + options_.call_deadline);
+}
+
+absl::StatusOr<pb::UploadPassageResponse> MapClient::Upload(const pb::Passage& passage) {
+  pb::UploadPassageRequest request;
+  *request.mutable_passage() = passage;
+  std::chrono::milliseconds backoff = options_.initial_backoff;
+  absl::Status last;
+  for (int attempt = 1; attempt <= options_.max_attempts; ++attempt) {
+    grpc::ClientContext ctx;
+    SetDeadline(&ctx);
+    pb::UploadPassageResponse response;
+    last = FromGrpcStatus(stub_->UploadPassage(&ctx, request, &response));
+    if (last.ok()) return response;
+    if (!IsTransient(last.code()) || attempt == options_.max_attempts) break;
+    std::this_thread::sleep_for(backoff);
+    backoff = std::min(backoff * 2, options_.max_backoff);
+  }
+  return last;
+}
+
+absl::StatusOr<pb::PassageStatus> MapClient::GetPassage(int64_t id) {
+  grpc::ClientContext ctx;
+  SetDeadline(&ctx);
+  pb::GetPassageRequest request;
+  request.set_id(id);
+  pb::PassageStatus status;
+  if (absl::Status s = FromGrpcStatus(stub_->GetPassage(&ctx, request, &status)); !s.ok()) return s;
+  return status;
+}
+
+absl::StatusOr<pb::PassageStatus> MapClient::GetPassage(const std::string& vehicle_id,
+                                                       const std::string& passage_id) {
+  grpc::ClientContext ctx;
+  SetDeadline(&ctx);
+  pb::GetPassageRequest request;
+  request.set_vehicle_id(vehicle_id);
+  request.set_passage_id(passage_id);
+  pb::PassageStatus status;
+  if (absl::Status s = FromGrpcStatus(stub_->GetPassage(&ctx, request, &status)); !s.ok()) return s;
+  return status;
+}
+
+absl::StatusOr<std::vector<pb::PassageStatus>> MapClient::ListPassages(std::optional<pb::PassageState> state) {
+  std::vector<pb::PassageStatus> out;
+  std::string token;
+  do {
+    grpc::ClientContext ctx;
+    SetDeadline(&ctx);
+    pb::ListPassagesRequest request;
+    request.set_page_size(1000);
+    request.set_page_token(token);
+    if (state) request.set_state(*state);
+    pb::ListPassagesResponse response;
+    if (absl::Status s = FromGrpcStatus(stub_->ListPassages(&ctx, request, &response)); !s.ok()) return s;
+    out.insert(out.end(), response.passages().begin(), response.passages().end());
+    token = response.next_page_token();
+  } while (!token.empty());
+  return out;
+}
+
+absl::StatusOr<pb::MapInfo> MapClient::GetMapInfo() {
+  grpc::ClientContext ctx;
+  SetDeadline(&ctx);
+  pb::MapInfo info;
+  if (absl::Status s = FromGrpcStatus(stub_->GetMapInfo(&ctx, pb::GetMapInfoRequest(), &info)); !s.ok()) return s;
+  return info;
+}
+
+absl::StatusOr<pb::GetTileResponse> MapClient::GetTile(int z, int x, int y, bool include_cross) {
+  grpc::ClientContext ctx;
+  SetDeadline(&ctx);
+  pb::GetTileRequest request;
+  request.mutable_tile()->set_z(z);
+  request.mutable_tile()->set_x(x);
+  request.mutable_tile()->set_y(y);
+  request.set_include_cross_covariance(include_cross);
+  pb::GetTileResponse response;
+  if (absl::Status s = FromGrpcStatus(stub_->GetTile(&ctx, request, &response)); !s.ok()) return s;
+  return response;
+}
+
+absl::StatusOr<RegionMap> MapClient::QueryRegion(const pb::BoundingBox& box, bool include_cross) {
+  RegionMap region;
+  std::string token;
+  do {
+    grpc::ClientContext ctx;
+    SetDeadline(&ctx);
+    pb::QueryRegionRequest request;
+    *request.mutable_box() = box;
+    request.set_page_size(10000);
+    request.set_page_token(token);
+    request.set_include_cross_covariance(include_cross);
+    pb::QueryRegionResponse response;
+    if (absl::Status s = FromGrpcStatus(stub_->QueryRegion(&ctx, request, &response)); !s.ok()) return s;
+    if (!token.empty() && response.map_version() != region.map_version) {
+      return absl::AbortedError("map changed between pages; query again");
+    }
+    region.map_version = response.map_version();
+    region.landmarks.insert(region.landmarks.end(), response.landmarks().begin(), response.landmarks().end());
+    region.cross_covariances.insert(region.cross_covariances.end(), response.cross_covariances().begin(),
+                                    response.cross_covariances().end());
+    token = response.next_page_token();
+  } while (!token.empty());
+  return region;
+}
+
+absl::StatusOr<MapState> MapClient::DownloadMap(const pb::BoundingBox& box) {
+  absl::StatusOr<RegionMap> region = QueryRegion(box, /*include_cross=*/true);
+  if (!region.ok()) return region.status();
+  MapState map;
+  for (const pb::Landmark& l : region->landmarks) map.PutLandmark(LandmarkFromProto(l));
+  for (const pb::CrossCovariance& c : region->cross_covariances) {
+    Eigen::Matrix2d block;
+    block << c.cov_m2().ee(), c.cov_m2().en(), c.cov_m2().ne(), c.cov_m2().nn();
+    map.PutCrossCovariance(c.first_id(), c.second_id(), block);
+  }
+  map.set_version(region->map_version);
+  return map;
+}
+
+absl::Status MapClient::WatchRegion(const pb::BoundingBox& box, int64_t since_version,
+                                    const std::function<bool(const pb::WatchRegionResponse&)>& on_change,
+                                    std::optional<std::chrono::milliseconds> duration) {
+  grpc::ClientContext ctx;
+  if (duration) ctx.set_deadline(std::chrono::system_clock::now() + *duration);
+  pb::WatchRegionRequest request;
+  *request.mutable_box() = box;
+  request.set_since_version(since_version);
+  std::unique_ptr<grpc::ClientReader<pb::WatchRegionResponse>> reader = stub_->WatchRegion(&ctx, request);
+  pb::WatchRegionResponse response;
+  bool cancelled = false;
+  while (reader->Read(&response)) {
+    if (!on_change(response)) {
+      ctx.TryCancel();
+      cancelled = true;
+      break;
+    }
+  }
+  const grpc::Status status = reader->Finish();
+  if (cancelled || (duration && status.error_code() == grpc::StatusCode::DEADLINE_EXCEEDED)) {
+    return absl::OkStatus();
+  }
+  return FromGrpcStatus(status);
+}
+
+absl::StatusOr<pb::MapInfo> MapClient::WaitUntilIdle(std::chrono::milliseconds timeout,
+                                                     const std::function<void(const pb::MapInfo&)>& on_poll) {
+  const auto end = std::chrono::steady_clock::now() + timeout;
+  while (true) {
+    absl::StatusOr<pb::MapInfo> info = GetMapInfo();
+    if (!info.ok()) return info;
+    if (on_poll) on_poll(*info);
+    if (info->queue_depth() == 0) return info;
+    if (std::chrono::steady_clock::now() > end) {
+      return absl::DeadlineExceededError(absl::StrCat("queue still holds ", info->queue_depth(), " passages"));
+    }
+    std::this_thread::sleep_for(std::chrono::milliseconds(50));
+  }
+}
+
+}  // namespace crowdmap

@@ -1,0 +1,84 @@
+#ifndef CROWDMAP_CLIENT_API_MAP_CLIENT_H_
+#define CROWDMAP_CLIENT_API_MAP_CLIENT_H_
+
+#include <chrono>
+#include <cstdint>
+#include <functional>
+#include <memory>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include <grpcpp/grpcpp.h>
+
+#include "absl/status/statusor.h"
+#include "core/map/map_state.h"
+#include "mapservice/v1/map_service.grpc.pb.h"
+
+namespace crowdmap {
+
+namespace pb = ::mapservice::v1;
+
+struct MapClientOptions {
+  std::string server = "127.0.0.1:50051";         // host:port
+  std::chrono::milliseconds call_deadline{10000};  // per attempt of every unary call
+  int max_attempts = 8;                            // uploads: UNAVAILABLE / RESOURCE_EXHAUSTED retried
+  std::chrono::milliseconds initial_backoff{50};   // doubled after each retry, up to max_backoff
+  std::chrono::milliseconds max_backoff{2000};
+  int max_message_mb = 64;  // receive and send limit of the channel
+
+  absl::Status Validate() const;
+};
+
+// Every landmark of a region (all pages) with the cross blocks among each page's landmarks.
+struct RegionMap {
+  std::vector<pb::Landmark> landmarks;
+  std::vector<pb::CrossCovariance> cross_covariances;
+  int64_t map_version = 0;  // highest version seen over the pages
+};
+
+// The one conversion from gRPC status to absl::Status on the client side; codes map one to one.
+absl::Status FromGrpcStatus(const grpc::Status& status);
+
+// A whole-world bounding box.
+pb::BoundingBox WorldBox();
+
+// Client of mapservice.v1: a deadline on every call; uploads (idempotent on passage_id) retried
+// with exponential backoff on UNAVAILABLE and RESOURCE_EXHAUSTED. Thread-safe.
+class MapClient {
+ public:
+  static absl::StatusOr<std::unique_ptr<MapClient>> Create(const MapClientOptions& options);
+
+  absl::StatusOr<pb::UploadPassageResponse> Upload(const pb::Passage& passage);
+  absl::StatusOr<pb::PassageStatus> GetPassage(int64_t id);
+  absl::StatusOr<pb::PassageStatus> GetPassage(const std::string& vehicle_id, const std::string& passage_id);
+  // Every passage (all pages) in `state`; nullopt = all states.
+  absl::StatusOr<std::vector<pb::PassageStatus>> ListPassages(std::optional<pb::PassageState> state);
+  absl::StatusOr<pb::MapInfo> GetMapInfo();
+  absl::StatusOr<pb::GetTileResponse> GetTile(int z, int x, int y, bool include_cross = false);
+  absl::StatusOr<RegionMap> QueryRegion(const pb::BoundingBox& box, bool include_cross = false);
+  // The region as a core map; Aborted when the map changed between pages.
+  absl::StatusOr<MapState> DownloadMap(const pb::BoundingBox& box);
+  // Streams changes after `since_version` to `on_change` until it returns false, the deadline
+  // passes (OK then), or the server ends the stream.
+  absl::Status WatchRegion(const pb::BoundingBox& box, int64_t since_version,
+                           const std::function<bool(const pb::WatchRegionResponse&)>& on_change,
+                           std::optional<std::chrono::milliseconds> duration);
+  // Polls GetMapInfo until nothing is queued or processing; DeadlineExceeded after `timeout`.
+  absl::StatusOr<pb::MapInfo> WaitUntilIdle(std::chrono::milliseconds timeout,
+                                            const std::function<void(const pb::MapInfo&)>& on_poll = nullptr);
+
+  pb::MapService::Stub* stub() { return stub_.get(); }
+
+ private:
+  explicit MapClient(const MapClientOptions& options);
+  void SetDeadline(grpc::ClientContext* ctx) const;
+
+  MapClientOptions options_;
+  std::shared_ptr<grpc::Channel> channel_;
+  std::unique_ptr<pb::MapService::Stub> stub_;
+};
+
+}  // namespace crowdmap
+
+#endif  // CROWDMAP_CLIENT_API_MAP_CLIENT_H_

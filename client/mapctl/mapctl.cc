@@ -1,0 +1,394 @@
+#include "client/mapctl/mapctl.h"
+
+#include <cstdlib>
+#include <fstream>
+#include <map>
+#include <memory>
+#include <optional>
+
+#include <google/protobuf/util/json_util.h>
+
+#include "absl/strings/numbers.h"
+#include "absl/strings/str_cat.h"
+#include "absl/strings/str_format.h"
+#include "absl/strings/str_replace.h"
+#include "absl/strings/str_split.h"
+#include "absl/time/clock.h"
+#include "absl/time/time.h"
+#include "client/api/geojson.h"
+#include "client/api/map_client.h"
+#include "client/api/passage_files.h"
+#include "client/common/flags.h"
+
+namespace crowdmap {
+namespace {
+
+constexpr char kUsage[] = R"(mapctl: operate a crowdmap map service (mapd).
+
+Usage: mapctl COMMAND [ARGS] [--server HOST:PORT] [--json] [--deadline-s S]
+
+Commands:
+  upload FILE...                 upload passage files (protobuf JSON or binary mapservice.v1.Passage)
+  status ID                      one passage: server id, or VEHICLE/PASSAGE_ID
+  passages [--state S]           uploaded passages; S = queued | processing | applied | rejected | failed
+  info                           map version, landmark and queue counts, strategy
+  tile Z X Y                     landmarks of one z16 tile
+  region --bbox MINLON,MINLAT,MAXLON,MAXLAT
+                                 landmarks inside a bounding box
+  watch --bbox ... [--since V] [--seconds S] [--updates N]
+                                 follow changes in a bounding box (until Ctrl-C, S seconds or N updates)
+  export --bbox ... --format geojson [--ellipses] [--out FILE]
+                                 RFC 7946 FeatureCollection of the landmarks (stdout unless --out)
+
+Common flags:
+  --server HOST:PORT             mapd address (default $MAPCTL_SERVER or 127.0.0.1:50051)
+  --json                         machine-readable output (protobuf JSON) instead of tables
+  --deadline-s S                 deadline of each call, seconds (default 10)
+
+Exit codes: 0 success, 1 failure (unreachable server, malformed file, unknown id, ...), 2 usage error.
+)";
+
+struct Context {
+  std::unique_ptr<MapClient> client;
+  bool json = false;
+  std::ostream* out = nullptr;
+};
+
+std::string OneLine(absl::string_view message) {
+  return absl::StrReplaceAll(message, {{"\n", " "}, {"\r", " "}});
+}
+
+std::string ToJson(const google::protobuf::Message& message) {
+  std::string text;
+  google::protobuf::util::JsonPrintOptions options;
+  options.add_whitespace = true;
+  options.preserve_proto_field_names = true;
+  (void)google::protobuf::util::MessageToJsonString(message, &text, options);
+  return text;
+}
+
+std::string StateName(pb::PassageState state) {
+  switch (state) {
+    case pb::PASSAGE_STATE_QUEUED: return "queued";
+    case pb::PASSAGE_STATE_PROCESSING: return "processing";
+    case pb::PASSAGE_STATE_APPLIED: return "applied";
+    case pb::PASSAGE_STATE_REJECTED: return "rejected";
+    case pb::PASSAGE_STATE_FAILED: return "failed";
+    default: return "unspecified";
+  }
+}
+
+absl::StatusOr<pb::PassageState> ParseState(const std::string& name) {
+  for (pb::PassageState s : {pb::PASSAGE_STATE_QUEUED, pb::PASSAGE_STATE_PROCESSING, pb::PASSAGE_STATE_APPLIED,
+                             pb::PASSAGE_STATE_REJECTED, pb::PASSAGE_STATE_FAILED}) {
+    if (StateName(s) == name) return s;
+  }
+  return absl::InvalidArgumentError(
+      absl::StrCat("--state: '", name, "' is not queued, processing, applied, rejected or failed"));
+}
+
+std::string FormatTime(int64_t unix_ms) {
+  if (unix_ms <= 0) return "-";
+  return absl::FormatTime("%Y-%m-%d %H:%M:%S", absl::FromUnixMillis(unix_ms), absl::UTCTimeZone());
+}
+
+absl::StatusOr<pb::BoundingBox> ParseBbox(const Flags& flags) {
+  if (!flags.Has("bbox")) return absl::InvalidArgumentError("--bbox MINLON,MINLAT,MAXLON,MAXLAT is required");
+  const std::string text = flags.GetString("bbox", "");
+  std::vector<std::string> parts = absl::StrSplit(text, ',');
+  double v[4];
+  if (parts.size() != 4) return absl::InvalidArgumentError(absl::StrCat("--bbox: '", text, "' is not MINLON,MINLAT,MAXLON,MAXLAT"));
+  for (int i = 0; i < 4; ++i) {
+    if (!absl::SimpleAtod(parts[i], &v[i])) {
+      return absl::InvalidArgumentError(absl::StrCat("--bbox: '", parts[i], "' is not a number"));
+    }
+  }
+  if (v[0] > v[2] || v[1] > v[3]) return absl::InvalidArgumentError("--bbox: need MINLON <= MAXLON and MINLAT <= MAXLAT");
+  if (v[0] < -180 || v[2] > 180 || v[1] < -90 || v[3] > 90) {
+    return absl::InvalidArgumentError("--bbox: longitudes must lie in [-180, 180], latitudes in [-90, 90]");
+  }
+  pb::BoundingBox box;
+  box.set_min_lon_deg(v[0]);
+  box.set_min_lat_deg(v[1]);
+  box.set_max_lon_deg(v[2]);
+  box.set_max_lat_deg(v[3]);
+  return box;
+}
+
+void PrintLandmarkTable(const std::vector<pb::Landmark>& landmarks, std::ostream& out) {
+  out << absl::StrFormat("%8s %13s %14s %9s %9s %9s %8s %7s\n", "ID", "LAT", "LON", "SIGMA_E", "SIGMA_N", "ELL95_M",
+                         "VERSION", "SEEN");
+  for (const pb::Landmark& l : landmarks) {
+    Eigen::Matrix2d cov;
+    cov << l.cov_en_m2().ee(), l.cov_en_m2().en(), l.cov_en_m2().ne(), l.cov_en_m2().nn();
+    out << absl::StrFormat("%8d %13.8f %14.8f %9.3f %9.3f %9.3f %8d %7d\n", l.id(), l.lat_deg(), l.lon_deg(),
+                           std::sqrt(cov(0, 0)), std::sqrt(cov(1, 1)), ErrorEllipse95(cov).semi_major_m, l.version(),
+                           l.passages_seen());
+  }
+}
+
+void PrintPassageRow(const pb::PassageStatus& p, std::ostream& out) {
+  out << absl::StrFormat("%8d  %-14s %-16s %-10s %8d  %-19s  %s\n", p.id(), p.vehicle_id(), p.passage_id(),
+                         StateName(p.state()), p.attempts(), FormatTime(p.received_unix_ms()), OneLine(p.error()));
+}
+
+absl::Status Upload(const Flags& flags, Context& ctx) {
+  if (flags.positional().empty()) return absl::InvalidArgumentError("upload: give at least one passage file");
+  std::vector<std::pair<std::string, pb::Passage>> files;
+  for (const std::string& path : flags.positional()) {
+    absl::StatusOr<pb::Passage> passage = ReadPassageFile(path);
+    if (!passage.ok()) return passage.status();
+    files.emplace_back(path, *std::move(passage));
+  }
+  if (!ctx.json) *ctx.out << absl::StrFormat("%-32s %8s  %-14s %-16s %-10s %s\n", "FILE", "ID", "VEHICLE", "PASSAGE", "STATE", "DUPLICATE");
+  for (const auto& [path, passage] : files) {
+    absl::StatusOr<pb::UploadPassageResponse> response = ctx.client->Upload(passage);
+    if (!response.ok()) return absl::Status(response.status().code(), absl::StrCat(path, ": ", response.status().message()));
+    if (ctx.json) {
+      *ctx.out << ToJson(*response);
+    } else {
+      const pb::PassageStatus& s = response->status();
+      *ctx.out << absl::StrFormat("%-32s %8d  %-14s %-16s %-10s %s\n", path, s.id(), s.vehicle_id(), s.passage_id(),
+                                  StateName(s.state()), response->duplicate() ? "yes" : "no");
+    }
+  }
+  return absl::OkStatus();
+}
+
+absl::Status Status(const Flags& flags, Context& ctx) {
+  if (flags.positional().size() != 1) return absl::InvalidArgumentError("status: give one ID (number or VEHICLE/PASSAGE_ID)");
+  const std::string& arg = flags.positional()[0];
+  absl::StatusOr<pb::PassageStatus> status;
+  int64_t id = 0;
+  if (absl::SimpleAtoi(arg, &id)) {
+    status = ctx.client->GetPassage(id);
+  } else if (size_t slash = arg.find('/'); slash != std::string::npos) {
+    status = ctx.client->GetPassage(arg.substr(0, slash), arg.substr(slash + 1));
+  } else {
+    return absl::InvalidArgumentError(absl::StrCat("status: '", arg, "' is neither a number nor VEHICLE/PASSAGE_ID"));
+  }
+  if (!status.ok()) return status.status();
+  if (ctx.json) {
+    *ctx.out << ToJson(*status);
+    return absl::OkStatus();
+  }
+  std::ostream& out = *ctx.out;
+  out << absl::StrFormat("id:          %d\nvehicle:     %s\npassage:     %s\nstate:       %s\nattempts:    %d\n"
+                         "received:    %s\nfinished:    %s\nsize:        %d bytes\n",
+                         status->id(), status->vehicle_id(), status->passage_id(), StateName(status->state()),
+                         status->attempts(), FormatTime(status->received_unix_ms()),
+                         FormatTime(status->finished_unix_ms()), status->size_bytes());
+  if (!status->error().empty()) out << "error:       " << OneLine(status->error()) << "\n";
+  if (status->has_result()) {
+    const pb::PassageResult& r = status->result();
+    out << absl::StrFormat("result:      strategy=%s nodes=%d subgraphs=%d updated=%d created=%d conditioned=%d "
+                           "detections_used=%d total_ms=%.1f map_version=%d\n",
+                           r.strategy(), r.nodes(), r.subgraphs(), r.landmarks_updated(), r.landmarks_created(),
+                           r.landmarks_conditioned(), r.detections_used(), r.total_ms(), r.map_version());
+  }
+  return absl::OkStatus();
+}
+
+absl::Status Passages(const Flags& flags, Context& ctx) {
+  std::optional<pb::PassageState> state;
+  if (flags.Has("state")) {
+    absl::StatusOr<pb::PassageState> s = ParseState(flags.GetString("state", ""));
+    if (!s.ok()) return s.status();
+    state = *s;
+  }
+  absl::StatusOr<std::vector<pb::PassageStatus>> list = ctx.client->ListPassages(state);
+  if (!list.ok()) return list.status();
+  if (ctx.json) {
+    pb::ListPassagesResponse response;
+    for (const pb::PassageStatus& p : *list) *response.add_passages() = p;
+    *ctx.out << ToJson(response);
+    return absl::OkStatus();
+  }
+  *ctx.out << absl::StrFormat("%8s  %-14s %-16s %-10s %8s  %-19s  %s\n", "ID", "VEHICLE", "PASSAGE", "STATE",
+                              "ATTEMPTS", "RECEIVED (UTC)", "ERROR");
+  for (const pb::PassageStatus& p : *list) PrintPassageRow(p, *ctx.out);
+  *ctx.out << list->size() << " passages\n";
+  return absl::OkStatus();
+}
+
+absl::Status Info(const Flags& flags, Context& ctx) {
+  absl::StatusOr<pb::MapInfo> info = ctx.client->GetMapInfo();
+  if (!info.ok()) return info.status();
+  if (ctx.json) {
+    *ctx.out << ToJson(*info);
+    return absl::OkStatus();
+  }
+  *ctx.out << absl::StrFormat(
+      "map version:       %d\nlandmarks:         %d\ncross blocks:      %d\nstrategy:          %s\n"
+      "queue depth:       %d\npassages:          queued=%d processing=%d applied=%d rejected=%d failed=%d\n",
+      info->map_version(), info->landmark_count(), info->cross_covariance_count(), info->strategy(),
+      info->queue_depth(), info->passages_queued(), info->passages_processing(), info->passages_applied(),
+      info->passages_rejected(), info->passages_failed());
+  return absl::OkStatus();
+}
+
+absl::Status Tile(const Flags& flags, Context& ctx) {
+  if (flags.positional().size() != 3) return absl::InvalidArgumentError("tile: give Z X Y");
+  int zxy[3];
+  for (int i = 0; i < 3; ++i) {
+    if (!absl::SimpleAtoi(flags.positional()[i], &zxy[i])) {
+      return absl::InvalidArgumentError(absl::StrCat("tile: '", flags.positional()[i], "' is not an integer"));
+    }
+  }
+  absl::StatusOr<pb::GetTileResponse> tile = ctx.client->GetTile(zxy[0], zxy[1], zxy[2]);
+  if (!tile.ok()) return tile.status();
+  if (ctx.json) {
+    *ctx.out << ToJson(*tile);
+    return absl::OkStatus();
+  }
+  *ctx.out << absl::StrFormat("tile %d/%d/%d  tile version %d  map version %d  %d landmarks\n", zxy[0], zxy[1], zxy[2],
+                              tile->tile_version(), tile->map_version(), tile->landmarks_size());
+  PrintLandmarkTable({tile->landmarks().begin(), tile->landmarks().end()}, *ctx.out);
+  return absl::OkStatus();
+}
+
+absl::Status Region(const Flags& flags, Context& ctx) {
+  absl::StatusOr<pb::BoundingBox> box = ParseBbox(flags);
+  if (!box.ok()) return box.status();
+  absl::StatusOr<RegionMap> region = ctx.client->QueryRegion(*box);
+  if (!region.ok()) return region.status();
+  if (ctx.json) {
+    pb::QueryRegionResponse response;
+    for (const pb::Landmark& l : region->landmarks) *response.add_landmarks() = l;
+    response.set_map_version(region->map_version);
+    *ctx.out << ToJson(response);
+    return absl::OkStatus();
+  }
+  *ctx.out << absl::StrFormat("map version %d  %d landmarks\n", region->map_version, region->landmarks.size());
+  PrintLandmarkTable(region->landmarks, *ctx.out);
+  return absl::OkStatus();
+}
+
+absl::Status Watch(const Flags& flags, Context& ctx) {
+  absl::StatusOr<pb::BoundingBox> box = ParseBbox(flags);
+  if (!box.ok()) return box.status();
+  absl::StatusOr<long long> since = flags.GetInt("since", 0), updates = flags.GetInt("updates", 0);
+  absl::StatusOr<double> seconds = flags.GetDouble("seconds", 0.0);
+  for (const absl::Status& s : {since.status(), updates.status(), seconds.status()}) {
+    if (!s.ok()) return s;
+  }
+  std::optional<std::chrono::milliseconds> duration;
+  if (*seconds > 0) duration = std::chrono::milliseconds(static_cast<int64_t>(*seconds * 1000));
+  long long received = 0;
+  return ctx.client->WatchRegion(*box, *since, [&](const pb::WatchRegionResponse& change) {
+    if (ctx.json) {
+      std::string line;
+      (void)google::protobuf::util::MessageToJsonString(change, &line);
+      *ctx.out << line << "\n";
+    } else {
+      *ctx.out << absl::StrFormat("map version %d: %d landmarks changed\n", change.map_version(),
+                                  change.landmarks_size());
+      for (const pb::Landmark& l : change.landmarks()) {
+        *ctx.out << absl::StrFormat("  landmark %d  %.8f %.8f  version %d  seen %d\n", l.id(), l.lat_deg(),
+                                    l.lon_deg(), l.version(), l.passages_seen());
+      }
+    }
+    ctx.out->flush();
+    return *updates <= 0 || ++received < *updates;
+  }, duration);
+}
+
+absl::Status Export(const Flags& flags, Context& ctx) {
+  absl::StatusOr<pb::BoundingBox> box = ParseBbox(flags);
+  if (!box.ok()) return box.status();
+  const std::string format = flags.GetString("format", "geojson");
+  if (format != "geojson") return absl::InvalidArgumentError(absl::StrCat("--format: '", format, "' is not geojson"));
+  absl::StatusOr<RegionMap> region = ctx.client->QueryRegion(*box);
+  if (!region.ok()) return region.status();
+  GeoJsonOptions options;
+  options.ellipses = flags.Has("ellipses");
+  const std::string text = LandmarksToGeoJson(region->landmarks, region->map_version, options);
+  if (!flags.Has("out")) {
+    *ctx.out << text;
+    return absl::OkStatus();
+  }
+  const std::string path = flags.GetString("out", "");
+  std::ofstream file(path, std::ios::trunc);
+  file << text;
+  file.close();
+  if (!file) return absl::UnavailableError(absl::StrCat(path, ": write failed"));
+  if (!ctx.json) *ctx.out << absl::StrFormat("wrote %d landmarks (map version %d) to %s\n", region->landmarks.size(), region->map_version, path);
+  return absl::OkStatus();
+}
+
+using Command = absl::Status (*)(const Flags&, Context&);
+
+struct CommandSpec {
+  Command run;
+  std::map<std::string, bool> flags;  // besides the common ones
+};
+
+const std::map<std::string, CommandSpec>& Commands() {
+  static const auto* commands = new std::map<std::string, CommandSpec>{
+      {"upload", {&Upload, {}}},
+      {"status", {&Status, {}}},
+      {"passages", {&Passages, {{"state", true}}}},
+      {"info", {&Info, {}}},
+      {"tile", {&Tile, {}}},
+      {"region", {&Region, {{"bbox", true}}}},
+      {"watch", {&Watch, {{"bbox", true}, {"since", true}, {"seconds", true}, {"updates", true}}}},
+      {"export", {&Export, {{"bbox", true}, {"format", true}, {"ellipses", false}, {"out", true}}}},
+  };
+  return *commands;
+}
+
+}  // namespace
+
+const char* MapctlUsage() { return kUsage; }
+
+int RunMapctl(const std::vector<std::string>& args, std::ostream& out, std::ostream& err) {
+  if (args.empty()) {
+    err << kUsage;
+    return 2;
+  }
+  if (args[0] == "--help" || args[0] == "-h" || args[0] == "help") {
+    out << kUsage;
+    return 0;
+  }
+  const std::string& name = args[0];
+  auto it = Commands().find(name);
+  if (it == Commands().end()) {
+    err << "mapctl: unknown command '" << name << "' (see mapctl --help)\n";
+    return 2;
+  }
+  std::map<std::string, bool> known = it->second.flags;
+  known.insert({{"server", true}, {"json", false}, {"deadline-s", true}, {"help", false}});
+  absl::StatusOr<Flags> flags = Flags::Parse({args.begin() + 1, args.end()}, known);
+  if (!flags.ok()) {
+    err << "mapctl " << name << ": " << OneLine(flags.status().message()) << "\n";
+    return 2;
+  }
+  if (flags->Has("help")) {
+    out << kUsage;
+    return 0;
+  }
+  MapClientOptions options;
+  const char* env_server = std::getenv("MAPCTL_SERVER");
+  options.server = flags->GetString("server", env_server && *env_server ? env_server : options.server);
+  absl::StatusOr<double> deadline_s = flags->GetDouble("deadline-s", 10.0);
+  if (!deadline_s.ok() || *deadline_s <= 0) {
+    err << "mapctl " << name << ": --deadline-s: need a positive number of seconds\n";
+    return 2;
+  }
+  options.call_deadline = std::chrono::milliseconds(static_cast<int64_t>(*deadline_s * 1000));
+  absl::StatusOr<std::unique_ptr<MapClient>> client = MapClient::Create(options);
+  if (!client.ok()) {
+    err << "mapctl " << name << ": " << OneLine(client.status().message()) << "\n";
+    return 2;
+  }
+  Context ctx{*std::move(client), flags->Has("json"), &out};
+  const absl::Status status = it->second.run(*flags, ctx);
+  if (!status.ok()) {
+    err << "mapctl " << name << ": " << absl::StatusCodeToString(status.code()) << ": "
+        << OneLine(status.message()) << "\n";
+    return 1;
+  }
+  return 0;
+}
+
+}  // namespace crowdmap

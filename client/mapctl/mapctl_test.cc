@@ -1,0 +1,210 @@
+// mapctl against a real in-process mapd on an ephemeral port with a temporary database.
+#include "client/mapctl/mapctl.h"
+
+#include <fstream>
+#include <sstream>
+
+#include "absl/strings/match.h"
+#include "absl/strings/str_cat.h"
+#include "absl/strings/str_format.h"
+#include "client/api/map_client.h"
+#include "client/mapsim/fleet.h"
+#include "core/geo/tiles.h"
+#include "server/testing/temp_dir.h"
+#include "tests/support/test_server.h"
+
+namespace crowdmap {
+namespace {
+
+struct CliRun {
+  int code = 0;
+  std::string out, err;
+};
+
+CliRun Mapctl(std::vector<std::string> args, const std::string& server) {
+  if (!server.empty()) {
+    args.push_back("--server");
+    args.push_back(server);
+  }
+  std::ostringstream out, err;
+  CliRun r;
+  r.code = RunMapctl(args, out, err);
+  r.out = out.str();
+  r.err = err.str();
+  return r;
+}
+
+int Count(const std::string& text, const std::string& needle) {
+  int n = 0;
+  for (size_t p = text.find(needle); p != std::string::npos; p = text.find(needle, p + 1)) ++n;
+  return n;
+}
+
+bool OneErrorLine(const CliRun& r) { return r.code != 0 && Count(r.err, "\n") == 1 && r.out.empty(); }
+
+class MapctlTest : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    server_ = StartTestServer(TestServerOptions(dir_.File("map.db")));
+    ASSERT_NE(server_, nullptr);
+    address_ = server_->address();
+    scenario_ = ShortScenario().options();
+  }
+
+  // Writes `passages` simulated passage files, uploads them with mapctl and waits until applied.
+  void UploadAndApply(int passages) {
+    ASSERT_TRUE(ExportPassages(scenario_, passages, /*binary=*/false, dir_.File("json")).ok());
+    ASSERT_TRUE(ExportPassages(scenario_, passages, /*binary=*/true, dir_.File("pb")).ok());
+    std::vector<std::string> args = {"upload", dir_.File("json/passage-00000.json")};
+    for (int i = 1; i < passages; ++i) args.push_back(dir_.File(absl::StrFormat("pb/passage-%05d.pb", i)));
+    CliRun r = Mapctl(args, address_);
+    ASSERT_EQ(r.code, 0) << r.err;
+    EXPECT_EQ(Count(r.out, "queued"), passages) << r.out;
+    MapClientOptions options;
+    options.server = address_;
+    auto client = MapClient::Create(options);
+    ASSERT_TRUE(client.ok());
+    auto info = (*client)->WaitUntilIdle(std::chrono::seconds(60));
+    ASSERT_TRUE(info.ok()) << info.status();
+    ASSERT_EQ(info->passages_applied(), passages);
+  }
+
+  std::string RouteBbox() const {
+    return absl::StrFormat("%.6f,%.6f,%.6f,%.6f", scenario_.origin.lon_deg - 0.05, scenario_.origin.lat_deg - 0.05,
+                           scenario_.origin.lon_deg + 0.05, scenario_.origin.lat_deg + 0.05);
+  }
+
+  TempDir dir_;
+  std::unique_ptr<MapServer> server_;
+  std::string address_;
+  ScenarioOptions scenario_;
+};
+
+TEST_F(MapctlTest, InfoShowsTheEmptyMapAndItsStrategy) {
+  CliRun r = Mapctl({"info"}, address_);
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_TRUE(absl::StrContains(r.out, "landmarks:         0")) << r.out;
+  EXPECT_TRUE(absl::StrContains(r.out, "cc-gsd")) << r.out;
+  CliRun j = Mapctl({"info", "--json"}, address_);
+  ASSERT_EQ(j.code, 0) << j.err;
+  EXPECT_TRUE(absl::StrContains(j.out, "\"strategy\": \"cc-gsd\"")) << j.out;
+}
+
+TEST_F(MapctlTest, UploadedFilesAreAppliedAndListed) {
+  UploadAndApply(3);
+  CliRun again = Mapctl({"upload", dir_.File("json/passage-00000.json")}, address_);
+  ASSERT_EQ(again.code, 0) << again.err;
+  EXPECT_TRUE(absl::StrContains(again.out, "yes")) << again.out;  // duplicate
+
+  CliRun applied = Mapctl({"passages", "--state", "applied"}, address_);
+  ASSERT_EQ(applied.code, 0) << applied.err;
+  EXPECT_TRUE(absl::StrContains(applied.out, "3 passages")) << applied.out;
+  CliRun queued = Mapctl({"passages", "--state", "queued", "--json"}, address_);
+  ASSERT_EQ(queued.code, 0) << queued.err;
+  EXPECT_FALSE(absl::StrContains(queued.out, "passage_id")) << queued.out;
+
+  CliRun by_id = Mapctl({"status", "1"}, address_);
+  ASSERT_EQ(by_id.code, 0) << by_id.err;
+  EXPECT_TRUE(absl::StrContains(by_id.out, "state:       applied")) << by_id.out;
+  EXPECT_TRUE(absl::StrContains(by_id.out, "strategy=cc-gsd")) << by_id.out;
+  CliRun by_key = Mapctl({"status", "sim-2/p2", "--json"}, address_);
+  ASSERT_EQ(by_key.code, 0) << by_key.err;
+  EXPECT_TRUE(absl::StrContains(by_key.out, "\"PASSAGE_STATE_APPLIED\"")) << by_key.out;
+}
+
+TEST_F(MapctlTest, MapReadsShowEveryLandmark) {
+  UploadAndApply(2);
+  const int landmarks = scenario_.landmarks;
+  CliRun region = Mapctl({"region", "--bbox", RouteBbox()}, address_);
+  ASSERT_EQ(region.code, 0) << region.err;
+  EXPECT_TRUE(absl::StrContains(region.out, absl::StrCat(landmarks, " landmarks"))) << region.out;
+
+  CliRun json = Mapctl({"region", "--bbox", RouteBbox(), "--json"}, address_);
+  ASSERT_EQ(json.code, 0) << json.err;
+  EXPECT_EQ(Count(json.out, "\"cov_en_m2\""), landmarks);
+
+  CliRun geo = Mapctl({"export", "--bbox", RouteBbox(), "--format", "geojson", "--ellipses"}, address_);
+  ASSERT_EQ(geo.code, 0) << geo.err;
+  EXPECT_TRUE(absl::StartsWith(geo.out, "{\"type\": \"FeatureCollection\"")) << geo.out.substr(0, 80);
+  EXPECT_EQ(Count(geo.out, "\"Point\""), landmarks);
+  EXPECT_EQ(Count(geo.out, "\"Polygon\""), landmarks);
+  CliRun to_file = Mapctl({"export", "--bbox", RouteBbox(), "--out", dir_.File("map.geojson")}, address_);
+  ASSERT_EQ(to_file.code, 0) << to_file.err;
+  std::ifstream file(dir_.File("map.geojson"));
+  std::stringstream written;
+  written << file.rdbuf();
+  EXPECT_EQ(Count(written.str(), "\"Point\""), landmarks);
+  EXPECT_EQ(Count(written.str(), "\"Polygon\""), 0);
+
+  auto scenario = Scenario::Create(scenario_);
+  ASSERT_TRUE(scenario.ok());
+  const TileId tile = TileContaining(scenario->landmarks()[0].position);
+  CliRun t = Mapctl({"tile", std::to_string(tile.z), std::to_string(tile.x), std::to_string(tile.y)}, address_);
+  ASSERT_EQ(t.code, 0) << t.err;
+  EXPECT_TRUE(absl::StrContains(t.out, absl::StrFormat("tile %d/%d/%d", tile.z, tile.x, tile.y))) << t.out;
+  EXPECT_FALSE(absl::StrContains(t.out, " 0 landmarks")) << t.out;
+}
+
+TEST_F(MapctlTest, WatchPrintsChangesSinceAVersion) {
+  UploadAndApply(1);
+  CliRun w = Mapctl({"watch", "--bbox", RouteBbox(), "--since", "0", "--updates", "1", "--seconds", "20"}, address_);
+  ASSERT_EQ(w.code, 0) << w.err;
+  EXPECT_TRUE(absl::StrContains(w.out, "\n  landmark ")) << w.out;
+  CliRun quiet = Mapctl({"watch", "--bbox", RouteBbox(), "--since", "1000000", "--seconds", "0.3"}, address_);
+  ASSERT_EQ(quiet.code, 0) << quiet.err;
+  EXPECT_FALSE(absl::StrContains(quiet.out, "\n  landmark ")) << quiet.out;
+}
+
+TEST_F(MapctlTest, BadInputGivesOneLineAndNonZeroExit) {
+  CliRun unknown_id = Mapctl({"status", "4242"}, address_);
+  EXPECT_TRUE(OneErrorLine(unknown_id)) << unknown_id.err;
+  EXPECT_TRUE(absl::StrContains(unknown_id.err, "NOT_FOUND")) << unknown_id.err;
+
+  {
+    std::ofstream bad(dir_.File("bad.json"));
+    bad << "{\"vehicle_id\": \"v\", \"odometry\": [ {\"t_s\": \"oops\"} ]";
+  }
+  CliRun malformed = Mapctl({"upload", dir_.File("bad.json")}, address_);
+  EXPECT_TRUE(OneErrorLine(malformed)) << malformed.err;
+  EXPECT_TRUE(absl::StrContains(malformed.err, "bad.json")) << malformed.err;
+  {
+    std::ofstream junk(dir_.File("junk.pb"), std::ios::binary);
+    junk << "\xff\xff\xff\xff not a passage";
+  }
+  CliRun binary = Mapctl({"upload", dir_.File("junk.pb")}, address_);
+  EXPECT_TRUE(OneErrorLine(binary)) << binary.err;
+  CliRun missing = Mapctl({"upload", dir_.File("nowhere.json")}, address_);
+  EXPECT_TRUE(OneErrorLine(missing)) << missing.err;
+
+  CliRun bbox = Mapctl({"region", "--bbox", "1,2,3"}, address_);
+  EXPECT_TRUE(OneErrorLine(bbox)) << bbox.err;
+  CliRun state = Mapctl({"passages", "--state", "sleeping"}, address_);
+  EXPECT_TRUE(OneErrorLine(state)) << state.err;
+  CliRun tile = Mapctl({"tile", "3", "1", "1"}, address_);
+  EXPECT_TRUE(OneErrorLine(tile)) << tile.err;
+  EXPECT_TRUE(absl::StrContains(tile.err, "INVALID_ARGUMENT")) << tile.err;
+
+  CliRun command = Mapctl({"frobnicate"}, address_);
+  EXPECT_EQ(command.code, 2);
+  CliRun flag = Mapctl({"info", "--colour"}, address_);
+  EXPECT_EQ(flag.code, 2);
+}
+
+TEST(Mapctl, UnreachableServerGivesOneLineAndNonZeroExit) {
+  TempDir dir;
+  auto server = StartTestServer(TestServerOptions(dir.File("map.db")));
+  ASSERT_NE(server, nullptr);
+  const std::string address = server->address();
+  server->Shutdown();
+  server.reset();
+  for (const std::vector<std::string>& args :
+       {std::vector<std::string>{"info"}, {"passages"}, {"status", "1"}, {"tile", "16", "1", "1"},
+        {"region", "--bbox", "0,0,1,1"}, {"export", "--bbox", "0,0,1,1"}, {"watch", "--bbox", "0,0,1,1", "--seconds", "1"}}) {
+    CliRun r = Mapctl(args, address);
+    EXPECT_TRUE(OneErrorLine(r)) << args[0] << ": " << r.err;
+    EXPECT_TRUE(absl::StrContains(r.err, "UNAVAILABLE")) << args[0] << ": " << r.err;
+  }
+}
+
+}  // namespace
+}  // namespace crowdmap

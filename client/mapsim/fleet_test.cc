@@ -1,0 +1,76 @@
+// mapsim fleet against a real in-process mapd: one sequential vehicle gives the map of
+// `mapsim experiment`; several concurrent vehicles get every passage applied.
+#include "client/mapsim/fleet.h"
+
+#include <filesystem>
+
+#include "server/testing/temp_dir.h"
+#include "tests/support/test_server.h"
+
+namespace crowdmap {
+namespace {
+
+FleetOptions SmallFleet(const std::string& address, int vehicles) {
+  FleetOptions options;
+  options.server = address;
+  options.scenario = ShortScenario().options();
+  options.scenario.seed = 3;
+  options.passages = 8;
+  options.vehicles = vehicles;
+  options.strategy = "cc-gsd";
+  options.sample_interval = std::chrono::milliseconds(20);
+  return options;
+}
+
+TEST(Fleet, OneSequentialVehicleMatchesTheExperiment) {
+  TempDir dir;
+  auto server = StartTestServer(TestServerOptions(dir.File("map.db")));
+  ASSERT_NE(server, nullptr);
+  const FleetOptions options = SmallFleet(server->address(), 1);
+  auto fleet = RunFleet(options);
+  ASSERT_TRUE(fleet.ok()) << fleet.status();
+
+  ExperimentOptions experiment;
+  experiment.scenario = options.scenario;
+  experiment.passages = options.passages;
+  experiment.strategy = "cc-gsd";
+  auto expected = RunExperiment(experiment);
+  ASSERT_TRUE(expected.ok()) << expected.status();
+  EXPECT_EQ(fleet->experiment.records.back().passage, options.passages);
+  EXPECT_NEAR(fleet->experiment.final_mean_dist_err_m, expected->final_mean_dist_err_m, 1e-3);
+  EXPECT_EQ(fleet->map_version, expected->final_map.version());
+  EXPECT_EQ(fleet->experiment.failed_passages, 0);
+}
+
+TEST(Fleet, ConcurrentVehiclesGetEveryPassageAppliedAndWriteTheOutputs) {
+  TempDir dir;
+  auto server = StartTestServer(TestServerOptions(dir.File("map.db")));
+  ASSERT_NE(server, nullptr);
+  const FleetOptions options = SmallFleet(server->address(), 4);
+  auto fleet = RunFleet(options);
+  ASSERT_TRUE(fleet.ok()) << fleet.status();
+  EXPECT_EQ(fleet->experiment.records.back().passage, options.passages);
+  EXPECT_EQ(static_cast<int>(fleet->landmarks.size()), options.scenario.landmarks);
+  EXPECT_GT(fleet->experiment.median_passage_ms, 0.0);
+  ASSERT_TRUE(WriteFleetOutputs(options, *fleet, dir.File("out")).ok());
+  for (const char* name : {"passages.csv", "summary.json", "errors.svg", "map.geojson"}) {
+    EXPECT_GT(std::filesystem::file_size(dir.File(std::string("out/") + name)), 0u) << name;
+  }
+  // A second run on the same database uploads nothing new.
+  auto again = RunFleet(options);
+  ASSERT_TRUE(again.ok()) << again.status();
+  EXPECT_EQ(again->duplicates, options.passages);
+}
+
+TEST(Fleet, RefusesAServerRunningAnotherStrategy) {
+  TempDir dir;
+  auto server = StartTestServer(TestServerOptions(dir.File("map.db")));
+  ASSERT_NE(server, nullptr);
+  FleetOptions options = SmallFleet(server->address(), 2);
+  options.strategy = "dc";
+  auto fleet = RunFleet(options);
+  EXPECT_EQ(fleet.status().code(), absl::StatusCode::kFailedPrecondition);
+}
+
+}  // namespace
+}  // namespace crowdmap
