@@ -1,6 +1,9 @@
 #include "core/estimation/subdivision.h"
 
 #include <algorithm>
+#include <limits>
+#include <set>
+#include <vector>
 
 #include <gtest/gtest.h>
 
@@ -12,27 +15,113 @@ namespace {
 PassageGraph SimulatedGraph(int landmarks) {
   ScenarioOptions options;
   options.landmarks = landmarks;
-  return *BuildPassageGraph(Scenario::Create(options)->MakePassage(0), GraphOptions());
+  GraphOptions graph_options;
+  graph_options.refine_initial_poses = false;  // subdivision reads only the graph's structure
+  return *BuildPassageGraph(Scenario::Create(options)->MakePassage(0), graph_options);
 }
 
-TEST(SubdivideGraph, RangesCoverAllNodesInOrderWithinTheBound) {
-  const PassageGraph graph = SimulatedGraph(100);
-  for (int max_dim : {200, 500, 800}) {
-    const std::vector<NodeRange> ranges = SubdivideGraph(graph, max_dim);
-    ASSERT_FALSE(ranges.empty());
-    EXPECT_EQ(ranges.front().first, 0);
-    EXPECT_EQ(ranges.back().last, graph.node_count() - 1);
-    int smallest = max_dim, largest = 0;
-    for (size_t i = 0; i < ranges.size(); ++i) {
-      if (i > 0) EXPECT_EQ(ranges[i].first, ranges[i - 1].last + 1);
-      const int dim = SubgraphDimension(graph, ranges[i]);
-      EXPECT_LE(dim, max_dim) << "range " << i;
-      smallest = std::min(smallest, dim);
-      largest = std::max(largest, dim);
+// The fewest contiguous ranges of dimension <= max_dim, by dynamic programming over all split
+// points (no greedy argument needed). A single node above the bound may stand alone.
+int MinimalRangeCount(const PassageGraph& graph, int max_dim) {
+  const int n = graph.node_count();
+  std::vector<std::vector<LandmarkId>> by_node(n);
+  for (const CameraObservation& d : graph.detections) by_node[d.node].push_back(d.landmark_id);
+  const int kInf = std::numeric_limits<int>::max() / 2;
+  std::vector<int> best(n + 1, kInf);  // best[k]: fewest ranges covering nodes [0, k)
+  best[0] = 0;
+  for (int first = 0; first < n; ++first) {
+    if (best[first] == kInf) continue;
+    std::set<LandmarkId> landmarks;
+    for (int last = first; last < n; ++last) {
+      landmarks.insert(by_node[last].begin(), by_node[last].end());
+      const int dim = 3 * (last - first + 1) + 2 * static_cast<int>(landmarks.size());
+      if (dim > max_dim && last > first) break;  // dimension only grows with the range
+      best[last + 1] = std::min(best[last + 1], best[first] + 1);
     }
-    // Balanced, and no more pieces than needed: merging any two neighbours would exceed the bound.
-    if (ranges.size() > 1) EXPECT_LT(largest, 1.5 * smallest) << max_dim;
-    EXPECT_GT(SubgraphDimension(graph, {0, graph.node_count() - 1}), max_dim * (static_cast<int>(ranges.size()) - 1) / 2);
+  }
+  return best[n];
+}
+
+class SubdivisionTest : public testing::Test {
+ protected:
+  static void SetUpTestSuite() { graph_ = new PassageGraph(SimulatedGraph(100)); }
+  static void TearDownTestSuite() { delete graph_; }
+  static PassageGraph* graph_;
+};
+PassageGraph* SubdivisionTest::graph_ = nullptr;
+
+TEST_F(SubdivisionTest, SubgraphDimensionCountsPosesAndDistinctLandmarks) {
+  const PassageGraph& g = *graph_;
+  std::set<LandmarkId> all;
+  for (const CameraObservation& d : g.detections) all.insert(d.landmark_id);
+  EXPECT_EQ(SubgraphDimension(g, {0, g.node_count() - 1}), 3 * g.node_count() + 2 * static_cast<int>(all.size()));
+  // The first node alone: 3 plus 2 per landmark detected at it.
+  std::set<LandmarkId> first;
+  for (const CameraObservation& d : g.detections) {
+    if (d.node == 0) first.insert(d.landmark_id);
+  }
+  EXPECT_EQ(SubgraphDimension(g, {0, 0}), 3 + 2 * static_cast<int>(first.size()));
+}
+
+TEST_F(SubdivisionTest, RangesAreContiguousCoverAllNodesAndRespectTheBound) {
+  const PassageGraph& g = *graph_;
+  ASSERT_GT(g.node_count(), 100);
+  for (int max_dim : {100, 200, 333, 500, 800, 5000}) {
+    const std::vector<NodeRange> ranges = SubdivideGraph(g, max_dim);
+    ASSERT_FALSE(ranges.empty()) << max_dim;
+    EXPECT_EQ(ranges.front().first, 0) << max_dim;
+    EXPECT_EQ(ranges.back().last, g.node_count() - 1) << max_dim;
+    for (size_t i = 0; i < ranges.size(); ++i) {
+      EXPECT_LE(ranges[i].first, ranges[i].last) << max_dim << " range " << i;
+      if (i > 0) {
+        EXPECT_EQ(ranges[i].first, ranges[i - 1].last + 1) << max_dim << " range " << i;
+      }
+      EXPECT_LE(SubgraphDimension(g, ranges[i]), max_dim) << max_dim << " range " << i;
+    }
+  }
+}
+
+TEST_F(SubdivisionTest, UsesTheFewestRangesPossible) {
+  const PassageGraph& g = *graph_;
+  for (int max_dim : {100, 200, 333, 500, 800, 5000}) {
+    const int minimal = MinimalRangeCount(g, max_dim);
+    EXPECT_EQ(static_cast<int>(SubdivideGraph(g, max_dim).size()), minimal) << max_dim;
+  }
+  EXPECT_EQ(SubdivideGraph(g, 5000).size(), 1u) << "the whole passage fits";
+  EXPECT_GT(MinimalRangeCount(g, 500), 1) << "the thesis bound must actually split this graph";
+}
+
+TEST_F(SubdivisionTest, BalancesTheRangeSizes) {
+  const PassageGraph& g = *graph_;
+  for (int max_dim : {100, 200, 333, 500, 800}) {
+    const std::vector<NodeRange> ranges = SubdivideGraph(g, max_dim);
+    ASSERT_GT(ranges.size(), 1u) << max_dim;
+    int smallest = std::numeric_limits<int>::max(), largest = 0;
+    for (const NodeRange& r : ranges) {
+      smallest = std::min(smallest, SubgraphDimension(g, r));
+      largest = std::max(largest, SubgraphDimension(g, r));
+    }
+    EXPECT_LT(largest, 1.5 * smallest) << max_dim << ": no weakly anchored remainder at the end";
+  }
+}
+
+TEST_F(SubdivisionTest, NonPositiveBoundGivesOneRange) {
+  const PassageGraph& g = *graph_;
+  for (int max_dim : {0, -1}) {
+    const std::vector<NodeRange> ranges = SubdivideGraph(g, max_dim);
+    ASSERT_EQ(ranges.size(), 1u) << max_dim;
+    EXPECT_EQ(ranges[0].first, 0);
+    EXPECT_EQ(ranges[0].last, g.node_count() - 1);
+  }
+}
+
+TEST(SubdivideGraph, ABoundBelowOneNodeGivesOneRangePerNode) {
+  const PassageGraph g = SimulatedGraph(4);
+  const std::vector<NodeRange> ranges = SubdivideGraph(g, 2);
+  ASSERT_EQ(static_cast<int>(ranges.size()), g.node_count());
+  for (int k = 0; k < g.node_count(); ++k) {
+    EXPECT_EQ(ranges[k].first, k);
+    EXPECT_EQ(ranges[k].last, k);
   }
 }
 
@@ -40,13 +129,6 @@ TEST(SubdivideGraph, TheThesisGraphSplitsIntoTwoOrThreeAtFiveHundred) {
   const std::vector<NodeRange> ranges = SubdivideGraph(SimulatedGraph(50), 500);
   EXPECT_GE(ranges.size(), 2u);
   EXPECT_LE(ranges.size(), 3u);
-}
-
-TEST(SubdivideGraph, NonPositiveBoundGivesOneRange) {
-  const PassageGraph graph = SimulatedGraph(25);
-  const std::vector<NodeRange> ranges = SubdivideGraph(graph, 0);
-  ASSERT_EQ(ranges.size(), 1u);
-  EXPECT_EQ(ranges[0].last, graph.node_count() - 1);
 }
 
 }  // namespace

@@ -1,7 +1,9 @@
 #include "core/model/passage.h"
 
+#include <functional>
 #include <limits>
 #include <string>
+#include <vector>
 
 #include <gtest/gtest.h>
 
@@ -10,70 +12,122 @@
 namespace crowdmap {
 namespace {
 
-Passage GoodPassage() {
+constexpr double kNan = std::numeric_limits<double>::quiet_NaN();
+constexpr double kInf = std::numeric_limits<double>::infinity();
+
+Passage SimulatedPassage() {
   ScenarioOptions options;
   options.landmarks = 4;
   return Scenario::Create(options)->MakePassage(0);
 }
 
-void ExpectRejected(const Passage& p, const std::string& field) {
-  const absl::Status s = ValidatePassage(p);
-  EXPECT_EQ(s.code(), absl::StatusCode::kInvalidArgument) << field;
-  EXPECT_NE(s.message().find(field), std::string::npos) << "message '" << s.message() << "' lacks " << field;
+// The smallest passage a vehicle could upload: a few samples of each kind.
+Passage HandMadePassage() {
+  Passage p;
+  p.vehicle_id = "car-1";
+  p.passage_id = "drive-1";
+  for (int k = 0; k <= 50; ++k) p.odometry.push_back({0.04 * k, 12.0, 0.01});
+  for (int k = 0; k < 3; ++k) {
+    GnssFix f;
+    f.t_s = k;
+    f.lat_deg = 48.7 + 1e-4 * k;
+    f.lon_deg = 2.17;
+    p.gnss.push_back(f);
+  }
+  p.detections.push_back({0.0, 7, 900.0});
+  p.detections.push_back({0.5, 8, 1200.0});
+  p.detections.push_back({0.5, 7, 880.0});  // same frame, another landmark: equal times are fine
+  return p;
 }
 
-TEST(ValidatePassage, AcceptsASimulatedPassage) { EXPECT_TRUE(ValidatePassage(GoodPassage()).ok()); }
+// The status must be InvalidArgument and its message must start with "<field>: " (the format
+// documented in passage.h), so the field path with its index is named exactly.
+void ExpectRejected(const Passage& p, const std::string& field) {
+  const absl::Status s = ValidatePassage(p);
+  EXPECT_EQ(s.code(), absl::StatusCode::kInvalidArgument) << field << ": " << s;
+  EXPECT_EQ(std::string(s.message()).rfind(field + ": ", 0), 0u) << "message '" << s.message() << "' does not name " << field;
+}
 
-TEST(ValidatePassage, RejectsEachBadInputNamingTheFieldAndIndex) {
-  const double nan = std::numeric_limits<double>::quiet_NaN();
-  Passage p = GoodPassage();
-  p.odometry[7].speed_mps = nan;
-  ExpectRejected(p, "odometry[7].speed_mps");
-  p = GoodPassage();
-  p.odometry[5].t_s = p.odometry[4].t_s;
-  ExpectRejected(p, "odometry[5].t_s");
-  p = GoodPassage();
-  p.gnss[3].t_s = p.gnss[2].t_s - 0.5;
-  ExpectRejected(p, "gnss[3].t_s");
-  p = GoodPassage();
-  p.detections[2].t_s = p.detections[1].t_s - 1.0;
-  ExpectRejected(p, "detections[2].t_s");
-  p = GoodPassage();
-  p.gnss[3].lat_deg = 91.0;
-  ExpectRejected(p, "gnss[3].lat_deg");
-  p = GoodPassage();
-  p.gnss[4].lon_deg = -181.0;
-  ExpectRejected(p, "gnss[4].lon_deg");
-  p = GoodPassage();
-  p.gnss[1].cov_en_m2 << 1.0, 2.0, 2.0, 1.0;  // indefinite
-  ExpectRejected(p, "gnss[1].cov_en_m2");
-  p = GoodPassage();
-  p.detections[0].u_px = p.calibration.image_width_px + 1.0;
-  ExpectRejected(p, "detections[0].u_px");
-  p = GoodPassage();
-  p.vehicle_id.clear();
-  ExpectRejected(p, "vehicle_id");
-  p = GoodPassage();
-  p.passage_id.clear();
-  ExpectRejected(p, "passage_id");
-  p = GoodPassage();
-  p.odometry.clear();
-  ExpectRejected(p, "odometry");
-  p = GoodPassage();
-  p.detections.clear();
-  ExpectRejected(p, "detections");
-  p = GoodPassage();
-  p.gnss.resize(1);
-  ExpectRejected(p, "gnss");
-  p = GoodPassage();
-  p.calibration.wheelbase_m = 0.0;
-  ExpectRejected(p, "calibration.wheelbase_m");
-  p = GoodPassage();
-  p.calibration.fx_px = -1.0;
-  ExpectRejected(p, "calibration.fx_px");
-  p = GoodPassage();
-  p.noise.pixel_sigma_px = -5.0;
-  ExpectRejected(p, "noise.pixel_sigma_px");
+struct BadInput {
+  std::string field;
+  std::function<void(Passage*)> spoil;
+};
+
+std::vector<BadInput> BadInputs() {
+  return {
+      {"odometry[7].speed_mps", [](Passage* p) { p->odometry[7].speed_mps = kNan; }},
+      {"odometry[8].speed_mps", [](Passage* p) { p->odometry[8].speed_mps = kInf; }},
+      {"odometry[3].steering_rad", [](Passage* p) { p->odometry[3].steering_rad = -kInf; }},
+      {"odometry[5].t_s", [](Passage* p) { p->odometry[5].t_s = p->odometry[4].t_s - 0.01; }},
+      {"odometry[5].t_s", [](Passage* p) { p->odometry[5].t_s = p->odometry[4].t_s; }},  // must increase
+      {"odometry[0].t_s", [](Passage* p) { p->odometry[0].t_s = -1.0; }},
+      {"gnss[2].t_s", [](Passage* p) { p->gnss[2].t_s = p->gnss[1].t_s - 0.5; }},
+      {"detections[2].t_s", [](Passage* p) { p->detections[2].t_s = p->detections[1].t_s - 0.25; }},
+      {"gnss[1].lat_deg", [](Passage* p) { p->gnss[1].lat_deg = 91.0; }},
+      {"gnss[1].lat_deg", [](Passage* p) { p->gnss[1].lat_deg = -90.5; }},
+      {"gnss[2].lat_deg", [](Passage* p) { p->gnss[2].lat_deg = kNan; }},
+      {"gnss[2].lon_deg", [](Passage* p) { p->gnss[2].lon_deg = -181.0; }},
+      {"gnss[0].lon_deg", [](Passage* p) { p->gnss[0].lon_deg = 180.5; }},
+      {"gnss[1].cov_en_m2", [](Passage* p) { p->gnss[1].cov_en_m2 << 1.0, 2.0, 2.0, 1.0; }},  // indefinite
+      {"gnss[1].cov_en_m2", [](Passage* p) { p->gnss[1].cov_en_m2 << -1.0, 0.0, 0.0, -1.0; }},  // det > 0, not PD
+      {"gnss[1].cov_en_m2", [](Passage* p) { p->gnss[1].cov_en_m2.setZero(); }},
+      {"gnss[1].cov_en_m2", [](Passage* p) { p->gnss[1].cov_en_m2 << 4.0, 1.0, 0.0, 4.0; }},  // asymmetric
+      {"gnss[1].cov_en_m2", [](Passage* p) { p->gnss[1].cov_en_m2(0, 0) = kNan; }},
+      {"detections[1].u_px", [](Passage* p) { p->detections[1].u_px = p->calibration.image_width_px + 1.0; }},
+      {"detections[1].u_px", [](Passage* p) { p->detections[1].u_px = -0.5; }},
+      {"detections[0].u_px", [](Passage* p) { p->detections[0].u_px = kNan; }},
+      {"vehicle_id", [](Passage* p) { p->vehicle_id.clear(); }},
+      {"passage_id", [](Passage* p) { p->passage_id.clear(); }},
+      {"odometry", [](Passage* p) { p->odometry.clear(); }},
+      {"detections", [](Passage* p) { p->detections.clear(); }},
+      {"gnss", [](Passage* p) { p->gnss.resize(1); }},
+      {"gnss", [](Passage* p) { p->gnss.clear(); }},
+      {"calibration.wheelbase_m", [](Passage* p) { p->calibration.wheelbase_m = 0.0; }},
+      {"calibration.wheelbase_m", [](Passage* p) { p->calibration.wheelbase_m = -2.7; }},
+      {"calibration.fx_px", [](Passage* p) { p->calibration.fx_px = 0.0; }},
+      {"calibration.fx_px", [](Passage* p) { p->calibration.fx_px = -1000.0; }},
+      {"calibration.image_width_px", [](Passage* p) { p->calibration.image_width_px = 0.0; }},
+      {"calibration.cx_px", [](Passage* p) { p->calibration.cx_px = p->calibration.image_width_px + 1.0; }},
+      {"calibration.camera_yaw_rad", [](Passage* p) { p->calibration.camera_yaw_rad = kNan; }},
+      {"noise.speed_sigma_mps", [](Passage* p) { p->noise.speed_sigma_mps = -0.56; }},
+      {"noise.steering_sigma_rad", [](Passage* p) { p->noise.steering_sigma_rad = -0.044; }},
+      {"noise.pixel_sigma_px", [](Passage* p) { p->noise.pixel_sigma_px = -5.0; }},
+      {"noise.pixel_sigma_px", [](Passage* p) { p->noise.pixel_sigma_px = 0.0; }},
+  };
+}
+
+TEST(ValidatePassage, AcceptsASimulatedPassage) {
+  const absl::Status s = ValidatePassage(SimulatedPassage());
+  EXPECT_TRUE(s.ok()) << s;
+}
+
+TEST(ValidatePassage, AcceptsAMinimalHandMadePassageWithSimultaneousDetections) {
+  const absl::Status s = ValidatePassage(HandMadePassage());
+  EXPECT_TRUE(s.ok()) << s;
+}
+
+TEST(ValidatePassage, RejectsEachBadSimulatedInputNamingTheFieldAndIndex) {
+  for (const BadInput& bad : BadInputs()) {
+    Passage p = SimulatedPassage();
+    bad.spoil(&p);
+    ExpectRejected(p, bad.field);
+  }
+}
+
+TEST(ValidatePassage, RejectsEachBadHandMadeInputNamingTheFieldAndIndex) {
+  for (const BadInput& bad : BadInputs()) {
+    Passage p = HandMadePassage();
+    bad.spoil(&p);
+    ExpectRejected(p, bad.field);
+  }
+}
+
+TEST(ValidatePassage, NamesTheIndexOfALateBadFix) {
+  Passage p = SimulatedPassage();
+  ASSERT_GT(p.gnss.size(), 100u);
+  p.gnss[100].lat_deg = 91.0;
+  ExpectRejected(p, "gnss[100].lat_deg");
+  EXPECT_NE(ValidatePassage(p).message().find("91"), std::string::npos) << "the message shows the bad value";
 }
 
 }  // namespace

@@ -1,57 +1,108 @@
 #include "core/sim/metrics.h"
 
 #include <cmath>
+#include <limits>
+#include <vector>
 
 #include <gtest/gtest.h>
 
 namespace crowdmap {
 namespace {
 
-TEST(EvaluateMap, GivesExactErrorsSigmasAndNeesOnAHandMadeMap) {
-  const LocalFrame frame(LatLon{45.0, 5.0});
-  std::vector<TruthLandmark> truth;
-  MapState map;
-  const Eigen::Vector2d offsets[] = {{0.3, 0.4}, {-0.6, 0.8}};
-  for (int i = 0; i < 2; ++i) {
-    TruthLandmark t;
-    t.id = i + 1;
-    t.position_m = {100.0 * i, 50.0};
-    t.position = frame.ToGeo(t.position_m);
-    truth.push_back(t);
-    Landmark l;
-    l.id = t.id;
-    l.position = LocalFrame(t.position).ToGeo(offsets[i]);
-    l.cov_en_m2 = Eigen::Vector2d(0.25, 1.0).asDiagonal();
-    map.PutLandmark(l);
-  }
-  TruthLandmark missing;
-  missing.id = 99;
-  truth.push_back(missing);
+const LocalFrame kFrame(LatLon{45.0, 5.0});
 
-  const MapErrorMetrics m = EvaluateMap(map, truth);
-  EXPECT_EQ(m.landmarks_evaluated, 2);
-  EXPECT_NEAR(m.mean_dist_err_m, (0.5 + 1.0) / 2, 1e-6);
-  EXPECT_NEAR(m.mean_east_err_m, (0.3 - 0.6) / 2, 1e-6);
-  EXPECT_NEAR(m.mean_north_err_m, (0.4 + 0.8) / 2, 1e-6);
-  EXPECT_NEAR(m.east_3sigma_m, 1.5, 1e-12);
-  EXPECT_NEAR(m.north_3sigma_m, 3.0, 1e-12);
-  const double nees1 = 0.09 / 0.25 + 0.16, nees2 = 0.36 / 0.25 + 0.64;
-  EXPECT_NEAR(m.nees_per_dof, (nees1 + nees2) / 4, 1e-5);
-  EXPECT_NEAR(m.joint_nees_per_dof, (nees1 + nees2) / 4, 1e-5) << "no cross blocks: equals the mean";
+TruthLandmark MakeTruth(LandmarkId id, const Eigen::Vector2d& position_m) {
+  TruthLandmark t;
+  t.id = id;
+  t.position_m = position_m;
+  t.position = kFrame.ToGeo(position_m);
+  return t;
 }
 
-TEST(EvaluateMap, MissingCovarianceGivesNanNees) {
-  const LatLon p{45.0, 5.0};
-  TruthLandmark t;
-  t.id = 1;
-  t.position = p;
-  MapState map;
+// A map landmark displaced from the truth by exactly `offset_en` East/North at the truth.
+Landmark Displaced(const TruthLandmark& t, const Eigen::Vector2d& offset_en, const Eigen::Matrix2d& cov) {
   Landmark l;
-  l.id = 1;
-  l.position = p;
-  l.cov_en_m2 = Eigen::Matrix2d::Constant(std::nan(""));
-  map.PutLandmark(l);
-  EXPECT_TRUE(std::isnan(EvaluateMap(map, {t}).nees_per_dof));
+  l.id = t.id;
+  l.position = LocalFrame(t.position).ToGeo(offset_en);
+  l.cov_en_m2 = cov;
+  return l;
+}
+
+Eigen::Matrix2d Cov(double ee, double en, double nn) {
+  Eigen::Matrix2d c;
+  c << ee, en, en, nn;
+  return c;
+}
+
+TEST(EvaluateMap, GivesExactErrorsSigmasAndNeesOnAHandMadeMap) {
+  const std::vector<TruthLandmark> truth = {MakeTruth(1, {0.0, 50.0}), MakeTruth(2, {100.0, 50.0}),
+                                            MakeTruth(3, {-300.0, 200.0})};
+  MapState map;
+  // Offsets (0.3, 0.4), (-0.6, 0.8), (0, -2): distances 0.5, 1.0, 2.0.
+  map.PutLandmark(Displaced(truth[0], {0.3, 0.4}, Cov(0.25, 0.0, 1.0)));
+  map.PutLandmark(Displaced(truth[1], {-0.6, 0.8}, Cov(0.25, 0.0, 1.0)));
+  // Correlated covariance [[2, 1], [1, 2]]: inverse (1/3) [[2, -1], [-1, 2]].
+  map.PutLandmark(Displaced(truth[2], {0.0, -2.0}, Cov(2.0, 1.0, 2.0)));
+
+  const MapErrorMetrics m = EvaluateMap(map, truth);
+  EXPECT_EQ(m.landmarks_evaluated, 3);
+  EXPECT_NEAR(m.mean_dist_err_m, (0.5 + 1.0 + 2.0) / 3, 1e-6);
+  EXPECT_NEAR(m.mean_east_err_m, (0.3 - 0.6 + 0.0) / 3, 1e-6);
+  EXPECT_NEAR(m.mean_north_err_m, (0.4 + 0.8 - 2.0) / 3, 1e-6);
+  // 3 x mean standard deviation: East sqrt(0.25), sqrt(0.25), sqrt(2); North 1, 1, sqrt(2).
+  EXPECT_NEAR(m.east_3sigma_m, 3.0 * (0.5 + 0.5 + std::sqrt(2.0)) / 3, 1e-12);
+  EXPECT_NEAR(m.north_3sigma_m, 3.0 * (1.0 + 1.0 + std::sqrt(2.0)) / 3, 1e-12);
+  // e^T Sigma^-1 e: 0.09/0.25 + 0.16 = 0.52; 0.36/0.25 + 0.64 = 2.08; (1/3)(2 * 4) = 8/3.
+  const double nees = 0.52 + 2.08 + 8.0 / 3.0;
+  EXPECT_NEAR(m.nees_per_dof, nees / 3 / 2, 1e-5);
+  EXPECT_NEAR(m.joint_nees_per_dof, nees / 6, 1e-5) << "no cross blocks: the joint value is the same";
+}
+
+TEST(EvaluateMap, SkipsLandmarksMissingFromTheMapAndIgnoresExtraOnes) {
+  const TruthLandmark a = MakeTruth(1, {10.0, 10.0}), missing = MakeTruth(99, {50.0, 0.0});
+  MapState map;
+  map.PutLandmark(Displaced(a, {3.0, -4.0}, Cov(1.0, 0.0, 1.0)));
+  Landmark extra = Displaced(MakeTruth(7, {0.0, 0.0}), {100.0, 100.0}, Cov(1.0, 0.0, 1.0));
+  map.PutLandmark(extra);  // in the map, not in the truth: not evaluated
+  const MapErrorMetrics m = EvaluateMap(map, {missing, a});
+  EXPECT_EQ(m.landmarks_evaluated, 1);
+  EXPECT_NEAR(m.mean_dist_err_m, 5.0, 1e-6);
+  EXPECT_NEAR(m.mean_east_err_m, 3.0, 1e-6);
+  EXPECT_NEAR(m.mean_north_err_m, -4.0, 1e-6);
+  EXPECT_NEAR(m.nees_per_dof, 25.0 / 2, 1e-5);
+}
+
+TEST(EvaluateMap, GivesZerosForAnEmptyMap) {
+  const MapErrorMetrics m = EvaluateMap(MapState(), {MakeTruth(1, {0.0, 0.0})});
+  EXPECT_EQ(m.landmarks_evaluated, 0);
+  EXPECT_EQ(m.mean_dist_err_m, 0.0);
+  EXPECT_EQ(m.nees_per_dof, 0.0);
+}
+
+TEST(EvaluateMap, NanCovarianceGivesNanNeesButStillMeasuresTheErrors) {
+  const TruthLandmark a = MakeTruth(1, {0.0, 0.0}), b = MakeTruth(2, {40.0, 0.0});
+  MapState map;
+  map.PutLandmark(Displaced(a, {1.0, 0.0}, Eigen::Matrix2d::Constant(std::numeric_limits<double>::quiet_NaN())));
+  map.PutLandmark(Displaced(b, {0.0, 3.0}, Cov(1.0, 0.0, 1.0)));
+  const MapErrorMetrics m = EvaluateMap(map, {a, b});
+  EXPECT_EQ(m.landmarks_evaluated, 2);
+  EXPECT_NEAR(m.mean_dist_err_m, 2.0, 1e-6);
+  EXPECT_TRUE(std::isnan(m.nees_per_dof));
+  EXPECT_TRUE(std::isnan(m.joint_nees_per_dof));
+}
+
+TEST(EvaluateMap, JointNeesUsesTheCrossCovariances) {
+  // Two landmarks with the same error (x, x) on each axis and correlation rho between them:
+  // per axis (x, x)^T [[1, rho], [rho, 1]]^-1 (x, x) = 2 x^2 / (1 + rho).
+  const double x = 1.5, rho = 0.6;
+  const TruthLandmark a = MakeTruth(1, {0.0, 0.0}), b = MakeTruth(2, {20.0, 0.0});
+  MapState map;
+  map.PutLandmark(Displaced(a, {x, x}, Eigen::Matrix2d::Identity()));
+  map.PutLandmark(Displaced(b, {x, x}, Eigen::Matrix2d::Identity()));
+  map.PutCrossCovariance(1, 2, rho * Eigen::Matrix2d::Identity());
+  const MapErrorMetrics m = EvaluateMap(map, {a, b});
+  EXPECT_NEAR(m.nees_per_dof, (2 * x * x + 2 * x * x) / 2 / 2, 1e-5) << "per landmark: blocks only";
+  EXPECT_NEAR(m.joint_nees_per_dof, 2 * (2 * x * x / (1 + rho)) / 4, 1e-5);
 }
 
 }  // namespace
