@@ -21,8 +21,23 @@ void AddLandmarks(const LandmarkPage& page, Response* response) {
 
 }  // namespace
 
-grpc::Status MapService::GetTile(grpc::ServerContext* ctx, const pb::GetTileRequest* request,
-                                 pb::GetTileResponse* response) {
+grpc::ServerUnaryReactor* MapService::GetTile(grpc::CallbackServerContext* ctx, const pb::GetTileRequest* request,
+                                              pb::GetTileResponse* response) {
+  grpc::ServerUnaryReactor* reactor = ctx->DefaultReactor();
+  reactor->Finish(ServeTile(ctx, request, response));
+  return reactor;
+}
+
+grpc::ServerUnaryReactor* MapService::QueryRegion(grpc::CallbackServerContext* ctx,
+                                                  const pb::QueryRegionRequest* request,
+                                                  pb::QueryRegionResponse* response) {
+  grpc::ServerUnaryReactor* reactor = ctx->DefaultReactor();
+  reactor->Finish(ServeRegion(ctx, request, response));
+  return reactor;
+}
+
+grpc::Status MapService::ServeTile(const grpc::ServerContextBase* ctx, const pb::GetTileRequest* request,
+                                   pb::GetTileResponse* response) {
   RequestLog log("GetTile", ctx);
   const TileId tile{request->tile().z(), request->tile().x(), request->tile().y()};
   log.Add(absl::StrCat("tile=", tile.z, "/", tile.x, "/", tile.y));
@@ -42,7 +57,7 @@ grpc::Status MapService::GetTile(grpc::ServerContext* ctx, const pb::GetTileRequ
   return log.Done(absl::OkStatus());
 }
 
-grpc::Status MapService::QueryRegion(grpc::ServerContext* ctx, const pb::QueryRegionRequest* request,
+grpc::Status MapService::ServeRegion(const grpc::ServerContextBase* ctx, const pb::QueryRegionRequest* request,
                                      pb::QueryRegionResponse* response) {
   RequestLog log("QueryRegion", ctx);
   absl::StatusOr<BoundingBox> box = BoundingBoxFromProto(request->box(), "box");

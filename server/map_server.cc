@@ -1,5 +1,7 @@
 #include "server/map_server.h"
 
+#include <malloc.h>
+
 #include <filesystem>
 
 #include <grpcpp/ext/proto_server_reflection_plugin.h>
@@ -9,6 +11,8 @@
 #include <spdlog/spdlog.h>
 
 #include "absl/strings/str_cat.h"
+#include "absl/synchronization/mutex.h"
+#include "server/storage/cached_map_store.h"
 
 namespace crowdmap {
 
@@ -25,6 +29,12 @@ absl::Status MapServerOptions::Validate() const {
   return worker.Validate();
 }
 
+void TuneProcessForServing() {
+  mallopt(M_TRIM_THRESHOLD, 256 << 20);
+  mallopt(M_MMAP_THRESHOLD, 32 << 20);
+  absl::SetMutexDeadlockDetectionMode(absl::OnDeadlockCycle::kIgnore);
+}
+
 absl::StatusOr<std::unique_ptr<MapServer>> MapServer::Start(const MapServerOptions& options) {
   if (auto s = options.Validate(); !s.ok()) return s;
   std::unique_ptr<MapServer> server(new MapServer());
@@ -34,7 +44,10 @@ absl::StatusOr<std::unique_ptr<MapServer>> MapServer::Start(const MapServerOptio
   std::error_code ec;
   if (!db_dir.empty()) std::filesystem::create_directories(db_dir, ec);
   if (ec) return absl::FailedPreconditionError(absl::StrCat("db: cannot create ", db_dir.string(), ": ", ec.message()));
-  auto store = CreateSqliteMapStore(options.db_path);
+  auto sqlite = CreateSqliteMapStore(options.db_path);
+  if (!sqlite.ok()) return sqlite.status();
+  // Map reads are served from memory; SQLite stays the source of truth.
+  auto store = CachedMapStore::Create(std::move(*sqlite));
   if (!store.ok()) return store.status();
   server->store_ = std::move(*store);
   server->committer_ = std::make_unique<UploadCommitter>(server->store_.get(), options.max_queue);

@@ -30,6 +30,13 @@ struct MapServerOptions {
   absl::Status Validate() const;
 };
 
+// Process-wide settings for a long-running server, called once at the start of main():
+// - glibc malloc keeps freed memory (up to 256 MiB) and serves blocks up to 32 MiB from its heaps
+//   instead of returning them to the kernel after every solve; each return (munmap/madvise) flushes
+//   the TLB of every core and stalls the request threads running there;
+// - absl::Mutex deadlock detection (enabled in Debian's build) is switched off.
+void TuneProcessForServing();
+
 // The map service process: store, upload committer, worker and gRPC server (with health checking
 // and reflection), started together and shut down in order.
 class MapServer {

@@ -4,6 +4,9 @@
 #include <atomic>
 #include <string>
 
+#include <google/protobuf/arena.h>
+#include <grpcpp/support/message_allocator.h>
+
 #include "mapservice/v1/map_service.grpc.pb.h"
 #include "server/map_worker.h"
 #include "server/storage/map_store.h"
@@ -26,9 +29,43 @@ struct MapServiceContext {
 
 // mapservice.v1.MapService: one thin handler per RPC; conversion in wire_convert, errors through
 // ToGrpcStatus, one log line per request.
-class MapService final : public pb::MapService::Service {
+// Allocates a callback call's request and response on one protobuf arena, freed with the call.
+template <typename Request, typename Response>
+class ArenaMessageAllocator : public grpc::MessageAllocator<Request, Response> {
  public:
-  explicit MapService(MapServiceContext* context) : context_(context) {}
+  grpc::MessageHolder<Request, Response>* AllocateMessages() override { return new Holder(); }
+
+ private:
+  static constexpr size_t kFirstBlockBytes = 32 << 10;  // a 1000-landmark page fits in a few blocks
+  class Holder : public grpc::MessageHolder<Request, Response> {
+   public:
+    Holder() : arena_(Options()) {
+      this->set_request(google::protobuf::Arena::CreateMessage<Request>(&arena_));
+      this->set_response(google::protobuf::Arena::CreateMessage<Response>(&arena_));
+    }
+    void Release() override { delete this; }
+
+   private:
+    static google::protobuf::ArenaOptions Options() {
+      google::protobuf::ArenaOptions options;
+      options.start_block_size = kFirstBlockBytes;
+      return options;
+    }
+    google::protobuf::Arena arena_;
+  };
+};
+
+// The map reads (GetTile, QueryRegion) are served from memory and never block, so they use the
+// callback API and run on gRPC's own threads without a hand-off; the other RPCs are synchronous.
+using MapServiceBase =
+    pb::MapService::WithCallbackMethod_GetTile<pb::MapService::WithCallbackMethod_QueryRegion<pb::MapService::Service>>;
+
+class MapService final : public MapServiceBase {
+ public:
+  explicit MapService(MapServiceContext* context) : context_(context) {
+    SetMessageAllocatorFor_GetTile(&tile_allocator_);
+    SetMessageAllocatorFor_QueryRegion(&region_allocator_);
+  }
 
   grpc::Status UploadPassage(grpc::ServerContext* ctx, const pb::UploadPassageRequest* request,
                              pb::UploadPassageResponse* response) override;
@@ -38,10 +75,10 @@ class MapService final : public pb::MapService::Service {
                           pb::PassageStatus* response) override;
   grpc::Status ListPassages(grpc::ServerContext* ctx, const pb::ListPassagesRequest* request,
                             pb::ListPassagesResponse* response) override;
-  grpc::Status GetTile(grpc::ServerContext* ctx, const pb::GetTileRequest* request,
-                       pb::GetTileResponse* response) override;
-  grpc::Status QueryRegion(grpc::ServerContext* ctx, const pb::QueryRegionRequest* request,
-                           pb::QueryRegionResponse* response) override;
+  grpc::ServerUnaryReactor* GetTile(grpc::CallbackServerContext* ctx, const pb::GetTileRequest* request,
+                                    pb::GetTileResponse* response) override;
+  grpc::ServerUnaryReactor* QueryRegion(grpc::CallbackServerContext* ctx, const pb::QueryRegionRequest* request,
+                                        pb::QueryRegionResponse* response) override;
   grpc::Status WatchRegion(grpc::ServerContext* ctx, const pb::WatchRegionRequest* request,
                            grpc::ServerWriter<pb::WatchRegionResponse>* writer) override;
   grpc::Status GetMapInfo(grpc::ServerContext* ctx, const pb::GetMapInfoRequest* request,
@@ -52,7 +89,15 @@ class MapService final : public pb::MapService::Service {
   absl::Status AcceptUpload(const pb::Passage& wire, size_t wire_bytes, std::string payload,
                             pb::UploadPassageResponse* response);
 
+  grpc::Status ServeTile(const grpc::ServerContextBase* ctx, const pb::GetTileRequest* request,
+                         pb::GetTileResponse* response);
+  grpc::Status ServeRegion(const grpc::ServerContextBase* ctx, const pb::QueryRegionRequest* request,
+                           pb::QueryRegionResponse* response);
+
   MapServiceContext* const context_;
+  // Map read responses hold a few hundred small messages: one arena per call instead.
+  ArenaMessageAllocator<pb::GetTileRequest, pb::GetTileResponse> tile_allocator_;
+  ArenaMessageAllocator<pb::QueryRegionRequest, pb::QueryRegionResponse> region_allocator_;
 };
 
 // Opaque page tokens: the last id of the previous page.

@@ -1,5 +1,9 @@
 #include "server/map_worker.h"
 
+#include <sys/resource.h>
+#include <sys/syscall.h>
+#include <unistd.h>
+
 #include <spdlog/spdlog.h>
 
 #include "absl/strings/str_cat.h"
@@ -32,6 +36,7 @@ PassageResult ResultFromSummary(const PassageUpdateSummary& s, UpdateStrategy st
 absl::Status MapWorkerOptions::Validate() const {
   if (workers < 1) return absl::InvalidArgumentError(absl::StrCat("workers: must be >= 1, got ", workers));
   if (max_attempts < 1) return absl::InvalidArgumentError(absl::StrCat("max_attempts: must be >= 1, got ", max_attempts));
+  if (nice < 0 || nice > 19) return absl::InvalidArgumentError(absl::StrCat("worker-nice: must lie in [0, 19], got ", nice));
   return update.Validate();
 }
 
@@ -80,6 +85,10 @@ bool MapWorker::WaitForWork() {
 }
 
 void MapWorker::Run() {
+  // Per-thread niceness: on Linux a thread id is a valid PRIO_PROCESS target.
+  if (options_.nice > 0 && setpriority(PRIO_PROCESS, static_cast<id_t>(syscall(SYS_gettid)), options_.nice) != 0) {
+    spdlog::warn("event=worker_nice_failed nice={} errno={}", options_.nice, errno);
+  }
   while (!stopping_) {
     std::optional<ClaimedPassage> claimed;
     uint64_t ticket = 0;

@@ -26,6 +26,10 @@ struct MapWorkerOptions {
   // Attempts (including start-ups interrupted while processing) before a passage is failed.
   int max_attempts = 3;
   std::chrono::milliseconds idle_poll{200};
+  // Scheduling niceness of the worker threads (Linux, 0..19). Applying passages is background
+  // work: a positive value lets request handling preempt the solver, so reads stay fast while the
+  // map is updated, and costs nothing when the CPU is otherwise idle.
+  int nice = 10;
 
   absl::Status Validate() const;
 };

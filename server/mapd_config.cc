@@ -16,7 +16,7 @@ namespace {
 const std::vector<std::string>& SettingNames() {
   static const std::vector<std::string> kNames = {
       "listen", "db", "strategy", "max-subgraph-dim", "correlation-radius-m", "workers",
-      "max-queue", "max-message-mb", "max-passage-mb", "log-level"};
+      "worker-nice", "max-queue", "max-message-mb", "max-passage-mb", "log-level"};
   return kNames;
 }
 
@@ -84,6 +84,8 @@ Usage: mapd [--flag value | --flag=value]...
   --workers N                 worker threads (default 1). They claim and decode passages in
                               parallel, but map updates are applied one at a time in arrival
                               order, so the map is the same for any N.
+  --worker-nice N             scheduling niceness of the worker threads, 0..19 (default 10): map
+                              updates yield the CPU to requests, so reads stay fast under load
   --max-queue N               passages queued or processing before uploads get
                               RESOURCE_EXHAUSTED (default 10000; 0 = unbounded)
   --max-message-mb N          gRPC receive limit per message, MiB (default 4); larger passages
@@ -159,6 +161,7 @@ absl::StatusOr<MapdConfig> ParseMapdConfig(const std::vector<std::string>& args,
       if (!v.ok()) return v.status();
       if (name == "max-subgraph-dim") o.worker.update.max_subgraph_dim = static_cast<int>(*v);
       if (name == "workers") o.worker.workers = static_cast<int>(*v);
+      if (name == "worker-nice") o.worker.nice = static_cast<int>(*v);
       if (name == "max-queue") o.max_queue = *v;
       if (name == "max-message-mb") o.max_message_mb = static_cast<int>(*v);
       if (name == "max-passage-mb") o.max_passage_mb = static_cast<int>(*v);

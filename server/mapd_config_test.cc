@@ -46,6 +46,9 @@ TEST(MapdConfig, RejectsUnknownFlagsAndBadValues) {
   EXPECT_FALSE(ParseMapdConfig({"--workers", "0"}, FakeEnv({})).ok());
   EXPECT_FALSE(ParseMapdConfig({"--strategy", "best"}, FakeEnv({})).ok());
   EXPECT_FALSE(ParseMapdConfig({"--max-message-mb=0"}, FakeEnv({})).ok());
+  auto nice = ParseMapdConfig({"--worker-nice", "20"}, FakeEnv({}));
+  ASSERT_FALSE(nice.ok());
+  EXPECT_NE(nice.status().message().find("worker-nice"), std::string::npos) << nice.status();
 }
 
 TEST(MapdConfig, ReadsUpdateOptions) {
@@ -53,6 +56,10 @@ TEST(MapdConfig, ReadsUpdateOptions) {
   ASSERT_TRUE(c.ok()) << c.status();
   EXPECT_EQ(c->server.worker.update.max_subgraph_dim, 300);
   EXPECT_EQ(c->server.worker.update.correlation_radius_m, 150.5);
+  EXPECT_EQ(c->server.worker.nice, 10);
+  auto n = ParseMapdConfig({}, FakeEnv({{"MAPD_WORKER_NICE", "0"}}));
+  ASSERT_TRUE(n.ok()) << n.status();
+  EXPECT_EQ(n->server.worker.nice, 0);
 }
 
 }  // namespace

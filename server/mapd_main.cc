@@ -12,6 +12,7 @@
 #include "server/mapd_config.h"
 
 int main(int argc, char** argv) {
+  crowdmap::TuneProcessForServing();
   // Block the shutdown signals in every thread; the main thread takes them with sigwait.
   sigset_t signals;
   sigemptyset(&signals);

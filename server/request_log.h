@@ -15,7 +15,7 @@ namespace crowdmap {
 // Times one RPC and logs one key=value line when it ends; Done() converts the status.
 class RequestLog {
  public:
-  RequestLog(const char* rpc, const grpc::ServerContext* ctx)
+  RequestLog(const char* rpc, const grpc::ServerContextBase* ctx)
       : rpc_(rpc), peer_(ctx->peer()), start_(std::chrono::steady_clock::now()) {}
 
   // Extra key=value pairs, e.g. "passage=p1 vehicle=v1".

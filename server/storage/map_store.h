@@ -127,7 +127,7 @@ class MapStoreInterface {
 
   // Loads the whole map (landmarks, cross blocks, version) into `map`.
   virtual absl::Status LoadMap(MapState* map) = 0;
-  // Landmarks inside `box` with id > after_id, at most `limit`, with cross blocks on request.
+  // Landmarks inside `box` with id > after_id, at most `limit` (0 = all), with cross blocks on request.
   virtual absl::StatusOr<LandmarkPage> QueryRegion(const BoundingBox& box, LandmarkId after_id, int limit,
                                                    bool include_cross) = 0;
   // Landmarks stored in the storage-zoom tile, with cross blocks on request.

@@ -289,7 +289,8 @@ absl::StatusOr<LandmarkPage> SqliteMapStore::QueryRegion(const BoundingBox& box,
       absl::StrCat(kInBox, "AND l.id > ?5 ORDER BY l.id LIMIT ?6"),
       [&](SqliteStatement& stmt) {
         BindBox(stmt, box);
-        stmt.Bind(5, static_cast<int64_t>(after_id)).Bind(6, static_cast<int64_t>(limit) + 1);
+        // One more than the page tells whether more follow; a negative LIMIT is none (limit 0).
+        stmt.Bind(5, static_cast<int64_t>(after_id)).Bind(6, limit > 0 ? static_cast<int64_t>(limit) + 1 : -1);
       },
       limit, include_cross);
 }

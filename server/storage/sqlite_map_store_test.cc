@@ -6,6 +6,7 @@
 #include <string>
 
 #include "gtest/gtest.h"
+#include "server/storage/cached_map_store.h"
 #include "server/testing/temp_dir.h"
 
 namespace crowdmap {
@@ -261,10 +262,16 @@ TEST(SqliteMapStore, CommitTwiceForOnePassageIsRefused) {
   EXPECT_EQ(store->CommitPassageApplied(id, delta, {}).code(), absl::StatusCode::kFailedPrecondition);
 }
 
-class SqliteMapStoreReads : public ::testing::Test {
+// The map reads, on the SQLite store and on the in-memory cache in front of it.
+class SqliteMapStoreReads : public ::testing::TestWithParam<bool> {
  protected:
   void SetUp() override {
     store_ = OpenStore(dir_.File("map.db"));
+    if (GetParam()) {
+      auto cached = CachedMapStore::Create(std::move(store_));
+      ASSERT_TRUE(cached.ok()) << cached.status();
+      store_ = std::move(*cached);
+    }
     const int64_t id = EnqueueAndClaim(store_.get(), "p");
     MapDelta delta;
     delta.version = 3;
@@ -285,7 +292,7 @@ class SqliteMapStoreReads : public ::testing::Test {
   std::unique_ptr<MapStoreInterface> store_;
 };
 
-TEST_F(SqliteMapStoreReads, QueryRegionReturnsExactlyTheLandmarksInsideTheBox) {
+TEST_P(SqliteMapStoreReads, QueryRegionReturnsExactlyTheLandmarksInsideTheBox) {
   // Rows 0..1 and columns 0..2.
   BoundingBox box{48.6995, 2.1695, 48.7015, 2.1735};
   auto page = store_->QueryRegion(box, 0, 100, true);
@@ -300,7 +307,7 @@ TEST_F(SqliteMapStoreReads, QueryRegionReturnsExactlyTheLandmarksInsideTheBox) {
   EXPECT_EQ(page->cross[0].first, (LandmarkPair{100, 101}));
 }
 
-TEST_F(SqliteMapStoreReads, QueryRegionPagesInIdOrder) {
+TEST_P(SqliteMapStoreReads, QueryRegionPagesInIdOrder) {
   BoundingBox box{48.0, 2.0, 49.0, 3.0};
   std::vector<LandmarkId> ids;
   LandmarkId after = 0;
@@ -318,7 +325,7 @@ TEST_F(SqliteMapStoreReads, QueryRegionPagesInIdOrder) {
   EXPECT_TRUE(std::is_sorted(ids.begin(), ids.end()));
 }
 
-TEST_F(SqliteMapStoreReads, TileHoldsTheLandmarksItContains) {
+TEST_P(SqliteMapStoreReads, TileHoldsTheLandmarksItContains) {
   const TileId tile = TileContaining({48.70, 2.17});
   auto page = store_->GetTile(tile, false);
   ASSERT_TRUE(page.ok());
@@ -331,13 +338,94 @@ TEST_F(SqliteMapStoreReads, TileHoldsTheLandmarksItContains) {
   EXPECT_EQ(store_->GetTile(TileId{15, 1, 1}, false).status().code(), absl::StatusCode::kInvalidArgument);
 }
 
-TEST_F(SqliteMapStoreReads, ChangedLandmarksAreThoseAboveTheVersion) {
+TEST_P(SqliteMapStoreReads, ChangedLandmarksAreThoseAboveTheVersion) {
   BoundingBox box{48.0, 2.0, 49.0, 3.0};
   auto page = store_->ChangedLandmarks(box, 2);
   ASSERT_TRUE(page.ok());
   ASSERT_FALSE(page->landmarks.empty());
   for (const Landmark& l : page->landmarks) EXPECT_EQ(l.version, 3);
   EXPECT_EQ(page->landmarks.size(), 5u);  // row i = 2
+}
+
+INSTANTIATE_TEST_SUITE_P(Store, SqliteMapStoreReads, ::testing::Values(false, true),
+                         [](const ::testing::TestParamInfo<bool>& info) { return info.param ? "Cached" : "Sqlite"; });
+
+void ExpectSamePage(const absl::StatusOr<LandmarkPage>& got, const absl::StatusOr<LandmarkPage>& want) {
+  ASSERT_TRUE(got.ok()) << got.status();
+  ASSERT_TRUE(want.ok()) << want.status();
+  EXPECT_EQ(got->map_version, want->map_version);
+  EXPECT_EQ(got->more, want->more);
+  ASSERT_EQ(got->landmarks.size(), want->landmarks.size());
+  for (size_t i = 0; i < got->landmarks.size(); ++i) {
+    const Landmark& a = got->landmarks[i];
+    const Landmark& b = want->landmarks[i];
+    EXPECT_EQ(a.id, b.id);
+    EXPECT_EQ(a.position.lat_deg, b.position.lat_deg);
+    EXPECT_EQ(a.position.lon_deg, b.position.lon_deg);
+    EXPECT_EQ(a.cov_en_m2, b.cov_en_m2);
+    EXPECT_EQ(a.version, b.version);
+    EXPECT_EQ(a.passages_seen, b.passages_seen);
+    EXPECT_EQ(a.last_seen_unix_ms, b.last_seen_unix_ms);
+  }
+}
+
+// Landmarks created, moved across tile borders and updated over many commits: after each one
+// the cache answers every read exactly as SQLite does; a refused commit changes neither.
+TEST(CachedMapStore, AnswersLikeSqliteAcrossCommitsThatMoveLandmarksBetweenTiles) {
+  TempDir dir;
+  const std::string path = dir.File("map.db");
+  auto cached = CachedMapStore::Create(OpenStore(path));
+  ASSERT_TRUE(cached.ok()) << cached.status();
+  auto sqlite = OpenStore(path);  // a second connection to the same file, for reference
+  const TileId home = TileContaining({48.70, 2.17});
+  const BoundingBox tile_box = TileBounds(home);
+  const BoundingBox around{tile_box.min_lat_deg - 0.002, tile_box.min_lon_deg - 0.002, tile_box.max_lat_deg + 0.002,
+                           tile_box.max_lon_deg + 0.002};
+  int64_t version = 0;
+  for (int step = 0; step < 12; ++step) {
+    const int64_t id = EnqueueAndClaim(cached->get(), "p" + std::to_string(step));
+    MapDelta delta;
+    delta.base_version = version;
+    delta.version = ++version;
+    for (LandmarkId lid = 1; lid <= 8; ++lid) {
+      if ((lid + step) % 3 == 0) continue;  // some landmarks untouched by this commit
+      // Walk each landmark across the tile's eastern and northern borders and back.
+      const double t = 0.0004 * ((step * 5 + lid * 3) % 11) - 0.002;
+      delta.landmarks[lid] = MakeLandmark(lid, tile_box.max_lat_deg + t * (lid % 2 ? 1 : -1),
+                                          tile_box.max_lon_deg + t, version);
+    }
+    ASSERT_TRUE((*cached)->CommitPassageApplied(id, delta, {}).ok());
+    for (LandmarkId after : {0, 3}) {
+      ExpectSamePage((*cached)->QueryRegion(around, after, 0, false), sqlite->QueryRegion(around, after, 0, false));
+      ExpectSamePage((*cached)->QueryRegion(around, after, 3, false), sqlite->QueryRegion(around, after, 3, false));
+      ExpectSamePage((*cached)->QueryRegion(tile_box, after, 0, false),
+                     sqlite->QueryRegion(tile_box, after, 0, false));
+    }
+    for (int dx = 0; dx <= 1; ++dx) {
+      for (int dy = -1; dy <= 0; ++dy) {
+        const TileId tile{kStorageZoom, home.x + dx, home.y + dy};
+        ExpectSamePage((*cached)->GetTile(tile, false), sqlite->GetTile(tile, false));
+      }
+    }
+    ExpectSamePage((*cached)->ChangedLandmarks(around, version - 1), sqlite->ChangedLandmarks(around, version - 1));
+    // The whole world: more tiles in range than in the map.
+    ExpectSamePage((*cached)->QueryRegion({-85, -180, 85, 180}, 0, 0, false),
+                   sqlite->QueryRegion({-85, -180, 85, 180}, 0, 0, false));
+  }
+
+  // A commit the store refuses (stale base version) is not published.
+  const int64_t id = EnqueueAndClaim(cached->get(), "stale");
+  MapDelta stale;
+  stale.base_version = version - 1;
+  stale.version = version + 1;
+  stale.landmarks[99] = MakeLandmark(99, 48.70, 2.17, version + 1);
+  EXPECT_EQ((*cached)->CommitPassageApplied(id, stale, {}).code(), absl::StatusCode::kFailedPrecondition);
+  ExpectSamePage((*cached)->QueryRegion(around, 0, 0, false), sqlite->QueryRegion(around, 0, 0, false));
+
+  // A cache opened on the file later starts from what is stored.
+  auto reopened = CachedMapStore::Create(OpenStore(path));
+  ASSERT_TRUE(reopened.ok());
+  ExpectSamePage((*reopened)->QueryRegion(around, 0, 0, false), (*cached)->QueryRegion(around, 0, 0, false));
 }
 
 }  // namespace

@@ -14,6 +14,7 @@
 #include <thread>
 #include <vector>
 
+#include <google/protobuf/arena.h>
 #include <spdlog/spdlog.h>
 
 #include "server/testing/temp_dir.h"
@@ -101,7 +102,9 @@ int Query(int argc, char** argv) {
   auto scenario = Scenario::Create(options);
   if (!scenario.ok()) return 1;
   TempDir dir;
-  auto server = MapServer::Start(TestServerOptions(dir.File("map.db"), true));
+  MapServerOptions server_options = TestServerOptions(dir.File("map.db"), true);
+  server_options.worker.nice = IntFlag(argc, argv, "--worker-nice", server_options.worker.nice);
+  auto server = MapServer::Start(server_options);
   if (!server.ok()) return 1;
   MockVehicle writer((*server)->address());
   constexpr int kWarmup = 5;
@@ -138,14 +141,20 @@ int Query(int argc, char** argv) {
   for (int r = 0; r < readers; ++r) {
     threads.emplace_back([&, r] {
       MockVehicle reader((*server)->address());
+      // The response's landmark messages go on a per-call arena whose first block is reused.
+      std::vector<char> block(64 << 10);
+      google::protobuf::ArenaOptions arena_options;
+      arena_options.initial_block = block.data();
+      arena_options.initial_block_size = block.size();
       while (Clock::now() < end) {
+        google::protobuf::Arena arena(arena_options);
+        auto* response = google::protobuf::Arena::CreateMessage<pb::QueryRegionResponse>(&arena);
         grpc::ClientContext ctx;
         ctx.set_deadline(std::chrono::system_clock::now() + std::chrono::seconds(5));
-        pb::QueryRegionResponse response;
         const auto t0 = Clock::now();
-        grpc::Status s = reader.stub()->QueryRegion(&ctx, request, &response);
+        grpc::Status s = reader.stub()->QueryRegion(&ctx, request, response);
         latencies[r].push_back(Ms(Clock::now() - t0));
-        if (s.ok()) landmarks_seen += response.landmarks_size();
+        if (s.ok()) landmarks_seen += response->landmarks_size();
       }
     });
   }
@@ -170,6 +179,7 @@ int Query(int argc, char** argv) {
 
 int main(int argc, char** argv) {
   spdlog::set_level(spdlog::level::warn);
+  crowdmap::TuneProcessForServing();  // as mapd does
   if (argc >= 2 && std::strcmp(argv[1], "upload") == 0) return crowdmap::Upload(argc, argv);
   if (argc >= 2 && std::strcmp(argv[1], "query") == 0) return crowdmap::Query(argc, argv);
   std::fprintf(stderr, "usage: mapbench upload [--clients 8] [--passages 2000] [--apply]\n"

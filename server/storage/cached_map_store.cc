@@ -1,0 +1,146 @@
+#include "server/storage/cached_map_store.h"
+
+#include <algorithm>
+#include <set>
+
+namespace crowdmap {
+namespace {
+
+bool Inside(const BoundingBox& box, const LatLon& p) {
+  return p.lat_deg >= box.min_lat_deg && p.lat_deg <= box.max_lat_deg && p.lon_deg >= box.min_lon_deg &&
+         p.lon_deg <= box.max_lon_deg;
+}
+
+bool ById(const Landmark& a, const Landmark& b) { return a.id < b.id; }
+
+}  // namespace
+
+absl::StatusOr<std::unique_ptr<CachedMapStore>> CachedMapStore::Create(std::unique_ptr<MapStoreInterface> inner) {
+  if (inner == nullptr) return absl::InvalidArgumentError("CachedMapStore needs a store to wrap");
+  MapState map;
+  if (auto s = inner->LoadMap(&map); !s.ok()) return s;
+  std::unique_ptr<CachedMapStore> store(new CachedMapStore(std::move(inner)));
+  std::unordered_map<TileKey, Bucket> buckets;
+  map.ForEachLandmark([&](const Landmark& l) {
+    const TileKey key = KeyOf(TileContaining(l.position));
+    buckets[key].push_back(l);
+    store->tile_of_[l.id] = key;
+  });
+  auto view = std::make_shared<View>();
+  view->version = map.version();
+  for (auto& [key, bucket] : buckets) {
+    std::sort(bucket.begin(), bucket.end(), ById);
+    view->tiles.emplace(key, std::make_shared<const Bucket>(std::move(bucket)));
+  }
+  store->view_ = std::move(view);
+  return store;
+}
+
+std::shared_ptr<const CachedMapStore::View> CachedMapStore::CurrentView() const {
+  std::lock_guard<std::mutex> lock(view_mu_);
+  return view_;
+}
+
+absl::Status CachedMapStore::CommitPassageApplied(int64_t id, const MapDelta& delta, const PassageResult& result) {
+  std::lock_guard<std::mutex> lock(writer_mu_);
+  if (auto s = inner_->CommitPassageApplied(id, delta, result); !s.ok()) return s;
+  std::shared_ptr<const View> next = ApplyToView(delta);
+  std::lock_guard<std::mutex> publish(view_mu_);
+  view_ = std::move(next);
+  return absl::OkStatus();
+}
+
+std::shared_ptr<const CachedMapStore::View> CachedMapStore::ApplyToView(const MapDelta& delta) {
+  const std::shared_ptr<const View> current = CurrentView();
+  auto next = std::make_shared<View>(*current);  // copies tile pointers, not landmarks
+  next->version = std::max(delta.version, delta.base_version);
+
+  // Per touched tile: the landmarks that leave it and the records to insert or replace.
+  struct Change {
+    std::set<LandmarkId> leaving;
+    std::vector<const Landmark*> upserts;
+  };
+  std::unordered_map<TileKey, Change> changes;
+  for (const auto& [lid, landmark] : delta.landmarks) {
+    const TileKey key = KeyOf(TileContaining(landmark.position));
+    changes[key].upserts.push_back(&landmark);
+    auto old = tile_of_.find(lid);
+    if (old != tile_of_.end() && old->second != key) changes[old->second].leaving.insert(lid);
+    tile_of_[lid] = key;
+  }
+  for (auto& [key, change] : changes) {
+    Bucket bucket;
+    if (auto it = current->tiles.find(key); it != current->tiles.end()) bucket = *it->second;
+    for (const Landmark* l : change.upserts) change.leaving.insert(l->id);  // replaced records go too
+    bucket.erase(std::remove_if(bucket.begin(), bucket.end(),
+                                [&](const Landmark& l) { return change.leaving.count(l.id) > 0; }),
+                 bucket.end());
+    for (const Landmark* l : change.upserts) bucket.push_back(*l);
+    std::sort(bucket.begin(), bucket.end(), ById);
+    if (bucket.empty()) {
+      next->tiles.erase(key);
+    } else {
+      next->tiles[key] = std::make_shared<const Bucket>(std::move(bucket));
+    }
+  }
+  return next;
+}
+
+template <typename Keep>
+std::vector<Landmark> CachedMapStore::Select(const View& view, const BoundingBox& box, const Keep& keep) {
+  std::vector<Landmark> out;
+  auto scan = [&](const Bucket& bucket) {
+    for (const Landmark& l : bucket) {
+      if (Inside(box, l.position) && keep(l)) out.push_back(l);
+    }
+  };
+  // Tiles grow southwards: the north-west corner has the smallest x and y.
+  const TileId nw = TileContaining({box.max_lat_deg, box.min_lon_deg});
+  const TileId se = TileContaining({box.min_lat_deg, box.max_lon_deg});
+  const int64_t range = (static_cast<int64_t>(se.x) - nw.x + 1) * (static_cast<int64_t>(se.y) - nw.y + 1);
+  if (range > static_cast<int64_t>(view.tiles.size())) {
+    for (const auto& [key, bucket] : view.tiles) scan(*bucket);
+  } else {
+    for (int x = nw.x; x <= se.x; ++x) {
+      for (int y = nw.y; y <= se.y; ++y) {
+        auto it = view.tiles.find(KeyOf(TileId{kStorageZoom, x, y}));
+        if (it != view.tiles.end()) scan(*it->second);
+      }
+    }
+  }
+  std::sort(out.begin(), out.end(), ById);
+  return out;
+}
+
+absl::StatusOr<LandmarkPage> CachedMapStore::QueryRegion(const BoundingBox& box, LandmarkId after_id, int limit,
+                                                         bool include_cross) {
+  if (include_cross) return inner_->QueryRegion(box, after_id, limit, include_cross);
+  const std::shared_ptr<const View> view = CurrentView();
+  LandmarkPage page;
+  page.map_version = view->version;
+  page.landmarks = Select(*view, box, [&](const Landmark& l) { return l.id > after_id; });
+  if (limit > 0 && static_cast<int>(page.landmarks.size()) > limit) {
+    page.landmarks.resize(limit);
+    page.more = true;
+  }
+  return page;
+}
+
+absl::StatusOr<LandmarkPage> CachedMapStore::GetTile(const TileId& tile, bool include_cross) {
+  if (include_cross || tile.z != kStorageZoom || !IsValidTile(tile)) return inner_->GetTile(tile, include_cross);
+  const std::shared_ptr<const View> view = CurrentView();
+  LandmarkPage page;
+  page.map_version = view->version;
+  if (auto it = view->tiles.find(KeyOf(tile)); it != view->tiles.end()) page.landmarks = *it->second;
+  return page;
+}
+
+absl::StatusOr<LandmarkPage> CachedMapStore::ChangedLandmarks(const BoundingBox& box, int64_t since_version) {
+  const std::shared_ptr<const View> view = CurrentView();
+  LandmarkPage page;
+  page.map_version = view->version;
+  page.landmarks = Select(*view, box, [&](const Landmark& l) { return l.version > since_version; });
+  return page;
+}
+
+}  // namespace crowdmap

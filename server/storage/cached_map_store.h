@@ -1,0 +1,87 @@
+#ifndef CROWDMAP_SERVER_STORAGE_CACHED_MAP_STORE_H_
+#define CROWDMAP_SERVER_STORAGE_CACHED_MAP_STORE_H_
+
+#include <cstdint>
+#include <memory>
+#include <mutex>
+#include <unordered_map>
+#include <vector>
+
+#include "server/storage/map_store.h"
+
+namespace crowdmap {
+
+// A MapStoreInterface that answers the hot map reads (QueryRegion and GetTile without cross
+// covariances, ChangedLandmarks) from an immutable in-memory copy of the landmarks, and forwards
+// everything else to the store it wraps, which stays the source of truth.
+//
+// The copy is loaded from the inner store when the cache is created and is replaced after each
+// successful CommitPassageApplied by applying the same delta, so a read sees either the map before
+// or after a commit, never a mixture, and never a change that is not yet durable. Readers take a
+// reference to the current copy and never wait for the writer or for SQLite. A commit copies only
+// the tiles it touches (plus the table of tile pointers).
+class CachedMapStore : public MapStoreInterface {
+ public:
+  static absl::StatusOr<std::unique_ptr<CachedMapStore>> Create(std::unique_ptr<MapStoreInterface> inner);
+
+  absl::StatusOr<std::vector<absl::StatusOr<EnqueueOutcome>>> EnqueuePassages(const std::vector<NewPassage>& passages,
+                                                                              int64_t max_queue) override {
+    return inner_->EnqueuePassages(passages, max_queue);
+  }
+  absl::StatusOr<StoredPassage> GetPassage(int64_t id) override { return inner_->GetPassage(id); }
+  absl::StatusOr<StoredPassage> FindPassage(const std::string& vehicle_id, const std::string& passage_id) override {
+    return inner_->FindPassage(vehicle_id, passage_id);
+  }
+  absl::StatusOr<std::vector<StoredPassage>> ListPassages(const PassageQuery& query) override {
+    return inner_->ListPassages(query);
+  }
+  absl::StatusOr<std::string> GetPassagePayload(int64_t id) override { return inner_->GetPassagePayload(id); }
+  absl::StatusOr<std::optional<ClaimedPassage>> ClaimNextPassage() override { return inner_->ClaimNextPassage(); }
+  absl::Status FinishPassageWithoutChange(int64_t id, PassageState state, const std::string& reason) override {
+    return inner_->FinishPassageWithoutChange(id, state, reason);
+  }
+  absl::StatusOr<int> RecordFailedAttempt(int64_t id, const std::string& reason) override {
+    return inner_->RecordFailedAttempt(id, reason);
+  }
+  absl::StatusOr<int> RequeueProcessingPassages() override { return inner_->RequeueProcessingPassages(); }
+  absl::Status LoadMap(MapState* map) override { return inner_->LoadMap(map); }
+  absl::StatusOr<MapStats> GetStats() override { return inner_->GetStats(); }
+
+  // Commits through the inner store, then publishes the new copy.
+  absl::Status CommitPassageApplied(int64_t id, const MapDelta& delta, const PassageResult& result) override;
+
+  // Served from the copy; requests with cross covariances go to the inner store.
+  absl::StatusOr<LandmarkPage> QueryRegion(const BoundingBox& box, LandmarkId after_id, int limit,
+                                           bool include_cross) override;
+  absl::StatusOr<LandmarkPage> GetTile(const TileId& tile, bool include_cross) override;
+  absl::StatusOr<LandmarkPage> ChangedLandmarks(const BoundingBox& box, int64_t since_version) override;
+
+ private:
+  using TileKey = uint64_t;
+  using Bucket = std::vector<Landmark>;  // increasing id
+  // One published state of the map. Immutable once published.
+  struct View {
+    int64_t version = 0;
+    std::unordered_map<TileKey, std::shared_ptr<const Bucket>> tiles;
+  };
+
+  explicit CachedMapStore(std::unique_ptr<MapStoreInterface> inner) : inner_(std::move(inner)) {}
+
+  static TileKey KeyOf(const TileId& tile) { return (static_cast<uint64_t>(tile.x) << 32) | static_cast<uint32_t>(tile.y); }
+  std::shared_ptr<const View> CurrentView() const;
+  // Builds the view that results from applying `delta` to the current one (writer only).
+  std::shared_ptr<const View> ApplyToView(const MapDelta& delta);
+  // The landmarks of `view` inside `box` that pass `keep`, in increasing id order.
+  template <typename Keep>
+  static std::vector<Landmark> Select(const View& view, const BoundingBox& box, const Keep& keep);
+
+  const std::unique_ptr<MapStoreInterface> inner_;
+  mutable std::mutex view_mu_;  // guards the pointer only; held for a copy of it
+  std::shared_ptr<const View> view_;
+  std::mutex writer_mu_;                                 // orders commits and their publication
+  std::unordered_map<LandmarkId, TileKey> tile_of_;      // writer's index: where each landmark is
+};
+
+}  // namespace crowdmap
+
+#endif  // CROWDMAP_SERVER_STORAGE_CACHED_MAP_STORE_H_
