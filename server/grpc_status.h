@@ -7,8 +7,10 @@
 
 namespace crowdmap {
 
-// The one conversion from module errors to gRPC status; codes map one to one.
+// The one conversion between module errors and gRPC status, both ways (the server answers with
+// ToGrpcStatus, clients read answers with FromGrpcStatus); codes and messages map one to one.
 grpc::Status ToGrpcStatus(const absl::Status& status);
+absl::Status FromGrpcStatus(const grpc::Status& status);
 
 }  // namespace crowdmap
 

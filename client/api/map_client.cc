@@ -23,12 +23,10 @@ absl::Status MapClientOptions::Validate() const {
     return absl::InvalidArgumentError("backoff: need 0 <= initial_backoff <= max_backoff");
   }
   if (max_message_mb < 1) return absl::InvalidArgumentError("max_message_mb: must be >= 1");
+  if (upload_chunk_bytes < 1 || upload_chunk_bytes > (static_cast<size_t>(max_message_mb) << 20) - 1024) {
+    return absl::InvalidArgumentError("upload_chunk_bytes: must lie in [1, max_message_mb MiB - 1 KiB]");
+  }
   return absl::OkStatus();
-}
-
-absl::Status FromGrpcStatus(const grpc::Status& status) {
-  if (status.ok()) return absl::OkStatus();
-  return absl::Status(static_cast<absl::StatusCode>(status.error_code()), status.error_message());
 }
 
 pb::BoundingBox WorldBox() {
@@ -57,16 +55,39 @@ void MapClient::SetDeadline(grpc::ClientContext* ctx) const {
   ctx->set_deadline(std::chrono::system_clock::now() + options_.call_deadline);
 }
 
+grpc::Status MapClient::UploadUnary(const pb::UploadPassageRequest& request, pb::UploadPassageResponse* response) {
+  grpc::ClientContext ctx;
+  SetDeadline(&ctx);
+  return stub_->UploadPassage(&ctx, request, response);
+}
+
+grpc::Status MapClient::UploadChunked(const std::string& serialized, pb::UploadPassageResponse* response) {
+  grpc::ClientContext ctx;
+  SetDeadline(&ctx);
+  std::unique_ptr<grpc::ClientWriter<pb::UploadPassageChunk>> writer = stub_->UploadPassageChunked(&ctx, response);
+  pb::UploadPassageChunk chunk;
+  for (size_t offset = 0; offset < serialized.size(); offset += options_.upload_chunk_bytes) {
+    chunk.set_data(serialized.substr(offset, options_.upload_chunk_bytes));
+    if (!writer->Write(chunk)) break;  // the server ended the call; Finish() says why
+  }
+  writer->WritesDone();
+  return writer->Finish();
+}
+
 absl::StatusOr<pb::UploadPassageResponse> MapClient::Upload(const pb::Passage& passage) {
+  const bool chunked = passage.ByteSizeLong() > options_.unary_upload_limit_bytes;
   pb::UploadPassageRequest request;
-  *request.mutable_passage() = passage;
+  std::string serialized;
+  if (chunked) {
+    serialized = passage.SerializeAsString();
+  } else {
+    *request.mutable_passage() = passage;
+  }
   std::chrono::milliseconds backoff = options_.initial_backoff;
   absl::Status last;
   for (int attempt = 1; attempt <= options_.max_attempts; ++attempt) {
-    grpc::ClientContext ctx;
-    SetDeadline(&ctx);
     pb::UploadPassageResponse response;
-    last = FromGrpcStatus(stub_->UploadPassage(&ctx, request, &response));
+    last = FromGrpcStatus(chunked ? UploadChunked(serialized, &response) : UploadUnary(request, &response));
     if (last.ok()) return response;
     if (!IsTransient(last.code()) || attempt == options_.max_attempts) break;
     std::this_thread::sleep_for(backoff);

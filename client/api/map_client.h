@@ -14,6 +14,7 @@
 #include "absl/status/statusor.h"
 #include "core/map/map_state.h"
 #include "mapservice/v1/map_service.grpc.pb.h"
+#include "server/grpc_status.h"
 
 namespace crowdmap {
 
@@ -26,6 +27,10 @@ struct MapClientOptions {
   std::chrono::milliseconds initial_backoff{50};   // doubled after each retry, up to max_backoff
   std::chrono::milliseconds max_backoff{2000};
   int max_message_mb = 64;  // receive and send limit of the channel
+  // Passages whose serialized size exceeds this go through UploadPassageChunked in pieces of
+  // upload_chunk_bytes; the default stays under mapd's default 4 MiB receive limit.
+  size_t unary_upload_limit_bytes = (4u << 20) - (64u << 10);
+  size_t upload_chunk_bytes = 1u << 20;
 
   absl::Status Validate() const;
 };
@@ -37,9 +42,6 @@ struct RegionMap {
   int64_t map_version = 0;  // highest version seen over the pages
 };
 
-// The one conversion from gRPC status to absl::Status on the client side; codes map one to one.
-absl::Status FromGrpcStatus(const grpc::Status& status);
-
 // A whole-world bounding box.
 pb::BoundingBox WorldBox();
 
@@ -49,6 +51,7 @@ class MapClient {
  public:
   static absl::StatusOr<std::unique_ptr<MapClient>> Create(const MapClientOptions& options);
 
+  // UploadPassage, or UploadPassageChunked above unary_upload_limit_bytes; retried as above.
   absl::StatusOr<pb::UploadPassageResponse> Upload(const pb::Passage& passage);
   absl::StatusOr<pb::PassageStatus> GetPassage(int64_t id);
   absl::StatusOr<pb::PassageStatus> GetPassage(const std::string& vehicle_id, const std::string& passage_id);
@@ -69,10 +72,14 @@ class MapClient {
                                             const std::function<void(const pb::MapInfo&)>& on_poll = nullptr);
 
   pb::MapService::Stub* stub() { return stub_.get(); }
+  const std::shared_ptr<grpc::Channel>& channel() const { return channel_; }
 
  private:
   explicit MapClient(const MapClientOptions& options);
   void SetDeadline(grpc::ClientContext* ctx) const;
+  // One attempt of each upload RPC.
+  grpc::Status UploadUnary(const pb::UploadPassageRequest& request, pb::UploadPassageResponse* response);
+  grpc::Status UploadChunked(const std::string& serialized, pb::UploadPassageResponse* response);
 
   MapClientOptions options_;
   std::shared_ptr<grpc::Channel> channel_;

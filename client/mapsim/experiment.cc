@@ -33,6 +33,20 @@ absl::Status ExperimentOptions::Validate() const {
     if (!s.ok()) return s.status();
   }
   if (absl::Status s = scenario.Validate(); !s.ok()) return s;
+  if (!order.empty()) {
+    if (static_cast<int>(order.size()) != passages) {
+      return absl::InvalidArgumentError(absl::StrCat("order: has ", order.size(), " entries for ", passages, " passages"));
+    }
+    std::vector<bool> seen(passages, false);
+    for (size_t k = 0; k < order.size(); ++k) {
+      if (order[k] < 0 || order[k] >= passages || seen[order[k]]) {
+        return absl::InvalidArgumentError(
+            absl::StrCat("order[", k, "]: ", order[k], " is out of range or repeated (need a permutation of 0..",
+                         passages - 1, ")"));
+      }
+      seen[order[k]] = true;
+    }
+  }
   return update.Validate();
 }
 
@@ -49,7 +63,7 @@ absl::StatusOr<ExperimentResult> RunExperiment(const ExperimentOptions& options,
   ExperimentResult result;
   std::vector<double> times;
   for (int i = 0; i < options.passages; ++i) {
-    const Passage passage = scenario->MakePassage(i);
+    const Passage passage = scenario->MakePassage(options.order.empty() ? i : options.order[i]);
     PassageRecord record;
     record.passage = i + 1;
     const auto start = std::chrono::steady_clock::now();
@@ -91,7 +105,8 @@ absl::StatusOr<ExperimentResult> RunExperiment(const ExperimentOptions& options,
 }
 
 absl::Status WriteExperimentOutputs(const ExperimentOptions& options, const ExperimentResult& result,
-                                    const std::string& dir) {
+                                    const std::string& dir,
+                                    const std::vector<std::pair<std::string, double>>& extra_summary) {
   std::error_code ec;
   std::filesystem::create_directories(dir, ec);
   if (ec) return absl::InternalError(absl::StrCat("cannot create ", dir, ": ", ec.message()));
@@ -120,8 +135,9 @@ absl::Status WriteExperimentOutputs(const ExperimentOptions& options, const Expe
        << "  \"final_mean_dist_err_m\": " << JsonNumber(result.final_mean_dist_err_m) << ",\n"
        << "  \"final_nees_per_dof\": " << JsonNumber(result.final_nees_per_dof) << ",\n"
        << "  \"final_joint_nees_per_dof\": " << JsonNumber(result.final_joint_nees_per_dof) << ",\n"
-       << "  \"median_passage_ms\": " << JsonNumber(result.median_passage_ms) << "\n"
-       << "}\n";
+       << "  \"median_passage_ms\": " << JsonNumber(result.median_passage_ms);
+  for (const auto& [key, value] : extra_summary) json << ",\n  \"" << key << "\": " << JsonNumber(value);
+  json << "\n}\n";
   if (!json) return absl::InternalError(absl::StrCat("cannot write ", dir, "/summary.json"));
 
   return WriteErrorPlot(result.records,

@@ -20,6 +20,9 @@ struct ExperimentOptions {
   int passages = 100;
   std::string strategy = "cc-gsd";  // cc | dc | cc-gsd | triangulation
   MapUpdateOptions update;          // strategy field is set from `strategy`
+  // Scenario passage indices in the order they are applied (a permutation of 0..passages-1,
+  // e.g. the order in which a server received them); empty = 0, 1, ..., passages-1.
+  std::vector<int> order;
 
   absl::Status Validate() const;
 };
@@ -48,9 +51,10 @@ using ExperimentProgress = std::function<void(const PassageRecord&)>;
 absl::StatusOr<ExperimentResult> RunExperiment(const ExperimentOptions& options,
                                                const ExperimentProgress& progress = nullptr);
 
-// Writes DIR/passages.csv, DIR/summary.json and DIR/errors.svg.
+// Writes DIR/passages.csv, DIR/summary.json (plus the `extra_summary` figures) and DIR/errors.svg.
 absl::Status WriteExperimentOutputs(const ExperimentOptions& options, const ExperimentResult& result,
-                                    const std::string& dir);
+                                    const std::string& dir,
+                                    const std::vector<std::pair<std::string, double>>& extra_summary = {});
 
 }  // namespace crowdmap
 

@@ -61,6 +61,33 @@ TEST(Experiment, RejectsAnUnknownStrategy) {
   EXPECT_NE(result.status().message().find("strategy"), std::string::npos);
 }
 
+TEST(Experiment, AppliesPassagesInTheGivenOrder) {
+  ExperimentOptions options;
+  options.scenario.landmarks = 4;
+  options.passages = 3;
+  options.strategy = "dc";
+  options.order = {2, 0, 1};
+  absl::StatusOr<ExperimentResult> reordered = RunExperiment(options);
+  ASSERT_TRUE(reordered.ok()) << reordered.status();
+  options.order.clear();
+  absl::StatusOr<ExperimentResult> in_order = RunExperiment(options);
+  ASSERT_TRUE(in_order.ok()) << in_order.status();
+  // The first passage alone decides the first map: passage 2 first gives another first record.
+  EXPECT_NE(reordered->records.front().metrics.mean_dist_err_m, in_order->records.front().metrics.mean_dist_err_m);
+  EXPECT_EQ(reordered->records.size(), 3u);
+}
+
+TEST(Experiment, RejectsAnOrderThatIsNotAPermutation) {
+  ExperimentOptions options;
+  options.passages = 3;
+  for (const std::vector<int>& order : {std::vector<int>{0, 1}, {0, 1, 1}, {0, 1, 3}, {-1, 0, 1}}) {
+    options.order = order;
+    absl::StatusOr<ExperimentResult> result = RunExperiment(options);
+    ASSERT_FALSE(result.ok());
+    EXPECT_EQ(result.status().message().substr(0, 5), "order") << result.status();
+  }
+}
+
 TEST(Experiment, WritesCsvSummaryAndPlot) {
   ExperimentOptions options;
   options.scenario.landmarks = 4;

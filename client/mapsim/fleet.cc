@@ -6,7 +6,7 @@
 #include <fstream>
 #include <mutex>
 #include <thread>
-#include <unordered_set>
+#include <unordered_map>
 
 #include <spdlog/spdlog.h>
 
@@ -14,6 +14,7 @@
 #include "absl/strings/str_format.h"
 #include "client/api/geojson.h"
 #include "client/api/passage_files.h"
+#include "core/geo/local_frame.h"
 #include "core/sim/metrics.h"
 #include "server/wire_convert.h"
 
@@ -58,7 +59,8 @@ class FleetUploader {
     std::lock_guard<std::mutex> lock(mu_);
     return error_;
   }
-  std::unordered_set<int64_t> server_ids() {
+  // Server passage id -> scenario passage index, for every acknowledged upload.
+  std::unordered_map<int64_t, int> server_ids() {
     std::lock_guard<std::mutex> lock(mu_);
     return server_ids_;
   }
@@ -79,7 +81,7 @@ class FleetUploader {
       if (response->duplicate()) ++duplicates_;
       {
         std::lock_guard<std::mutex> lock(mu_);
-        server_ids_.insert(response->status().id());
+        server_ids_[response->status().id()] = i;
       }
       ++uploaded_;
     }
@@ -99,12 +101,12 @@ class FleetUploader {
   std::atomic<bool> failed_{false};
   std::mutex mu_;
   absl::Status error_;
-  std::unordered_set<int64_t> server_ids_;
+  std::unordered_map<int64_t, int> server_ids_;
 };
 
-// Fills solve_ms / subgraphs of each sampled record from the server's per-passage results, and
-// the experiment-level figures from the records.
-absl::Status Summarize(MapClient& client, const std::unordered_set<int64_t>& ids, FleetResult* result) {
+// Fills solve_ms / subgraphs of each sampled record from the server's per-passage results, the
+// experiment-level figures from the records, and the arrival order.
+absl::Status Summarize(MapClient& client, const std::unordered_map<int64_t, int>& ids, FleetResult* result) {
   absl::StatusOr<std::vector<pb::PassageStatus>> all = client.ListPassages(std::nullopt);
   if (!all.ok()) return all.status();
   std::vector<pb::PassageStatus> ours;
@@ -127,6 +129,7 @@ absl::Status Summarize(MapClient& client, const std::unordered_set<int64_t>& ids
   }
   for (const pb::PassageStatus& p : ours) {
     if (p.state() != pb::PASSAGE_STATE_APPLIED) ++e.failed_passages;
+    result->arrival_order.push_back(ids.at(p.id()));
   }
   e.median_passage_ms = Median(all_ms);
   if (!e.records.empty()) {
@@ -134,6 +137,34 @@ absl::Status Summarize(MapClient& client, const std::unordered_set<int64_t>& ids
     e.final_nees_per_dof = e.records.back().metrics.nees_per_dof;
     e.final_joint_nees_per_dof = e.records.back().metrics.joint_nees_per_dof;
   }
+  return absl::OkStatus();
+}
+
+// The in-process experiment with the passages in the server's arrival order, compared with the
+// server's final map.
+absl::Status Replay(const FleetOptions& options, FleetResult* result) {
+  ExperimentOptions experiment;
+  experiment.scenario = options.scenario;
+  experiment.passages = options.passages;
+  experiment.strategy = result->server_strategy;
+  experiment.order = result->arrival_order;
+  absl::StatusOr<ExperimentResult> replay = RunExperiment(experiment);
+  if (!replay.ok()) return replay.status();
+  FleetReplay& r = result->replay.emplace();
+  r.final_mean_dist_err_m = replay->final_mean_dist_err_m;
+  const MapState& server = result->experiment.final_map;
+  const LocalFrame frame(options.scenario.origin);
+  replay->final_map.ForEachLandmark([&](const Landmark& mine) {
+    const Landmark* theirs = server.FindLandmark(mine.id);
+    if (theirs == nullptr) {
+      ++r.missing_landmarks;
+      return;
+    }
+    r.max_position_diff_m =
+        std::max(r.max_position_diff_m, (frame.ToLocal(mine.position) - frame.ToLocal(theirs->position)).norm());
+    r.max_cov_diff_m2 = std::max(r.max_cov_diff_m2, (mine.cov_en_m2 - theirs->cov_en_m2).cwiseAbs().maxCoeff());
+  });
+  r.missing_landmarks += static_cast<int>(server.landmark_count()) - static_cast<int>(replay->final_map.landmark_count());
   return absl::OkStatus();
 }
 
@@ -153,13 +184,20 @@ absl::Status FleetOptions::Validate() const {
 }
 
 std::string FleetResult::Brief() const {
-  return absl::StrFormat(
+  std::string brief = absl::StrFormat(
       "strategy=%s passages=%d duplicates=%d failed=%d final_mean_dist_err_m=%.4f final_nees_per_dof=%.3f "
       "final_joint_nees_per_dof=%.3f landmarks=%d map_version=%d upload_s=%.2f apply_s=%.2f median_passage_ms=%.2f",
       server_strategy, experiment.records.empty() ? 0 : experiment.records.back().passage, duplicates,
       experiment.failed_passages, experiment.final_mean_dist_err_m, experiment.final_nees_per_dof,
       experiment.final_joint_nees_per_dof, landmarks.size(), map_version, upload_s, apply_s,
       experiment.median_passage_ms);
+  if (replay) {
+    absl::StrAppendFormat(&brief,
+                          " arrival_order_experiment_err_m=%.4f max_position_diff_vs_arrival_order_m=%.2g "
+                          "max_cov_diff_m2=%.2g",
+                          replay->final_mean_dist_err_m, replay->max_position_diff_m, replay->max_cov_diff_m2);
+  }
+  return brief;
 }
 
 absl::StatusOr<FleetResult> RunFleet(const FleetOptions& options,
@@ -240,6 +278,14 @@ absl::StatusOr<FleetResult> RunFleet(const FleetOptions& options,
   if (!final_map.ok()) return final_map.status();
   result.experiment.final_map = *std::move(final_map);
   if (absl::Status s = Summarize(**client, uploader.server_ids(), &result); !s.ok()) return s;
+  if (options.replay) {
+    if (start_info->landmark_count() > 0 || result.duplicates > 0 ||
+        static_cast<int>(result.arrival_order.size()) != options.passages) {
+      spdlog::warn("no replay: the server's map did not start empty or not every passage was applied by this run");
+    } else if (absl::Status s = Replay(options, &result); !s.ok()) {
+      return s;
+    }
+  }
   return result;
 }
 
@@ -248,7 +294,13 @@ absl::Status WriteFleetOutputs(const FleetOptions& options, const FleetResult& r
   experiment.scenario = options.scenario;
   experiment.passages = options.passages;
   experiment.strategy = result.server_strategy;
-  if (absl::Status s = WriteExperimentOutputs(experiment, result.experiment, dir); !s.ok()) return s;
+  std::vector<std::pair<std::string, double>> extra = {{"vehicles", options.vehicles}};
+  if (result.replay) {
+    extra.push_back({"arrival_order_experiment_final_mean_dist_err_m", result.replay->final_mean_dist_err_m});
+    extra.push_back({"max_position_diff_vs_arrival_order_experiment_m", result.replay->max_position_diff_m});
+    extra.push_back({"max_cov_diff_vs_arrival_order_experiment_m2", result.replay->max_cov_diff_m2});
+  }
+  if (absl::Status s = WriteExperimentOutputs(experiment, result.experiment, dir, extra); !s.ok()) return s;
   GeoJsonOptions geojson;
   geojson.ellipses = true;
   const std::string path = dir + "/map.geojson";

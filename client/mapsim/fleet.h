@@ -3,6 +3,7 @@
 
 #include <chrono>
 #include <functional>
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -24,6 +25,9 @@ struct FleetOptions {
   std::chrono::milliseconds sample_interval{250};  // map read back and evaluated this often while applying
   std::chrono::seconds apply_timeout{1800};
   MapClientOptions client;  // `server` above overrides client.server
+  // After the run, apply the passages in-process in the server's arrival order and compare the
+  // maps (needs a server whose map started empty).
+  bool replay = true;
 
   absl::Status Validate() const;
 };
@@ -34,6 +38,16 @@ struct FleetProgress {
   int applied = 0;  // passages the server finished (applied, rejected or failed) since the start
   int total = 0;
   double mean_dist_err_m = -1.0;  // of the last sampled map; < 0 before the first sample
+};
+
+// The fleet's passages applied in-process in the order the server received them: the server must
+// give exactly this map; the experiment in passage order may differ (the estimator is nonlinear,
+// so the order of the first passages matters).
+struct FleetReplay {
+  double final_mean_dist_err_m = 0.0;
+  double max_position_diff_m = 0.0;  // over landmarks, server map vs replay
+  double max_cov_diff_m2 = 0.0;      // largest covariance entry difference
+  int missing_landmarks = 0;         // in one map and not the other
 };
 
 struct FleetResult {
@@ -48,6 +62,8 @@ struct FleetResult {
   int duplicates = 0;       // uploads the server already had (an earlier run on the same database)
   double upload_s = 0.0;    // first upload to last acknowledgement
   double apply_s = 0.0;     // first upload to the queue drained
+  std::vector<int> arrival_order;     // scenario passage indices in server id (= apply) order
+  std::optional<FleetReplay> replay;  // when options.replay and the run allowed it
 
   std::string Brief() const;
 };

@@ -2,6 +2,7 @@
 // `mapsim experiment`; several concurrent vehicles get every passage applied.
 #include "client/mapsim/fleet.h"
 
+#include <algorithm>
 #include <filesystem>
 
 #include "server/testing/temp_dir.h"
@@ -52,6 +53,15 @@ TEST(Fleet, ConcurrentVehiclesGetEveryPassageAppliedAndWriteTheOutputs) {
   EXPECT_EQ(fleet->experiment.records.back().passage, options.passages);
   EXPECT_EQ(static_cast<int>(fleet->landmarks.size()), options.scenario.landmarks);
   EXPECT_GT(fleet->experiment.median_passage_ms, 0.0);
+  // The server's map is exactly the in-process one for the order in which it received the passages.
+  std::vector<int> order = fleet->arrival_order;
+  std::sort(order.begin(), order.end());
+  for (int i = 0; i < options.passages; ++i) EXPECT_EQ(order[i], i);
+  ASSERT_TRUE(fleet->replay.has_value());
+  EXPECT_EQ(fleet->replay->missing_landmarks, 0);
+  EXPECT_LT(fleet->replay->max_position_diff_m, 1e-6);
+  EXPECT_LT(fleet->replay->max_cov_diff_m2, 1e-9);
+  EXPECT_NEAR(fleet->replay->final_mean_dist_err_m, fleet->experiment.final_mean_dist_err_m, 1e-6);
   ASSERT_TRUE(WriteFleetOutputs(options, *fleet, dir.File("out")).ok());
   for (const char* name : {"passages.csv", "summary.json", "errors.svg", "map.geojson"}) {
     EXPECT_GT(std::filesystem::file_size(dir.File(std::string("out/") + name)), 0u) << name;
@@ -60,6 +70,7 @@ TEST(Fleet, ConcurrentVehiclesGetEveryPassageAppliedAndWriteTheOutputs) {
   auto again = RunFleet(options);
   ASSERT_TRUE(again.ok()) << again.status();
   EXPECT_EQ(again->duplicates, options.passages);
+  EXPECT_FALSE(again->replay.has_value());  // the map did not start empty
 }
 
 TEST(Fleet, RefusesAServerRunningAnotherStrategy) {

@@ -53,8 +53,13 @@ fleet flags (and --landmarks, --noise, --seed, --quiet as for experiment):
   --vehicles V                concurrent vehicles; vehicle v uploads passages v, v+V, ... (default 4)
   --strategy S                fail unless the server runs strategy S (default: accept the server's)
   --sample-ms MS              read the map back and evaluate it this often while applying (default 250)
+  --no-replay                 skip the check below
   --out DIR                   output folder (default out/fleet): passages.csv (one row per sampled
                               map; the last row is the final map), summary.json, errors.svg, map.geojson
+  After the run (on a server whose map started empty) the passages are applied in-process in the
+  order the server received them; summary.json gets that run's error and the largest landmark
+  difference from the server's map (arrival_order_experiment_final_mean_dist_err_m,
+  max_position_diff_vs_arrival_order_experiment_m, max_cov_diff_vs_arrival_order_experiment_m2).
 
 export-passages flags (and --landmarks, --noise, --seed):
   --passages P                passages 0..P-1 (default 40)
@@ -146,7 +151,7 @@ absl::Status RunFleetCommand(const std::vector<std::string>& args) {
   absl::StatusOr<Flags> flags = Flags::Parse(args, {{"server", true}, {"landmarks", true}, {"passages", true},
                                                     {"noise", true}, {"seed", true}, {"vehicles", true},
                                                     {"strategy", true}, {"sample-ms", true}, {"out", true},
-                                                    {"quiet", false}});
+                                                    {"quiet", false}, {"no-replay", false}});
   if (!flags.ok()) return flags.status();
   absl::StatusOr<ScenarioOptions> scenario = ScenarioFromFlags(*flags);
   if (!scenario.ok()) return scenario.status();
@@ -162,6 +167,7 @@ absl::Status RunFleetCommand(const std::vector<std::string>& args) {
   options.vehicles = static_cast<int>(*vehicles);
   options.strategy = flags->GetString("strategy", "");
   options.sample_interval = std::chrono::milliseconds(*sample_ms);
+  options.replay = !flags->Has("no-replay");
   const std::string out = flags->GetString("out", "out/fleet");
   const bool quiet = flags->Has("quiet");
   auto progress = [&](const FleetProgress& p) {

@@ -81,7 +81,7 @@ absl::Status WriteErrorPlot(const std::vector<PassageRecord>& records, const std
       dmax = std::max(dmax, m.mean_dist_err_m);
     }
     // The East/North panel is scaled to the bands after the first tenth of the run.
-    if (r.passage > records.size() / 10) {
+    if (static_cast<size_t>(r.passage) > records.size() / 10) {
       for (double v : {std::abs(m.mean_east_err_m) + m.east_3sigma_m, std::abs(m.mean_north_err_m) + m.north_3sigma_m}) {
         if (std::isfinite(v)) band = std::max(band, v);
       }
