@@ -68,9 +68,9 @@ absl::Status BenchOptions::Validate() const {
 
 std::string BenchResult::Brief() const {
   return absl::StrFormat(
-      "passages=%d uploads_per_s=%.1f applied_per_s=%.1f query_region_p50_ms=%.2f query_region_p99_ms=%.2f "
+      "passages=%d uploads_per_s=%.1f applied_per_s=%.1f read_s=%.2f query_region_p50_ms=%.2f query_region_p99_ms=%.2f "
       "query_region_calls=%d get_tile_p50_ms=%.2f get_tile_p99_ms=%.2f get_tile_calls=%d landmarks_in_box=%d",
-      passages, uploads_per_s, applied_per_s, query_region.p50_ms, query_region.p99_ms, query_region.calls,
+      passages, uploads_per_s, applied_per_s, read_s, query_region.p50_ms, query_region.p99_ms, query_region.calls,
       get_tile.p50_ms, get_tile.p99_ms, get_tile.calls, landmarks_in_box);
 }
 
@@ -159,7 +159,10 @@ absl::StatusOr<BenchResult> RunBench(const BenchOptions& options) {
     if (drained == Clock::time_point{} && info->queue_depth() == 0 && finished - finished_at_start >= options.passages) {
       drained = Clock::now();
     }
-    if (Clock::now() >= read_end) stop = true;
+    if (!stop && (Clock::now() >= read_end || drained != Clock::time_point{})) {
+      stop = true;
+      result.read_s = Ms(t_uploaded, Clock::now()) / 1000.0;
+    }
     if (stop && drained != Clock::time_point{}) break;
     if (Clock::now() > read_end + std::chrono::minutes(30)) {
       error = absl::DeadlineExceededError("the queue did not drain within 30 minutes");

@@ -11,7 +11,8 @@ namespace crowdmap {
 // Load test of a running mapd (use a scratch database: the passages are applied to its map).
 // K clients upload P simulated passages as fast as acknowledgements come back; then R readers
 // issue QueryRegion (the route's bounding box) and GetTile (the tiles of the route's landmarks)
-// for `read_seconds` while the worker applies the queue.
+// while the worker applies the queue: until it is drained or `read_seconds` pass, whichever comes
+// first, so every measured read competes with map updates.
 struct BenchOptions {
   std::string server = "127.0.0.1:50051";
   ScenarioOptions scenario;
@@ -35,6 +36,7 @@ struct BenchResult {
   double uploads_per_s = 0.0;  // durable acknowledgements per second, K concurrent clients
   double apply_s = 0.0;        // first upload to the queue drained
   double applied_per_s = 0.0;  // passages finished by the worker per second over apply_s
+  double read_s = 0.0;         // length of the read phase
   LatencyStats query_region;
   LatencyStats get_tile;
   int64_t landmarks_in_box = 0;

@@ -5,6 +5,8 @@
 #include <cmath>
 #include <filesystem>
 #include <fstream>
+#include <numeric>
+#include <random>
 
 #include <spdlog/spdlog.h>
 
@@ -48,6 +50,17 @@ absl::Status ExperimentOptions::Validate() const {
     }
   }
   return update.Validate();
+}
+
+std::vector<int> ShuffledOrder(int passages, int window, int from, uint64_t seed) {
+  std::vector<int> order(std::max(0, passages));
+  std::iota(order.begin(), order.end(), 0);
+  if (window <= 1) return order;
+  std::mt19937_64 rng(seed);
+  for (int begin = std::max(0, from); begin < passages; begin += window) {
+    std::shuffle(order.begin() + begin, order.begin() + std::min(passages, begin + window), rng);
+  }
+  return order;
 }
 
 absl::StatusOr<ExperimentResult> RunExperiment(const ExperimentOptions& options, const ExperimentProgress& progress) {

@@ -48,6 +48,11 @@ struct ExperimentResult {
 // Called after each passage with the record; used for progress output.
 using ExperimentProgress = std::function<void(const PassageRecord&)>;
 
+// 0..passages-1 with the passages from `from` on shuffled within consecutive groups of `window`
+// (as concurrent vehicles would reorder them); deterministic for a given seed. window <= 1 keeps
+// the order.
+std::vector<int> ShuffledOrder(int passages, int window, int from, uint64_t seed);
+
 absl::StatusOr<ExperimentResult> RunExperiment(const ExperimentOptions& options,
                                                const ExperimentProgress& progress = nullptr);
 

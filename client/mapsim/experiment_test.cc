@@ -1,5 +1,6 @@
 #include "client/mapsim/experiment.h"
 
+#include <algorithm>
 #include <filesystem>
 #include <fstream>
 #include <string>
@@ -75,6 +76,18 @@ TEST(Experiment, AppliesPassagesInTheGivenOrder) {
   // The first passage alone decides the first map: passage 2 first gives another first record.
   EXPECT_NE(reordered->records.front().metrics.mean_dist_err_m, in_order->records.front().metrics.mean_dist_err_m);
   EXPECT_EQ(reordered->records.size(), 3u);
+}
+
+TEST(Experiment, ShuffledOrderPermutesOnlyWithinWindowsAfterTheStart) {
+  const std::vector<int> order = ShuffledOrder(23, 4, 3, 9);
+  ASSERT_EQ(order.size(), 23u);
+  for (int i = 0; i < 3; ++i) EXPECT_EQ(order[i], i);
+  for (int i = 3; i < 23; ++i) EXPECT_EQ((order[i] - 3) / 4, (i - 3) / 4) << i;  // stays in its window
+  std::vector<int> sorted = order;
+  std::sort(sorted.begin(), sorted.end());
+  for (int i = 0; i < 23; ++i) EXPECT_EQ(sorted[i], i);
+  EXPECT_NE(order, ShuffledOrder(23, 1, 0, 9));  // something moved
+  EXPECT_EQ(order, ShuffledOrder(23, 4, 3, 9));  // deterministic
 }
 
 TEST(Experiment, RejectsAnOrderThatIsNotAPermutation) {

@@ -45,6 +45,10 @@ experiment flags:
                               exceeds dof by K sigma, 0 = never (default 4)
   --max-chi2-per-dof X        refuse a solve whose chi2 exceeds X per degree of freedom, 0 = never
                               (default 0)
+  --shuffle-window W          apply the passages shuffled within consecutive groups of W, as W
+                              concurrent vehicles would deliver them (default 0: in order)
+  --shuffle-from F            keep passages 0..F-1 in order, shuffle from F on (default 0)
+  --shuffle-seed K            seed of the shuffle (default 1)
   --quiet                     no progress line
 
 fleet flags (and --landmarks, --noise, --seed, --quiet as for experiment):
@@ -71,7 +75,8 @@ bench flags (and --landmarks, --seed):
   --clients K                 concurrent uploading clients (default 8)
   --passages P                passages uploaded (default 400)
   --readers R                 concurrent QueryRegion / GetTile readers (default 8)
-  --seconds S                 read phase, while the worker applies the queue (default 10)
+  --seconds S                 longest read phase (default 10); reads stop when the queue is
+                              drained, so that every measured read competes with map updates
 
 reproduce flags:
   --out DIR                   output folder (default out/reproduce); writes DIR/reproduction.md
@@ -85,17 +90,21 @@ absl::Status RunExperimentCommand(const std::vector<std::string>& args) {
                                                     {"noise", true}, {"seed", true}, {"out", true},
                                                     {"max-subgraph-dim", true}, {"detections-per-landmark", true},
                                                     {"correlation-radius-m", true}, {"max-chi2-per-dof", true}, {"inflation-test-sigmas", true},
+                                                    {"shuffle-window", true}, {"shuffle-from", true}, {"shuffle-seed", true},
                                                     {"quiet", false}});
   if (!flags.ok()) return flags.status();
   ExperimentOptions options;
   absl::StatusOr<long long> landmarks = flags->GetInt("landmarks", 25), passages = flags->GetInt("passages", 100),
                             seed = flags->GetInt("seed", 1), dim = flags->GetInt("max-subgraph-dim", 500),
-                            per_landmark = flags->GetInt("detections-per-landmark", 5);
+                            per_landmark = flags->GetInt("detections-per-landmark", 5),
+                            shuffle_window = flags->GetInt("shuffle-window", 0),
+                            shuffle_from = flags->GetInt("shuffle-from", 0), shuffle_seed = flags->GetInt("shuffle-seed", 1);
   absl::StatusOr<double> radius = flags->GetDouble("correlation-radius-m", options.update.correlation_radius_m),
                          chi2 = flags->GetDouble("max-chi2-per-dof", options.update.max_chi2_per_dof),
                          inflation = flags->GetDouble("inflation-test-sigmas", options.update.inflation_test_sigmas);
   for (const absl::Status& s : {landmarks.status(), passages.status(), seed.status(), dim.status(),
-                                per_landmark.status(), radius.status(), chi2.status(), inflation.status()}) {
+                                per_landmark.status(), radius.status(), chi2.status(), inflation.status(),
+                                shuffle_window.status(), shuffle_from.status(), shuffle_seed.status()}) {
     if (!s.ok()) return s;
   }
   absl::StatusOr<NoiseConfig> noise = ParseNoiseConfig(flags->GetString("noise", "white"));
@@ -110,6 +119,12 @@ absl::Status RunExperimentCommand(const std::vector<std::string>& args) {
   options.update.correlation_radius_m = *radius;
   options.update.max_chi2_per_dof = *chi2;
   options.update.inflation_test_sigmas = *inflation;
+  if (*shuffle_window < 0) return absl::InvalidArgumentError("shuffle-window: must be >= 0");
+  if (*shuffle_from < 0) return absl::InvalidArgumentError("shuffle-from: must be >= 0");
+  if (*shuffle_window > 1) {
+    options.order = ShuffledOrder(options.passages, static_cast<int>(*shuffle_window), static_cast<int>(*shuffle_from),
+                                  static_cast<uint64_t>(*shuffle_seed));
+  }
   const std::string out = flags->GetString("out", "out/experiment");
   const bool quiet = flags->Has("quiet");
 
@@ -228,11 +243,11 @@ absl::Status RunBenchCommand(const std::vector<std::string>& args) {
   std::cout << absl::StrFormat(
       "durable uploads:  %.1f passages/s (%d clients, %d passages in %.2f s)\n"
       "applied:          %.1f passages/s (first upload to queue drained, %.2f s)\n"
-      "QueryRegion:      p50 %.2f ms  p99 %.2f ms  (%d calls, %d landmarks, %d readers, worker applying)\n"
+      "QueryRegion:      p50 %.2f ms  p99 %.2f ms  (%d calls, %d landmarks, %d readers, %.1f s while the worker applied)\n"
       "GetTile:          p50 %.2f ms  p99 %.2f ms  (%d calls)\n",
       result->uploads_per_s, options.clients, result->passages, result->upload_s, result->applied_per_s,
       result->apply_s, result->query_region.p50_ms, result->query_region.p99_ms, result->query_region.calls,
-      result->landmarks_in_box, options.readers, result->get_tile.p50_ms, result->get_tile.p99_ms,
+      result->landmarks_in_box, options.readers, result->read_s, result->get_tile.p50_ms, result->get_tile.p99_ms,
       result->get_tile.calls);
   std::cout << result->Brief() << "\n";
   return absl::OkStatus();
