@@ -12,6 +12,7 @@
 #include "absl/strings/str_format.h"
 #include "client/common/flags.h"
 #include "client/mapsim/experiment.h"
+#include "client/mapsim/pose_bias.h"
 #if CROWDMAP_MAPSIM_SERVICE
 #include "client/mapsim/bench.h"
 #include "client/mapsim/fleet.h"
@@ -26,6 +27,8 @@ constexpr char kUsage[] = R"(mapsim: simulate crowdsourced landmark mapping (the
 Usage:
   mapsim experiment [flags]   run passages through the estimation core in-process
   mapsim reproduce  [flags]   run the thesis's table 5.2 and robustness grids
+  mapsim pose-bias  [flags]   mean pose error of single-passage odometry + GNSS solves along the
+                              route: the bias of the MAP estimate that limits sparse maps
   mapsim fleet      [flags]   upload simulated passages to a running mapd from concurrent vehicles,
                               wait until applied, read the map back, write the experiment outputs
   mapsim export-passages [flags]  write simulated passages as files for `mapctl upload`
@@ -77,6 +80,13 @@ bench flags (and --landmarks, --seed):
   --readers R                 concurrent QueryRegion / GetTile readers (default 8)
   --seconds S                 longest read phase (default 10); reads stop when the queue is
                               drained, so that every measured read competes with map updates
+
+pose-bias flags (and --seed):
+  --passages P                independent passages, each solved alone (default 1000)
+  --bin-s S                   time bin width, s (default 5)
+  --steering-noise-scale X    scale the steering noise (drawn and modelled) by X (default 1)
+  --speed-noise-scale X       scale the speed noise likewise (default 1)
+  --gnss-noise-scale X        scale the GNSS noise likewise (default 1)
 
 reproduce flags:
   --out DIR                   output folder (default out/reproduce); writes DIR/reproduction.md
@@ -255,6 +265,53 @@ absl::Status RunBenchCommand(const std::vector<std::string>& args) {
 
 #endif  // CROWDMAP_MAPSIM_SERVICE
 
+absl::Status RunPoseBiasCommand(const std::vector<std::string>& args) {
+  absl::StatusOr<Flags> flags =
+      Flags::Parse(args, {{"passages", true}, {"seed", true}, {"bin-s", true}, {"steering-noise-scale", true},
+                          {"speed-noise-scale", true}, {"gnss-noise-scale", true}, {"quiet", false}});
+  if (!flags.ok()) return flags.status();
+  PoseBiasOptions options;
+  absl::StatusOr<long long> passages = flags->GetInt("passages", options.passages), seed = flags->GetInt("seed", 1);
+  absl::StatusOr<double> bin = flags->GetDouble("bin-s", options.bin_s),
+                         steering = flags->GetDouble("steering-noise-scale", 1.0),
+                         speed = flags->GetDouble("speed-noise-scale", 1.0),
+                         gnss = flags->GetDouble("gnss-noise-scale", 1.0);
+  for (const absl::Status& s : {passages.status(), seed.status(), bin.status(), steering.status(), speed.status(),
+                                gnss.status()}) {
+    if (!s.ok()) return s;
+  }
+  for (const auto& [name, v] : {std::pair<const char*, double>{"steering-noise-scale", *steering},
+                                {"speed-noise-scale", *speed}, {"gnss-noise-scale", *gnss}}) {
+    if (!(v > 0.0)) return absl::InvalidArgumentError(absl::StrCat(name, ": must be > 0"));
+  }
+  options.passages = static_cast<int>(*passages);
+  options.bin_s = *bin;
+  options.scenario.seed = static_cast<uint64_t>(*seed);
+  options.scenario.noise_model.steering_sigma_rad *= *steering;
+  options.scenario.noise_model.speed_sigma_mps *= *speed;
+  options.scenario.gnss_sigma_m *= *gnss;
+  const bool quiet = flags->Has("quiet");
+  const int every = std::max(1, options.passages / 20);
+  absl::StatusOr<std::vector<PoseBiasBin>> bins = RunPoseBias(options, [&](int done) {
+    if (!quiet && (done % every == 0 || done == options.passages)) {
+      std::cerr << absl::StrFormat("\rpassage %d/%d   ", done, options.passages) << std::flush;
+    }
+  });
+  if (!quiet) std::cerr << "\n";
+  if (!bins.ok()) return bins.status();
+  std::cout << absl::StrFormat("%8s %8s | %23s | %23s | %25s\n", "t (s)", "nodes", "along-track mean (se) m",
+                               "cross-track mean (se) m", "heading mean (se) mrad");
+  double worst = 0.0;
+  for (const PoseBiasBin& b : *bins) {
+    std::cout << absl::StrFormat("%8.0f %8d | %+9.3f (%5.3f) sd %4.2f | %+9.3f (%5.3f) sd %4.2f | %+9.2f (%4.2f) sd %5.1f\n",
+                                 b.start_s, b.samples, b.mean.x(), b.mean_se.x(), b.sd.x(), b.mean.y(), b.mean_se.y(),
+                                 b.sd.y(), 1e3 * b.mean.z(), 1e3 * b.mean_se.z(), 1e3 * b.sd.z());
+    worst = std::max(worst, b.mean.head<2>().norm());
+  }
+  std::cout << absl::StrFormat("passages=%d largest_position_bias_m=%.3f\n", options.passages, worst);
+  return absl::OkStatus();
+}
+
 absl::Status RunReproduceCommand(const std::vector<std::string>& args) {
   absl::StatusOr<Flags> flags = Flags::Parse(args, {{"out", true}, {"passages", true}, {"jobs", true}, {"seed", true}});
   if (!flags.ok()) return flags.status();
@@ -296,6 +353,8 @@ int main(int argc, char** argv) {
     status = crowdmap::RunExperimentCommand(args);
   } else if (command == "reproduce") {
     status = crowdmap::RunReproduceCommand(args);
+  } else if (command == "pose-bias") {
+    status = crowdmap::RunPoseBiasCommand(args);
 #if CROWDMAP_MAPSIM_SERVICE
   } else if (command == "fleet") {
     status = crowdmap::RunFleetCommand(args);
