@@ -88,57 +88,6 @@ absl::Status LandmarkUpdate::AddMapPrior(bool correlated, ceres::Problem* proble
   return absl::OkStatus();
 }
 
-absl::StatusOr<Eigen::MatrixXd> LandmarkUpdate::GraphCovariance(ceres::Problem* problem) const {
-  // Landmark marginal of the Gauss-Newton covariance (J^T J)^-1 at the solution, with the
-  // Jacobian as Ceres evaluates it (loss weights applied). Columns: other blocks first, then the
-  // landmarks, so H = [A B; B^T C] and Sigma_LL = (C - B^T A^-1 B)^-1: a sparse Cholesky of the
-  // banded pose block and a small dense one. Same result as ceres::Covariance, several times
-  // faster on these graphs; a rank-deficient graph fails at either factorisation.
-  std::vector<double*> all;
-  problem->GetParameterBlocks(&all);
-  std::vector<double*> ordered;
-  int other_dim = 0;
-  for (double* block : all) {
-    bool landmark = false;
-    for (const Eigen::Vector2d& p : positions_) landmark |= block == p.data();
-    if (!landmark) {
-      ordered.push_back(block);
-      other_dim += problem->ParameterBlockSize(block);
-    }
-  }
-  for (const Eigen::Vector2d& p : positions_) ordered.push_back(const_cast<double*>(p.data()));
-  ceres::Problem::EvaluateOptions evaluate;
-  evaluate.parameter_blocks = ordered;
-  evaluate.num_threads = 1;
-  ceres::CRSMatrix crs;
-  if (!problem->Evaluate(evaluate, nullptr, nullptr, nullptr, &crs)) {
-    return absl::InternalError("landmark covariance: the Jacobian could not be evaluated");
-  }
-  const Eigen::Map<const Eigen::SparseMatrix<double, Eigen::RowMajor>> jacobian(
-      crs.num_rows, crs.num_cols, static_cast<int>(crs.values.size()), crs.rows.data(), crs.cols.data(),
-      crs.values.data());
-  const Eigen::SparseMatrix<double> h = Eigen::SparseMatrix<double>(jacobian.transpose()) * jacobian;
-  const int landmark_dim = 2 * size();
-  const Eigen::SparseMatrix<double> a = h.topLeftCorner(other_dim, other_dim);
-  const Eigen::MatrixXd b = Eigen::MatrixXd(h.topRightCorner(other_dim, landmark_dim));
-  const Eigen::MatrixXd c = Eigen::MatrixXd(h.bottomRightCorner(landmark_dim, landmark_dim));
-  Eigen::MatrixXd schur = c;
-  if (other_dim > 0) {
-    Eigen::SimplicialLLT<Eigen::SparseMatrix<double>> poses(a);
-    if (poses.info() != Eigen::Success) {
-      return absl::InternalError("landmark covariance could not be computed (pose block rank deficient)");
-    }
-    schur -= b.transpose() * poses.solve(b);
-  }
-  Eigen::LLT<Eigen::MatrixXd> landmarks(schur);
-  if (landmarks.info() != Eigen::Success) {
-    return absl::InternalError("landmark covariance could not be computed (landmarks not observable)");
-  }
-  Eigen::MatrixXd cov = landmarks.solve(Eigen::MatrixXd::Identity(landmark_dim, landmark_dim));
-  if (!cov.allFinite()) return absl::InternalError("landmark covariance is not finite");
-  return Eigen::MatrixXd(0.5 * (cov + cov.transpose()));
-}
-
 void LandmarkUpdate::WriteLandmark(Landmark record, const Eigen::Vector2d& mean, const Eigen::Matrix2d& cov,
                                    int64_t version, Eigen::Matrix2d* from_local) {
   record.position = frame_.ToGeo(mean);
@@ -148,15 +97,14 @@ void LandmarkUpdate::WriteLandmark(Landmark record, const Eigen::Vector2d& mean,
   map_->PutLandmark(record);
 }
 
-absl::StatusOr<LandmarkUpdateStats> LandmarkUpdate::Commit(ceres::Problem* problem,
+absl::StatusOr<LandmarkUpdateStats> LandmarkUpdate::Commit(const Eigen::MatrixXd& cov_ss,
                                                            const LandmarkUpdateOptions& options,
                                                            const std::function<void(Landmark*)>& touch) {
   LandmarkUpdateStats stats;
   const auto start = std::chrono::steady_clock::now();
-  absl::StatusOr<Eigen::MatrixXd> graph_cov = GraphCovariance(problem);
-  if (!graph_cov.ok()) return graph_cov.status();
-  const Eigen::MatrixXd& cov_ss = *graph_cov;
-  stats.covariance_ms = MillisecondsSince(start);
+  if (cov_ss.rows() != 2 * size() || cov_ss.cols() != 2 * size()) {
+    return absl::InvalidArgumentError("landmark covariance: wrong size for the graph's landmarks");
+  }
   const int n = size();
   const int m = static_cast<int>(prior_index_.size());
   stats.updated = m;

@@ -54,14 +54,14 @@ class LandmarkUpdate {
   // covariance sub-block is not positive definite.
   absl::Status AddMapPrior(bool correlated, ceres::Problem* problem);
 
-  // After a usable solve of `problem`: computes the landmark covariance, conditions the
-  // correlated landmarks outside the graph and writes every change at a new map version.
-  // `touch` is called on each record of the graph's landmarks before it is written (counts).
-  absl::StatusOr<LandmarkUpdateStats> Commit(ceres::Problem* problem, const LandmarkUpdateOptions& options,
+  // After a usable solve: with the graph landmarks' estimate in their blocks and `cov_ss` their
+  // marginal covariance (GraphLinearization), conditions the correlated landmarks outside the
+  // graph and writes every change at a new map version. `touch` is called on each record of the
+  // graph's landmarks before it is written (counts).
+  absl::StatusOr<LandmarkUpdateStats> Commit(const Eigen::MatrixXd& cov_ss, const LandmarkUpdateOptions& options,
                                              const std::function<void(Landmark*)>& touch);
 
  private:
-  absl::StatusOr<Eigen::MatrixXd> GraphCovariance(ceres::Problem* problem) const;
   // Covariance of landmarks a and b in the local frame (zero when not stored).
   Eigen::Matrix2d LocalCross(LandmarkId a, const Eigen::Matrix2d& ra, LandmarkId b, const Eigen::Matrix2d& rb) const;
   // Writes one landmark record at `version` from its local-frame mean and covariance.

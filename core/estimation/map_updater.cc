@@ -13,6 +13,7 @@
 #include "absl/strings/str_format.h"
 #include "core/estimation/factors.h"
 #include "core/estimation/graph_builder.h"
+#include "core/estimation/graph_linearization.h"
 #include "core/estimation/landmark_update.h"
 #include "core/estimation/subdivision.h"
 #include "core/estimation/triangulation.h"
@@ -206,6 +207,19 @@ absl::Status UpdateFromSubgraph(const Passage& passage, const PassageGraph& grap
         chi2, dof, options.max_chi2_per_dof));
   }
 
+  const auto covariance_start = std::chrono::steady_clock::now();
+  std::vector<double*> landmark_blocks;
+  for (int i = 0; i < update.size(); ++i) landmark_blocks.push_back(update.block(i));
+  absl::StatusOr<GraphLinearization> linearization = GraphLinearization::Compute(&problem, landmark_blocks);
+  if (!linearization.ok()) return linearization.status();
+  summary->covariance_ms += MillisecondsSince(covariance_start);
+  if (options.bias_correction) {
+    BiasCorrectionStats bias;
+    if (absl::Status s = linearization->CorrectSecondOrderBias(&problem, &bias); !s.ok()) return s;
+    summary->bias_correction_ms += bias.ms;
+    summary->max_bias_correction_m = std::max(summary->max_bias_correction_m, bias.max_landmark_shift_m);
+  }
+
   const int64_t seen_ms = passage.start_time_unix_ms;
   auto touch = [&](Landmark* record) {
     if (!progress->counted.insert(record->id).second) return;
@@ -215,7 +229,7 @@ absl::Status UpdateFromSubgraph(const Passage& passage, const PassageGraph& grap
   LandmarkUpdateOptions update_options;
   update_options.correlated = correlated;
   update_options.correlation_radius_m = options.correlation_radius_m;
-  absl::StatusOr<LandmarkUpdateStats> stats = update.Commit(&problem, update_options, touch);
+  absl::StatusOr<LandmarkUpdateStats> stats = update.Commit(linearization->landmark_covariance(), update_options, touch);
   if (!stats.ok()) return stats.status();
   summary->covariance_ms += stats->covariance_ms;
   for (int i = 0; i < update.size(); ++i) {
@@ -278,9 +292,11 @@ absl::Status MapUpdateOptions::Validate() const {
 std::string PassageUpdateSummary::Brief() const {
   return absl::StrFormat(
       "nodes=%d subgraphs=%d updated=%d created=%d conditioned=%d detections=%d dropped=%d iterations=%d "
-      "variance_factor=%.2f solve_ms=%.2f covariance_ms=%.2f total_ms=%.2f version=%d",
+      "variance_factor=%.2f solve_ms=%.2f covariance_ms=%.2f bias_correction_ms=%.2f bias_correction_m=%.3f "
+      "total_ms=%.2f version=%d",
       nodes, subgraphs, landmarks_updated, landmarks_created, landmarks_conditioned, detections_used,
-      detections_dropped, solver_iterations, max_variance_factor, solve_ms, covariance_ms, total_ms, map_version);
+      detections_dropped, solver_iterations, max_variance_factor, solve_ms, covariance_ms, bias_correction_ms,
+      max_bias_correction_m, total_ms, map_version);
 }
 
 absl::StatusOr<PassageUpdate> ComputePassageUpdate(const Passage& passage, const MapUpdateOptions& options,

@@ -9,6 +9,7 @@
 #include <gtest/gtest.h>
 
 #include "core/estimation/factors.h"
+#include "core/estimation/graph_linearization.h"
 #include "core/estimation/landmark_update.h"
 
 namespace crowdmap {
@@ -163,7 +164,15 @@ MapState SequentialSolve(const std::vector<ToyPassage>& passages, bool correlate
     SolveExactly(&problem);
     LandmarkUpdateOptions options;
     options.correlated = correlated;
-    absl::StatusOr<LandmarkUpdateStats> stats = update.Commit(&problem, options, [](Landmark*) {});
+    std::vector<double*> blocks;
+    for (int i = 0; i < update.size(); ++i) blocks.push_back(update.block(i));
+    absl::StatusOr<GraphLinearization> linearization = GraphLinearization::Compute(&problem, blocks);
+    EXPECT_TRUE(linearization.ok()) << linearization.status();
+    if (!linearization.ok()) return map;
+    // Part of every update; on this linear problem the second-order bias is zero.
+    EXPECT_TRUE(linearization->CorrectSecondOrderBias(&problem, nullptr).ok());
+    absl::StatusOr<LandmarkUpdateStats> stats =
+        update.Commit(linearization->landmark_covariance(), options, [](Landmark*) {});
     EXPECT_TRUE(stats.ok()) << stats.status();
     map.Apply(overlay.TakeDelta());
   }

@@ -1,0 +1,85 @@
+#ifndef CROWDMAP_CORE_ESTIMATION_GRAPH_LINEARIZATION_H_
+#define CROWDMAP_CORE_ESTIMATION_GRAPH_LINEARIZATION_H_
+
+#include <memory>
+#include <unordered_map>
+#include <vector>
+
+#include <Eigen/Cholesky>
+#include <Eigen/Core>
+#include <Eigen/SparseCholesky>
+#include <Eigen/SparseCore>
+#include <ceres/ceres.h>
+
+#include "absl/status/statusor.h"
+
+namespace crowdmap {
+
+// Entries of A^-1 on the pattern of the Cholesky factor of a sparse symmetric positive definite A
+// (Takahashi's recursion): every (i, j) where A is non-zero, and its fill.
+class SelectedInverse {
+ public:
+  explicit SelectedInverse(const Eigen::SimplicialLLT<Eigen::SparseMatrix<double>>& factor);
+  // (A^-1)_ij; 0 off the factor's pattern (where the entry is not computed, not zero).
+  double operator()(int i, int j) const;
+
+ private:
+  Eigen::VectorXi perm_;           // original index -> factor index
+  Eigen::SparseMatrix<double> l_;  // lower Cholesky factor of the permuted matrix
+  std::vector<double> values_;     // inverse entries on l_'s pattern
+};
+
+struct BiasCorrectionStats {
+  double max_landmark_shift_m = 0.0;
+  int skipped_residual_blocks = 0;  // not evaluable near the solution (left out of the correction)
+  double ms = 0.0;
+};
+
+// The Gauss-Newton linearization of a solved graph at its solution: information H = J^T J (with
+// Ceres's loss weights) split into the other blocks x (the pose chain, sparse) and the landmarks L
+// (2-D positions, a small dense block): H = [A B; B^T C]. The landmark marginal covariance is
+// Sigma_LL = (C - B^T A^-1 B)^-1: a sparse Cholesky of the banded pose block and a small dense
+// one, the same result as ceres::Covariance several times faster on these graphs. A
+// rank-deficient graph fails at either factorisation.
+class GraphLinearization {
+ public:
+  static absl::StatusOr<GraphLinearization> Compute(ceres::Problem* problem, const std::vector<double*>& landmarks);
+
+  // Marginal covariance of the landmarks, in the order given (2 x 2 blocks).
+  const Eigen::MatrixXd& landmark_covariance() const { return sigma_ll_; }
+
+  // Second-order bias correction of the solution (Box 1971): to order sigma^2 a nonlinear
+  // least-squares (MAP) estimate is off its expectation by
+  //   b = -1/2 H^-1 sum_k J_k^T tr(Sigma_k d2r_k),
+  // r_k the whitened residuals, d2r_k their Hessians in the variables of residual block k and
+  // Sigma_k = H^-1 on those variables; the trace is taken with central second differences along
+  // the Cholesky columns of Sigma_k (exact for quadratic residuals). With the heading noise of
+  // production odometry the MAP poses of one passage are decimetres off on average, the same way
+  // on every passage of a road (`mapsim pose-bias`), so without this step the bias stays in the
+  // map. Moves the estimate in `problem` (the problem this was computed from) by -b. Linear
+  // residual blocks (the map prior) contribute nothing and are skipped.
+  absl::Status CorrectSecondOrderBias(ceres::Problem* problem, BiasCorrectionStats* stats);
+
+ private:
+  GraphLinearization() = default;
+  // Sigma = H^-1 at columns u, v (u, v on the pattern of H).
+  double Sigma(int u, int v) const;
+
+  std::vector<double*> ordered_;                  // other blocks, then the landmarks
+  std::unordered_map<const double*, int> offset_; // column of each block
+  std::vector<ceres::ResidualBlockId> residuals_; // row order of the Jacobian
+  int other_dim_ = 0;
+  int landmark_dim_ = 0;
+  Eigen::SparseMatrix<double> jt_;                // J^T
+  Eigen::SparseMatrix<double> b_;                 // B
+  std::unique_ptr<Eigen::SimplicialLLT<Eigen::SparseMatrix<double>>> a_llt_;
+  std::unique_ptr<SelectedInverse> a_inv_;
+  Eigen::MatrixXd w_;                             // A^-1 B
+  Eigen::LLT<Eigen::MatrixXd> s_llt_;             // S = C - B^T A^-1 B
+  Eigen::MatrixXd sigma_ll_;
+  Eigen::MatrixXd w_sigma_;                       // A^-1 B Sigma_LL
+};
+
+}  // namespace crowdmap
+
+#endif  // CROWDMAP_CORE_ESTIMATION_GRAPH_LINEARIZATION_H_

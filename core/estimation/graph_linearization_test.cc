@@ -1,0 +1,105 @@
+#include "core/estimation/graph_linearization.h"
+
+#include <cmath>
+#include <random>
+#include <vector>
+
+#include <Eigen/Dense>
+#include <gtest/gtest.h>
+
+namespace crowdmap {
+namespace {
+
+TEST(SelectedInverse, MatchesTheDenseInverseOnThePattern) {
+  // A block-tridiagonal chain with a few long-range couplings, like a pose chain with loops.
+  const int n = 60;
+  std::mt19937 rng(3);
+  std::uniform_real_distribution<double> u(-1.0, 1.0);
+  Eigen::MatrixXd m = Eigen::MatrixXd::Zero(n, n);
+  for (int i = 0; i < n; ++i) {
+    for (int j = std::max(0, i - 4); j < i; ++j) m(i, j) = m(j, i) = u(rng);
+  }
+  for (int k = 0; k < 6; ++k) {
+    const int i = static_cast<int>(rng() % n), j = static_cast<int>(rng() % n);
+    if (i != j) m(i, j) = m(j, i) = u(rng);
+  }
+  m += (m.cwiseAbs().rowwise().sum().maxCoeff() + 1.0) * Eigen::MatrixXd::Identity(n, n);  // SPD
+  const Eigen::SparseMatrix<double> a = m.sparseView();
+  Eigen::SimplicialLLT<Eigen::SparseMatrix<double>> llt(a);
+  ASSERT_EQ(llt.info(), Eigen::Success);
+  const SelectedInverse inverse(llt);
+  const Eigen::MatrixXd dense = m.inverse();
+  for (int i = 0; i < n; ++i) {
+    for (int j = 0; j < n; ++j) {
+      if (m(i, j) != 0.0) {
+        EXPECT_NEAR(inverse(i, j), dense(i, j), 1e-12) << i << "," << j;
+      }
+    }
+  }
+}
+
+// y = exp(theta) + noise, per coordinate: the least-squares estimate log(mean y) is biased by
+// -sigma^2 / (2 n exp(2 theta)) to second order.
+struct ExpResidual {
+  ExpResidual(double y0, double y1, double sigma) : y0(y0), y1(y1), sigma(sigma) {}
+  template <typename T>
+  bool operator()(const T* theta, T* r) const {
+    r[0] = (T(y0) - exp(theta[0])) / T(sigma);
+    r[1] = (T(y1) - exp(theta[1])) / T(sigma);
+    return true;
+  }
+  double y0, y1, sigma;
+};
+
+TEST(GraphLinearization, SecondOrderCorrectionRemovesTheBiasOfANonlinearEstimate) {
+  const int n = 4, draws = 20000;
+  const double sigma = 0.3;
+  const Eigen::Vector2d truth(0.0, 0.5);
+  std::mt19937_64 rng(11);
+  std::normal_distribution<double> noise(0.0, sigma);
+  Eigen::Vector2d sum_map = Eigen::Vector2d::Zero(), sum_corrected = Eigen::Vector2d::Zero();
+  Eigen::Vector2d covariance_check = Eigen::Vector2d::Zero(), sum_shift_formula = Eigen::Vector2d::Zero();
+  for (int k = 0; k < draws; ++k) {
+    ceres::Problem problem;
+    Eigen::Vector2d theta = truth;
+    for (int i = 0; i < n; ++i) {
+      problem.AddResidualBlock(new ceres::AutoDiffCostFunction<ExpResidual, 2, 2>(new ExpResidual(
+                                   std::exp(truth.x()) + noise(rng), std::exp(truth.y()) + noise(rng), sigma)),
+                               nullptr, theta.data());
+    }
+    ceres::Solver::Options options;
+    options.linear_solver_type = ceres::DENSE_QR;
+    options.function_tolerance = 1e-14;
+    options.parameter_tolerance = 1e-14;
+    options.gradient_tolerance = 1e-16;
+    ceres::Solver::Summary summary;
+    ceres::Solve(options, &problem, &summary);
+    ASSERT_TRUE(summary.IsSolutionUsable());
+    sum_map += theta;
+    absl::StatusOr<GraphLinearization> lin = GraphLinearization::Compute(&problem, {theta.data()});
+    ASSERT_TRUE(lin.ok()) << lin.status();
+    // Covariance: (J^T J)^-1 = sigma^2 / (n exp(2 theta)) per coordinate.
+    covariance_check += (lin->landmark_covariance().diagonal().array() /
+                         (sigma * sigma / (n * (2.0 * theta.array()).exp()))).matrix();
+    // Box's formula at this estimate: the bias is -sigma^2 / (2 n exp(2 theta)).
+    sum_shift_formula += (sigma * sigma / (2.0 * n)) * (-2.0 * theta.array()).exp().matrix();
+    ASSERT_TRUE(lin->CorrectSecondOrderBias(&problem, nullptr).ok());
+    sum_corrected += theta;
+  }
+  const Eigen::Vector2d bias_map = sum_map / draws - truth;
+  const Eigen::Vector2d bias_corrected = sum_corrected / draws - truth;
+  const Eigen::Vector2d expected = -(sigma * sigma / (2.0 * n)) * (-2.0 * truth.array()).exp().matrix();
+  const Eigen::Vector2d standard_error = (sigma / std::sqrt(1.0 * n * draws)) * (-truth.array()).exp().matrix();
+  const Eigen::Vector2d mean_shift = (sum_corrected - sum_map) / draws;
+  for (int c = 0; c < 2; ++c) {
+    EXPECT_NEAR(covariance_check[c] / draws, 1.0, 1e-12);
+    // The correction is Box's formula (up to the finite differences' fourth-order term).
+    EXPECT_NEAR(mean_shift[c], sum_shift_formula[c] / draws, 0.01 * std::abs(expected[c])) << c;
+    EXPECT_NEAR(bias_map[c], expected[c], 3.0 * standard_error[c]) << c;   // the MAP is biased...
+    EXPECT_GT(std::abs(bias_map[c]), 6.0 * standard_error[c]) << c;
+    EXPECT_LT(std::abs(bias_corrected[c]), 3.0 * standard_error[c]) << c;  // ...the corrected one not
+  }
+}
+
+}  // namespace
+}  // namespace crowdmap
