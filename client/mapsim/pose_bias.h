@@ -15,6 +15,8 @@ namespace crowdmap {
 // landmarks) along the route: many passages with independent noise, each solved alone, errors
 // against the true poses averaged in time bins. Every measurement model is unbiased, so a mean
 // error well above its standard error is the bias of the MAP estimate of a nonlinear problem.
+// The same estimates after the second-order bias correction the map update applies
+// (GraphLinearization::CorrectSecondOrderBias) are measured beside them.
 struct PoseBiasOptions {
   ScenarioOptions scenario;
   int passages = 1000;
@@ -30,6 +32,8 @@ struct PoseBiasBin {
   Eigen::Vector3d mean = Eigen::Vector3d::Zero();     // mean error (m, m, rad)
   Eigen::Vector3d sd = Eigen::Vector3d::Zero();       // spread of one pose's error
   Eigen::Vector3d mean_se = Eigen::Vector3d::Zero();  // standard error of `mean`
+  Eigen::Vector3d corrected_mean = Eigen::Vector3d::Zero();  // after the bias correction
+  Eigen::Vector3d corrected_se = Eigen::Vector3d::Zero();
 };
 
 // Called after each passage with the number done.

@@ -24,6 +24,7 @@ TEST(PoseBias, ErrorsAreMeasuredAgainstTheTruePosesInTheirOwnFrame) {
     for (int k = 0; k < 3; ++k) {
       EXPECT_GT(b.mean_se[k], 0.0);
       EXPECT_LT(std::abs(b.mean[k]), 4.0 * b.mean_se[k]) << b.start_s << " component " << k;
+      EXPECT_LT(std::abs(b.corrected_mean[k]), 4.0 * b.corrected_se[k]) << b.start_s << " component " << k;
     }
   }
 }

@@ -95,15 +95,7 @@ std::vector<Pose2> AlignDeadReckoning(const PassageGraph& g, const Calibration& 
 
 absl::Status SolvePoseGraph(const Calibration& calib, int max_iterations, PassageGraph* g) {
   ceres::Problem problem;
-  for (Pose2& p : g->initial_poses) problem.AddParameterBlock(p.data(), 3);
-  for (int k = 0; k + 1 < g->node_count(); ++k) {
-    problem.AddResidualBlock(OdometryFactor::Create(g->motions[k]), nullptr, g->initial_poses[k].data(),
-                             g->initial_poses[k + 1].data());
-  }
-  for (const GnssObservation& o : g->gnss) {
-    problem.AddResidualBlock(GnssFactor::Create(o.position_m, o.cov_m2, calib.gnss_lever_arm_m), nullptr,
-                             g->initial_poses[o.node].data());
-  }
+  AddPoseGraphFactors(*g, 0, g->node_count() - 1, calib.gnss_lever_arm_m, nullptr, &g->initial_poses, &problem);
   ceres::Solver::Options options;
   options.linear_solver_type = ceres::SPARSE_NORMAL_CHOLESKY;
   options.max_num_iterations = max_iterations;
@@ -118,6 +110,19 @@ absl::Status SolvePoseGraph(const Calibration& calib, int max_iterations, Passag
 }
 
 }  // namespace
+
+void AddPoseGraphFactors(const PassageGraph& graph, int first, int last, const Eigen::Vector2d& gnss_lever_arm_m,
+                         ceres::LossFunction* loss, std::vector<Pose2>* poses, ceres::Problem* problem) {
+  auto pose = [&](int node) { return (*poses)[node - first].data(); };
+  for (Pose2& p : *poses) problem->AddParameterBlock(p.data(), 3);
+  for (int k = first; k < last; ++k) {
+    problem->AddResidualBlock(OdometryFactor::Create(graph.motions[k]), loss, pose(k), pose(k + 1));
+  }
+  for (const GnssObservation& o : graph.gnss) {
+    if (o.node < first || o.node > last) continue;
+    problem->AddResidualBlock(GnssFactor::Create(o.position_m, o.cov_m2, gnss_lever_arm_m), loss, pose(o.node));
+  }
+}
 
 absl::StatusOr<PassageGraph> BuildPassageGraph(const Passage& passage, const GraphOptions& options) {
   if (passage.gnss.size() < 2) return absl::InvalidArgumentError("gnss: passage needs at least 2 GNSS fixes");

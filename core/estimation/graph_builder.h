@@ -3,6 +3,8 @@
 
 #include <vector>
 
+#include <ceres/ceres.h>
+
 #include "absl/status/statusor.h"
 #include "core/geo/local_frame.h"
 #include "core/model/motion_model.h"
@@ -47,6 +49,11 @@ struct PassageGraph {
 
   int node_count() const { return static_cast<int>(node_times_s.size()); }
 };
+
+// Adds the pose blocks of nodes first..last (inclusive; poses[k] is node first + k) and the
+// odometry and GNSS factors among them to `problem`. `loss` (may be null) weights every residual.
+void AddPoseGraphFactors(const PassageGraph& graph, int first, int last, const Eigen::Vector2d& gnss_lever_arm_m,
+                         ceres::LossFunction* loss, std::vector<Pose2>* poses, ceres::Problem* problem);
 
 // Builds the graph of a validated passage and initialises its poses: odometry dead-reckoning
 // aligned to the GNSS fixes, then (optionally) a Ceres solve of the odometry + GNSS pose graph.

@@ -69,27 +69,13 @@ ceres::Solver::Options SolverOptions(int max_iterations) {
   return options;
 }
 
-// `loss` (may be null) weights every measurement residual; the map prior is never weighted.
-void AddMotionAndGnss(const PassageGraph& graph, const NodeRange& range, const Calibration& calib,
-                      ceres::LossFunction* loss, std::vector<Pose2>* poses, ceres::Problem* problem) {
-  auto pose = [&](int node) { return (*poses)[node - range.first].data(); };
-  for (Pose2& p : *poses) problem->AddParameterBlock(p.data(), 3);
-  for (int k = range.first; k < range.last; ++k) {
-    problem->AddResidualBlock(OdometryFactor::Create(graph.motions[k]), loss, pose(k), pose(k + 1));
-  }
-  for (const GnssObservation& o : graph.gnss) {
-    if (o.node < range.first || o.node > range.last) continue;
-    problem->AddResidualBlock(GnssFactor::Create(o.position_m, o.cov_m2, calib.gnss_lever_arm_m), loss, pose(o.node));
-  }
-}
-
 // Refines the subgraph's initial poses: odometry + GNSS + the bearings of the map landmarks held
 // fixed, if any. The pixel model alone cannot start from poses tens of metres off (with coloured
 // GNSS noise the GNSS-aligned guess often is), the bounded bearing residual can.
 void InitializePoses(const PassageGraph& graph, const NodeRange& range, const Passage& passage,
                         SubgraphLandmarks* landmarks, std::vector<Pose2>* poses) {
   ceres::Problem problem;
-  AddMotionAndGnss(graph, range, passage.calibration, nullptr, poses, &problem);
+  AddPoseGraphFactors(graph, range.first, range.last, passage.calibration.gnss_lever_arm_m, nullptr, poses, &problem);
   for (size_t i = 0; i < landmarks->ids.size(); ++i) {
     if (!landmarks->known[i]) continue;
     for (const CameraObservation* d : landmarks->detections[i]) {
@@ -165,7 +151,8 @@ absl::Status UpdateFromSubgraph(const Passage& passage, const PassageGraph& grap
   ceres::Problem::Options problem_options;
   problem_options.loss_function_ownership = ceres::DO_NOT_TAKE_OWNERSHIP;
   ceres::Problem problem(problem_options);
-  AddMotionAndGnss(graph, range, calib, &measurement_weight, &poses, &problem);
+  // The measurement weight scales every measurement residual; the map prior is never weighted.
+  AddPoseGraphFactors(graph, range.first, range.last, calib.gnss_lever_arm_m, &measurement_weight, &poses, &problem);
   for (int i = 0; i < update.size(); ++i) {
     if (!update.in_map(i)) Eigen::Map<Eigen::Vector2d>(update.block(i)) = landmarks.initial[i];
     problem.AddParameterBlock(update.block(i), 2);
