@@ -91,6 +91,7 @@ absl::StatusOr<ExperimentResult> RunExperiment(const ExperimentOptions& options,
       if (u.ok()) {
         result.final_map.Apply(u->delta);
         record.subgraphs = u->summary.subgraphs;
+        if (u->summary.max_variance_factor > 1.0) ++result.inflated_passages;
       } else {
         ++result.failed_passages;
         spdlog::warn("passage={} rejected: {}", passage.passage_id, u.status().ToString());
@@ -143,6 +144,7 @@ absl::Status WriteExperimentOutputs(const ExperimentOptions& options, const Expe
        << absl::StrFormat("  \"landmarks\": %d,\n", options.scenario.landmarks)
        << absl::StrFormat("  \"passages\": %d,\n", options.passages)
        << absl::StrFormat("  \"failed_passages\": %d,\n", result.failed_passages)
+       << absl::StrFormat("  \"inflated_passages\": %d,\n", result.inflated_passages)
        << absl::StrFormat("  \"max_subgraph_dim\": %d,\n", options.update.max_subgraph_dim)
        << absl::StrFormat("  \"detections_per_landmark\": %d,\n", options.update.detections_per_landmark)
        << "  \"final_mean_dist_err_m\": " << JsonNumber(result.final_mean_dist_err_m) << ",\n"

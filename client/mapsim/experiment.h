@@ -43,6 +43,7 @@ struct ExperimentResult {
   double final_joint_nees_per_dof = 0.0;  // likewise, joint NEES with the cross-covariances
   double median_passage_ms = 0.0;
   int failed_passages = 0;          // passages the estimator rejected (the map is unchanged by them)
+  int inflated_passages = 0;        // passages whose measurement covariances the consistency test inflated
 };
 
 // Called after each passage with the record; used for progress output.

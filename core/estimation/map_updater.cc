@@ -72,8 +72,8 @@ ceres::Solver::Options SolverOptions(int max_iterations) {
 // Refines the subgraph's initial poses: odometry + GNSS + the bearings of the map landmarks held
 // fixed, if any. The pixel model alone cannot start from poses tens of metres off (with coloured
 // GNSS noise the GNSS-aligned guess often is), the bounded bearing residual can.
-void InitializePoses(const PassageGraph& graph, const NodeRange& range, const Passage& passage,
-                        SubgraphLandmarks* landmarks, std::vector<Pose2>* poses) {
+void InitializePoses(const PassageGraph& graph, const NodeRange& range, const Passage& passage, int max_iterations,
+                     SubgraphLandmarks* landmarks, std::vector<Pose2>* poses) {
   ceres::Problem problem;
   AddPoseGraphFactors(graph, range.first, range.last, passage.calibration.gnss_lever_arm_m, nullptr, poses, &problem);
   for (size_t i = 0; i < landmarks->ids.size(); ++i) {
@@ -84,8 +84,11 @@ void InitializePoses(const PassageGraph& graph, const NodeRange& range, const Pa
     }
     problem.SetParameterBlockConstant(landmarks->initial[i].data());
   }
-  // Only an initial guess: it must reach the basin of the full solve, not converge tightly.
-  ceres::Solver::Options options = SolverOptions(20);
+  // Only an initial guess: it must reach the basin of the full solve, not converge tightly. It
+  // gets the full solve's iteration budget: from a guess metres off it can take 20 or more
+  // iterations, and one stopped short of the basin leaves the full solve in a wrong minimum (which
+  // the consistency test then mistakes for a noisy passage and down-weights).
+  ceres::Solver::Options options = SolverOptions(max_iterations);
   options.function_tolerance = 1e-6;
   options.parameter_tolerance = 1e-6;
   ceres::Solver::Summary summary;
@@ -141,7 +144,7 @@ absl::Status UpdateFromSubgraph(const Passage& passage, const PassageGraph& grap
   if (landmarks.ids.empty()) return absl::OkStatus();
   std::vector<Pose2> poses(graph.initial_poses.begin() + range.first, graph.initial_poses.begin() + range.last + 1);
   const auto solve_start = std::chrono::steady_clock::now();
-  InitializePoses(graph, range, passage, &landmarks, &poses);
+  InitializePoses(graph, range, passage, options.max_solver_iterations, &landmarks, &poses);
   summary->detections_dropped += InitializeLandmarks(poses, range, calib, &landmarks);
   if (landmarks.ids.empty()) return absl::OkStatus();
 
