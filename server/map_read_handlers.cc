@@ -3,6 +3,7 @@
 #include <chrono>
 
 #include "absl/strings/str_cat.h"
+#include "absl/strings/str_format.h"
 #include "server/map_service.h"
 #include "server/request_log.h"
 
@@ -65,7 +66,11 @@ grpc::Status MapService::ServeRegion(const grpc::ServerContextBase* ctx, const p
   if (request->page_size() < 0 || request->page_size() > kMaxRegionPage) {
     return log.Done(absl::InvalidArgumentError(absl::StrCat("page_size: must lie in [0, ", kMaxRegionPage, "]")));
   }
-  absl::StatusOr<int64_t> after = ParsePageToken(request->page_token());
+  // %a prints the exact doubles: a token is valid only for the same box.
+  const std::string query =
+      absl::StrFormat("region|%a|%a|%a|%a|%d", request->box().min_lat_deg(), request->box().min_lon_deg(),
+                      request->box().max_lat_deg(), request->box().max_lon_deg(), request->include_cross_covariance());
+  absl::StatusOr<int64_t> after = ParsePageToken(request->page_token(), query);
   if (!after.ok()) return log.Done(after.status());
   const int limit = request->page_size() == 0 ? kDefaultRegionPage : request->page_size();
   absl::StatusOr<LandmarkPage> page =
@@ -73,7 +78,7 @@ grpc::Status MapService::ServeRegion(const grpc::ServerContextBase* ctx, const p
   if (!page.ok()) return log.Done(page.status());
   response->set_map_version(page->map_version);
   AddLandmarks(*page, response);
-  if (page->more) response->set_next_page_token(MakePageToken(page->landmarks.back().id));
+  if (page->more) response->set_next_page_token(MakePageToken(page->landmarks.back().id, query));
   log.Add(absl::StrCat("landmarks=", page->landmarks.size(), " cross=", page->cross.size()));
   return log.Done(absl::OkStatus());
 }

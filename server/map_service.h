@@ -100,9 +100,11 @@ class MapService final : public MapServiceBase {
   ArenaMessageAllocator<pb::QueryRegionRequest, pb::QueryRegionResponse> region_allocator_;
 };
 
-// Opaque page tokens: the last id of the previous page.
-std::string MakePageToken(int64_t last_id);
-absl::StatusOr<int64_t> ParsePageToken(const std::string& token);
+// Opaque page tokens: the last id of the previous page, bound to the query that issued them by a
+// fingerprint of `query` (the request's filters, not its page size), so that a token passed with
+// other filters is refused instead of silently continuing a different listing.
+std::string MakePageToken(int64_t last_id, std::string_view query);
+absl::StatusOr<int64_t> ParsePageToken(const std::string& token, std::string_view query);
 
 }  // namespace crowdmap
 

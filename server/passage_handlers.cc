@@ -3,26 +3,49 @@
 
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
+#include "absl/strings/str_split.h"
 #include "server/map_service.h"
 #include "server/request_log.h"
 
 namespace crowdmap {
 namespace {
 
-constexpr char kPageTokenPrefix[] = "after:";
+constexpr char kPageTokenPrefix[] = "after";
 constexpr int kDefaultPassagePage = 100;
 constexpr int kMaxPassagePage = 1000;
 
+// 64-bit FNV-1a: stable across processes and builds, so tokens survive a server restart.
+uint64_t Fingerprint(std::string_view text) {
+  uint64_t h = 1469598103934665603ull;
+  for (unsigned char c : text) {
+    h ^= c;
+    h *= 1099511628211ull;
+  }
+  return h;
+}
+
+std::string PassageListQuery(const pb::ListPassagesRequest& request) {
+  return absl::StrCat("passages|", request.state(), "|", request.vehicle_id());
+}
+
 }  // namespace
 
-std::string MakePageToken(int64_t last_id) { return absl::StrCat(kPageTokenPrefix, last_id); }
+std::string MakePageToken(int64_t last_id, std::string_view query) {
+  return absl::StrCat(kPageTokenPrefix, ":", last_id, ":", absl::Hex(Fingerprint(query), absl::kZeroPad16));
+}
 
-absl::StatusOr<int64_t> ParsePageToken(const std::string& token) {
+absl::StatusOr<int64_t> ParsePageToken(const std::string& token, std::string_view query) {
   if (token.empty()) return 0;
+  const std::vector<absl::string_view> parts = absl::StrSplit(token, ':');
   int64_t id = 0;
-  const std::string prefix = kPageTokenPrefix;
-  if (token.rfind(prefix, 0) != 0 || !absl::SimpleAtoi(token.substr(prefix.size()), &id) || id < 0) {
+  uint64_t fingerprint = 0;
+  if (parts.size() != 3 || parts[0] != kPageTokenPrefix || !absl::SimpleAtoi(parts[1], &id) || id < 0 ||
+      parts[2].size() != 16 || !absl::SimpleHexAtoi(parts[2], &fingerprint)) {
     return absl::InvalidArgumentError("page_token: malformed; pass the next_page_token of a previous response");
+  }
+  if (fingerprint != Fingerprint(query)) {
+    return absl::InvalidArgumentError(
+        "page_token: issued for a request with other filters; repeat them unchanged, or start again without a token");
   }
   return id;
 }
@@ -103,7 +126,7 @@ grpc::Status MapService::ListPassages(grpc::ServerContext* ctx, const pb::ListPa
   if (request->page_size() < 0 || request->page_size() > kMaxPassagePage) {
     return log.Done(absl::InvalidArgumentError(absl::StrCat("page_size: must lie in [0, ", kMaxPassagePage, "]")));
   }
-  absl::StatusOr<int64_t> after = ParsePageToken(request->page_token());
+  absl::StatusOr<int64_t> after = ParsePageToken(request->page_token(), PassageListQuery(*request));
   if (!after.ok()) return log.Done(after.status());
   absl::StatusOr<std::optional<PassageState>> state = PassageStateFromProto(request->state());
   if (!state.ok()) return log.Done(state.status());
@@ -117,7 +140,7 @@ grpc::Status MapService::ListPassages(grpc::ServerContext* ctx, const pb::ListPa
   const bool more = static_cast<int>(records->size()) == query.limit;
   if (more) records->pop_back();
   for (const StoredPassage& r : *records) StoredPassageToProto(r, response->add_passages());
-  if (more) response->set_next_page_token(MakePageToken(records->back().id));
+  if (more) response->set_next_page_token(MakePageToken(records->back().id, PassageListQuery(*request)));
   log.Add(absl::StrCat("returned=", records->size()));
   return log.Done(absl::OkStatus());
 }

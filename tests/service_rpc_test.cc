@@ -122,6 +122,22 @@ TEST_F(ServiceRpc, ListPassagesPagesInArrivalOrderAndFilters) {
   pb::ListPassagesRequest bad;
   bad.set_page_token("garbage");
   EXPECT_EQ(client_->stub()->ListPassages(&bad_ctx, bad, &none).error_code(), grpc::StatusCode::INVALID_ARGUMENT);
+
+  // A token continues only the listing that issued it: with another filter it is refused.
+  grpc::ClientContext first_ctx;
+  pb::ListPassagesRequest first;
+  first.set_page_size(2);
+  pb::ListPassagesResponse first_page;
+  ASSERT_TRUE(client_->stub()->ListPassages(&first_ctx, first, &first_page).ok());
+  ASSERT_FALSE(first_page.next_page_token().empty());
+  grpc::ClientContext other_ctx;
+  pb::ListPassagesRequest other;
+  other.set_vehicle_id("sim-3");
+  other.set_page_token(first_page.next_page_token());
+  const grpc::Status refused = client_->stub()->ListPassages(&other_ctx, other, &none);
+  EXPECT_EQ(refused.error_code(), grpc::StatusCode::INVALID_ARGUMENT);
+  EXPECT_EQ(refused.error_message().rfind("page_token: issued for a request with other filters", 0), 0u)
+      << refused.error_message();
 }
 
 TEST_F(ServiceRpc, WorkerAppliesPassagesAndMapInfoCountsThem) {
@@ -175,6 +191,17 @@ TEST_F(ServiceRpc, QueryRegionPagesCoverTheMapWithCovariances) {
       EXPECT_EQ(c.cov_m2().en(), block(0, 1));
     }
     token = response.next_page_token();
+    if (!token.empty()) {
+      // The same token with another box is refused.
+      grpc::ClientContext other_ctx;
+      pb::QueryRegionRequest other = request;
+      other.mutable_box()->set_max_lat_deg(request.box().max_lat_deg() - 1e-6);
+      other.set_page_token(token);
+      pb::QueryRegionResponse ignored;
+      const grpc::Status refused = client_->stub()->QueryRegion(&other_ctx, other, &ignored);
+      EXPECT_EQ(refused.error_code(), grpc::StatusCode::INVALID_ARGUMENT);
+      EXPECT_EQ(refused.error_message().rfind("page_token:", 0), 0u) << refused.error_message();
+    }
   } while (!token.empty());
   EXPECT_EQ(ids.size(), 6u);
   // The single-page download returns the cross blocks among all landmarks (the map is dense).
