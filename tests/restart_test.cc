@@ -63,7 +63,8 @@ TEST(ServiceRestart, MapVersionsAndQueueSurviveARestart) {
     ASSERT_TRUE(info.ok());
     EXPECT_EQ(info->passages_applied(), 5);
     EXPECT_GT(info->map_version(), info_before.map_version());
-    EXPECT_GT(client.GetPassage("sim-4", "p4")->id(), client.GetPassage("sim-2", "p2")->id());
+    EXPECT_GT(client.GetPassage("sim-4", scenario.MakePassage(4).passage_id)->id(),
+              client.GetPassage("sim-2", scenario.MakePassage(2).passage_id)->id());
   }
 }
 

@@ -45,7 +45,7 @@ TEST_F(ServiceRpc, UploadPassageAcknowledgesQueuedWithItsId) {
   // The acknowledgement follows the commit: the store has it.
   auto stored = server_->store()->GetPassage(r.status().id());
   ASSERT_TRUE(stored.ok());
-  EXPECT_EQ(stored->passage_id, "p0");
+  EXPECT_EQ(stored->passage_id, scenario_.MakePassage(0).passage_id);
 }
 
 TEST_F(ServiceRpc, ChunkedUploadCarriesPassagesAboveTheUnaryLimit) {
@@ -77,7 +77,8 @@ TEST_F(ServiceRpc, ChunkedUploadCarriesPassagesAboveTheUnaryLimit) {
 TEST_F(ServiceRpc, GetPassageFindsByIdAndByKeyAndReportsNotFound) {
   Start(false);
   const int64_t id = MustUpload(scenario_.MakePassage(0)).status().id();
-  auto by_key = client_->GetPassage("sim-0", "p0");
+  const Passage first = scenario_.MakePassage(0);
+  auto by_key = client_->GetPassage(first.vehicle_id, first.passage_id);
   ASSERT_TRUE(by_key.ok()) << by_key.status();
   EXPECT_EQ(by_key->id(), id);
   grpc::ClientContext ctx;
@@ -85,7 +86,7 @@ TEST_F(ServiceRpc, GetPassageFindsByIdAndByKeyAndReportsNotFound) {
   request.set_id(id);
   pb::PassageStatus by_id;
   ASSERT_TRUE(client_->stub()->GetPassage(&ctx, request, &by_id).ok());
-  EXPECT_EQ(by_id.passage_id(), "p0");
+  EXPECT_EQ(by_id.passage_id(), first.passage_id);
   EXPECT_EQ(client_->GetPassage("sim-0", "nope").status().code(), absl::StatusCode::kNotFound);
   grpc::ClientContext ctx2;
   EXPECT_EQ(client_->stub()->GetPassage(&ctx2, pb::GetPassageRequest(), &by_id).error_code(),
@@ -110,7 +111,9 @@ TEST_F(ServiceRpc, ListPassagesPagesInArrivalOrderAndFilters) {
     ++pages;
   } while (!token.empty());
   EXPECT_EQ(pages, 3);
-  EXPECT_EQ(seen, (std::vector<std::string>{"p0", "p1", "p2", "p3", "p4"}));
+  std::vector<std::string> expected;
+  for (int i = 0; i < 5; ++i) expected.push_back(scenario_.MakePassage(i).passage_id);
+  EXPECT_EQ(seen, expected);
 
   grpc::ClientContext ctx;
   pb::ListPassagesRequest applied_only;
@@ -150,13 +153,13 @@ TEST_F(ServiceRpc, WorkerAppliesPassagesAndMapInfoCountsThem) {
   EXPECT_EQ(info->landmark_count(), 6);
   EXPECT_GT(info->map_version(), 0);
   EXPECT_EQ(info->strategy(), "cc-gsd");
-  auto status = client_->GetPassage("sim-2", "p2");
+  auto status = client_->GetPassage("sim-2", scenario_.MakePassage(2).passage_id);
   ASSERT_TRUE(status.ok());
   EXPECT_EQ(status->state(), pb::PASSAGE_STATE_APPLIED);
   EXPECT_EQ(status->result().map_version(), info->map_version());
   EXPECT_GT(status->result().landmarks_updated(), 0);
   EXPECT_GT(status->result().nodes(), 0);
-  EXPECT_EQ(client_->GetPassage("sim-0", "p0")->result().landmarks_created(), 6);
+  EXPECT_EQ(client_->GetPassage("sim-0", scenario_.MakePassage(0).passage_id)->result().landmarks_created(), 6);
 }
 
 TEST_F(ServiceRpc, QueryRegionPagesCoverTheMapWithCovariances) {
@@ -348,7 +351,7 @@ TEST_F(ServiceRpc, HealthIsServingUntilShutdownThenUploadsAreRefused) {
   PassageToProto(scenario_.MakePassage(0), &wire);
   EXPECT_EQ(client_->UploadOnce(wire).status().code(), absl::StatusCode::kUnavailable);
   EXPECT_FALSE(HealthStatus(client_->channel()).ok());
-  EXPECT_FALSE(server_->store()->FindPassage("sim-0", "p0").ok());
+  EXPECT_FALSE(server_->store()->FindPassage("sim-0", scenario_.MakePassage(0).passage_id).ok());
 }
 
 }  // namespace

@@ -166,8 +166,10 @@ TEST_F(UploadValidation, RejectsOversizePassage) {
 
 TEST_F(UploadValidation, RejectsChunksThatAreNotAPassage) {
   pb::Passage wire = valid_;
-  std::string bytes = wire.SerializeAsString();
-  bytes.resize(bytes.size() / 2);  // truncated mid-message
+  // Truncated mid-field: a field header (field 1000, length-delimited) announcing 100 bytes that
+  // never come. (Cutting the message at an arbitrary point may land on a field boundary, and a
+  // prefix ending there parses.)
+  std::string bytes = wire.SerializeAsString() + std::string("\xc2\x3e\x64", 3);
   grpc::ClientContext ctx;
   pb::UploadPassageResponse response;
   auto writer = client_->stub()->UploadPassageChunked(&ctx, &response);

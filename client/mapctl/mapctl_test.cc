@@ -107,7 +107,8 @@ TEST_F(MapctlTest, UploadedFilesAreAppliedAndListed) {
   ASSERT_EQ(by_id.code, 0) << by_id.err;
   EXPECT_TRUE(absl::StrContains(by_id.out, "state:       applied")) << by_id.out;
   EXPECT_TRUE(absl::StrContains(by_id.out, "strategy=cc-gsd")) << by_id.out;
-  CliRun by_key = Mapctl({"status", "sim-2/p2", "--json"}, address_);
+  const Passage third = Scenario::Create(scenario_)->MakePassage(2);
+  CliRun by_key = Mapctl({"status", third.vehicle_id + "/" + third.passage_id, "--json"}, address_);
   ASSERT_EQ(by_key.code, 0) << by_key.err;
   EXPECT_TRUE(absl::StrContains(by_key.out, "\"PASSAGE_STATE_APPLIED\"")) << by_key.out;
 }

@@ -154,7 +154,7 @@ Passage Scenario::MakePassage(int index) const {
 
   Passage p;
   p.vehicle_id = absl::StrCat("sim-", index % 1000);
-  p.passage_id = absl::StrCat("p", index);
+  p.passage_id = absl::StrCat("p", index, "-s", o.seed, "-n", o.landmarks, "-", NoiseConfigName(o.noise));
   p.start_time_unix_ms = 1767225600000LL + static_cast<int64_t>(index) * 200000;
   p.calibration = o.calibration;
   p.noise = o.noise_model;

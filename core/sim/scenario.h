@@ -68,8 +68,10 @@ class Scenario {
   // Route length (m).
   double route_length_m() const { return route_length_m_; }
 
-  // The passage of vehicle `index` (0-based), as the vehicle would upload it: passage_id
-  // "p<index>", vehicle_id "sim-<index % 1000>".
+  // The passage of vehicle `index` (0-based), as the vehicle would upload it: vehicle_id
+  // "sim-<index % 1000>", passage_id "p<index>-s<seed>-n<landmarks>-<noise>". The id names the
+  // scenario, so the same passage uploaded twice is a duplicate but a passage of another seed,
+  // landmark count or noise configuration is not.
   Passage MakePassage(int index) const;
 
   // True pose at time t (seconds since start), by the same bicycle steps as the route.

@@ -120,8 +120,13 @@ TEST(Scenario, MakePassageIsDeterministicAndIndicesDiffer) {
   EXPECT_NE(a.gnss[10].lat_deg, c.gnss[10].lat_deg);
   EXPECT_NE(a.odometry[100].speed_mps, c.odometry[100].speed_mps);
   EXPECT_NE(a.detections[0].u_px, c.detections[0].u_px);
-  EXPECT_EQ(a.passage_id, "p5");
-  EXPECT_EQ(c.passage_id, "p6");
+  EXPECT_EQ(a.passage_id, "p5-s1-n25-white");
+  EXPECT_EQ(c.passage_id, "p6-s1-n25-white");
+  // Another scenario's passage 5 is another drive: another id, so a server does not take it for a duplicate.
+  ScenarioOptions other_seed = s.options();
+  other_seed.seed = 2;
+  EXPECT_EQ(Scenario::Create(other_seed)->MakePassage(5).passage_id, "p5-s2-n25-white");
+  EXPECT_NE(Make(50).MakePassage(5).passage_id, a.passage_id);
   EXPECT_EQ(a.vehicle_id, "sim-5");
 }
 
