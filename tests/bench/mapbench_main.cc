@@ -2,8 +2,9 @@
 // database (see server/README.md).
 //   mapbench upload [--clients 8] [--passages 2000] [--apply]
 //       durable-acknowledgement upload throughput of thesis-sized passages (165 s, 25 Hz odometry)
-//   mapbench query [--readers 16] [--seconds 10]
+//   mapbench query [--readers 16] [--seconds 10] [--cross] [--no-writes]
 //       QueryRegion latency over a 1 km^2 box (about 100 landmarks) while passages are applied
+//       (--no-writes: no passages, the readers alone)
 #include <algorithm>
 #include <atomic>
 #include <chrono>
@@ -128,8 +129,10 @@ int Query(int argc, char** argv) {
 
   std::atomic<bool> stop{false};
   std::atomic<int> applied_during{0};
+  // --no-writes: readers only, the baseline that shows what the concurrent map updates cost.
+  const bool writes = !BoolFlag(argc, argv, "--no-writes");
   std::thread uploader([&] {
-    for (int i = kWarmup; !stop; ++i) {
+    for (int i = kWarmup; writes && !stop; ++i) {
       if (writer.Upload(scenario->MakePassage(i)).ok()) ++applied_during;
       while (!stop && writer.GetMapInfo()->queue_depth() > 2) std::this_thread::sleep_for(std::chrono::milliseconds(5));
     }
@@ -183,6 +186,6 @@ int main(int argc, char** argv) {
   if (argc >= 2 && std::strcmp(argv[1], "upload") == 0) return crowdmap::Upload(argc, argv);
   if (argc >= 2 && std::strcmp(argv[1], "query") == 0) return crowdmap::Query(argc, argv);
   std::fprintf(stderr, "usage: mapbench upload [--clients 8] [--passages 2000] [--apply]\n"
-                       "       mapbench query [--readers 16] [--seconds 10] [--cross]\n");
+                       "       mapbench query [--readers 16] [--seconds 10] [--cross] [--no-writes]\n");
   return 2;
 }
