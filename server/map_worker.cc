@@ -4,6 +4,8 @@
 #include <sys/syscall.h>
 #include <unistd.h>
 
+#include <chrono>
+
 #include <spdlog/spdlog.h>
 
 #include "absl/strings/str_cat.h"
@@ -146,16 +148,20 @@ void MapWorker::Apply(const ClaimedPassage& claimed, const Passage& passage) {
     auto update = ComputePassageUpdate(passage, options_.update, map_);
     if (update.ok()) {
       const PassageResult result = ResultFromSummary(update->summary, options_.update.strategy);
+      const auto commit_start = std::chrono::steady_clock::now();
       absl::Status committed = store_->CommitPassageApplied(record.id, update->delta, result);
+      const double commit_ms =
+          std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - commit_start).count();
       if (committed.ok()) {
         map_.Apply(update->delta);
         notifier_->Publish(map_.version());
         spdlog::info(
             "event=applied passage={} vehicle={} id={} nodes={} subgraphs={} landmarks_updated={} "
-            "landmarks_created={} landmarks_conditioned={} solve_ms={:.1f} total_ms={:.1f} map_version={}",
+            "landmarks_created={} landmarks_conditioned={} solve_ms={:.1f} total_ms={:.1f} commit_ms={:.1f} "
+            "cross_blocks={} map_version={}",
             record.passage_id, record.vehicle_id, record.id, result.nodes, result.subgraphs,
             result.landmarks_updated, result.landmarks_created, result.landmarks_conditioned, result.solve_ms,
-            result.total_ms, map_.version());
+            result.total_ms, commit_ms, update->delta.cross.size(), map_.version());
         return;
       }
       error = absl::StrCat("commit: ", committed.ToString());
