@@ -2,9 +2,9 @@
 // database (see server/README.md).
 //   mapbench upload [--clients 8] [--passages 2000] [--apply]
 //       durable-acknowledgement upload throughput of thesis-sized passages (165 s, 25 Hz odometry)
-//   mapbench query [--readers 16] [--seconds 10] [--cross] [--no-writes]
+//   mapbench query [--readers 16] [--seconds 10] [--cross] [--no-writes] [--apply-rate R]
 //       QueryRegion latency over a 1 km^2 box (about 100 landmarks) while passages are applied
-//       (--no-writes: no passages, the readers alone)
+//       back to back (--apply-rate R: about R per second; --no-writes: none, the readers alone)
 #include <algorithm>
 #include <atomic>
 #include <chrono>
@@ -130,9 +130,16 @@ int Query(int argc, char** argv) {
   std::atomic<bool> stop{false};
   std::atomic<int> applied_during{0};
   // --no-writes: readers only, the baseline that shows what the concurrent map updates cost.
+  // --apply-rate R: about R passages per second instead of as many as the worker can apply.
   const bool writes = !BoolFlag(argc, argv, "--no-writes");
+  const int apply_rate = IntFlag(argc, argv, "--apply-rate", 0);
   std::thread uploader([&] {
+    auto next = Clock::now();
     for (int i = kWarmup; writes && !stop; ++i) {
+      if (apply_rate > 0) {
+        next += std::chrono::microseconds(1000000 / apply_rate);
+        while (!stop && Clock::now() < next) std::this_thread::sleep_for(std::chrono::milliseconds(1));
+      }
       if (writer.Upload(scenario->MakePassage(i)).ok()) ++applied_during;
       while (!stop && writer.GetMapInfo()->queue_depth() > 2) std::this_thread::sleep_for(std::chrono::milliseconds(5));
     }
@@ -186,6 +193,6 @@ int main(int argc, char** argv) {
   if (argc >= 2 && std::strcmp(argv[1], "upload") == 0) return crowdmap::Upload(argc, argv);
   if (argc >= 2 && std::strcmp(argv[1], "query") == 0) return crowdmap::Query(argc, argv);
   std::fprintf(stderr, "usage: mapbench upload [--clients 8] [--passages 2000] [--apply]\n"
-                       "       mapbench query [--readers 16] [--seconds 10] [--cross] [--no-writes]\n");
+                       "       mapbench query [--readers 16] [--seconds 10] [--cross] [--no-writes] [--apply-rate R]\n");
   return 2;
 }
