@@ -166,8 +166,11 @@ absl::Status SqliteMapStore::CommitPassageApplied(int64_t id, const MapDelta& de
     if (!(pair.first < pair.second) || !block.allFinite()) {
       return absl::InternalError(absl::StrCat("invalid cross block (", pair.first, ", ", pair.second, ")"));
     }
-    auto stmt = db->Prepare("INSERT OR REPLACE INTO cross_covariances (a, b, c_ee, c_en, c_ne, c_nn) "
-                            "VALUES (?1, ?2, ?3, ?4, ?5, ?6)");
+    // An upsert rewrites the row in place; INSERT OR REPLACE would delete and re-insert it and its
+    // cross_by_b entry (twice the b-tree work on the commit's largest part).
+    auto stmt = db->Prepare("INSERT INTO cross_covariances (a, b, c_ee, c_en, c_ne, c_nn) "
+                            "VALUES (?1, ?2, ?3, ?4, ?5, ?6) ON CONFLICT (a, b) DO UPDATE SET "
+                            "c_ee = excluded.c_ee, c_en = excluded.c_en, c_ne = excluded.c_ne, c_nn = excluded.c_nn");
     if (!stmt.ok()) return stmt.status();
     stmt->Bind(1, static_cast<int64_t>(pair.first))
         .Bind(2, static_cast<int64_t>(pair.second))
