@@ -126,7 +126,8 @@ grpc::Status MapService::ListPassages(grpc::ServerContext* ctx, const pb::ListPa
   if (request->page_size() < 0 || request->page_size() > kMaxPassagePage) {
     return log.Done(absl::InvalidArgumentError(absl::StrCat("page_size: must lie in [0, ", kMaxPassagePage, "]")));
   }
-  absl::StatusOr<int64_t> after = ParsePageToken(request->page_token(), PassageListQuery(*request));
+  const std::string list_query = PassageListQuery(*request);
+  absl::StatusOr<int64_t> after = ParsePageToken(request->page_token(), list_query);
   if (!after.ok()) return log.Done(after.status());
   absl::StatusOr<std::optional<PassageState>> state = PassageStateFromProto(request->state());
   if (!state.ok()) return log.Done(state.status());
@@ -140,7 +141,7 @@ grpc::Status MapService::ListPassages(grpc::ServerContext* ctx, const pb::ListPa
   const bool more = static_cast<int>(records->size()) == query.limit;
   if (more) records->pop_back();
   for (const StoredPassage& r : *records) StoredPassageToProto(r, response->add_passages());
-  if (more) response->set_next_page_token(MakePageToken(records->back().id, PassageListQuery(*request)));
+  if (more) response->set_next_page_token(MakePageToken(records->back().id, list_query));
   log.Add(absl::StrCat("returned=", records->size()));
   return log.Done(absl::OkStatus());
 }
