@@ -33,6 +33,13 @@ PassageResult ResultFromSummary(const PassageUpdateSummary& s, UpdateStrategy st
   return r;
 }
 
+// A queued passage's payload (the serialized wire Passage) as a core passage.
+absl::StatusOr<Passage> DecodeStoredPassage(const std::string& payload) {
+  pb::Passage wire;
+  if (!wire.ParseFromString(payload)) return absl::InvalidArgumentError("passage: stored payload does not parse");
+  return PassageFromProto(wire);
+}
+
 }  // namespace
 
 absl::Status MapWorkerOptions::Validate() const {
@@ -50,11 +57,39 @@ absl::StatusOr<std::unique_ptr<MapWorker>> MapWorker::Create(MapStoreInterface* 
   auto requeued = store->RequeueProcessingPassages();
   if (!requeued.ok()) return requeued.status();
   if (*requeued > 0) spdlog::warn("event=requeue passages={} reason=\"processing at start-up\"", *requeued);
-  if (auto s = store->LoadMap(&worker->map_); !s.ok()) return s;
+  if (auto s = worker->LoadMirror(); !s.ok()) return s;
   notifier->Publish(worker->map_.version());
-  spdlog::info("event=map_loaded landmarks={} cross_blocks={} map_version={}", worker->map_.landmark_count(),
-               worker->map_.cross_block_count(), worker->map_.version());
+  spdlog::info("event=map_loaded landmarks={} cross_blocks={} map_version={} warming_up={}",
+               worker->map_.landmark_count(), worker->map_.cross_block_count(), worker->map_.version(),
+               worker->updater_->warming_up());
   return worker;
+}
+
+absl::Status MapWorker::LoadMirror() {
+  MapState map;
+  if (auto s = store_->LoadMap(&map); !s.ok()) return s;
+  absl::StatusOr<MapStats> stats = store_->GetStats();
+  if (!stats.ok()) return stats.status();
+  const int64_t applied_count = stats->passages_by_state[static_cast<int>(PassageState::kApplied)];
+  // The warm-up passages are the first ones applied; passages are applied in arrival (id) order.
+  std::vector<Passage> warmup;
+  if (applied_count < options_.update.warmup_passages) {
+    PassageQuery query;
+    query.state = PassageState::kApplied;
+    query.limit = options_.update.warmup_passages;
+    absl::StatusOr<std::vector<StoredPassage>> applied = store_->ListPassages(query);
+    if (!applied.ok()) return applied.status();
+    for (const StoredPassage& record : *applied) {
+      absl::StatusOr<std::string> payload = store_->GetPassagePayload(record.id);
+      if (!payload.ok()) return payload.status();
+      absl::StatusOr<Passage> passage = DecodeStoredPassage(*payload);
+      if (!passage.ok()) return absl::DataLossError(absl::StrCat("applied passage ", record.id, ": ", passage.status().message()));
+      warmup.push_back(*std::move(passage));
+    }
+  }
+  map_ = std::move(map);
+  updater_ = std::make_unique<MapUpdater>(options_.update, std::move(warmup), applied_count);
+  return absl::OkStatus();
 }
 
 MapWorker::~MapWorker() { Stop(); }
@@ -115,9 +150,7 @@ void MapWorker::Run() {
 
 void MapWorker::Process(ClaimedPassage claimed, uint64_t ticket) {
   // Decoding runs in parallel; the map update waits for this passage's turn.
-  pb::Passage wire;
-  absl::StatusOr<Passage> passage = absl::InvalidArgumentError("passage: stored payload does not parse");
-  if (wire.ParseFromString(claimed.payload)) passage = PassageFromProto(wire);
+  absl::StatusOr<Passage> passage = DecodeStoredPassage(claimed.payload);
   claimed.payload.clear();
 
   std::unique_lock<std::mutex> lock(turn_mu_);
@@ -145,7 +178,7 @@ void MapWorker::Apply(const ClaimedPassage& claimed, const Passage& passage) {
   int attempts = record.attempts;
   while (true) {
     std::string error;
-    auto update = ComputePassageUpdate(passage, options_.update, map_);
+    auto update = updater_->Compute(passage, map_);
     if (update.ok()) {
       const PassageResult result = ResultFromSummary(update->summary, options_.update.strategy);
       const auto commit_start = std::chrono::steady_clock::now();
@@ -154,6 +187,7 @@ void MapWorker::Apply(const ClaimedPassage& claimed, const Passage& passage) {
           std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - commit_start).count();
       if (committed.ok()) {
         map_.Apply(update->delta);
+        updater_->Applied(passage);
         notifier_->Publish(map_.version());
         spdlog::info(
             "event=applied passage={} vehicle={} id={} nodes={} subgraphs={} landmarks_updated={} "
@@ -167,8 +201,7 @@ void MapWorker::Apply(const ClaimedPassage& claimed, const Passage& passage) {
       error = absl::StrCat("commit: ", committed.ToString());
       if (committed.code() == absl::StatusCode::kFailedPrecondition) {
         // The mirror disagrees with the store: reload it before the next attempt.
-        MapState reloaded;
-        if (store_->LoadMap(&reloaded).ok()) map_ = std::move(reloaded);
+        if (absl::Status s = LoadMirror(); !s.ok()) spdlog::error("event=reload_failed error=\"{}\"", s.ToString());
       }
     } else if (update.status().code() == absl::StatusCode::kInvalidArgument) {
       Finish(record, PassageState::kRejected, std::string(update.status().message()));

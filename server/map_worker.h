@@ -37,7 +37,8 @@ struct MapWorkerOptions {
 // Applies queued passages to the map, in arrival order. Keeps an in-memory mirror of the stored
 // map (this process owns the database): each passage's update is computed against the mirror,
 // committed with the passage's result and the new version in one transaction, and only then
-// applied to the mirror.
+// applied to the mirror. While the map is young (MapUpdateOptions::warmup_passages) the update
+// re-solves the passages applied so far, read back from the store, together with the new one.
 class MapWorker {
  public:
   // Loads the map and puts passages left processing by an earlier run back on the queue.
@@ -67,7 +68,12 @@ class MapWorker {
   MapStoreInterface* const store_;
   const MapWorkerOptions options_;
   VersionNotifier* const notifier_;
-  MapState map_;  // touched only by the thread whose ticket is being served
+  // Loads map_ and updater_ (with the warm-up passages the map has taken) from the store.
+  absl::Status LoadMirror();
+
+  // Touched only by the thread whose ticket is being served:
+  MapState map_;
+  std::unique_ptr<MapUpdater> updater_;
 
   std::atomic<bool> stopping_{false};
   std::mutex wake_mu_;

@@ -15,7 +15,7 @@ namespace {
 
 const std::vector<std::string>& SettingNames() {
   static const std::vector<std::string> kNames = {
-      "listen", "db", "strategy", "max-subgraph-dim", "correlation-radius-m", "workers",
+      "listen", "db", "strategy", "max-subgraph-dim", "correlation-radius-m", "warmup-passages", "workers",
       "worker-nice", "max-queue", "max-message-mb", "max-passage-mb", "log-level"};
   return kNames;
 }
@@ -81,6 +81,9 @@ Usage: mapd [--flag value | --flag=value]...
   --max-subgraph-dim N        largest subgraph state dimension with cc-gsd (default 500)
   --correlation-radius-m M    keep cross-covariances only between landmarks closer than M metres
                               (default inf: dense)
+  --warmup-passages N         a new map's first N passages are solved jointly, re-solved with each
+                              one, so their arrival order does not stay in the map (default 8;
+                              0 = off)
   --workers N                 worker threads (default 1). They claim and decode passages in
                               parallel, but map updates are applied one at a time in arrival
                               order, so the map is the same for any N.
@@ -160,6 +163,7 @@ absl::StatusOr<MapdConfig> ParseMapdConfig(const std::vector<std::string>& args,
       auto v = ToInt(name, value);
       if (!v.ok()) return v.status();
       if (name == "max-subgraph-dim") o.worker.update.max_subgraph_dim = static_cast<int>(*v);
+      if (name == "warmup-passages") o.worker.update.warmup_passages = static_cast<int>(*v);
       if (name == "workers") o.worker.workers = static_cast<int>(*v);
       if (name == "worker-nice") o.worker.nice = static_cast<int>(*v);
       if (name == "max-queue") o.max_queue = *v;

@@ -84,16 +84,6 @@ class MapdProcess {
   pid_t pid_ = -1;
 };
 
-MapState UninterruptedMap(const Scenario& scenario) {
-  MapState map;
-  for (int i = 0; i < kPassages; ++i) {
-    auto update = ComputePassageUpdate(scenario.MakePassage(i), MapUpdateOptions(), map);
-    EXPECT_TRUE(update.ok()) << update.status();
-    if (update.ok()) map.Apply(update->delta);
-  }
-  return map;
-}
-
 // Polls until a passage is being applied; false if the queue drained first.
 bool WaitUntilProcessing(MockVehicle* client) {
   for (int i = 0; i < 20000; ++i) {
@@ -129,7 +119,7 @@ int Repeats() {
 
 TEST(MapdCrash, SigkillWhileApplyingLosesNothingAndAppliesNothingTwice) {
   const Scenario scenario = ShortScenario(10, 60.0);
-  const MapState expected = UninterruptedMap(scenario);
+  const MapState expected = MapFromPassages(scenario, kPassages);
   int caught_processing = 0;
   for (int round = 0; round < Repeats(); ++round) {
     SCOPED_TRACE("round " + std::to_string(round));
@@ -160,7 +150,7 @@ TEST(MapdCrash, SigkillWhileApplyingLosesNothingAndAppliesNothingTwice) {
 
 TEST(MapdCrash, SigtermFinishesThePassageInProgressAndExitsZero) {
   const Scenario scenario = ShortScenario(10, 60.0);
-  const MapState expected = UninterruptedMap(scenario);
+  const MapState expected = MapFromPassages(scenario, kPassages);
   TempDir dir;
   const std::string db = dir.File("map.db");
   {

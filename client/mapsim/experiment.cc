@@ -72,6 +72,7 @@ absl::StatusOr<ExperimentResult> RunExperiment(const ExperimentOptions& options,
   MapUpdateOptions update = options.update;
   if (!triangulation) update.strategy = *ParseUpdateStrategy(options.strategy);
   TriangulationMapper triangulation_mapper;
+  MapUpdater updater(update);
 
   ExperimentResult result;
   std::vector<double> times;
@@ -87,9 +88,10 @@ absl::StatusOr<ExperimentResult> RunExperiment(const ExperimentOptions& options,
       }
       record.subgraphs = 1;
     } else {
-      absl::StatusOr<PassageUpdate> u = ComputePassageUpdate(passage, update, result.final_map);
+      absl::StatusOr<PassageUpdate> u = updater.Compute(passage, result.final_map);
       if (u.ok()) {
         result.final_map.Apply(u->delta);
+        updater.Applied(passage);
         record.subgraphs = u->summary.subgraphs;
         if (u->summary.max_variance_factor > 1.0) ++result.inflated_passages;
       } else {
@@ -147,6 +149,7 @@ absl::Status WriteExperimentOutputs(const ExperimentOptions& options, const Expe
        << absl::StrFormat("  \"inflated_passages\": %d,\n", result.inflated_passages)
        << absl::StrFormat("  \"max_subgraph_dim\": %d,\n", options.update.max_subgraph_dim)
        << absl::StrFormat("  \"detections_per_landmark\": %d,\n", options.update.detections_per_landmark)
+       << absl::StrFormat("  \"warmup_passages\": %d,\n", options.update.warmup_passages)
        << "  \"final_mean_dist_err_m\": " << JsonNumber(result.final_mean_dist_err_m) << ",\n"
        << "  \"final_nees_per_dof\": " << JsonNumber(result.final_nees_per_dof) << ",\n"
        << "  \"final_joint_nees_per_dof\": " << JsonNumber(result.final_joint_nees_per_dof) << ",\n"

@@ -45,6 +45,7 @@ experiment flags:
   --max-subgraph-dim D        cc-gsd state-dimension bound per subgraph (default 500)
   --detections-per-landmark K last K detections per landmark and passage, 0 = all (default 5)
   --correlation-radius-m R    keep cross-covariances only within R metres (default: dense)
+  --warmup-passages B         the map's first B passages are solved jointly, 0 = off (default 8)
   --inflation-test-sigmas K   inflate a passage's measurement covariances by chi2/dof when its chi2
                               exceeds dof by K sigma, 0 = never (default 4)
   --max-chi2-per-dof X        refuse a solve whose chi2 exceeds X per degree of freedom, 0 = never
@@ -100,7 +101,7 @@ absl::Status RunExperimentCommand(const std::vector<std::string>& args) {
   absl::StatusOr<Flags> flags = Flags::Parse(args, {{"landmarks", true}, {"passages", true}, {"strategy", true},
                                                     {"noise", true}, {"seed", true}, {"out", true},
                                                     {"max-subgraph-dim", true}, {"detections-per-landmark", true},
-                                                    {"correlation-radius-m", true}, {"max-chi2-per-dof", true}, {"inflation-test-sigmas", true},
+                                                    {"correlation-radius-m", true}, {"warmup-passages", true}, {"max-chi2-per-dof", true}, {"inflation-test-sigmas", true},
                                                     {"shuffle-window", true}, {"shuffle-from", true}, {"shuffle-seed", true},
                                                     {"quiet", false}});
   if (!flags.ok()) return flags.status();
@@ -108,13 +109,14 @@ absl::Status RunExperimentCommand(const std::vector<std::string>& args) {
   absl::StatusOr<long long> landmarks = flags->GetInt("landmarks", 25), passages = flags->GetInt("passages", 100),
                             seed = flags->GetInt("seed", 1), dim = flags->GetInt("max-subgraph-dim", 500),
                             per_landmark = flags->GetInt("detections-per-landmark", 5),
+                            warmup = flags->GetInt("warmup-passages", options.update.warmup_passages),
                             shuffle_window = flags->GetInt("shuffle-window", 0),
                             shuffle_from = flags->GetInt("shuffle-from", 0), shuffle_seed = flags->GetInt("shuffle-seed", 1);
   absl::StatusOr<double> radius = flags->GetDouble("correlation-radius-m", options.update.correlation_radius_m),
                          chi2 = flags->GetDouble("max-chi2-per-dof", options.update.max_chi2_per_dof),
                          inflation = flags->GetDouble("inflation-test-sigmas", options.update.inflation_test_sigmas);
   for (const absl::Status& s : {landmarks.status(), passages.status(), seed.status(), dim.status(),
-                                per_landmark.status(), radius.status(), chi2.status(), inflation.status(),
+                                per_landmark.status(), warmup.status(), radius.status(), chi2.status(), inflation.status(),
                                 shuffle_window.status(), shuffle_from.status(), shuffle_seed.status()}) {
     if (!s.ok()) return s;
   }
@@ -127,6 +129,7 @@ absl::Status RunExperimentCommand(const std::vector<std::string>& args) {
   options.strategy = flags->GetString("strategy", "cc-gsd");
   options.update.max_subgraph_dim = static_cast<int>(*dim);
   options.update.detections_per_landmark = static_cast<int>(*per_landmark);
+  options.update.warmup_passages = static_cast<int>(*warmup);
   options.update.correlation_radius_m = *radius;
   options.update.max_chi2_per_dof = *chi2;
   options.update.inflation_test_sigmas = *inflation;

@@ -127,7 +127,7 @@ void AddPoseGraphFactors(const PassageGraph& graph, int first, int last, const E
 absl::StatusOr<PassageGraph> BuildPassageGraph(const Passage& passage, const GraphOptions& options) {
   if (passage.gnss.size() < 2) return absl::InvalidArgumentError("gnss: passage needs at least 2 GNSS fixes");
   PassageGraph g;
-  g.frame = LocalFrame(LatLon{passage.gnss.front().lat_deg, passage.gnss.front().lon_deg});
+  g.frame = LocalFrame(options.frame_origin.value_or(LatLon{passage.gnss.front().lat_deg, passage.gnss.front().lon_deg}));
 
   const std::vector<const Detection*> used = SelectDetections(passage.detections, options.detections_per_landmark);
   g.detections_dropped = static_cast<int>(passage.detections.size() - used.size());

@@ -1,6 +1,7 @@
 #ifndef CROWDMAP_CORE_ESTIMATION_GRAPH_BUILDER_H_
 #define CROWDMAP_CORE_ESTIMATION_GRAPH_BUILDER_H_
 
+#include <optional>
 #include <vector>
 
 #include <ceres/ceres.h>
@@ -23,6 +24,9 @@ struct GraphOptions {
   bool refine_initial_poses = true;
   // Window of GNSS fixes (s) the dead-reckoning is aligned to around each node.
   double alignment_window_s = 30.0;
+  // Origin of the graph's East/North frame; unset: the passage's first GNSS fix. Graphs of several
+  // passages solved together share one.
+  std::optional<LatLon> frame_origin;
 };
 
 struct GnssObservation {
@@ -37,7 +41,7 @@ struct CameraObservation {
   double u_px = 0.0;
 };
 
-// A passage as a factor graph in its local East/North frame (origin: the first GNSS fix).
+// A passage as a factor graph in a local East/North frame (GraphOptions::frame_origin).
 struct PassageGraph {
   LocalFrame frame{LatLon{}};
   std::vector<double> node_times_s;            // union of GNSS and used-detection times

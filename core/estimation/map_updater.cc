@@ -4,6 +4,8 @@
 #include <chrono>
 #include <cmath>
 #include <map>
+#include <memory>
+#include <optional>
 #include <unordered_set>
 
 #include <ceres/ceres.h>
@@ -273,6 +275,9 @@ absl::Status MapUpdateOptions::Validate() const {
   if (!(max_chi2_per_dof >= 0.0)) {
     return absl::InvalidArgumentError(absl::StrCat("max_chi2_per_dof: must be >= 0 (0 = off), got ", max_chi2_per_dof));
   }
+  if (warmup_passages < 0) {
+    return absl::InvalidArgumentError(absl::StrCat("warmup_passages: must be >= 0 (0 = off), got ", warmup_passages));
+  }
   if (max_solver_iterations < 1) {
     return absl::InvalidArgumentError(absl::StrCat("max_solver_iterations: must be >= 1, got ", max_solver_iterations));
   }
@@ -322,6 +327,220 @@ absl::StatusOr<PassageUpdate> ComputePassageUpdate(const Passage& passage, const
   summary.map_version = overlay.version();
   summary.total_ms = MillisecondsSince(start);
   return PassageUpdate{overlay.TakeDelta(), summary};
+}
+
+absl::StatusOr<PassageUpdate> ComputeBatchUpdate(const std::vector<Passage>& passages, const MapUpdateOptions& options,
+                                                 const MapReaderInterface& map) {
+  if (absl::Status s = options.Validate(); !s.ok()) return s;
+  if (passages.empty()) return absl::InvalidArgumentError("passages: a joint solve needs at least one passage");
+  if (passages.front().gnss.empty()) return absl::InvalidArgumentError("gnss: passage needs at least 2 GNSS fixes");
+  const auto start = std::chrono::steady_clock::now();
+  const int count = static_cast<int>(passages.size());
+  auto failed = [&](int p, const absl::Status& s) {
+    return absl::Status(s.code(), absl::StrCat("passage ", passages[p].passage_id, ": ", s.message()));
+  };
+
+  // Every graph in one frame, with its odometry + GNSS poses.
+  GraphOptions graph_options;
+  graph_options.detections_per_landmark = options.detections_per_landmark;
+  graph_options.frame_origin = LatLon{passages.front().gnss.front().lat_deg, passages.front().gnss.front().lon_deg};
+  PassageUpdateSummary summary;
+  summary.subgraphs = 1;
+  std::vector<PassageGraph> graphs;
+  graphs.reserve(count);
+  for (int p = 0; p < count; ++p) {
+    absl::StatusOr<PassageGraph> graph = BuildPassageGraph(passages[p], graph_options);
+    if (!graph.ok()) return failed(p, graph.status());
+    summary.nodes += graph->node_count();
+    summary.detections_dropped += graph->detections_dropped;
+    graphs.push_back(*std::move(graph));
+  }
+  const LocalFrame& frame = graphs.front().frame;
+
+  // Landmarks start at the intersection of all their rays; then each passage's poses are
+  // localised against them (as InitializePoses does against the map).
+  std::map<LandmarkId, RayIntersection> rays;
+  for (int p = 0; p < count; ++p) {
+    for (const CameraObservation& d : graphs[p].detections) {
+      rays[d.landmark_id].Add(CameraRay(graphs[p].initial_poses[d.node], passages[p].calibration, d.u_px));
+    }
+  }
+  std::map<LandmarkId, Eigen::Vector2d> initial;
+  for (const auto& [id, lines] : rays) {
+    if (std::optional<Eigen::Vector2d> x = lines.Solve()) initial[id] = *x;
+  }
+  std::vector<std::vector<Pose2>> poses(count);
+  std::vector<SubgraphLandmarks> seen(count);  // per passage: its detections of initialised landmarks
+  for (int p = 0; p < count; ++p) {
+    const NodeRange all{0, graphs[p].node_count() - 1};
+    poses[p] = graphs[p].initial_poses;
+    std::map<LandmarkId, std::vector<const CameraObservation*>> by_landmark;
+    for (const CameraObservation& d : graphs[p].detections) {
+      if (initial.count(d.landmark_id)) {
+        by_landmark[d.landmark_id].push_back(&d);
+      } else {
+        ++summary.detections_dropped;
+      }
+    }
+    for (auto& [id, detections] : by_landmark) {
+      seen[p].ids.push_back(id);
+      seen[p].known.push_back(true);
+      seen[p].initial.push_back(initial[id]);
+      seen[p].detections.push_back(std::move(detections));
+    }
+    InitializePoses(graphs[p], all, passages[p], options.max_solver_iterations, &seen[p], &poses[p]);
+    summary.detections_dropped += InitializeLandmarks(poses[p], all, passages[p].calibration, &seen[p]);
+  }
+
+  // Landmarks with a usable detection, how many passages saw each, and when last.
+  std::map<LandmarkId, int> seen_by;
+  std::map<LandmarkId, int64_t> last_seen_ms;
+  for (int p = 0; p < count; ++p) {
+    for (LandmarkId id : seen[p].ids) {
+      ++seen_by[id];
+      last_seen_ms[id] = std::max(last_seen_ms[id], passages[p].start_time_unix_ms);
+    }
+  }
+  if (seen_by.empty()) return absl::InvalidArgumentError("detections: no landmark of the passages could be estimated");
+  std::vector<LandmarkId> ids;
+  for (const auto& [id, n] : seen_by) ids.push_back(id);
+  const MapState empty;
+  MapOverlay fresh(empty);
+  LandmarkUpdate update(frame, &fresh, ids);
+  std::map<LandmarkId, double*> block_of;
+  for (int i = 0; i < update.size(); ++i) {
+    Eigen::Map<Eigen::Vector2d>(update.block(i)) = initial[update.id(i)];
+    block_of[update.id(i)] = update.block(i);
+  }
+
+  // One problem; each passage's measurements carry their own weight (consistency test below).
+  ceres::Problem::Options problem_options;
+  problem_options.loss_function_ownership = ceres::DO_NOT_TAKE_OWNERSHIP;
+  ceres::Problem problem(problem_options);
+  std::vector<std::unique_ptr<ceres::LossFunctionWrapper>> weights;
+  std::vector<std::vector<ceres::ResidualBlockId>> blocks_of(count);
+  std::vector<double> landmark_dims_of(count, 0.0);  // the landmarks' dimensions, shared by detections
+  std::map<LandmarkId, int> detections_of;
+  for (int p = 0; p < count; ++p) {
+    for (size_t i = 0; i < seen[p].ids.size(); ++i) detections_of[seen[p].ids[i]] += seen[p].detections[i].size();
+  }
+  for (int p = 0; p < count; ++p) {
+    weights.push_back(std::make_unique<ceres::LossFunctionWrapper>(new ceres::TrivialLoss(), ceres::TAKE_OWNERSHIP));
+    std::vector<ceres::ResidualBlockId> before;
+    problem.GetResidualBlocks(&before);
+    AddPoseGraphFactors(graphs[p], 0, graphs[p].node_count() - 1, passages[p].calibration.gnss_lever_arm_m,
+                        weights[p].get(), &poses[p], &problem);
+    problem.GetResidualBlocks(&blocks_of[p]);
+    blocks_of[p].erase(blocks_of[p].begin(), blocks_of[p].begin() + before.size());
+    for (size_t i = 0; i < seen[p].ids.size(); ++i) {
+      const LandmarkId id = seen[p].ids[i];
+      for (const CameraObservation* d : seen[p].detections[i]) {
+        blocks_of[p].push_back(problem.AddResidualBlock(
+            CameraFactor::Create(d->u_px, passages[p].noise.pixel_sigma_px, passages[p].calibration), weights[p].get(),
+            poses[p][d->node].data(), block_of[id]));
+        ++summary.detections_used;
+      }
+      landmark_dims_of[p] += 2.0 * seen[p].detections[i].size() / detections_of[id];
+    }
+  }
+
+  const auto solve_start = std::chrono::steady_clock::now();
+  ceres::Solver::Summary solver_summary;
+  ceres::Solve(SolverOptions(options.max_solver_iterations), &problem, &solver_summary);
+  summary.solver_iterations += static_cast<int>(solver_summary.iterations.size());
+  if (!solver_summary.IsSolutionUsable()) {
+    return absl::InternalError(absl::StrCat("joint solve unusable: ", solver_summary.message));
+  }
+  // The consistency test of UpdateFromSubgraph, passage by passage: the chi-square of each
+  // passage's residuals against its share of the degrees of freedom.
+  if (options.inflation_test_sigmas > 0.0) {
+    bool inflated = false;
+    for (int p = 0; p < count; ++p) {
+      ceres::Problem::EvaluateOptions evaluate;
+      evaluate.residual_blocks = blocks_of[p];
+      double cost = 0.0;
+      std::vector<double> residuals;
+      if (!problem.Evaluate(evaluate, &cost, &residuals, nullptr, nullptr)) continue;
+      const double dof = static_cast<double>(residuals.size()) - 3.0 * poses[p].size() - landmark_dims_of[p];
+      const double chi2 = 2.0 * cost;
+      if (dof > 0 && chi2 > dof + options.inflation_test_sigmas * std::sqrt(2.0 * dof)) {
+        const double variance_factor = chi2 / dof;
+        summary.max_variance_factor = std::max(summary.max_variance_factor, variance_factor);
+        weights[p]->Reset(new ceres::ScaledLoss(nullptr, 1.0 / variance_factor, ceres::TAKE_OWNERSHIP),
+                          ceres::TAKE_OWNERSHIP);
+        inflated = true;
+      }
+    }
+    if (inflated) {
+      ceres::Solve(SolverOptions(options.max_solver_iterations), &problem, &solver_summary);
+      summary.solver_iterations += static_cast<int>(solver_summary.iterations.size());
+      if (!solver_summary.IsSolutionUsable()) {
+        return absl::InternalError(absl::StrCat("joint solve unusable after inflation: ", solver_summary.message));
+      }
+    }
+  }
+  summary.solve_ms = MillisecondsSince(solve_start);
+  summary.final_cost = solver_summary.final_cost;
+  const int dof = problem.NumResiduals() - problem.NumParameters();
+  if (options.max_chi2_per_dof > 0.0 && dof > 0 && 2.0 * solver_summary.final_cost > options.max_chi2_per_dof * dof) {
+    return absl::FailedPreconditionError(
+        absl::StrFormat("solution inconsistent with the measurements: chi2=%.1f for %d degrees of freedom (limit %.1f "
+                        "per dof)",
+                        2.0 * solver_summary.final_cost, dof, options.max_chi2_per_dof));
+  }
+
+  const auto covariance_start = std::chrono::steady_clock::now();
+  std::vector<double*> landmark_blocks;
+  for (int i = 0; i < update.size(); ++i) landmark_blocks.push_back(update.block(i));
+  absl::StatusOr<GraphLinearization> linearization = GraphLinearization::Compute(&problem, landmark_blocks);
+  if (!linearization.ok()) return linearization.status();
+  summary.covariance_ms = MillisecondsSince(covariance_start);
+  if (options.bias_correction) {
+    BiasCorrectionStats bias;
+    if (absl::Status s = linearization->CorrectSecondOrderBias(&problem, &bias); !s.ok()) return s;
+    summary.bias_correction_ms = bias.ms;
+    summary.max_bias_correction_m = bias.max_landmark_shift_m;
+  }
+  LandmarkUpdateOptions update_options;
+  update_options.correlated = options.strategy != UpdateStrategy::kDecorrelated;
+  update_options.correlation_radius_m = options.correlation_radius_m;
+  auto touch = [&](Landmark* record) {
+    record->passages_seen = seen_by[record->id];
+    record->last_seen_unix_ms = last_seen_ms[record->id];
+  };
+  absl::StatusOr<LandmarkUpdateStats> stats = update.Commit(linearization->landmark_covariance(), update_options, touch);
+  if (!stats.ok()) return stats.status();
+  summary.covariance_ms += stats->covariance_ms;
+
+  // The result replaces the records of every landmark the passages saw, at one new version of
+  // `map`.
+  MapDelta delta = fresh.TakeDelta();
+  delta.base_version = map.version();
+  delta.version = map.version() + 1;
+  for (auto& [id, record] : delta.landmarks) {
+    record.version = delta.version;
+    ++(map.FindLandmark(id) != nullptr ? summary.landmarks_updated : summary.landmarks_created);
+  }
+  summary.map_version = delta.version;
+  summary.total_ms = MillisecondsSince(start);
+  return PassageUpdate{std::move(delta), summary};
+}
+
+MapUpdater::MapUpdater(const MapUpdateOptions& options, std::vector<Passage> applied, int64_t applied_count)
+    : options_(options), warmup_(std::move(applied)), applied_count_(std::max<int64_t>(applied_count, warmup_.size())) {
+  if (static_cast<int64_t>(warmup_.size()) > options_.warmup_passages) warmup_.resize(options_.warmup_passages);
+}
+
+absl::StatusOr<PassageUpdate> MapUpdater::Compute(const Passage& passage, const MapReaderInterface& map) const {
+  if (!warming_up()) return ComputePassageUpdate(passage, options_, map);
+  std::vector<Passage> batch = warmup_;
+  batch.push_back(passage);
+  return ComputeBatchUpdate(batch, options_, map);
+}
+
+void MapUpdater::Applied(const Passage& passage) {
+  if (warming_up()) warmup_.push_back(passage);
+  ++applied_count_;
 }
 
 }  // namespace crowdmap

@@ -4,6 +4,7 @@
 #include <limits>
 #include <string>
 #include <string_view>
+#include <vector>
 
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"
@@ -44,6 +45,12 @@ struct MapUpdateOptions {
   // CorrectSecondOrderBias): the MAP poses of one passage are decimetres off on average, the same
   // way on every passage of a road, which would otherwise accumulate in the map.
   bool bias_correction = true;
+  // Warm-up: the map's first this-many passages are solved jointly (re-solved from no map with
+  // each new one) instead of one at a time. A passage applied to a map still metres off enters it
+  // as a Gaussian taken at that poor estimate, so with sequential updates alone the order of a
+  // young map's first passages stays in the map for good (about 1-2 cm at 200 passages); the
+  // joint solve removes it. 0 disables it.
+  int warmup_passages = 8;
 
   absl::Status Validate() const;
 };
@@ -83,6 +90,39 @@ struct PassageUpdate {
 // fails (nothing is half-applied: the delta is returned only on success).
 absl::StatusOr<PassageUpdate> ComputePassageUpdate(const Passage& passage, const MapUpdateOptions& options,
                                                    const MapReaderInterface& map);
+
+// Solves `passages` jointly, from no map: one factor graph of all their poses and the landmarks
+// they saw (no subdivision, no map prior), with the same consistency test per passage, bias
+// correction and covariance recovery as the sequential update. The returned delta, computed
+// against `map`, replaces the record of every landmark the passages saw (at one new version);
+// meant for a map that holds only what these passages' predecessors in the batch produced.
+absl::StatusOr<PassageUpdate> ComputeBatchUpdate(const std::vector<Passage>& passages, const MapUpdateOptions& options,
+                                                 const MapReaderInterface& map);
+
+// Applies passages to one map in order, the way the service and the experiments do: while the
+// map has taken fewer than options.warmup_passages passages, each update is the joint solve of
+// all of them (ComputeBatchUpdate); after that, one passage at a time (ComputePassageUpdate).
+// Holds the warm-up passages; the map itself stays with the caller.
+class MapUpdater {
+ public:
+  // `applied` are the passages the map has already taken, in order (enough of them to cover the
+  // warm-up: the first options.warmup_passages, or all when fewer), `applied_count` how many there
+  // are in all.
+  explicit MapUpdater(const MapUpdateOptions& options, std::vector<Passage> applied = {}, int64_t applied_count = 0);
+
+  const MapUpdateOptions& options() const { return options_; }
+  bool warming_up() const { return applied_count_ < options_.warmup_passages; }
+
+  // The map change `passage` brings to `map` (see ComputePassageUpdate for the errors).
+  absl::StatusOr<PassageUpdate> Compute(const Passage& passage, const MapReaderInterface& map) const;
+  // Records that the delta Compute returned for `passage` was applied to the map.
+  void Applied(const Passage& passage);
+
+ private:
+  MapUpdateOptions options_;
+  std::vector<Passage> warmup_;  // the passages the map took while warming up
+  int64_t applied_count_ = 0;
+};
 
 }  // namespace crowdmap
 

@@ -8,7 +8,7 @@
 namespace crowdmap {
 namespace {
 
-constexpr int kWarmUpPassages = 50;  // the map prior is then dense and tight, as in a mature map
+constexpr int kMaturePassages = 50;  // the map prior is then dense and tight, as in a mature map
 
 void BM_ApplyPassage(benchmark::State& state) {
   ScenarioOptions scenario_options;
@@ -17,15 +17,19 @@ void BM_ApplyPassage(benchmark::State& state) {
   MapUpdateOptions options;
   options.strategy = static_cast<UpdateStrategy>(state.range(1));
   MapState map;
-  for (int i = 0; i < kWarmUpPassages; ++i) {
-    absl::StatusOr<PassageUpdate> u = ComputePassageUpdate(scenario.MakePassage(i), options, map);
-    if (u.ok()) map.Apply(u->delta);
+  MapUpdater updater(options);
+  for (int i = 0; i < kMaturePassages; ++i) {
+    const Passage passage = scenario.MakePassage(i);
+    absl::StatusOr<PassageUpdate> u = updater.Compute(passage, map);
+    if (!u.ok()) continue;
+    map.Apply(u->delta);
+    updater.Applied(passage);
   }
   std::vector<Passage> passages;
-  for (int i = 0; i < 20; ++i) passages.push_back(scenario.MakePassage(kWarmUpPassages + i));
+  for (int i = 0; i < 20; ++i) passages.push_back(scenario.MakePassage(kMaturePassages + i));
   size_t next = 0;
   for (auto _ : state) {
-    absl::StatusOr<PassageUpdate> u = ComputePassageUpdate(passages[next++ % passages.size()], options, map);
+    absl::StatusOr<PassageUpdate> u = updater.Compute(passages[next++ % passages.size()], map);
     if (!u.ok()) state.SkipWithError(u.status().ToString().c_str());
     benchmark::DoNotOptimize(u);
   }

@@ -26,6 +26,9 @@ TEST(MapUpdateOptions, RejectsOutOfRangeValuesNamingTheField) {
   options = MapUpdateOptions();
   options.detections_per_landmark = -1;
   EXPECT_NE(options.Validate().message().find("detections_per_landmark"), std::string::npos);
+  options = MapUpdateOptions();
+  options.warmup_passages = -1;
+  EXPECT_NE(options.Validate().message().find("warmup_passages"), std::string::npos);
   EXPECT_TRUE(MapUpdateOptions().Validate().ok());
 }
 
@@ -106,6 +109,117 @@ TEST(ComputePassageUpdate, PassageWithoutUsableDetectionsIsRejectedWithoutADelta
   ASSERT_FALSE(update.ok());
   EXPECT_EQ(update.status().code(), absl::StatusCode::kInvalidArgument);
   EXPECT_NE(update.status().message().find("detections"), std::string::npos);
+}
+
+// Applies the scenario's passages in `order` through a MapUpdater.
+MapState ApplyInOrder(const Scenario& scenario, const std::vector<int>& order, const MapUpdateOptions& options,
+                      std::vector<PassageUpdateSummary>* summaries = nullptr) {
+  MapState map;
+  MapUpdater updater(options);
+  for (int i : order) {
+    const Passage passage = scenario.MakePassage(i);
+    absl::StatusOr<PassageUpdate> update = updater.Compute(passage, map);
+    EXPECT_TRUE(update.ok()) << update.status();
+    if (!update.ok()) continue;
+    map.Apply(update->delta);
+    updater.Applied(passage);
+    if (summaries != nullptr) summaries->push_back(update->summary);
+  }
+  return map;
+}
+
+// Largest East/North distance between the two maps' estimates of a landmark.
+double LargestOffsetM(const MapState& a, const MapState& b) {
+  double largest = 0.0;
+  for (LandmarkId id : a.LandmarkIds()) {
+    EXPECT_NE(b.FindLandmark(id), nullptr) << id;
+    if (b.FindLandmark(id) == nullptr) continue;
+    largest = std::max(largest, EastNorthOffset(a.FindLandmark(id)->position, b.FindLandmark(id)->position).norm());
+  }
+  return largest;
+}
+
+TEST(ComputeBatchUpdate, SolvesThePassagesJointlyAndCountsWhoSawEachLandmark) {
+  const Scenario scenario = MakeScenario(10);
+  MapState map;
+  absl::StatusOr<PassageUpdate> update =
+      ComputeBatchUpdate({scenario.MakePassage(0), scenario.MakePassage(1)}, MapUpdateOptions(), map);
+  ASSERT_TRUE(update.ok()) << update.status();
+  EXPECT_EQ(update->summary.subgraphs, 1);
+  EXPECT_EQ(update->summary.landmarks_created, 10);
+  EXPECT_EQ(update->delta.base_version, 0);
+  EXPECT_EQ(update->delta.version, 1);
+  map.Apply(update->delta);
+  map.ForEachLandmark([](const Landmark& l) {
+    EXPECT_EQ(l.passages_seen, 2) << l.id;
+    EXPECT_EQ(l.version, 1) << l.id;
+    EXPECT_EQ(Eigen::LLT<Eigen::Matrix2d>(l.cov_en_m2).info(), Eigen::Success) << l.id;
+  });
+  EXPECT_EQ(map.cross_block_count(), 10u * 9u / 2u);
+
+  // Against a map that holds the first passage's result, the same solve replaces those records.
+  MapState first;
+  first.Apply(ComputeBatchUpdate({scenario.MakePassage(0)}, MapUpdateOptions(), first)->delta);
+  absl::StatusOr<PassageUpdate> again =
+      ComputeBatchUpdate({scenario.MakePassage(0), scenario.MakePassage(1)}, MapUpdateOptions(), first);
+  ASSERT_TRUE(again.ok()) << again.status();
+  EXPECT_EQ(again->summary.landmarks_updated, 10);
+  EXPECT_EQ(again->delta.base_version, first.version());
+  EXPECT_EQ(again->delta.version, first.version() + 1);
+  first.Apply(again->delta);
+  EXPECT_LT(LargestOffsetM(map, first), 1e-9);  // the same arithmetic, up to summation order
+}
+
+TEST(MapUpdater, WarmUpIsJointThenUpdatesGoOnePassageAtATime) {
+  const Scenario scenario = MakeScenario(25);
+  MapUpdateOptions options;
+  options.warmup_passages = 2;
+  std::vector<PassageUpdateSummary> summaries;
+  const MapState map = ApplyInOrder(scenario, {0, 1, 2}, options, &summaries);
+  ASSERT_EQ(summaries.size(), 3u);
+  EXPECT_EQ(summaries[0].subgraphs, 1);
+  EXPECT_EQ(summaries[1].subgraphs, 1);
+  EXPECT_GE(summaries[2].subgraphs, 2);  // cc-gsd subdivides a whole passage
+  EXPECT_EQ(map.FindLandmark(1)->passages_seen, 3);
+}
+
+TEST(MapUpdater, WarmUpMapDoesNotDependOnThePassageOrder) {
+  // Passages applied one at a time to a young map each enter it as a Gaussian taken at a
+  // still-poor estimate, so their order shows in the map; the joint warm-up solve removes that.
+  const Scenario scenario = MakeScenario(10);
+  const std::vector<int> forward = {0, 1, 2, 3}, shuffled = {2, 0, 3, 1};
+  MapUpdateOptions joint;
+  const double joint_offset = LargestOffsetM(ApplyInOrder(scenario, forward, joint),
+                                             ApplyInOrder(scenario, shuffled, joint));
+  MapUpdateOptions sequential;
+  sequential.warmup_passages = 0;
+  const double sequential_offset = LargestOffsetM(ApplyInOrder(scenario, forward, sequential),
+                                                  ApplyInOrder(scenario, shuffled, sequential));
+  EXPECT_LT(joint_offset, 1e-4) << "sequential: " << sequential_offset;
+  EXPECT_GT(sequential_offset, 1e-3) << "the scenario must be one where the order matters";
+}
+
+TEST(MapUpdater, RestoredFromTheAppliedPassagesItContinuesExactlyAsBefore) {
+  const Scenario scenario = MakeScenario(10);
+  MapState map;
+  MapUpdater original{MapUpdateOptions()};
+  std::vector<Passage> applied;
+  for (int i = 0; i < 3; ++i) {
+    applied.push_back(scenario.MakePassage(i));
+    map.Apply(original.Compute(applied.back(), map)->delta);
+    original.Applied(applied.back());
+  }
+  const MapUpdater restored(MapUpdateOptions(), applied, 3);
+  EXPECT_TRUE(restored.warming_up());
+  absl::StatusOr<PassageUpdate> a = original.Compute(scenario.MakePassage(3), map);
+  absl::StatusOr<PassageUpdate> b = restored.Compute(scenario.MakePassage(3), map);
+  ASSERT_TRUE(a.ok() && b.ok());
+  MapState from_a = map, from_b = map;
+  from_a.Apply(a->delta);
+  from_b.Apply(b->delta);
+  EXPECT_LT(LargestOffsetM(from_a, from_b), 1e-9);  // the same arithmetic, up to summation order
+  // A map past its warm-up needs none of its passages back.
+  EXPECT_FALSE(MapUpdater(MapUpdateOptions(), {}, 8).warming_up());
 }
 
 }  // namespace

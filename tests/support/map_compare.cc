@@ -2,6 +2,7 @@
 
 #include <vector>
 
+#include "core/estimation/map_updater.h"
 #include "core/geo/local_frame.h"
 
 namespace crowdmap {
@@ -47,6 +48,20 @@ namespace crowdmap {
     }
   }
   return ::testing::AssertionSuccess();
+}
+
+MapState MapFromPassages(const Scenario& scenario, int passages) {
+  MapState map;
+  MapUpdater updater{MapUpdateOptions()};
+  for (int i = 0; i < passages; ++i) {
+    const Passage passage = scenario.MakePassage(i);
+    absl::StatusOr<PassageUpdate> update = updater.Compute(passage, map);
+    EXPECT_TRUE(update.ok()) << update.status();
+    if (!update.ok()) continue;
+    map.Apply(update->delta);
+    updater.Applied(passage);
+  }
+  return map;
 }
 
 }  // namespace crowdmap

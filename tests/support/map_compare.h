@@ -2,6 +2,7 @@
 #define CROWDMAP_TESTS_SUPPORT_MAP_COMPARE_H_
 
 #include "core/map/map_state.h"
+#include "core/sim/scenario.h"
 #include "gtest/gtest.h"
 
 namespace crowdmap {
@@ -10,6 +11,10 @@ namespace crowdmap {
 // cross-covariance entry within `cov_tol_m2`, and the same cross-block pattern.
 ::testing::AssertionResult MapsMatch(const MapState& expected, const MapState& actual, double position_tol_m,
                                      double cov_tol_m2);
+
+// The map the service's default update builds from the scenario's first `passages` passages
+// applied in order, computed in-process.
+MapState MapFromPassages(const Scenario& scenario, int passages);
 
 }  // namespace crowdmap
 
