@@ -357,8 +357,14 @@ absl::StatusOr<PassageUpdate> ComputeBatchUpdate(const std::vector<Passage>& pas
   }
   const LocalFrame& frame = graphs.front().frame;
 
-  // Landmarks start at the intersection of all their rays; then each passage's poses are
-  // localised against them (as InitializePoses does against the map).
+  // Starting point: `map` with the last passage applied on its own, the basin the sequential
+  // update finds (the intersection of all rays is no start when each passage's GNSS is metres
+  // off in its own way); landmarks it lacks start at the intersection of their rays. Each
+  // passage's poses are then localised against these landmarks.
+  absl::StatusOr<PassageUpdate> single = ComputePassageUpdate(passages.back(), options, map);
+  if (!single.ok()) return failed(count - 1, single.status());
+  MapOverlay guess(map);
+  for (const auto& [id, record] : single->delta.landmarks) guess.PutLandmark(record);
   std::map<LandmarkId, RayIntersection> rays;
   for (int p = 0; p < count; ++p) {
     for (const CameraObservation& d : graphs[p].detections) {
@@ -367,7 +373,11 @@ absl::StatusOr<PassageUpdate> ComputeBatchUpdate(const std::vector<Passage>& pas
   }
   std::map<LandmarkId, Eigen::Vector2d> initial;
   for (const auto& [id, lines] : rays) {
-    if (std::optional<Eigen::Vector2d> x = lines.Solve()) initial[id] = *x;
+    if (const Landmark* known = guess.FindLandmark(id)) {
+      initial[id] = frame.ToLocal(known->position);
+    } else if (std::optional<Eigen::Vector2d> x = lines.Solve()) {
+      initial[id] = *x;
+    }
   }
   std::vector<std::vector<Pose2>> poses(count);
   std::vector<SubgraphLandmarks> seen(count);  // per passage: its detections of initialised landmarks

@@ -93,9 +93,11 @@ absl::StatusOr<PassageUpdate> ComputePassageUpdate(const Passage& passage, const
 
 // Solves `passages` jointly, from no map: one factor graph of all their poses and the landmarks
 // they saw (no subdivision, no map prior), with the same consistency test per passage, bias
-// correction and covariance recovery as the sequential update. The returned delta, computed
-// against `map`, replaces the record of every landmark the passages saw (at one new version);
-// meant for a map that holds only what these passages' predecessors in the batch produced.
+// correction and covariance recovery as the sequential update. Meant for a map that holds only
+// what the passages before the last produced: the solve starts from `map` with the last passage
+// applied on its own (ComputePassageUpdate, whose errors it returns: a passage the estimator
+// cannot use is refused the same way). The returned delta, computed against `map`, replaces the
+// record of every landmark the passages saw (at one new version).
 absl::StatusOr<PassageUpdate> ComputeBatchUpdate(const std::vector<Passage>& passages, const MapUpdateOptions& options,
                                                  const MapReaderInterface& map);
 

@@ -157,7 +157,9 @@ TEST(ComputeBatchUpdate, SolvesThePassagesJointlyAndCountsWhoSawEachLandmark) {
   });
   EXPECT_EQ(map.cross_block_count(), 10u * 9u / 2u);
 
-  // Against a map that holds the first passage's result, the same solve replaces those records.
+  // Against a map that holds the first passage's result, the same solve replaces those records. It
+  // starts elsewhere (from that map), so it matches to the solver's convergence: well under a
+  // millimetre, against about a metre of uncertainty after two passages.
   MapState first;
   first.Apply(ComputeBatchUpdate({scenario.MakePassage(0)}, MapUpdateOptions(), first)->delta);
   absl::StatusOr<PassageUpdate> again =
@@ -167,7 +169,7 @@ TEST(ComputeBatchUpdate, SolvesThePassagesJointlyAndCountsWhoSawEachLandmark) {
   EXPECT_EQ(again->delta.base_version, first.version());
   EXPECT_EQ(again->delta.version, first.version() + 1);
   first.Apply(again->delta);
-  EXPECT_LT(LargestOffsetM(map, first), 1e-9);  // the same arithmetic, up to summation order
+  EXPECT_LT(LargestOffsetM(map, first), 1e-3);
 }
 
 TEST(MapUpdater, WarmUpIsJointThenUpdatesGoOnePassageAtATime) {
