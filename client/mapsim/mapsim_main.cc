@@ -45,7 +45,8 @@ experiment flags:
   --max-subgraph-dim D        cc-gsd state-dimension bound per subgraph (default 500)
   --detections-per-landmark K last K detections per landmark and passage, 0 = all (default 5)
   --correlation-radius-m R    keep cross-covariances only within R metres (default: dense)
-  --warmup-passages B         the map's first B passages are solved jointly, 0 = off (default 8)
+  --warmup-passages B         experimental: the map's first B passages are solved jointly
+                              (default 0 = off)
   --inflation-test-sigmas K   inflate a passage's measurement covariances by chi2/dof when its chi2
                               exceeds dof by K sigma, 0 = never (default 4)
   --max-chi2-per-dof X        refuse a solve whose chi2 exceeds X per degree of freedom, 0 = never

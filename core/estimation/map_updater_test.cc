@@ -191,6 +191,7 @@ TEST(MapUpdater, WarmUpMapDoesNotDependOnThePassageOrder) {
   const Scenario scenario = MakeScenario(10);
   const std::vector<int> forward = {0, 1, 2, 3}, shuffled = {2, 0, 3, 1};
   MapUpdateOptions joint;
+  joint.warmup_passages = 8;
   const double joint_offset = LargestOffsetM(ApplyInOrder(scenario, forward, joint),
                                              ApplyInOrder(scenario, shuffled, joint));
   MapUpdateOptions sequential;
@@ -203,15 +204,17 @@ TEST(MapUpdater, WarmUpMapDoesNotDependOnThePassageOrder) {
 
 TEST(MapUpdater, RestoredFromTheAppliedPassagesItContinuesExactlyAsBefore) {
   const Scenario scenario = MakeScenario(10);
+  MapUpdateOptions options;
+  options.warmup_passages = 8;
   MapState map;
-  MapUpdater original{MapUpdateOptions()};
+  MapUpdater original(options);
   std::vector<Passage> applied;
   for (int i = 0; i < 3; ++i) {
     applied.push_back(scenario.MakePassage(i));
     map.Apply(original.Compute(applied.back(), map)->delta);
     original.Applied(applied.back());
   }
-  const MapUpdater restored(MapUpdateOptions(), applied, 3);
+  const MapUpdater restored(options, applied, 3);
   EXPECT_TRUE(restored.warming_up());
   absl::StatusOr<PassageUpdate> a = original.Compute(scenario.MakePassage(3), map);
   absl::StatusOr<PassageUpdate> b = restored.Compute(scenario.MakePassage(3), map);
@@ -221,7 +224,8 @@ TEST(MapUpdater, RestoredFromTheAppliedPassagesItContinuesExactlyAsBefore) {
   from_b.Apply(b->delta);
   EXPECT_LT(LargestOffsetM(from_a, from_b), 1e-9);  // the same arithmetic, up to summation order
   // A map past its warm-up needs none of its passages back.
-  EXPECT_FALSE(MapUpdater(MapUpdateOptions(), {}, 8).warming_up());
+  EXPECT_FALSE(MapUpdater(options, {}, 8).warming_up());
+  EXPECT_FALSE(MapUpdater(MapUpdateOptions()).warming_up()) << "off by default";
 }
 
 }  // namespace

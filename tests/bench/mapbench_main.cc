@@ -108,8 +108,9 @@ int Query(int argc, char** argv) {
   auto server = MapServer::Start(server_options);
   if (!server.ok()) return 1;
   MockVehicle writer((*server)->address());
-  constexpr int kWarmup = 5;
-  for (int i = 0; i < kWarmup; ++i) {
+  // The measured updates are the sequential ones of a map past its warm-up (joint) solves.
+  const int preload = std::max(5, server_options.worker.update.warmup_passages);
+  for (int i = 0; i < preload; ++i) {
     if (!writer.Upload(scenario->MakePassage(i)).ok()) return 1;
   }
   if (!writer.WaitUntilIdle().ok()) return 1;
@@ -135,7 +136,7 @@ int Query(int argc, char** argv) {
   const int apply_rate = IntFlag(argc, argv, "--apply-rate", 0);
   std::thread uploader([&] {
     auto next = Clock::now();
-    for (int i = kWarmup; writes && !stop; ++i) {
+    for (int i = preload; writes && !stop; ++i) {
       if (apply_rate > 0) {
         next += std::chrono::microseconds(1000000 / apply_rate);
         while (!stop && Clock::now() < next) std::this_thread::sleep_for(std::chrono::milliseconds(1));

@@ -2,7 +2,6 @@
 
 #include <vector>
 
-#include "core/estimation/map_updater.h"
 #include "core/geo/local_frame.h"
 
 namespace crowdmap {
@@ -50,9 +49,9 @@ namespace crowdmap {
   return ::testing::AssertionSuccess();
 }
 
-MapState MapFromPassages(const Scenario& scenario, int passages) {
+MapState MapFromPassages(const Scenario& scenario, int passages, const MapUpdateOptions& options) {
   MapState map;
-  MapUpdater updater{MapUpdateOptions()};
+  MapUpdater updater(options);
   for (int i = 0; i < passages; ++i) {
     const Passage passage = scenario.MakePassage(i);
     absl::StatusOr<PassageUpdate> update = updater.Compute(passage, map);

@@ -1,6 +1,7 @@
 #ifndef CROWDMAP_TESTS_SUPPORT_MAP_COMPARE_H_
 #define CROWDMAP_TESTS_SUPPORT_MAP_COMPARE_H_
 
+#include "core/estimation/map_updater.h"
 #include "core/map/map_state.h"
 #include "core/sim/scenario.h"
 #include "gtest/gtest.h"
@@ -12,9 +13,9 @@ namespace crowdmap {
 ::testing::AssertionResult MapsMatch(const MapState& expected, const MapState& actual, double position_tol_m,
                                      double cov_tol_m2);
 
-// The map the service's default update builds from the scenario's first `passages` passages
+// The map the service builds with `options` from the scenario's first `passages` passages
 // applied in order, computed in-process.
-MapState MapFromPassages(const Scenario& scenario, int passages);
+MapState MapFromPassages(const Scenario& scenario, int passages, const MapUpdateOptions& options = MapUpdateOptions());
 
 }  // namespace crowdmap
 
