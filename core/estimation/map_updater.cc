@@ -137,6 +137,25 @@ int InitializeLandmarks(const std::vector<Pose2>& poses, const NodeRange& range,
   return dropped;
 }
 
+// After a usable solve: the landmarks' marginal covariance at the solution and (if enabled) the
+// second-order bias correction of the solution, with their times added to `summary`.
+absl::StatusOr<GraphLinearization> LinearizeSolution(ceres::Problem* problem, LandmarkUpdate* update,
+                                                     const MapUpdateOptions& options, PassageUpdateSummary* summary) {
+  const auto covariance_start = std::chrono::steady_clock::now();
+  std::vector<double*> landmark_blocks;
+  for (int i = 0; i < update->size(); ++i) landmark_blocks.push_back(update->block(i));
+  absl::StatusOr<GraphLinearization> linearization = GraphLinearization::Compute(problem, landmark_blocks);
+  if (!linearization.ok()) return linearization.status();
+  summary->covariance_ms += MillisecondsSince(covariance_start);
+  if (options.bias_correction) {
+    BiasCorrectionStats bias;
+    if (absl::Status s = linearization->CorrectSecondOrderBias(problem, &bias); !s.ok()) return s;
+    summary->bias_correction_ms += bias.ms;
+    summary->max_bias_correction_m = std::max(summary->max_bias_correction_m, bias.max_landmark_shift_m);
+  }
+  return linearization;
+}
+
 // Builds, solves and commits one subgraph. No map change if it sees no landmark.
 absl::Status UpdateFromSubgraph(const Passage& passage, const PassageGraph& graph, const NodeRange& range,
                                 const MapUpdateOptions& options, MapOverlay* map, PassageProgress* progress,
@@ -199,18 +218,8 @@ absl::Status UpdateFromSubgraph(const Passage& passage, const PassageGraph& grap
         chi2, dof, options.max_chi2_per_dof));
   }
 
-  const auto covariance_start = std::chrono::steady_clock::now();
-  std::vector<double*> landmark_blocks;
-  for (int i = 0; i < update.size(); ++i) landmark_blocks.push_back(update.block(i));
-  absl::StatusOr<GraphLinearization> linearization = GraphLinearization::Compute(&problem, landmark_blocks);
+  absl::StatusOr<GraphLinearization> linearization = LinearizeSolution(&problem, &update, options, summary);
   if (!linearization.ok()) return linearization.status();
-  summary->covariance_ms += MillisecondsSince(covariance_start);
-  if (options.bias_correction) {
-    BiasCorrectionStats bias;
-    if (absl::Status s = linearization->CorrectSecondOrderBias(&problem, &bias); !s.ok()) return s;
-    summary->bias_correction_ms += bias.ms;
-    summary->max_bias_correction_m = std::max(summary->max_bias_correction_m, bias.max_landmark_shift_m);
-  }
 
   const int64_t seen_ms = passage.start_time_unix_ms;
   auto touch = [&](Landmark* record) {
@@ -499,18 +508,8 @@ absl::StatusOr<PassageUpdate> ComputeBatchUpdate(const std::vector<Passage>& pas
                         2.0 * solver_summary.final_cost, dof, options.max_chi2_per_dof));
   }
 
-  const auto covariance_start = std::chrono::steady_clock::now();
-  std::vector<double*> landmark_blocks;
-  for (int i = 0; i < update.size(); ++i) landmark_blocks.push_back(update.block(i));
-  absl::StatusOr<GraphLinearization> linearization = GraphLinearization::Compute(&problem, landmark_blocks);
+  absl::StatusOr<GraphLinearization> linearization = LinearizeSolution(&problem, &update, options, &summary);
   if (!linearization.ok()) return linearization.status();
-  summary.covariance_ms = MillisecondsSince(covariance_start);
-  if (options.bias_correction) {
-    BiasCorrectionStats bias;
-    if (absl::Status s = linearization->CorrectSecondOrderBias(&problem, &bias); !s.ok()) return s;
-    summary.bias_correction_ms = bias.ms;
-    summary.max_bias_correction_m = bias.max_landmark_shift_m;
-  }
   LandmarkUpdateOptions update_options;
   update_options.correlated = options.strategy != UpdateStrategy::kDecorrelated;
   update_options.correlation_radius_m = options.correlation_radius_m;
