@@ -81,9 +81,9 @@ Usage: mapd [--flag value | --flag=value]...
   --max-subgraph-dim N        largest subgraph state dimension with cc-gsd (default 500)
   --correlation-radius-m M    keep cross-covariances only between landmarks closer than M metres
                               (default inf: dense)
-  --warmup-passages N         experimental: a new map's first N passages are solved jointly,
-                              re-solved with each one, so their arrival order does not stay in
-                              the map (default 0 = off; see README)
+  --warmup-passages N         a new map's first N passages are solved jointly, re-solved with
+                              each one, so their arrival order does not stay in the map
+                              (default 8; 0 = off; see README)
   --workers N                 worker threads (default 1). They claim and decode passages in
                               parallel, but map updates are applied one at a time in arrival
                               order, so the map is the same for any N.

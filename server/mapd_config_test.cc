@@ -55,10 +55,10 @@ TEST(MapdConfig, ReadsUpdateOptions) {
   auto c = ParseMapdConfig({"--max-subgraph-dim", "300", "--correlation-radius-m", "150.5"}, FakeEnv({}));
   ASSERT_TRUE(c.ok()) << c.status();
   EXPECT_EQ(c->server.worker.update.max_subgraph_dim, 300);
-  EXPECT_EQ(c->server.worker.update.warmup_passages, 0);
-  auto w = ParseMapdConfig({}, FakeEnv({{"MAPD_WARMUP_PASSAGES", "8"}}));
+  EXPECT_EQ(c->server.worker.update.warmup_passages, 8);
+  auto w = ParseMapdConfig({}, FakeEnv({{"MAPD_WARMUP_PASSAGES", "0"}}));
   ASSERT_TRUE(w.ok()) << w.status();
-  EXPECT_EQ(w->server.worker.update.warmup_passages, 8);
+  EXPECT_EQ(w->server.worker.update.warmup_passages, 0);
   auto bad = ParseMapdConfig({"--warmup-passages", "-1"}, FakeEnv({}));
   ASSERT_FALSE(bad.ok());
   EXPECT_NE(bad.status().message().find("warmup_passages"), std::string::npos) << bad.status();

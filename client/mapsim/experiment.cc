@@ -94,6 +94,7 @@ absl::StatusOr<ExperimentResult> RunExperiment(const ExperimentOptions& options,
         updater.Applied(passage);
         record.subgraphs = u->summary.subgraphs;
         if (u->summary.max_variance_factor > 1.0) ++result.inflated_passages;
+        if (u->summary.joint_rejected) ++result.joint_rejected_passages;
       } else {
         ++result.failed_passages;
         spdlog::warn("passage={} rejected: {}", passage.passage_id, u.status().ToString());
@@ -150,6 +151,7 @@ absl::Status WriteExperimentOutputs(const ExperimentOptions& options, const Expe
        << absl::StrFormat("  \"max_subgraph_dim\": %d,\n", options.update.max_subgraph_dim)
        << absl::StrFormat("  \"detections_per_landmark\": %d,\n", options.update.detections_per_landmark)
        << absl::StrFormat("  \"warmup_passages\": %d,\n", options.update.warmup_passages)
+       << absl::StrFormat("  \"joint_rejected_passages\": %d,\n", result.joint_rejected_passages)
        << "  \"final_mean_dist_err_m\": " << JsonNumber(result.final_mean_dist_err_m) << ",\n"
        << "  \"final_nees_per_dof\": " << JsonNumber(result.final_nees_per_dof) << ",\n"
        << "  \"final_joint_nees_per_dof\": " << JsonNumber(result.final_joint_nees_per_dof) << ",\n"

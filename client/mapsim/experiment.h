@@ -44,6 +44,7 @@ struct ExperimentResult {
   double median_passage_ms = 0.0;
   int failed_passages = 0;          // passages the estimator rejected (the map is unchanged by them)
   int inflated_passages = 0;        // passages whose measurement covariances the consistency test inflated
+  int joint_rejected_passages = 0;  // warm-up passages applied sequentially: the joint solve was not usable
 };
 
 // Called after each passage with the record; used for progress output.

@@ -45,8 +45,8 @@ experiment flags:
   --max-subgraph-dim D        cc-gsd state-dimension bound per subgraph (default 500)
   --detections-per-landmark K last K detections per landmark and passage, 0 = all (default 5)
   --correlation-radius-m R    keep cross-covariances only within R metres (default: dense)
-  --warmup-passages B         experimental: the map's first B passages are solved jointly
-                              (default 0 = off)
+  --warmup-passages B         the map's first B passages are solved jointly, re-solved with
+                              each one (default 8; 0 = off)
   --inflation-test-sigmas K   inflate a passage's measurement covariances by chi2/dof when its chi2
                               exceeds dof by K sigma, 0 = never (default 4)
   --max-chi2-per-dof X        refuse a solve whose chi2 exceeds X per degree of freedom, 0 = never
@@ -156,10 +156,11 @@ absl::Status RunExperimentCommand(const std::vector<std::string>& args) {
   if (absl::Status s = WriteExperimentOutputs(options, *result, out); !s.ok()) return s;
   std::cout << absl::StrFormat(
       "strategy=%s noise=%s landmarks=%d passages=%d final_mean_dist_err_m=%.4f final_nees_per_dof=%.3f "
-      "final_joint_nees_per_dof=%.3f median_passage_ms=%.2f failed=%d inflated=%d out=%s\n",
+      "final_joint_nees_per_dof=%.3f median_passage_ms=%.2f failed=%d inflated=%d joint_rejected=%d out=%s\n",
       options.strategy, NoiseConfigName(options.scenario.noise), options.scenario.landmarks, options.passages,
       result->final_mean_dist_err_m, result->final_nees_per_dof, result->final_joint_nees_per_dof,
-      result->median_passage_ms, result->failed_passages, result->inflated_passages, out);
+      result->median_passage_ms, result->failed_passages, result->inflated_passages, result->joint_rejected_passages,
+      out);
   return absl::OkStatus();
 }
 

@@ -284,6 +284,10 @@ absl::Status MapUpdateOptions::Validate() const {
   if (!(max_chi2_per_dof >= 0.0)) {
     return absl::InvalidArgumentError(absl::StrCat("max_chi2_per_dof: must be >= 0 (0 = off), got ", max_chi2_per_dof));
   }
+  if (!(max_joint_mahalanobis2 > 0.0)) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("max_joint_mahalanobis2: must be > 0, got ", max_joint_mahalanobis2));
+  }
   if (warmup_passages < 0) {
     return absl::InvalidArgumentError(absl::StrCat("warmup_passages: must be >= 0 (0 = off), got ", warmup_passages));
   }
@@ -338,11 +342,12 @@ absl::StatusOr<PassageUpdate> ComputePassageUpdate(const Passage& passage, const
   return PassageUpdate{overlay.TakeDelta(), summary};
 }
 
-absl::StatusOr<PassageUpdate> ComputeBatchUpdate(const std::vector<Passage>& passages, const MapUpdateOptions& options,
-                                                 const MapReaderInterface& map) {
-  if (absl::Status s = options.Validate(); !s.ok()) return s;
-  if (passages.empty()) return absl::InvalidArgumentError("passages: a joint solve needs at least one passage");
-  if (passages.front().gnss.empty()) return absl::InvalidArgumentError("gnss: passage needs at least 2 GNSS fixes");
+namespace {
+
+// The joint solve of ComputeBatchUpdate, started from `single`, the sequential update of the last
+// passage on `map`.
+absl::StatusOr<PassageUpdate> SolveJointly(const std::vector<Passage>& passages, const MapUpdateOptions& options,
+                                           const MapReaderInterface& map, const PassageUpdate& single) {
   const auto start = std::chrono::steady_clock::now();
   const int count = static_cast<int>(passages.size());
   auto failed = [&](int p, const absl::Status& s) {
@@ -353,6 +358,7 @@ absl::StatusOr<PassageUpdate> ComputeBatchUpdate(const std::vector<Passage>& pas
   GraphOptions graph_options;
   graph_options.detections_per_landmark = options.detections_per_landmark;
   graph_options.frame_origin = LatLon{passages.front().gnss.front().lat_deg, passages.front().gnss.front().lon_deg};
+  graph_options.refine_initial_poses = false;  // done piece by piece, with the map
   PassageUpdateSummary summary;
   summary.subgraphs = 1;
   std::vector<PassageGraph> graphs;
@@ -368,12 +374,9 @@ absl::StatusOr<PassageUpdate> ComputeBatchUpdate(const std::vector<Passage>& pas
 
   // Starting point: `map` with the last passage applied on its own, the basin the sequential
   // update finds (the intersection of all rays is no start when each passage's GNSS is metres
-  // off in its own way); landmarks it lacks start at the intersection of their rays. Each
-  // passage's poses are then localised against these landmarks.
-  absl::StatusOr<PassageUpdate> single = ComputePassageUpdate(passages.back(), options, map);
-  if (!single.ok()) return failed(count - 1, single.status());
+  // off in its own way); landmarks it lacks start at the intersection of their rays.
   MapOverlay guess(map);
-  for (const auto& [id, record] : single->delta.landmarks) guess.PutLandmark(record);
+  for (const auto& [id, record] : single.delta.landmarks) guess.PutLandmark(record);
   std::map<LandmarkId, RayIntersection> rays;
   for (int p = 0; p < count; ++p) {
     for (const CameraObservation& d : graphs[p].detections) {
@@ -407,7 +410,16 @@ absl::StatusOr<PassageUpdate> ComputeBatchUpdate(const std::vector<Passage>& pas
       seen[p].initial.push_back(initial[id]);
       seen[p].detections.push_back(std::move(detections));
     }
-    InitializePoses(graphs[p], all, passages[p], options.max_solver_iterations, &seen[p], &poses[p]);
+    // The poses are localised against `map` piece by piece, exactly as the sequential update
+    // does, not against the guess: the guess holds landmarks this very passage placed, some of
+    // them tens of metres off (nearly parallel rays), and held fixed as anchors they can turn the
+    // poses of a sharp turn around.
+    for (const NodeRange& range : SubdivideGraph(graphs[p], options.max_subgraph_dim)) {
+      SubgraphLandmarks known = GroupDetections(graphs[p], range, map);
+      std::vector<Pose2> piece(poses[p].begin() + range.first, poses[p].begin() + range.last + 1);
+      InitializePoses(graphs[p], range, passages[p], options.max_solver_iterations, &known, &piece);
+      std::copy(piece.begin(), piece.end(), poses[p].begin() + range.first);
+    }
     summary.detections_dropped += InitializeLandmarks(poses[p], all, passages[p].calibration, &seen[p]);
   }
 
@@ -533,6 +545,46 @@ absl::StatusOr<PassageUpdate> ComputeBatchUpdate(const std::vector<Passage>& pas
   summary.map_version = delta.version;
   summary.total_ms = MillisecondsSince(start);
   return PassageUpdate{std::move(delta), summary};
+}
+
+// Why the joint solution `joint` must not be used, or "" if it may: a landmark of the sequential
+// update `single` that the joint solve moved out of the sequential estimate's confidence region.
+// Both estimate the same landmarks from nearly the same information, so they differ by far less
+// than that region; a joint solve that converged to another minimum does not.
+std::string JointSolutionRejected(const PassageUpdate& single, const PassageUpdate& joint, double max_mahalanobis2) {
+  for (const auto& [id, sequential] : single.delta.landmarks) {
+    const auto it = joint.delta.landmarks.find(id);
+    if (it == joint.delta.landmarks.end()) continue;  // only conditioned by the sequential update
+    const Eigen::Vector2d offset = EastNorthOffset(sequential.position, it->second.position);
+    const Eigen::LDLT<Eigen::Matrix2d> cov(sequential.cov_en_m2);
+    if (cov.info() != Eigen::Success || !cov.isPositive()) continue;
+    const double mahalanobis2 = offset.dot(cov.solve(offset));
+    if (!(mahalanobis2 <= max_mahalanobis2)) {
+      return absl::StrFormat("landmark %d is %.2f m from the sequential estimate (Mahalanobis^2 %.1f > %.1f)", id,
+                             offset.norm(), mahalanobis2, max_mahalanobis2);
+    }
+  }
+  return "";
+}
+
+}  // namespace
+
+absl::StatusOr<PassageUpdate> ComputeBatchUpdate(const std::vector<Passage>& passages, const MapUpdateOptions& options,
+                                                 const MapReaderInterface& map) {
+  if (absl::Status s = options.Validate(); !s.ok()) return s;
+  if (passages.empty()) return absl::InvalidArgumentError("passages: a joint solve needs at least one passage");
+  if (passages.front().gnss.empty()) return absl::InvalidArgumentError("gnss: passage needs at least 2 GNSS fixes");
+  absl::StatusOr<PassageUpdate> single = ComputePassageUpdate(passages.back(), options, map);
+  if (!single.ok()) return single.status();
+  absl::StatusOr<PassageUpdate> joint = SolveJointly(passages, options, map, *single);
+  const std::string rejected = joint.ok() ? JointSolutionRejected(*single, *joint, options.max_joint_mahalanobis2)
+                                          : std::string(joint.status().message());
+  if (rejected.empty()) return joint;
+  // The sequential update is a valid map change on its own: the passage is not lost.
+  spdlog::warn("joint solve of {} passages not used, sequential update of passage {} instead: {}", passages.size(),
+               passages.back().passage_id, rejected);
+  single->summary.joint_rejected = true;
+  return single;
 }
 
 MapUpdater::MapUpdater(const MapUpdateOptions& options, std::vector<Passage> applied, int64_t applied_count)

@@ -45,14 +45,17 @@ struct MapUpdateOptions {
   // CorrectSecondOrderBias): the MAP poses of one passage are decimetres off on average, the same
   // way on every passage of a road, which would otherwise accumulate in the map.
   bool bias_correction = true;
-  // Warm-up (experimental, off by default): the map's first this-many passages are solved jointly
-  // (re-solved from no map with each new one) instead of one at a time. A passage applied to a
-  // map still metres off enters it as a Gaussian taken at that poor estimate, so with sequential
-  // updates alone the order of a young map's first passages stays in the map (about 1-2 cm at 200
-  // passages); the joint solve removes it. Known failure: the joint solve has no safeguard yet
-  // against a bad start, and in one of 50 white-noise runs (N = 75, seed 3) it diverged on the
-  // first passage and the map was lost. 0 disables it.
-  int warmup_passages = 0;
+  // Warm-up: the map's first this-many passages are solved jointly (re-solved from no map with
+  // each new one) instead of one at a time. A passage applied to a map still metres off enters it
+  // as a Gaussian taken at that poor estimate, so with sequential updates alone the order of a
+  // young map's first passages stays in the map (about 1-2 cm at 200 passages); the joint solve
+  // removes it. 0 disables it.
+  int warmup_passages = 8;
+  // Guard of the warm-up: a joint solution that puts any landmark further than this (squared
+  // Mahalanobis distance) from the sequential update's estimate is not used; the sequential update
+  // is. The two differ by a small fraction of that estimate's uncertainty; a joint solve caught in a
+  // wrong minimum by far more.
+  double max_joint_mahalanobis2 = 36.0;
 
   absl::Status Validate() const;
 };
@@ -75,6 +78,7 @@ struct PassageUpdateSummary {
   double max_bias_correction_m = 0.0;  // largest landmark shift by the bias correction
   double total_ms = 0.0;
   int64_t map_version = 0;  // version after the update
+  bool joint_rejected = false;  // warm-up: the joint solve was not usable, this is the sequential update
 
   std::string Brief() const;
 };
@@ -99,7 +103,9 @@ absl::StatusOr<PassageUpdate> ComputePassageUpdate(const Passage& passage, const
 // what the passages before the last produced: the solve starts from `map` with the last passage
 // applied on its own (ComputePassageUpdate, whose errors it returns: a passage the estimator
 // cannot use is refused the same way). The returned delta, computed against `map`, replaces the
-// record of every landmark the passages saw (at one new version).
+// record of every landmark the passages saw (at one new version). Should the joint solve fail, or
+// move a landmark out of the sequential update's confidence region (options.max_joint_mahalanobis2),
+// the sequential update is returned instead, with summary.joint_rejected set.
 absl::StatusOr<PassageUpdate> ComputeBatchUpdate(const std::vector<Passage>& passages, const MapUpdateOptions& options,
                                                  const MapReaderInterface& map);
 
