@@ -550,7 +550,7 @@ absl::StatusOr<PassageUpdate> SolveJointly(const std::vector<Passage>& passages,
 // Why the joint solution `joint` must not be used, or "" if it may: a landmark of the sequential
 // update `single` that the joint solve moved out of the sequential estimate's confidence region.
 // Both estimate the same landmarks from nearly the same information, so they differ by far less
-// than that region; a joint solve that converged to another minimum does not.
+// than that region, unless the joint solve converged to another minimum.
 std::string JointSolutionRejected(const PassageUpdate& single, const PassageUpdate& joint, double max_mahalanobis2) {
   for (const auto& [id, sequential] : single.delta.landmarks) {
     const auto it = joint.delta.landmarks.find(id);

@@ -211,7 +211,7 @@ TEST(ComputeBatchUpdate, LocalisesThePosesAgainstTheMapNotAgainstItsOwnGuess) {
   // The first passage of this scenario places one landmark 78 m off (nearly parallel rays). When
   // the joint solve localised the passage's poses against its own starting guess, that landmark
   // held as an exact anchor turned the poses of a sharp turn by 1.6 rad and the solve diverged
-  // (54 m and more on every landmark).
+  // (most landmarks tens of metres off, some kilometres).
   const Scenario scenario = MakeScenario(75, 3);
   MapState map;
   absl::StatusOr<PassageUpdate> joint = ComputeBatchUpdate({scenario.MakePassage(0)}, MapUpdateOptions(), map);
