@@ -151,6 +151,7 @@ absl::Status WriteExperimentOutputs(const ExperimentOptions& options, const Expe
        << absl::StrFormat("  \"max_subgraph_dim\": %d,\n", options.update.max_subgraph_dim)
        << absl::StrFormat("  \"detections_per_landmark\": %d,\n", options.update.detections_per_landmark)
        << absl::StrFormat("  \"warmup_passages\": %d,\n", options.update.warmup_passages)
+       << "  \"edge_margin_sigmas\": " << JsonNumber(options.update.edge_margin_sigmas) << ",\n"
        << absl::StrFormat("  \"joint_rejected_passages\": %d,\n", result.joint_rejected_passages)
        << "  \"final_mean_dist_err_m\": " << JsonNumber(result.final_mean_dist_err_m) << ",\n"
        << "  \"final_nees_per_dof\": " << JsonNumber(result.final_nees_per_dof) << ",\n"

@@ -47,6 +47,9 @@ experiment flags:
   --correlation-radius-m R    keep cross-covariances only within R metres (default: dense)
   --warmup-passages B         the map's first B passages are solved jointly, re-solved with
                               each one (default 8; 0 = off)
+  --edge-margin-sigmas M      do not use detections of map landmarks predicted within M pixel
+                              sigmas of the image border, where the detector's cut biases them
+                              (default 3; 0 = use all)
   --inflation-test-sigmas K   inflate a passage's measurement covariances by chi2/dof when its chi2
                               exceeds dof by K sigma, 0 = never (default 4)
   --max-chi2-per-dof X        refuse a solve whose chi2 exceeds X per degree of freedom, 0 = never
@@ -103,6 +106,7 @@ absl::Status RunExperimentCommand(const std::vector<std::string>& args) {
                                                     {"noise", true}, {"seed", true}, {"out", true},
                                                     {"max-subgraph-dim", true}, {"detections-per-landmark", true},
                                                     {"correlation-radius-m", true}, {"warmup-passages", true}, {"max-chi2-per-dof", true}, {"inflation-test-sigmas", true},
+                                                    {"edge-margin-sigmas", true},
                                                     {"shuffle-window", true}, {"shuffle-from", true}, {"shuffle-seed", true},
                                                     {"quiet", false}});
   if (!flags.ok()) return flags.status();
@@ -115,10 +119,11 @@ absl::Status RunExperimentCommand(const std::vector<std::string>& args) {
                             shuffle_from = flags->GetInt("shuffle-from", 0), shuffle_seed = flags->GetInt("shuffle-seed", 1);
   absl::StatusOr<double> radius = flags->GetDouble("correlation-radius-m", options.update.correlation_radius_m),
                          chi2 = flags->GetDouble("max-chi2-per-dof", options.update.max_chi2_per_dof),
-                         inflation = flags->GetDouble("inflation-test-sigmas", options.update.inflation_test_sigmas);
+                         inflation = flags->GetDouble("inflation-test-sigmas", options.update.inflation_test_sigmas),
+                         edge_margin = flags->GetDouble("edge-margin-sigmas", options.update.edge_margin_sigmas);
   for (const absl::Status& s : {landmarks.status(), passages.status(), seed.status(), dim.status(),
                                 per_landmark.status(), warmup.status(), radius.status(), chi2.status(), inflation.status(),
-                                shuffle_window.status(), shuffle_from.status(), shuffle_seed.status()}) {
+                                edge_margin.status(),                                 shuffle_window.status(), shuffle_from.status(), shuffle_seed.status()}) {
     if (!s.ok()) return s;
   }
   absl::StatusOr<NoiseConfig> noise = ParseNoiseConfig(flags->GetString("noise", "white"));
@@ -134,6 +139,7 @@ absl::Status RunExperimentCommand(const std::vector<std::string>& args) {
   options.update.correlation_radius_m = *radius;
   options.update.max_chi2_per_dof = *chi2;
   options.update.inflation_test_sigmas = *inflation;
+  options.update.edge_margin_sigmas = *edge_margin;
   if (*shuffle_window < 0) return absl::InvalidArgumentError("shuffle-window: must be >= 0");
   if (*shuffle_from < 0) return absl::InvalidArgumentError("shuffle-from: must be >= 0");
   if (*shuffle_window > 1) {

@@ -99,10 +99,15 @@ void InitializePoses(const PassageGraph& graph, const NodeRange& range, const Pa
 }
 
 // Initial positions of the new landmarks (intersection of their rays) and the detections usable
-// at the initial guess (landmark in front of the camera). Landmarks that cannot be initialised,
-// new ones with fewer than two usable rays, are left out. Returns the detections dropped.
+// at the initial guess: landmark in front of the camera and, for map landmarks and a positive
+// `edge_margin_px`, predicted at least that far inside the image. A detector reports only detections inside the image, so one
+// whose true pixel lies within a few sigma of the border has its noise cut on one side and is
+// biased inwards, the same way on every passage; the prediction from the map does not depend on
+// the detection, so leaving those out removes the bias without adding one. Landmarks that cannot
+// be initialised, new ones with fewer than two usable rays, are left out. Returns the detections
+// dropped.
 int InitializeLandmarks(const std::vector<Pose2>& poses, const NodeRange& range, const Calibration& calib,
-                        SubgraphLandmarks* landmarks) {
+                        double edge_margin_px, SubgraphLandmarks* landmarks) {
   SubgraphLandmarks kept;
   int dropped = 0;
   for (size_t i = 0; i < landmarks->ids.size(); ++i) {
@@ -121,7 +126,10 @@ int InitializeLandmarks(const std::vector<Pose2>& poses, const NodeRange& range,
     std::vector<const CameraObservation*> usable;
     for (const CameraObservation* d : detections) {
       double u;
-      if (ProjectLandmark(poses[d->node - range.first].data(), initial.data(), calib, &u)) usable.push_back(d);
+      if (!ProjectLandmark(poses[d->node - range.first].data(), initial.data(), calib, &u)) continue;
+      const bool near_border = u < edge_margin_px || u > calib.image_width_px - edge_margin_px;
+      if (edge_margin_px > 0.0 && landmarks->known[i] && near_border) continue;
+      usable.push_back(d);
     }
     if (usable.empty() || (!landmarks->known[i] && usable.size() < 2)) {
       dropped += static_cast<int>(detections.size());
@@ -166,7 +174,8 @@ absl::Status UpdateFromSubgraph(const Passage& passage, const PassageGraph& grap
   std::vector<Pose2> poses(graph.initial_poses.begin() + range.first, graph.initial_poses.begin() + range.last + 1);
   const auto solve_start = std::chrono::steady_clock::now();
   InitializePoses(graph, range, passage, options.max_solver_iterations, &landmarks, &poses);
-  summary->detections_dropped += InitializeLandmarks(poses, range, calib, &landmarks);
+  summary->detections_dropped += InitializeLandmarks(
+      poses, range, calib, options.edge_margin_sigmas * passage.noise.pixel_sigma_px, &landmarks);
   if (landmarks.ids.empty()) return absl::OkStatus();
 
   LandmarkUpdate update(graph.frame, map, landmarks.ids);
@@ -283,6 +292,9 @@ absl::Status MapUpdateOptions::Validate() const {
   }
   if (!(max_chi2_per_dof >= 0.0)) {
     return absl::InvalidArgumentError(absl::StrCat("max_chi2_per_dof: must be >= 0 (0 = off), got ", max_chi2_per_dof));
+  }
+  if (!(edge_margin_sigmas >= 0.0)) {
+    return absl::InvalidArgumentError(absl::StrCat("edge_margin_sigmas: must be >= 0 (0 = off), got ", edge_margin_sigmas));
   }
   if (!(max_joint_mahalanobis2 > 0.0)) {
     return absl::InvalidArgumentError(
@@ -420,7 +432,9 @@ absl::StatusOr<PassageUpdate> SolveJointly(const std::vector<Passage>& passages,
       InitializePoses(graphs[p], range, passages[p], options.max_solver_iterations, &known, &piece);
       std::copy(piece.begin(), piece.end(), poses[p].begin() + range.first);
     }
-    summary.detections_dropped += InitializeLandmarks(poses[p], all, passages[p].calibration, &seen[p]);
+    summary.detections_dropped +=
+        InitializeLandmarks(poses[p], all, passages[p].calibration,
+                            options.edge_margin_sigmas * passages[p].noise.pixel_sigma_px, &seen[p]);
   }
 
   // Landmarks with a usable detection, how many passages saw each, and when last.
@@ -569,9 +583,14 @@ std::string JointSolutionRejected(const PassageUpdate& single, const PassageUpda
 
 }  // namespace
 
-absl::StatusOr<PassageUpdate> ComputeBatchUpdate(const std::vector<Passage>& passages, const MapUpdateOptions& options,
-                                                 const MapReaderInterface& map) {
-  if (absl::Status s = options.Validate(); !s.ok()) return s;
+absl::StatusOr<PassageUpdate> ComputeBatchUpdate(const std::vector<Passage>& passages,
+                                                 const MapUpdateOptions& given_options, const MapReaderInterface& map) {
+  if (absl::Status s = given_options.Validate(); !s.ok()) return s;
+  // No border margin in the warm-up: the predictions it selects on come from a map that is still
+  // metres off, and which detections are used would depend on where the solve starts, so on the
+  // passages' order. The warm-up's few passages weigh little in a map of hundreds.
+  MapUpdateOptions options = given_options;
+  options.edge_margin_sigmas = 0.0;
   if (passages.empty()) return absl::InvalidArgumentError("passages: a joint solve needs at least one passage");
   if (passages.front().gnss.empty()) return absl::InvalidArgumentError("gnss: passage needs at least 2 GNSS fixes");
   absl::StatusOr<PassageUpdate> single = ComputePassageUpdate(passages.back(), options, map);

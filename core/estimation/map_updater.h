@@ -29,6 +29,11 @@ struct MapUpdateOptions {
   int max_subgraph_dim = 500;
   // Detections used per landmark and passage: the last K (0 = all).
   int detections_per_landmark = 5;
+  // Detections of map landmarks predicted less than this many pixel sigmas from the image border
+  // are not used: the detector reports only what falls inside the image, which biases those
+  // inwards (see InitializeLandmarks). Sequential updates only (not the warm-up's joint solve).
+  // 0 uses them all.
+  double edge_margin_sigmas = 3.0;
   // Cross-covariance blocks are kept only between landmarks closer than this (infinity = dense).
   double correlation_radius_m = std::numeric_limits<double>::infinity();
   int max_solver_iterations = 100;
