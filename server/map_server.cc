@@ -61,7 +61,7 @@ absl::StatusOr<std::unique_ptr<MapServer>> MapServer::Start(const MapServerOptio
   context.worker = server->worker_.get();
   context.notifier = &server->notifier_;
   context.limits.max_passage_bytes = static_cast<size_t>(options.max_passage_mb) << 20;
-  context.strategy = UpdateStrategyName(options.worker.update.strategy);
+  context.update = options.worker.update;
   server->service_ = std::make_unique<MapService>(&context);
 
   grpc::EnableDefaultHealthCheckService(true);
@@ -77,7 +77,7 @@ absl::StatusOr<std::unique_ptr<MapServer>> MapServer::Start(const MapServerOptio
   server->server_->GetHealthCheckService()->SetServingStatus(true);
   if (options.start_worker) server->worker_->Start();
   spdlog::info("event=started listen={} port={} db={} strategy={} workers={} max_queue={}", options.listen,
-               server->port_, options.db_path, context.strategy, options.worker.workers, options.max_queue);
+               server->port_, options.db_path, UpdateStrategyName(context.update.strategy), options.worker.workers, options.max_queue);
   return server;
 }
 

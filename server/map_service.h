@@ -23,7 +23,7 @@ struct MapServiceContext {
   MapWorker* worker = nullptr;  // woken after each new upload
   VersionNotifier* notifier = nullptr;
   WireLimits limits;
-  std::string strategy;
+  MapUpdateOptions update;  // the worker's estimator settings, reported by GetMapInfo
   std::atomic<bool> accepting_uploads{true};
 };
 

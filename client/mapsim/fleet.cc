@@ -147,6 +147,7 @@ absl::Status Replay(const FleetOptions& options, FleetResult* result) {
   experiment.scenario = options.scenario;
   experiment.passages = options.passages;
   experiment.strategy = result->server_strategy;
+  experiment.update = result->server_update;
   experiment.order = result->arrival_order;
   absl::StatusOr<ExperimentResult> replay = RunExperiment(experiment);
   if (!replay.ok()) return replay.status();
@@ -213,6 +214,9 @@ absl::StatusOr<FleetResult> RunFleet(const FleetOptions& options,
   if (!start_info.ok()) return start_info.status();
   FleetResult result;
   result.server_strategy = start_info->strategy();
+  result.server_update.warmup_passages = start_info->warmup_passages();
+  result.server_update.max_subgraph_dim = start_info->max_subgraph_dim();
+  result.server_update.correlation_radius_m = start_info->correlation_radius_m();
   if (!options.strategy.empty() && options.strategy != result.server_strategy) {
     return absl::FailedPreconditionError(absl::StrCat("the server runs strategy '", result.server_strategy,
                                                       "', not '", options.strategy, "' (mapd --strategy)"));

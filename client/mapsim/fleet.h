@@ -59,6 +59,7 @@ struct FleetResult {
   std::vector<pb::Landmark> landmarks;  // the final map, as returned by QueryRegion
   int64_t map_version = 0;
   std::string server_strategy;
+  MapUpdateOptions server_update;  // the server's other estimator settings (GetMapInfo)
   int duplicates = 0;       // uploads the server already had (an earlier run on the same database)
   double upload_s = 0.0;    // first upload to last acknowledgement
   double apply_s = 0.0;     // first upload to the queue drained

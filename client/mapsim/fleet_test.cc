@@ -43,6 +43,21 @@ TEST(Fleet, OneSequentialVehicleMatchesTheExperiment) {
   EXPECT_EQ(fleet->experiment.failed_passages, 0);
 }
 
+TEST(Fleet, TheReplayUsesTheServersEstimatorSettings) {
+  TempDir dir;
+  MapServerOptions server_options = TestServerOptions(dir.File("map.db"));
+  server_options.worker.update.warmup_passages = 2;
+  server_options.worker.update.max_subgraph_dim = 300;
+  auto server = StartTestServer(server_options);
+  ASSERT_NE(server, nullptr);
+  auto fleet = RunFleet(SmallFleet(server->address(), 2));
+  ASSERT_TRUE(fleet.ok()) << fleet.status();
+  EXPECT_EQ(fleet->server_update.warmup_passages, 2);
+  EXPECT_EQ(fleet->server_update.max_subgraph_dim, 300);
+  ASSERT_TRUE(fleet->replay.has_value());
+  EXPECT_LT(fleet->replay->max_position_diff_m, 1e-6);
+}
+
 TEST(Fleet, ConcurrentVehiclesGetEveryPassageAppliedAndWriteTheOutputs) {
   TempDir dir;
   auto server = StartTestServer(TestServerOptions(dir.File("map.db")));
