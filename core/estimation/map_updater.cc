@@ -100,12 +100,12 @@ void InitializePoses(const PassageGraph& graph, const NodeRange& range, const Pa
 
 // Initial positions of the new landmarks (intersection of their rays) and the detections usable
 // at the initial guess: landmark in front of the camera and, for map landmarks and a positive
-// `edge_margin_px`, predicted at least that far inside the image. A detector reports only detections inside the image, so one
-// whose true pixel lies within a few sigma of the border has its noise cut on one side and is
-// biased inwards, the same way on every passage; the prediction from the map does not depend on
-// the detection, so leaving those out removes the bias without adding one. Landmarks that cannot
-// be initialised, new ones with fewer than two usable rays, are left out. Returns the detections
-// dropped.
+// `edge_margin_px`, predicted at least that far inside the image. A detector reports only
+// detections inside the image, so one whose true pixel lies within a few sigma of the border has
+// its noise cut on one side and is biased inwards, the same way on every passage; the prediction
+// from the map does not depend on the detection, so leaving those out removes the bias without
+// adding one. Landmarks that cannot be initialised, new ones with fewer than two usable rays, are
+// left out. Returns the detections dropped.
 int InitializeLandmarks(const std::vector<Pose2>& poses, const NodeRange& range, const Calibration& calib,
                         double edge_margin_px, SubgraphLandmarks* landmarks) {
   SubgraphLandmarks kept;
