@@ -7,6 +7,7 @@
 #include <google/protobuf/arena.h>
 #include <grpcpp/support/message_allocator.h>
 
+#include "core/estimation/map_updater.h"
 #include "mapservice/v1/map_service.grpc.pb.h"
 #include "server/map_worker.h"
 #include "server/storage/map_store.h"
