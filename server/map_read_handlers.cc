@@ -130,6 +130,7 @@ grpc::Status MapService::GetMapInfo(grpc::ServerContext* ctx, const pb::GetMapIn
   response->set_passages_failed(stats->passages_by_state[static_cast<int>(PassageState::kFailed)]);
   response->set_strategy(UpdateStrategyName(context_->update.strategy));
   response->set_warmup_passages(context_->update.warmup_passages);
+  response->set_relinearize_until_passages(context_->update.relinearize_until_passages);
   response->set_max_subgraph_dim(context_->update.max_subgraph_dim);
   response->set_correlation_radius_m(context_->update.correlation_radius_m);
   log.Add(absl::StrCat("map_version=", stats->map_version, " queue_depth=", stats->queue_depth()));

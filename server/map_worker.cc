@@ -59,9 +59,9 @@ absl::StatusOr<std::unique_ptr<MapWorker>> MapWorker::Create(MapStoreInterface* 
   if (*requeued > 0) spdlog::warn("event=requeue passages={} reason=\"processing at start-up\"", *requeued);
   if (auto s = worker->LoadMirror(); !s.ok()) return s;
   notifier->Publish(worker->map_.version());
-  spdlog::info("event=map_loaded landmarks={} cross_blocks={} map_version={} warming_up={}",
+  spdlog::info("event=map_loaded landmarks={} cross_blocks={} map_version={} warming_up={} next_joint_solve={}",
                worker->map_.landmark_count(), worker->map_.cross_block_count(), worker->map_.version(),
-               worker->updater_->warming_up());
+               worker->updater_->warming_up(), worker->updater_->joint_next());
   return worker;
 }
 
@@ -71,12 +71,13 @@ absl::Status MapWorker::LoadMirror() {
   absl::StatusOr<MapStats> stats = store_->GetStats();
   if (!stats.ok()) return stats.status();
   const int64_t applied_count = stats->passages_by_state[static_cast<int>(PassageState::kApplied)];
-  // The warm-up passages are the first ones applied; passages are applied in arrival (id) order.
-  std::vector<Passage> warmup;
-  if (applied_count < options_.update.warmup_passages) {
+  // The joint solves take the map's first passages; passages are applied in arrival (id) order.
+  std::vector<Passage> kept;
+  const int needed = JointSolvePassages(options_.update);
+  if (applied_count <= needed) {
     PassageQuery query;
     query.state = PassageState::kApplied;
-    query.limit = options_.update.warmup_passages;
+    query.limit = needed;
     absl::StatusOr<std::vector<StoredPassage>> applied = store_->ListPassages(query);
     if (!applied.ok()) return applied.status();
     for (const StoredPassage& record : *applied) {
@@ -84,11 +85,11 @@ absl::Status MapWorker::LoadMirror() {
       if (!payload.ok()) return payload.status();
       absl::StatusOr<Passage> passage = DecodeStoredPassage(*payload);
       if (!passage.ok()) return absl::DataLossError(absl::StrCat("applied passage ", record.id, ": ", passage.status().message()));
-      warmup.push_back(*std::move(passage));
+      kept.push_back(*std::move(passage));
     }
   }
   map_ = std::move(map);
-  updater_ = std::make_unique<MapUpdater>(options_.update, std::move(warmup), applied_count);
+  updater_ = std::make_unique<MapUpdater>(options_.update, std::move(kept), applied_count);
   return absl::OkStatus();
 }
 

@@ -37,8 +37,9 @@ struct MapWorkerOptions {
 // Applies queued passages to the map, in arrival order. Keeps an in-memory mirror of the stored
 // map (this process owns the database): each passage's update is computed against the mirror,
 // committed with the passage's result and the new version in one transaction, and only then
-// applied to the mirror. While the map is young (MapUpdateOptions::warmup_passages) the update
-// re-solves the passages applied so far, read back from the store, together with the new one.
+// applied to the mirror. While the map is young (MapUpdateOptions::warmup_passages, then at each
+// doubling of its passage count up to relinearize_until_passages) an update re-solves the passages
+// applied so far together with the new one; after a restart they are read back from the store.
 class MapWorker {
  public:
   // Loads the map and puts passages left processing by an earlier run back on the queue.
@@ -68,7 +69,7 @@ class MapWorker {
   MapStoreInterface* const store_;
   const MapWorkerOptions options_;
   VersionNotifier* const notifier_;
-  // Loads map_ and updater_ (with the warm-up passages the map has taken) from the store.
+  // Loads map_ and updater_ (with the passages its joint solves still need) from the store.
   absl::Status LoadMirror();
 
   // Touched only by the thread whose ticket is being served:

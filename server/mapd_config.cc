@@ -15,7 +15,7 @@ namespace {
 
 const std::vector<std::string>& SettingNames() {
   static const std::vector<std::string> kNames = {
-      "listen", "db", "strategy", "max-subgraph-dim", "correlation-radius-m", "warmup-passages", "workers",
+      "listen", "db", "strategy", "max-subgraph-dim", "correlation-radius-m", "warmup-passages", "relinearize-until-passages", "workers",
       "worker-nice", "max-queue", "max-message-mb", "max-passage-mb", "log-level"};
   return kNames;
 }
@@ -84,6 +84,10 @@ Usage: mapd [--flag value | --flag=value]...
   --warmup-passages N         a new map's first N passages are solved jointly, re-solved with
                               each one, so their arrival order does not stay in the map
                               (default 8; 0 = off; see README)
+  --relinearize-until-passages N  after the warm-up, the map's passages are all re-solved jointly
+                              each time their count doubles (16, 32, ...), up to N passages, so
+                              that none stays in the map as taken at a young map's poor estimate
+                              (default 128; 0 = off; see README)
   --workers N                 worker threads (default 1). They claim and decode passages in
                               parallel, but map updates are applied one at a time in arrival
                               order, so the map is the same for any N.
@@ -164,6 +168,7 @@ absl::StatusOr<MapdConfig> ParseMapdConfig(const std::vector<std::string>& args,
       if (!v.ok()) return v.status();
       if (name == "max-subgraph-dim") o.worker.update.max_subgraph_dim = static_cast<int>(*v);
       if (name == "warmup-passages") o.worker.update.warmup_passages = static_cast<int>(*v);
+      if (name == "relinearize-until-passages") o.worker.update.relinearize_until_passages = static_cast<int>(*v);
       if (name == "workers") o.worker.workers = static_cast<int>(*v);
       if (name == "worker-nice") o.worker.nice = static_cast<int>(*v);
       if (name == "max-queue") o.max_queue = *v;

@@ -59,6 +59,13 @@ TEST(MapdConfig, ReadsUpdateOptions) {
   auto w = ParseMapdConfig({}, FakeEnv({{"MAPD_WARMUP_PASSAGES", "0"}}));
   ASSERT_TRUE(w.ok()) << w.status();
   EXPECT_EQ(w->server.worker.update.warmup_passages, 0);
+  EXPECT_EQ(c->server.worker.update.relinearize_until_passages, 128);
+  auto r = ParseMapdConfig({"--relinearize-until-passages", "0"}, FakeEnv({}));
+  ASSERT_TRUE(r.ok()) << r.status();
+  EXPECT_EQ(r->server.worker.update.relinearize_until_passages, 0);
+  auto bad_r = ParseMapdConfig({}, FakeEnv({{"MAPD_RELINEARIZE_UNTIL_PASSAGES", "-3"}}));
+  ASSERT_FALSE(bad_r.ok());
+  EXPECT_NE(bad_r.status().message().find("relinearize_until_passages"), std::string::npos) << bad_r.status();
   auto bad = ParseMapdConfig({"--warmup-passages", "-1"}, FakeEnv({}));
   ASSERT_FALSE(bad.ok());
   EXPECT_NE(bad.status().message().find("warmup_passages"), std::string::npos) << bad.status();

@@ -7,11 +7,12 @@
 namespace crowdmap {
 namespace {
 
-// The restarts fall inside the map's warm-up, so the worker must read the passages it already
-// applied back from the store.
+// The restarts come after the map's warm-up (2 passages) and before its re-solve at 4 passages,
+// so the worker must read the passages it already applied back from the store.
 MapUpdateOptions WarmUp() {
   MapUpdateOptions options;
-  options.warmup_passages = 8;
+  options.warmup_passages = 2;
+  options.relinearize_until_passages = 8;
   return options;
 }
 
@@ -78,8 +79,8 @@ TEST(ServiceRestart, MapVersionsAndQueueSurviveARestart) {
     EXPECT_GT(info->map_version(), info_before.map_version());
     EXPECT_GT(client.GetPassage("sim-4", scenario.MakePassage(4).passage_id)->id(),
               client.GetPassage("sim-2", scenario.MakePassage(2).passage_id)->id());
-    // The worker read the three applied passages back from the store: the map is the
-    // uninterrupted one.
+    // The worker read the three applied passages back from the store for the joint solve of the
+    // fourth: the map is the uninterrupted one.
     auto map = client.DownloadMap(MockVehicle::World());
     ASSERT_TRUE(map.ok());
     EXPECT_TRUE(MapsMatch(MapFromPassages(scenario, 5, WarmUp()), *map, 1e-6, 1e-9));

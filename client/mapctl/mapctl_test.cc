@@ -84,11 +84,12 @@ TEST_F(MapctlTest, InfoShowsTheEmptyMapAndItsStrategy) {
   CliRun r = Mapctl({"info"}, address_);
   ASSERT_EQ(r.code, 0) << r.err;
   EXPECT_TRUE(absl::StrContains(r.out, "landmarks:         0")) << r.out;
-  EXPECT_TRUE(absl::StrContains(r.out, "cc-gsd (warm-up 8 passages, subgraph dim 500")) << r.out;
+  EXPECT_TRUE(absl::StrContains(r.out, "cc-gsd (warm-up 8 passages, re-solved at each doubling up to 128, subgraph dim 500")) << r.out;
   CliRun j = Mapctl({"info", "--json"}, address_);
   ASSERT_EQ(j.code, 0) << j.err;
   EXPECT_TRUE(absl::StrContains(j.out, "\"strategy\": \"cc-gsd\"")) << j.out;
   EXPECT_TRUE(absl::StrContains(j.out, "\"warmup_passages\": 8")) << j.out;
+  EXPECT_TRUE(absl::StrContains(j.out, "\"relinearize_until_passages\": 128")) << j.out;
 }
 
 TEST_F(MapctlTest, UploadedFilesAreAppliedAndListed) {

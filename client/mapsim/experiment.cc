@@ -63,6 +63,38 @@ std::vector<int> ShuffledOrder(int passages, int window, int from, uint64_t seed
   return order;
 }
 
+absl::Status WriteOrderFile(const std::vector<int>& order, const std::string& path) {
+  std::ofstream out(path, std::ios::trunc);
+  for (int i : order) out << i << "\n";
+  out.close();
+  if (!out) return absl::UnavailableError(absl::StrCat(path, ": write failed"));
+  return absl::OkStatus();
+}
+
+absl::StatusOr<std::vector<int>> ReadOrderFile(const std::string& path) {
+  std::ifstream in(path);
+  if (!in) return absl::NotFoundError(absl::StrCat(path, ": cannot open"));
+  std::vector<int> order;
+  std::string line;
+  for (int line_no = 1; std::getline(in, line); ++line_no) {
+    if (line.find_first_not_of(" \t\r") == std::string::npos) continue;
+    size_t used = 0;
+    int value = -1;
+    try {
+      value = std::stoi(line, &used);
+    } catch (const std::exception&) {
+      used = 0;
+    }
+    if (used == 0 || line.find_first_not_of(" \t\r", used) != std::string::npos) {
+      return absl::InvalidArgumentError(
+          absl::StrCat(path, ":", line_no, ": expected one passage index per line, got \"", line, "\""));
+    }
+    order.push_back(value);
+  }
+  if (order.empty()) return absl::InvalidArgumentError(absl::StrCat(path, ": no passage indices"));
+  return order;
+}
+
 absl::StatusOr<ExperimentResult> RunExperiment(const ExperimentOptions& options, const ExperimentProgress& progress) {
   if (absl::Status s = options.Validate(); !s.ok()) return s;
   absl::StatusOr<Scenario> scenario = Scenario::Create(options.scenario);
@@ -151,6 +183,7 @@ absl::Status WriteExperimentOutputs(const ExperimentOptions& options, const Expe
        << absl::StrFormat("  \"max_subgraph_dim\": %d,\n", options.update.max_subgraph_dim)
        << absl::StrFormat("  \"detections_per_landmark\": %d,\n", options.update.detections_per_landmark)
        << absl::StrFormat("  \"warmup_passages\": %d,\n", options.update.warmup_passages)
+       << absl::StrFormat("  \"relinearize_until_passages\": %d,\n", options.update.relinearize_until_passages)
        << "  \"edge_margin_sigmas\": " << JsonNumber(options.update.edge_margin_sigmas) << ",\n"
        << absl::StrFormat("  \"joint_rejected_passages\": %d,\n", result.joint_rejected_passages)
        << "  \"final_mean_dist_err_m\": " << JsonNumber(result.final_mean_dist_err_m) << ",\n"

@@ -55,6 +55,11 @@ using ExperimentProgress = std::function<void(const PassageRecord&)>;
 // the order.
 std::vector<int> ShuffledOrder(int passages, int window, int from, uint64_t seed);
 
+// An order file holds one scenario passage index per line (e.g. the arrival order of a
+// `mapsim fleet` run, so that the run can be replayed with `mapsim experiment --order-file`).
+absl::Status WriteOrderFile(const std::vector<int>& order, const std::string& path);
+absl::StatusOr<std::vector<int>> ReadOrderFile(const std::string& path);
+
 absl::StatusOr<ExperimentResult> RunExperiment(const ExperimentOptions& options,
                                                const ExperimentProgress& progress = nullptr);
 

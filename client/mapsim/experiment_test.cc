@@ -118,6 +118,23 @@ TEST(Experiment, RejectsAnOrderThatIsNotAPermutation) {
   }
 }
 
+TEST(Experiment, OrderFileRoundTripsAndNamesTheBadLine) {
+  const std::filesystem::path dir = std::filesystem::path(testing::TempDir()) / "order_files";
+  std::filesystem::create_directories(dir);
+  const std::vector<int> order = {2, 0, 3, 1};
+  ASSERT_TRUE(WriteOrderFile(order, (dir / "order.txt").string()).ok());
+  absl::StatusOr<std::vector<int>> read = ReadOrderFile((dir / "order.txt").string());
+  ASSERT_TRUE(read.ok()) << read.status();
+  EXPECT_EQ(*read, order);
+
+  std::ofstream((dir / "bad.txt").string()) << "2\n0\n3x\n1\n";
+  read = ReadOrderFile((dir / "bad.txt").string());
+  ASSERT_FALSE(read.ok());
+  EXPECT_EQ(read.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_NE(read.status().message().find("bad.txt:3:"), std::string::npos) << read.status();
+  EXPECT_EQ(ReadOrderFile((dir / "missing.txt").string()).status().code(), absl::StatusCode::kNotFound);
+}
+
 TEST(Experiment, WritesCsvSummaryAndPlot) {
   ExperimentOptions options;
   options.scenario.landmarks = 4;

@@ -215,6 +215,7 @@ absl::StatusOr<FleetResult> RunFleet(const FleetOptions& options,
   FleetResult result;
   result.server_strategy = start_info->strategy();
   result.server_update.warmup_passages = start_info->warmup_passages();
+  result.server_update.relinearize_until_passages = start_info->relinearize_until_passages();
   result.server_update.max_subgraph_dim = start_info->max_subgraph_dim();
   result.server_update.correlation_radius_m = start_info->correlation_radius_m();
   if (!options.strategy.empty() && options.strategy != result.server_strategy) {
@@ -305,6 +306,7 @@ absl::Status WriteFleetOutputs(const FleetOptions& options, const FleetResult& r
     extra.push_back({"max_cov_diff_vs_arrival_order_experiment_m2", result.replay->max_cov_diff_m2});
   }
   if (absl::Status s = WriteExperimentOutputs(experiment, result.experiment, dir, extra); !s.ok()) return s;
+  if (absl::Status s = WriteOrderFile(result.arrival_order, dir + "/arrival_order.txt"); !s.ok()) return s;
   GeoJsonOptions geojson;
   geojson.ellipses = true;
   const std::string path = dir + "/map.geojson";

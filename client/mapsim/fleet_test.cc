@@ -47,12 +47,14 @@ TEST(Fleet, TheReplayUsesTheServersEstimatorSettings) {
   TempDir dir;
   MapServerOptions server_options = TestServerOptions(dir.File("map.db"));
   server_options.worker.update.warmup_passages = 2;
+  server_options.worker.update.relinearize_until_passages = 4;
   server_options.worker.update.max_subgraph_dim = 300;
   auto server = StartTestServer(server_options);
   ASSERT_NE(server, nullptr);
   auto fleet = RunFleet(SmallFleet(server->address(), 2));
   ASSERT_TRUE(fleet.ok()) << fleet.status();
   EXPECT_EQ(fleet->server_update.warmup_passages, 2);
+  EXPECT_EQ(fleet->server_update.relinearize_until_passages, 4);
   EXPECT_EQ(fleet->server_update.max_subgraph_dim, 300);
   ASSERT_TRUE(fleet->replay.has_value());
   EXPECT_LT(fleet->replay->max_position_diff_m, 1e-6);
@@ -81,6 +83,9 @@ TEST(Fleet, ConcurrentVehiclesGetEveryPassageAppliedAndWriteTheOutputs) {
   for (const char* name : {"passages.csv", "summary.json", "errors.svg", "map.geojson"}) {
     EXPECT_GT(std::filesystem::file_size(dir.File(std::string("out/") + name)), 0u) << name;
   }
+  absl::StatusOr<std::vector<int>> written = ReadOrderFile(dir.File("out/arrival_order.txt"));
+  ASSERT_TRUE(written.ok()) << written.status();
+  EXPECT_EQ(*written, fleet->arrival_order);
   // A second run on the same database uploads nothing new.
   auto again = RunFleet(options);
   ASSERT_TRUE(again.ok()) << again.status();

@@ -47,6 +47,9 @@ experiment flags:
   --correlation-radius-m R    keep cross-covariances only within R metres (default: dense)
   --warmup-passages B         the map's first B passages are solved jointly, re-solved with
                               each one (default 8; 0 = off)
+  --relinearize-until-passages R  after the warm-up, re-solve all the map's passages jointly each
+                              time their count doubles (2B, 4B, ...) up to R passages (default 128;
+                              0 = off)
   --edge-margin-sigmas M      do not use detections of map landmarks predicted within M pixel
                               sigmas of the image border, where the detector's cut biases them
                               (default 3; 0 = use all)
@@ -58,6 +61,8 @@ experiment flags:
                               concurrent vehicles would deliver them (default 0: in order)
   --shuffle-from F            keep passages 0..F-1 in order, shuffle from F on (default 0)
   --shuffle-seed K            seed of the shuffle (default 1)
+  --order-file FILE           apply the passages in this order: one scenario passage index per
+                              line, a permutation of 0..P-1 (e.g. a fleet run's arrival_order.txt)
   --quiet                     no progress line
 
 fleet flags (and --landmarks, --noise, --seed, --quiet as for experiment):
@@ -68,7 +73,9 @@ fleet flags (and --landmarks, --noise, --seed, --quiet as for experiment):
   --sample-ms MS              read the map back and evaluate it this often while applying (default 250)
   --no-replay                 skip the check below
   --out DIR                   output folder (default out/fleet): passages.csv (one row per sampled
-                              map; the last row is the final map), summary.json, errors.svg, map.geojson
+                              map; the last row is the final map), summary.json, errors.svg, map.geojson,
+                              arrival_order.txt (the scenario passage index of each applied passage,
+                              in the order the server applied them; see experiment --order-file)
   After the run (on a server whose map started empty) the passages are applied in-process in the
   order the server received them; summary.json gets that run's error and the largest landmark
   difference from the server's map (arrival_order_experiment_final_mean_dist_err_m,
@@ -105,16 +112,17 @@ absl::Status RunExperimentCommand(const std::vector<std::string>& args) {
   absl::StatusOr<Flags> flags = Flags::Parse(args, {{"landmarks", true}, {"passages", true}, {"strategy", true},
                                                     {"noise", true}, {"seed", true}, {"out", true},
                                                     {"max-subgraph-dim", true}, {"detections-per-landmark", true},
-                                                    {"correlation-radius-m", true}, {"warmup-passages", true}, {"max-chi2-per-dof", true}, {"inflation-test-sigmas", true},
+                                                    {"correlation-radius-m", true}, {"warmup-passages", true}, {"relinearize-until-passages", true}, {"max-chi2-per-dof", true}, {"inflation-test-sigmas", true},
                                                     {"edge-margin-sigmas", true},
                                                     {"shuffle-window", true}, {"shuffle-from", true}, {"shuffle-seed", true},
-                                                    {"quiet", false}});
+                                                    {"order-file", true}, {"quiet", false}});
   if (!flags.ok()) return flags.status();
   ExperimentOptions options;
   absl::StatusOr<long long> landmarks = flags->GetInt("landmarks", 25), passages = flags->GetInt("passages", 100),
                             seed = flags->GetInt("seed", 1), dim = flags->GetInt("max-subgraph-dim", 500),
                             per_landmark = flags->GetInt("detections-per-landmark", 5),
                             warmup = flags->GetInt("warmup-passages", options.update.warmup_passages),
+                            relinearize = flags->GetInt("relinearize-until-passages", options.update.relinearize_until_passages),
                             shuffle_window = flags->GetInt("shuffle-window", 0),
                             shuffle_from = flags->GetInt("shuffle-from", 0), shuffle_seed = flags->GetInt("shuffle-seed", 1);
   absl::StatusOr<double> radius = flags->GetDouble("correlation-radius-m", options.update.correlation_radius_m),
@@ -122,7 +130,7 @@ absl::Status RunExperimentCommand(const std::vector<std::string>& args) {
                          inflation = flags->GetDouble("inflation-test-sigmas", options.update.inflation_test_sigmas),
                          edge_margin = flags->GetDouble("edge-margin-sigmas", options.update.edge_margin_sigmas);
   for (const absl::Status& s : {landmarks.status(), passages.status(), seed.status(), dim.status(),
-                                per_landmark.status(), warmup.status(), radius.status(), chi2.status(), inflation.status(),
+                                per_landmark.status(), warmup.status(), relinearize.status(), radius.status(), chi2.status(), inflation.status(),
                                 edge_margin.status(),                                 shuffle_window.status(), shuffle_from.status(), shuffle_seed.status()}) {
     if (!s.ok()) return s;
   }
@@ -136,13 +144,19 @@ absl::Status RunExperimentCommand(const std::vector<std::string>& args) {
   options.update.max_subgraph_dim = static_cast<int>(*dim);
   options.update.detections_per_landmark = static_cast<int>(*per_landmark);
   options.update.warmup_passages = static_cast<int>(*warmup);
+  options.update.relinearize_until_passages = static_cast<int>(*relinearize);
   options.update.correlation_radius_m = *radius;
   options.update.max_chi2_per_dof = *chi2;
   options.update.inflation_test_sigmas = *inflation;
   options.update.edge_margin_sigmas = *edge_margin;
   if (*shuffle_window < 0) return absl::InvalidArgumentError("shuffle-window: must be >= 0");
   if (*shuffle_from < 0) return absl::InvalidArgumentError("shuffle-from: must be >= 0");
-  if (*shuffle_window > 1) {
+  if (flags->Has("order-file")) {
+    if (flags->Has("shuffle-window")) return absl::InvalidArgumentError("order-file: cannot be used with --shuffle-window");
+    absl::StatusOr<std::vector<int>> order = ReadOrderFile(flags->GetString("order-file", ""));
+    if (!order.ok()) return order.status();
+    options.order = *std::move(order);
+  } else if (*shuffle_window > 1) {
     options.order = ShuffledOrder(options.passages, static_cast<int>(*shuffle_window), static_cast<int>(*shuffle_from),
                                   static_cast<uint64_t>(*shuffle_seed));
   }

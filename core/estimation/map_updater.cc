@@ -303,6 +303,10 @@ absl::Status MapUpdateOptions::Validate() const {
   if (warmup_passages < 0) {
     return absl::InvalidArgumentError(absl::StrCat("warmup_passages: must be >= 0 (0 = off), got ", warmup_passages));
   }
+  if (relinearize_until_passages < 0) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("relinearize_until_passages: must be >= 0 (0 = off), got ", relinearize_until_passages));
+  }
   if (max_solver_iterations < 1) {
     return absl::InvalidArgumentError(absl::StrCat("max_solver_iterations: must be >= 1, got ", max_solver_iterations));
   }
@@ -606,20 +610,38 @@ absl::StatusOr<PassageUpdate> ComputeBatchUpdate(const std::vector<Passage>& pas
   return single;
 }
 
+bool IsJointSolvePassage(int64_t count, const MapUpdateOptions& options) {
+  const int64_t warmup = options.warmup_passages;
+  if (count <= warmup) return true;
+  if (warmup == 0 || count > options.relinearize_until_passages) return false;
+  int64_t doubling = warmup;
+  while (doubling < count) doubling *= 2;
+  return doubling == count;
+}
+
+int JointSolvePassages(const MapUpdateOptions& options) {
+  int64_t last = options.warmup_passages;  // count of the last joint solve
+  while (last > 0 && 2 * last <= options.relinearize_until_passages) last *= 2;
+  return static_cast<int>(std::max<int64_t>(0, last - 1));  // it takes the passages before it
+}
+
 MapUpdater::MapUpdater(const MapUpdateOptions& options, std::vector<Passage> applied, int64_t applied_count)
-    : options_(options), warmup_(std::move(applied)), applied_count_(std::max<int64_t>(applied_count, warmup_.size())) {
-  if (static_cast<int64_t>(warmup_.size()) > options_.warmup_passages) warmup_.resize(options_.warmup_passages);
+    : options_(options), kept_(std::move(applied)), applied_count_(std::max<int64_t>(applied_count, kept_.size())) {
+  const size_t needed = JointSolvePassages(options_);
+  if (kept_.size() > needed) kept_.resize(needed);
 }
 
 absl::StatusOr<PassageUpdate> MapUpdater::Compute(const Passage& passage, const MapReaderInterface& map) const {
-  if (!warming_up()) return ComputePassageUpdate(passage, options_, map);
-  std::vector<Passage> batch = warmup_;
+  if (!joint_next()) return ComputePassageUpdate(passage, options_, map);
+  std::vector<Passage> batch = kept_;
   batch.push_back(passage);
   return ComputeBatchUpdate(batch, options_, map);
 }
 
 void MapUpdater::Applied(const Passage& passage) {
-  if (warming_up()) warmup_.push_back(passage);
+  if (static_cast<int64_t>(kept_.size()) == applied_count_ && static_cast<int64_t>(kept_.size()) < JointSolvePassages(options_)) {
+    kept_.push_back(passage);
+  }
   ++applied_count_;
 }
 

@@ -210,6 +210,49 @@ TEST(MapUpdater, WarmUpMapDoesNotDependOnThePassageOrder) {
   EXPECT_GT(sequential_offset, 1e-3) << "the scenario must be one where the order matters";
 }
 
+TEST(MapUpdater, ReSolvesAllPassagesJointlyAtEachDoublingOfTheirCount) {
+  MapUpdateOptions options;  // warm-up 8, re-solves up to 128 passages
+  std::vector<int64_t> joint;
+  for (int64_t count = 1; count <= 300; ++count) {
+    if (IsJointSolvePassage(count, options)) joint.push_back(count);
+  }
+  EXPECT_EQ(joint, (std::vector<int64_t>{1, 2, 3, 4, 5, 6, 7, 8, 16, 32, 64, 128}));
+  EXPECT_EQ(JointSolvePassages(options), 127);
+  options.relinearize_until_passages = 100;
+  EXPECT_FALSE(IsJointSolvePassage(128, options));
+  EXPECT_EQ(JointSolvePassages(options), 63);
+  options.relinearize_until_passages = 0;
+  EXPECT_FALSE(IsJointSolvePassage(16, options));
+  EXPECT_EQ(JointSolvePassages(options), 7);
+  options.warmup_passages = 0;
+  options.relinearize_until_passages = 128;
+  EXPECT_FALSE(IsJointSolvePassage(1, options));
+  EXPECT_EQ(JointSolvePassages(options), 0);
+}
+
+TEST(MapUpdater, ReSolvedMapDoesNotDependOnWhichPassagesCameFirst) {
+  // After a two-passage warm-up the third passage is applied on its own; the fourth re-solves all
+  // four. Which two passages formed the warm-up then no longer matters.
+  const Scenario scenario = MakeScenario(10);
+  const std::vector<int> forward = {0, 1, 2, 3}, other = {2, 3, 1, 0};
+  MapUpdateOptions resolved;
+  resolved.warmup_passages = 2;
+  resolved.relinearize_until_passages = 4;
+  std::vector<PassageUpdateSummary> summaries;
+  const double resolved_offset = LargestOffsetM(ApplyInOrder(scenario, forward, resolved, &summaries),
+                                                ApplyInOrder(scenario, other, resolved));
+  ASSERT_EQ(summaries.size(), 4u);
+  EXPECT_GE(summaries[2].subgraphs, 2) << "applied on its own, subdivided";
+  EXPECT_EQ(summaries[3].subgraphs, 1) << "the joint solve";
+  MapUpdateOptions warmup_only = resolved;
+  warmup_only.relinearize_until_passages = 0;
+  const double warmup_only_offset = LargestOffsetM(ApplyInOrder(scenario, forward, warmup_only),
+                                                   ApplyInOrder(scenario, other, warmup_only));
+  // The two joint solves start from maps up to 0.8 m apart and stop at the solver's tolerance.
+  EXPECT_LT(resolved_offset, 1e-3) << "warm-up only: " << warmup_only_offset;
+  EXPECT_GT(warmup_only_offset, 0.1) << "the scenario must be one where the order matters";
+}
+
 TEST(ComputePassageUpdate, LeavesOutDetectionsOfMapLandmarksPredictedNearTheImageBorder) {
   const Scenario scenario = MakeScenario(50);
   MapUpdateOptions all, margin;
@@ -279,7 +322,8 @@ TEST(ComputeBatchUpdate, FallsBackToTheSequentialUpdateWhenTheJointSolutionLeave
 TEST(MapUpdater, RestoredFromTheAppliedPassagesItContinuesExactlyAsBefore) {
   const Scenario scenario = MakeScenario(10);
   MapUpdateOptions options;
-  options.warmup_passages = 8;
+  options.warmup_passages = 2;
+  options.relinearize_until_passages = 4;  // the fourth passage re-solves the first three with it
   MapState map;
   MapUpdater original(options);
   std::vector<Passage> applied;
@@ -289,7 +333,8 @@ TEST(MapUpdater, RestoredFromTheAppliedPassagesItContinuesExactlyAsBefore) {
     original.Applied(applied.back());
   }
   const MapUpdater restored(options, applied, 3);
-  EXPECT_TRUE(restored.warming_up());
+  EXPECT_FALSE(restored.warming_up());
+  EXPECT_TRUE(restored.joint_next());
   absl::StatusOr<PassageUpdate> a = original.Compute(scenario.MakePassage(3), map);
   absl::StatusOr<PassageUpdate> b = restored.Compute(scenario.MakePassage(3), map);
   ASSERT_TRUE(a.ok() && b.ok());
@@ -299,8 +344,11 @@ TEST(MapUpdater, RestoredFromTheAppliedPassagesItContinuesExactlyAsBefore) {
   // The same arithmetic up to summation order (Ceres orders some blocks by address), which can move
   // where the solver stops within its tolerance: 1e-10 relative on coordinates of up to 1 km.
   EXPECT_LT(LargestOffsetM(from_a, from_b), 1e-7);
-  // A map past its warm-up needs none of its passages back.
-  EXPECT_FALSE(MapUpdater(options, {}, 8).warming_up());
+  // A map past its last joint solve needs none of its passages back.
+  EXPECT_FALSE(MapUpdater(options, {}, 4).joint_next());
+  // One restored without the passages it needs applies the next passage on its own rather than
+  // re-solving without them.
+  EXPECT_FALSE(MapUpdater(options, {}, 3).joint_next());
   EXPECT_TRUE(MapUpdater(MapUpdateOptions()).warming_up()) << "on by default";
 }
 
