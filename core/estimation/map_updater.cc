@@ -610,10 +610,18 @@ absl::StatusOr<PassageUpdate> ComputeBatchUpdate(const std::vector<Passage>& pas
   return single;
 }
 
+namespace {
+
+int64_t RelinearizeUntil(const MapUpdateOptions& options) {
+  return options.strategy == UpdateStrategy::kDecorrelated ? 0 : options.relinearize_until_passages;
+}
+
+}  // namespace
+
 bool IsJointSolvePassage(int64_t count, const MapUpdateOptions& options) {
   const int64_t warmup = options.warmup_passages;
   if (count <= warmup) return true;
-  if (warmup == 0 || count > options.relinearize_until_passages) return false;
+  if (warmup == 0 || count > RelinearizeUntil(options)) return false;
   int64_t doubling = warmup;
   while (doubling < count) doubling *= 2;
   return doubling == count;
@@ -621,7 +629,7 @@ bool IsJointSolvePassage(int64_t count, const MapUpdateOptions& options) {
 
 int JointSolvePassages(const MapUpdateOptions& options) {
   int64_t last = options.warmup_passages;  // count of the last joint solve
-  while (last > 0 && 2 * last <= options.relinearize_until_passages) last *= 2;
+  while (last > 0 && 2 * last <= RelinearizeUntil(options)) last *= 2;
   return static_cast<int>(std::max<int64_t>(0, last - 1));  // it takes the passages before it
 }
 

@@ -63,7 +63,9 @@ struct MapUpdateOptions {
   // the joint solve takes them all again at today's, so that what the first hundred or so
   // passages left in the map no longer depends on their order or on which of them came first
   // (without it, on 200 passages, up to 1 cm of mean error). The cost is one joint solve at each
-  // doubling (about twice the work of the passages re-solved). 0 = off.
+  // doubling (about twice the work of the passages re-solved). 0 = off. Not with dc: its
+  // covariances ignore the correlations, so its map is too confident to take a re-solve (the
+  // guard below would refuse every one).
   int relinearize_until_passages = 128;
   // Guard of the warm-up: a joint solution that puts any landmark further than this (squared
   // Mahalanobis distance) from the sequential update's estimate is not used; the sequential update
@@ -125,7 +127,8 @@ absl::StatusOr<PassageUpdate> ComputeBatchUpdate(const std::vector<Passage>& pas
                                                  const MapReaderInterface& map);
 
 // Whether the map's `count`-th passage (1-based) is applied by the joint solve of all its passages:
-// during the warm-up, and at each doubling of the count until options.relinearize_until_passages.
+// during the warm-up, and (except with dc) at each doubling of the count until
+// options.relinearize_until_passages.
 bool IsJointSolvePassage(int64_t count, const MapUpdateOptions& options);
 
 // How many of a map's first passages a MapUpdater needs back (those of its last joint solve).

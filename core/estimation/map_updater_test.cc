@@ -221,6 +221,11 @@ TEST(MapUpdater, ReSolvesAllPassagesJointlyAtEachDoublingOfTheirCount) {
   options.relinearize_until_passages = 100;
   EXPECT_FALSE(IsJointSolvePassage(128, options));
   EXPECT_EQ(JointSolvePassages(options), 63);
+  options.strategy = UpdateStrategy::kDecorrelated;
+  EXPECT_TRUE(IsJointSolvePassage(8, options));
+  EXPECT_FALSE(IsJointSolvePassage(16, options));
+  EXPECT_EQ(JointSolvePassages(options), 7);
+  options.strategy = UpdateStrategy::kCorrelated;
   options.relinearize_until_passages = 0;
   EXPECT_FALSE(IsJointSolvePassage(16, options));
   EXPECT_EQ(JointSolvePassages(options), 7);
