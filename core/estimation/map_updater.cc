@@ -317,10 +317,10 @@ std::string PassageUpdateSummary::Brief() const {
   return absl::StrFormat(
       "nodes=%d subgraphs=%d updated=%d created=%d conditioned=%d detections=%d dropped=%d iterations=%d "
       "variance_factor=%.2f solve_ms=%.2f covariance_ms=%.2f bias_correction_ms=%.2f bias_correction_m=%.3f "
-      "total_ms=%.2f version=%d",
+      "total_ms=%.2f version=%d joint_passages=%d joint_rejected=%d",
       nodes, subgraphs, landmarks_updated, landmarks_created, landmarks_conditioned, detections_used,
       detections_dropped, solver_iterations, max_variance_factor, solve_ms, covariance_ms, bias_correction_ms,
-      max_bias_correction_m, total_ms, map_version);
+      max_bias_correction_m, total_ms, map_version, joint_passages, joint_rejected ? 1 : 0);
 }
 
 absl::StatusOr<PassageUpdate> ComputePassageUpdate(const Passage& passage, const MapUpdateOptions& options,
@@ -377,6 +377,7 @@ absl::StatusOr<PassageUpdate> SolveJointly(const std::vector<Passage>& passages,
   graph_options.refine_initial_poses = false;  // done piece by piece, with the map
   PassageUpdateSummary summary;
   summary.subgraphs = 1;
+  summary.joint_passages = count;
   std::vector<PassageGraph> graphs;
   graphs.reserve(count);
   for (int p = 0; p < count; ++p) {
@@ -647,9 +648,8 @@ absl::StatusOr<PassageUpdate> MapUpdater::Compute(const Passage& passage, const 
 }
 
 void MapUpdater::Applied(const Passage& passage) {
-  if (static_cast<int64_t>(kept_.size()) == applied_count_ && static_cast<int64_t>(kept_.size()) < JointSolvePassages(options_)) {
-    kept_.push_back(passage);
-  }
+  const int64_t kept = static_cast<int64_t>(kept_.size());
+  if (kept == applied_count_ && kept < JointSolvePassages(options_)) kept_.push_back(passage);
   ++applied_count_;
 }
 

@@ -190,6 +190,9 @@ TEST(MapUpdater, WarmUpIsJointThenUpdatesGoOnePassageAtATime) {
   EXPECT_EQ(summaries[0].subgraphs, 1);
   EXPECT_EQ(summaries[1].subgraphs, 1);
   EXPECT_GE(summaries[2].subgraphs, 2);  // cc-gsd subdivides a whole passage
+  EXPECT_EQ(summaries[0].joint_passages, 1);
+  EXPECT_EQ(summaries[1].joint_passages, 2);
+  EXPECT_EQ(summaries[2].joint_passages, 0);
   EXPECT_EQ(map.FindLandmark(1)->passages_seen, 3);
 }
 
@@ -249,6 +252,7 @@ TEST(MapUpdater, ReSolvedMapDoesNotDependOnWhichPassagesCameFirst) {
   ASSERT_EQ(summaries.size(), 4u);
   EXPECT_GE(summaries[2].subgraphs, 2) << "applied on its own, subdivided";
   EXPECT_EQ(summaries[3].subgraphs, 1) << "the joint solve";
+  EXPECT_EQ(summaries[3].joint_passages, 4);
   MapUpdateOptions warmup_only = resolved;
   warmup_only.relinearize_until_passages = 0;
   const double warmup_only_offset = LargestOffsetM(ApplyInOrder(scenario, forward, warmup_only),
