@@ -43,7 +43,7 @@ experiment flags:
   --seed S                    noise seed; the route and landmarks do not depend on it (default 1)
   --out DIR                   output folder (default out/experiment): passages.csv, summary.json, errors.svg
   --max-subgraph-dim D        cc-gsd state-dimension bound per subgraph (default 500)
-  --detections-per-landmark K last K detections per landmark and passage, 0 = all (default 5)
+  --detections-per-landmark K last K >= 2 detections per landmark and passage, 0 = all (default 5)
   --correlation-radius-m R    keep cross-covariances only within R metres (default: dense)
   --warmup-passages B         the map's first B passages are solved jointly, re-solved with
                               each one (default 8; 0 = off)

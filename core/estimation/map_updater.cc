@@ -278,9 +278,10 @@ absl::Status MapUpdateOptions::Validate() const {
   if (max_subgraph_dim < 30) {
     return absl::InvalidArgumentError(absl::StrCat("max_subgraph_dim: must be >= 30, got ", max_subgraph_dim));
   }
-  if (detections_per_landmark < 0) {
-    return absl::InvalidArgumentError(
-        absl::StrCat("detections_per_landmark: must be >= 0 (0 = all), got ", detections_per_landmark));
+  if (detections_per_landmark < 0 || detections_per_landmark == 1) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "detections_per_landmark: must be 0 (all) or >= 2 (a new landmark needs two bearings), got ",
+        detections_per_landmark));
   }
   if (!(correlation_radius_m > 0.0)) {
     return absl::InvalidArgumentError(

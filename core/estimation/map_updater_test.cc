@@ -28,6 +28,8 @@ TEST(MapUpdateOptions, RejectsOutOfRangeValuesNamingTheField) {
   options = MapUpdateOptions();
   options.detections_per_landmark = -1;
   EXPECT_NE(options.Validate().message().find("detections_per_landmark"), std::string::npos);
+  options.detections_per_landmark = 1;  // no landmark could ever be created
+  EXPECT_NE(options.Validate().message().find("detections_per_landmark"), std::string::npos);
   options = MapUpdateOptions();
   options.edge_margin_sigmas = -1.0;
   EXPECT_NE(options.Validate().message().find("edge_margin_sigmas"), std::string::npos);
@@ -37,6 +39,9 @@ TEST(MapUpdateOptions, RejectsOutOfRangeValuesNamingTheField) {
   options = MapUpdateOptions();
   options.warmup_passages = -1;
   EXPECT_NE(options.Validate().message().find("warmup_passages"), std::string::npos);
+  options = MapUpdateOptions();
+  options.relinearize_until_passages = -1;
+  EXPECT_NE(options.Validate().message().find("relinearize_until_passages"), std::string::npos);
   EXPECT_TRUE(MapUpdateOptions().Validate().ok());
 }
 
