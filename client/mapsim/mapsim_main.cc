@@ -112,8 +112,9 @@ absl::Status RunExperimentCommand(const std::vector<std::string>& args) {
   absl::StatusOr<Flags> flags = Flags::Parse(args, {{"landmarks", true}, {"passages", true}, {"strategy", true},
                                                     {"noise", true}, {"seed", true}, {"out", true},
                                                     {"max-subgraph-dim", true}, {"detections-per-landmark", true},
-                                                    {"correlation-radius-m", true}, {"warmup-passages", true}, {"relinearize-until-passages", true}, {"max-chi2-per-dof", true}, {"inflation-test-sigmas", true},
-                                                    {"edge-margin-sigmas", true},
+                                                    {"correlation-radius-m", true}, {"warmup-passages", true},
+                                                    {"relinearize-until-passages", true}, {"max-chi2-per-dof", true},
+                                                    {"inflation-test-sigmas", true}, {"edge-margin-sigmas", true},
                                                     {"shuffle-window", true}, {"shuffle-from", true}, {"shuffle-seed", true},
                                                     {"order-file", true}, {"quiet", false}});
   if (!flags.ok()) return flags.status();
@@ -122,7 +123,8 @@ absl::Status RunExperimentCommand(const std::vector<std::string>& args) {
                             seed = flags->GetInt("seed", 1), dim = flags->GetInt("max-subgraph-dim", 500),
                             per_landmark = flags->GetInt("detections-per-landmark", 5),
                             warmup = flags->GetInt("warmup-passages", options.update.warmup_passages),
-                            relinearize = flags->GetInt("relinearize-until-passages", options.update.relinearize_until_passages),
+                            relinearize =
+                                flags->GetInt("relinearize-until-passages", options.update.relinearize_until_passages),
                             shuffle_window = flags->GetInt("shuffle-window", 0),
                             shuffle_from = flags->GetInt("shuffle-from", 0), shuffle_seed = flags->GetInt("shuffle-seed", 1);
   absl::StatusOr<double> radius = flags->GetDouble("correlation-radius-m", options.update.correlation_radius_m),
@@ -130,8 +132,9 @@ absl::Status RunExperimentCommand(const std::vector<std::string>& args) {
                          inflation = flags->GetDouble("inflation-test-sigmas", options.update.inflation_test_sigmas),
                          edge_margin = flags->GetDouble("edge-margin-sigmas", options.update.edge_margin_sigmas);
   for (const absl::Status& s : {landmarks.status(), passages.status(), seed.status(), dim.status(),
-                                per_landmark.status(), warmup.status(), relinearize.status(), radius.status(), chi2.status(), inflation.status(),
-                                edge_margin.status(),                                 shuffle_window.status(), shuffle_from.status(), shuffle_seed.status()}) {
+                                per_landmark.status(), warmup.status(), relinearize.status(), radius.status(),
+                                chi2.status(), inflation.status(), edge_margin.status(), shuffle_window.status(),
+                                shuffle_from.status(), shuffle_seed.status()}) {
     if (!s.ok()) return s;
   }
   absl::StatusOr<NoiseConfig> noise = ParseNoiseConfig(flags->GetString("noise", "white"));
@@ -152,7 +155,9 @@ absl::Status RunExperimentCommand(const std::vector<std::string>& args) {
   if (*shuffle_window < 0) return absl::InvalidArgumentError("shuffle-window: must be >= 0");
   if (*shuffle_from < 0) return absl::InvalidArgumentError("shuffle-from: must be >= 0");
   if (flags->Has("order-file")) {
-    if (flags->Has("shuffle-window")) return absl::InvalidArgumentError("order-file: cannot be used with --shuffle-window");
+    if (flags->Has("shuffle-window")) {
+      return absl::InvalidArgumentError("order-file: cannot be used with --shuffle-window");
+    }
     absl::StatusOr<std::vector<int>> order = ReadOrderFile(flags->GetString("order-file", ""));
     if (!order.ok()) return order.status();
     options.order = *std::move(order);
