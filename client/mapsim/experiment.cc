@@ -14,6 +14,7 @@
 #include "absl/strings/str_format.h"
 #include "client/mapsim/svg_plot.h"
 #include "core/estimation/triangulation.h"
+#include "core/geo/local_frame.h"
 
 namespace crowdmap {
 namespace {
@@ -149,6 +150,7 @@ absl::StatusOr<ExperimentResult> RunExperiment(const ExperimentOptions& options,
   result.final_nees_per_dof = nees / tail;
   result.final_joint_nees_per_dof = joint / tail;
   result.final_mean_dist_err_m = result.records.back().metrics.mean_dist_err_m;
+  result.nees_per_dof_sd_if_consistent = NeesPerDofSdIfConsistent(result.final_map, scenario->landmarks());
   result.median_passage_ms = Median(times);
   return result;
 }
@@ -171,6 +173,30 @@ absl::Status WriteExperimentOutputs(const ExperimentOptions& options, const Expe
   }
   if (!csv) return absl::InternalError(absl::StrCat("cannot write ", dir, "/passages.csv"));
 
+  absl::StatusOr<Scenario> scenario = Scenario::Create(options.scenario);
+  if (!scenario.ok()) return scenario.status();
+  std::ofstream landmarks(std::filesystem::path(dir) / "landmarks.csv");
+  landmarks << "landmark,true_east_m,true_north_m,east_err_m,north_err_m,cov_ee_m2,cov_en_m2,cov_nn_m2\n";
+  for (const TruthLandmark& t : scenario->landmarks()) {
+    const Landmark* lm = result.final_map.FindLandmark(t.id);
+    if (!lm) continue;
+    const Eigen::Vector2d e = EastNorthOffset(t.position, lm->position);
+    landmarks << absl::StrFormat("%d,%.4f,%.4f,%.6f,%.6f,%.9g,%.9g,%.9g\n", t.id, t.position_m.x(), t.position_m.y(),
+                                 e.x(), e.y(), lm->cov_en_m2(0, 0), lm->cov_en_m2(0, 1), lm->cov_en_m2(1, 1));
+  }
+  if (!landmarks) return absl::InternalError(absl::StrCat("cannot write ", dir, "/landmarks.csv"));
+  std::ofstream cross(std::filesystem::path(dir) / "cross_covariances.csv");
+  cross << "landmark_a,landmark_b,cov_ee_m2,cov_en_m2,cov_ne_m2,cov_nn_m2\n";
+  const std::vector<LandmarkId> ids = result.final_map.LandmarkIds();
+  for (size_t i = 0; i < ids.size(); ++i) {
+    for (size_t j = i + 1; j < ids.size(); ++j) {
+      Eigen::Matrix2d c;
+      if (!result.final_map.CrossCovariance(ids[i], ids[j], &c)) continue;
+      cross << absl::StrFormat("%d,%d,%.9g,%.9g,%.9g,%.9g\n", ids[i], ids[j], c(0, 0), c(0, 1), c(1, 0), c(1, 1));
+    }
+  }
+  if (!cross) return absl::InternalError(absl::StrCat("cannot write ", dir, "/cross_covariances.csv"));
+
   std::ofstream json(std::filesystem::path(dir) / "summary.json");
   json << "{\n"
        << absl::StrFormat("  \"strategy\": \"%s\",\n", options.strategy)
@@ -189,6 +215,7 @@ absl::Status WriteExperimentOutputs(const ExperimentOptions& options, const Expe
        << "  \"final_mean_dist_err_m\": " << JsonNumber(result.final_mean_dist_err_m) << ",\n"
        << "  \"final_nees_per_dof\": " << JsonNumber(result.final_nees_per_dof) << ",\n"
        << "  \"final_joint_nees_per_dof\": " << JsonNumber(result.final_joint_nees_per_dof) << ",\n"
+       << "  \"nees_per_dof_sd_if_consistent\": " << JsonNumber(result.nees_per_dof_sd_if_consistent) << ",\n"
        << "  \"median_passage_ms\": " << JsonNumber(result.median_passage_ms);
   for (const auto& [key, value] : extra_summary) json << ",\n  \"" << key << "\": " << JsonNumber(value);
   json << "\n}\n";

@@ -41,6 +41,9 @@ struct ExperimentResult {
   double final_mean_dist_err_m = 0.0;
   double final_nees_per_dof = 0.0;        // mean over the last 10% of passages
   double final_joint_nees_per_dof = 0.0;  // likewise, joint NEES with the cross-covariances
+  // The run-to-run standard deviation of final_nees_per_dof for a consistent map with the final
+  // map's covariance (NeesPerDofSdIfConsistent).
+  double nees_per_dof_sd_if_consistent = 0.0;
   double median_passage_ms = 0.0;
   int failed_passages = 0;          // passages the estimator rejected (the map is unchanged by them)
   int inflated_passages = 0;        // passages whose measurement covariances the consistency test inflated

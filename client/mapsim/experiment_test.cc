@@ -158,7 +158,22 @@ TEST(Experiment, WritesCsvSummaryAndPlot) {
                           "\"landmarks\": 4", "\"strategy\": \"cc-gsd\"", "\"noise\": \"white\"", "\"seed\": 1"}) {
     EXPECT_NE(summary.find(key), std::string::npos) << key;
   }
+  EXPECT_NE(summary.find("nees_per_dof_sd_if_consistent"), std::string::npos);
   EXPECT_GT(std::filesystem::file_size(dir / "errors.svg"), 1000u);
+
+  // One row per mapped landmark, with its error and covariance; one row per pair of them.
+  std::ifstream landmarks(dir / "landmarks.csv");
+  std::getline(landmarks, header);
+  EXPECT_EQ(header, "landmark,true_east_m,true_north_m,east_err_m,north_err_m,cov_ee_m2,cov_en_m2,cov_nn_m2");
+  rows = 0;
+  for (std::string line; std::getline(landmarks, line);) ++rows;
+  EXPECT_EQ(rows, 4);
+  std::ifstream cross(dir / "cross_covariances.csv");
+  std::getline(cross, header);
+  EXPECT_EQ(header, "landmark_a,landmark_b,cov_ee_m2,cov_en_m2,cov_ne_m2,cov_nn_m2");
+  rows = 0;
+  for (std::string line; std::getline(cross, line);) ++rows;
+  EXPECT_EQ(rows, 6);
 }
 
 }  // namespace

@@ -12,12 +12,13 @@
 #include "absl/strings/str_format.h"
 #include "client/common/flags.h"
 #include "client/mapsim/experiment.h"
+#include "client/mapsim/passage_consistency.h"
 #include "client/mapsim/pose_bias.h"
+#include "client/mapsim/reproduce.h"
 #if CROWDMAP_MAPSIM_SERVICE
 #include "client/mapsim/bench.h"
 #include "client/mapsim/fleet.h"
 #endif
-#include "client/mapsim/reproduce.h"
 
 namespace crowdmap {
 namespace {
@@ -30,6 +31,8 @@ Usage:
   mapsim pose-bias  [flags]   mean pose error of single-passage odometry + GNSS solves along the
                               route (the bias of the MAP estimate), before and after the
                               second-order bias correction
+  mapsim passage-consistency [flags]  whether one passage's covariance describes its own error:
+                              independent passages, each mapped alone, joint NEES against the truth
   mapsim fleet      [flags]   upload simulated passages to a running mapd from concurrent vehicles,
                               wait until applied, read the map back, write the experiment outputs
   mapsim export-passages [flags]  write simulated passages as files for `mapctl upload`
@@ -63,6 +66,9 @@ experiment flags:
   --shuffle-seed K            seed of the shuffle (default 1)
   --order-file FILE           apply the passages in this order: one scenario passage index per
                               line, a permutation of 0..P-1 (e.g. a fleet run's arrival_order.txt)
+  --steering-noise-scale X, --speed-noise-scale X, --gnss-noise-scale X, --pixel-noise-scale X
+                              scale a sensor's noise, drawn and modelled alike (default 1)
+  --no-bias-correction        skip the second-order bias correction of each solution
   --quiet                     no progress line
 
 fleet flags (and --landmarks, --noise, --seed, --quiet as for experiment):
@@ -100,13 +106,41 @@ pose-bias flags (and --seed):
   --steering-noise-scale X    scale the steering noise (drawn and modelled) by X (default 1)
   --speed-noise-scale X       scale the speed noise likewise (default 1)
   --gnss-noise-scale X        scale the GNSS noise likewise (default 1)
+  --pixel-noise-scale X       scale the camera's pixel noise likewise (default 1)
+
+passage-consistency flags (and --landmarks, --seed, --detections-per-landmark and the
+--...-noise-scale flags as for experiment):
+  --passages P                independent passages, each applied alone to an empty map (default 300)
+  --strategy S                cc | cc-gsd (default cc)
+  Prints the mean joint NEES per degree of freedom with each passage's own covariance (1 =
+  consistent), the NEES of the errors' spread and of their mean against the covariance averaged
+  over the passages, and the own-covariance NEES along the most and least precise fifth of the
+  directions.
 
 reproduce flags:
   --out DIR                   output folder (default out/reproduce); writes DIR/reproduction.md
   --passages P                passages per experiment (default 1000)
   --jobs J                    experiments run in parallel (default 2)
-  --seed S                    noise seed (default 1)
+  --seed S                    first noise seed (default 1)
+  --seeds K                   run every experiment with seeds S..S+K-1 and report the means
+                              (default 3; about 3 minutes per seed on 2 cores)
 )";
+
+// --steering-noise-scale, --speed-noise-scale, --gnss-noise-scale and --pixel-noise-scale scale
+// a sensor's noise, both as drawn and as declared in the passages.
+absl::Status ScaleNoise(const Flags& flags, ScenarioOptions* scenario) {
+  NoiseModel& sensors = scenario->noise_model;
+  for (const auto& [name, sigma] : {std::pair<const char*, double*>{"steering-noise-scale", &sensors.steering_sigma_rad},
+                                    {"speed-noise-scale", &sensors.speed_sigma_mps},
+                                    {"gnss-noise-scale", &scenario->gnss_sigma_m},
+                                    {"pixel-noise-scale", &sensors.pixel_sigma_px}}) {
+    absl::StatusOr<double> scale = flags.GetDouble(name, 1.0);
+    if (!scale.ok()) return scale.status();
+    if (!(*scale > 0.0)) return absl::InvalidArgumentError(absl::StrCat(name, ": must be > 0, got ", *scale));
+    *sigma *= *scale;
+  }
+  return absl::OkStatus();
+}
 
 absl::Status RunExperimentCommand(const std::vector<std::string>& args) {
   absl::StatusOr<Flags> flags = Flags::Parse(args, {{"landmarks", true}, {"passages", true}, {"strategy", true},
@@ -116,7 +150,10 @@ absl::Status RunExperimentCommand(const std::vector<std::string>& args) {
                                                     {"relinearize-until-passages", true}, {"max-chi2-per-dof", true},
                                                     {"inflation-test-sigmas", true}, {"edge-margin-sigmas", true},
                                                     {"shuffle-window", true}, {"shuffle-from", true}, {"shuffle-seed", true},
-                                                    {"order-file", true}, {"quiet", false}});
+                                                    {"order-file", true}, {"steering-noise-scale", true},
+                                                    {"speed-noise-scale", true}, {"gnss-noise-scale", true},
+                                                    {"pixel-noise-scale", true}, {"no-bias-correction", false},
+                                                    {"quiet", false}});
   if (!flags.ok()) return flags.status();
   ExperimentOptions options;
   absl::StatusOr<long long> landmarks = flags->GetInt("landmarks", 25), passages = flags->GetInt("passages", 100),
@@ -142,6 +179,7 @@ absl::Status RunExperimentCommand(const std::vector<std::string>& args) {
   options.scenario.landmarks = static_cast<int>(*landmarks);
   options.scenario.noise = *noise;
   options.scenario.seed = static_cast<uint64_t>(*seed);
+  if (absl::Status s = ScaleNoise(*flags, &options.scenario); !s.ok()) return s;
   options.passages = static_cast<int>(*passages);
   options.strategy = flags->GetString("strategy", "cc-gsd");
   options.update.max_subgraph_dim = static_cast<int>(*dim);
@@ -152,6 +190,7 @@ absl::Status RunExperimentCommand(const std::vector<std::string>& args) {
   options.update.max_chi2_per_dof = *chi2;
   options.update.inflation_test_sigmas = *inflation;
   options.update.edge_margin_sigmas = *edge_margin;
+  options.update.bias_correction = !flags->Has("no-bias-correction");
   if (*shuffle_window < 0) return absl::InvalidArgumentError("shuffle-window: must be >= 0");
   if (*shuffle_from < 0) return absl::InvalidArgumentError("shuffle-from: must be >= 0");
   if (flags->Has("order-file")) {
@@ -299,28 +338,19 @@ absl::Status RunBenchCommand(const std::vector<std::string>& args) {
 absl::Status RunPoseBiasCommand(const std::vector<std::string>& args) {
   absl::StatusOr<Flags> flags =
       Flags::Parse(args, {{"passages", true}, {"seed", true}, {"bin-s", true}, {"steering-noise-scale", true},
-                          {"speed-noise-scale", true}, {"gnss-noise-scale", true}, {"quiet", false}});
+                          {"speed-noise-scale", true}, {"gnss-noise-scale", true}, {"pixel-noise-scale", true},
+                          {"quiet", false}});
   if (!flags.ok()) return flags.status();
   PoseBiasOptions options;
   absl::StatusOr<long long> passages = flags->GetInt("passages", options.passages), seed = flags->GetInt("seed", 1);
-  absl::StatusOr<double> bin = flags->GetDouble("bin-s", options.bin_s),
-                         steering = flags->GetDouble("steering-noise-scale", 1.0),
-                         speed = flags->GetDouble("speed-noise-scale", 1.0),
-                         gnss = flags->GetDouble("gnss-noise-scale", 1.0);
-  for (const absl::Status& s : {passages.status(), seed.status(), bin.status(), steering.status(), speed.status(),
-                                gnss.status()}) {
+  absl::StatusOr<double> bin = flags->GetDouble("bin-s", options.bin_s);
+  for (const absl::Status& s : {passages.status(), seed.status(), bin.status()}) {
     if (!s.ok()) return s;
   }
-  for (const auto& [name, v] : {std::pair<const char*, double>{"steering-noise-scale", *steering},
-                                {"speed-noise-scale", *speed}, {"gnss-noise-scale", *gnss}}) {
-    if (!(v > 0.0)) return absl::InvalidArgumentError(absl::StrCat(name, ": must be > 0"));
-  }
+  if (absl::Status s = ScaleNoise(*flags, &options.scenario); !s.ok()) return s;
   options.passages = static_cast<int>(*passages);
   options.bin_s = *bin;
   options.scenario.seed = static_cast<uint64_t>(*seed);
-  options.scenario.noise_model.steering_sigma_rad *= *steering;
-  options.scenario.noise_model.speed_sigma_mps *= *speed;
-  options.scenario.gnss_sigma_m *= *gnss;
   const bool quiet = flags->Has("quiet");
   const int every = std::max(1, options.passages / 20);
   absl::StatusOr<std::vector<PoseBiasBin>> bins = RunPoseBias(options, [&](int done) {
@@ -348,19 +378,61 @@ absl::Status RunPoseBiasCommand(const std::vector<std::string>& args) {
   return absl::OkStatus();
 }
 
+absl::Status RunPassageConsistencyCommand(const std::vector<std::string>& args) {
+  absl::StatusOr<Flags> flags =
+      Flags::Parse(args, {{"landmarks", true}, {"passages", true}, {"strategy", true}, {"seed", true},
+                          {"detections-per-landmark", true}, {"steering-noise-scale", true},
+                          {"speed-noise-scale", true}, {"gnss-noise-scale", true}, {"pixel-noise-scale", true},
+                          {"quiet", false}});
+  if (!flags.ok()) return flags.status();
+  PassageConsistencyOptions options;
+  absl::StatusOr<long long> landmarks = flags->GetInt("landmarks", 25),
+                            passages = flags->GetInt("passages", options.passages), seed = flags->GetInt("seed", 1),
+                            per_landmark = flags->GetInt("detections-per-landmark", 5);
+  for (const absl::Status& s : {landmarks.status(), passages.status(), seed.status(), per_landmark.status()}) {
+    if (!s.ok()) return s;
+  }
+  absl::StatusOr<UpdateStrategy> strategy = ParseUpdateStrategy(flags->GetString("strategy", "cc"));
+  if (!strategy.ok()) return strategy.status();
+  if (absl::Status s = ScaleNoise(*flags, &options.scenario); !s.ok()) return s;
+  options.scenario.landmarks = static_cast<int>(*landmarks);
+  options.scenario.seed = static_cast<uint64_t>(*seed);
+  options.passages = static_cast<int>(*passages);
+  options.update.strategy = *strategy;
+  options.update.detections_per_landmark = static_cast<int>(*per_landmark);
+  const bool quiet = flags->Has("quiet");
+  const int every = std::max(1, options.passages / 20);
+  absl::StatusOr<PassageConsistency> result = RunPassageConsistency(options, [&](int done) {
+    if (!quiet && (done % every == 0 || done == options.passages)) {
+      std::cerr << absl::StrFormat("\rpassage %d/%d   ", done, options.passages) << std::flush;
+    }
+  });
+  if (!quiet) std::cerr << "\n";
+  if (!result.ok()) return result.status();
+  std::cout << absl::StrFormat(
+      "passages_used=%d dof=%d own_nees_per_dof=%.3f spread_nees_per_dof=%.3f bias_nees_per_dof=%.4f "
+      "(unbiased: about %.4f) own_nees_most_precise_fifth=%.3f own_nees_least_precise_fifth=%.3f\n",
+      result->passages_used, result->dof, result->own_nees_per_dof, result->spread_nees_per_dof,
+      result->bias_nees_per_dof, 1.0 / result->passages_used, result->own_nees_most_precise_fifth,
+      result->own_nees_least_precise_fifth);
+  return absl::OkStatus();
+}
+
 absl::Status RunReproduceCommand(const std::vector<std::string>& args) {
-  absl::StatusOr<Flags> flags = Flags::Parse(args, {{"out", true}, {"passages", true}, {"jobs", true}, {"seed", true}});
+  absl::StatusOr<Flags> flags = Flags::Parse(args, {{"out", true}, {"passages", true}, {"jobs", true}, {"seed", true}, {"seeds", true}});
   if (!flags.ok()) return flags.status();
   ReproduceOptions options;
   absl::StatusOr<long long> passages = flags->GetInt("passages", options.passages),
-                            jobs = flags->GetInt("jobs", options.jobs), seed = flags->GetInt("seed", 1);
-  for (const absl::Status& s : {passages.status(), jobs.status(), seed.status()}) {
+                            jobs = flags->GetInt("jobs", options.jobs), seed = flags->GetInt("seed", 1),
+                            seeds = flags->GetInt("seeds", options.seeds);
+  for (const absl::Status& s : {passages.status(), jobs.status(), seed.status(), seeds.status()}) {
     if (!s.ok()) return s;
   }
   options.out_dir = flags->GetString("out", options.out_dir);
   options.passages = static_cast<int>(*passages);
   options.jobs = static_cast<int>(*jobs);
   options.seed = static_cast<uint64_t>(*seed);
+  options.seeds = static_cast<int>(*seeds);
   return RunReproduction(options);
 }
 
@@ -391,6 +463,8 @@ int main(int argc, char** argv) {
     status = crowdmap::RunReproduceCommand(args);
   } else if (command == "pose-bias") {
     status = crowdmap::RunPoseBiasCommand(args);
+  } else if (command == "passage-consistency") {
+    status = crowdmap::RunPassageConsistencyCommand(args);
 #if CROWDMAP_MAPSIM_SERVICE
   } else if (command == "fleet") {
     status = crowdmap::RunFleetCommand(args);

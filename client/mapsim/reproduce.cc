@@ -1,6 +1,9 @@
 #include "client/mapsim/reproduce.h"
 
+#include <algorithm>
 #include <atomic>
+#include <cmath>
+#include <functional>
 #include <chrono>
 #include <filesystem>
 #include <fstream>
@@ -40,70 +43,106 @@ struct ThesisRobustness {
 constexpr ThesisRobustness kThesisRobustness[] = {
     {"white", 0.51}, {"yaw-bias", 0.67}, {"gnss-ar1", 0.69}, {"ar1+yaw", 0.80}};
 
-Job MakeJob(const ReproduceOptions& o, int landmarks, const std::string& strategy, NoiseConfig noise) {
+Job MakeJob(const ReproduceOptions& o, int landmarks, const std::string& strategy, NoiseConfig noise, uint64_t seed) {
   Job job;
-  job.name = absl::StrCat("n", landmarks, "_", strategy, "_", NoiseConfigName(noise));
+  job.name = absl::StrCat("n", landmarks, "_", strategy, "_", NoiseConfigName(noise), "_s", seed);
   job.options.scenario.landmarks = landmarks;
   job.options.scenario.noise = noise;
-  job.options.scenario.seed = o.seed;
+  job.options.scenario.seed = seed;
   job.options.passages = o.passages;
   job.options.strategy = strategy;
   return job;
 }
 
-const ExperimentResult* Find(const std::vector<Job>& jobs, const std::string& name) {
+// One cell of the report over the seeds: the results of every seed's experiment, or none if any
+// of them failed.
+std::vector<const ExperimentResult*> Results(const std::vector<Job>& jobs, int landmarks, const std::string& strategy,
+                                             NoiseConfig noise) {
+  std::vector<const ExperimentResult*> out;
   for (const Job& j : jobs) {
-    if (j.name == name && j.result.ok()) return &*j.result;
+    const ExperimentOptions& e = j.options;
+    if (e.scenario.landmarks != landmarks || e.strategy != strategy || e.scenario.noise != noise) continue;
+    if (!j.result.ok()) return {};
+    out.push_back(&*j.result);
   }
-  return nullptr;
+  return out;
 }
 
-std::string Cell(const ExperimentResult* r, double ExperimentResult::*field, const char* format) {
-  return r ? absl::StrFormat(format, r->*field) : std::string("failed");
+double Mean(const std::vector<const ExperimentResult*>& rs, const std::function<double(const ExperimentResult&)>& f) {
+  double sum = 0.0;
+  for (const ExperimentResult* r : rs) sum += f(*r);
+  return sum / rs.size();
+}
+
+// "mean" over the seeds, or "mean (min-max)" with `range` and more than one seed.
+std::string Cell(const std::vector<const ExperimentResult*>& rs, double ExperimentResult::*field, const char* format,
+                 bool range = false) {
+  if (rs.empty()) return "failed";
+  std::string cell = absl::StrFormat(format, Mean(rs, [&](const ExperimentResult& r) { return r.*field; }));
+  if (!range || rs.size() < 2) return cell;
+  double lo = rs[0]->*field, hi = lo;
+  for (const ExperimentResult* r : rs) lo = std::min(lo, r->*field), hi = std::max(hi, r->*field);
+  return absl::StrCat(cell, " (", absl::StrFormat(format, lo), "-", absl::StrFormat(format, hi), ")");
+}
+
+// The mean NEES over the seeds, with the standard deviation that mean would have for consistent
+// maps: "1.02 ± 0.21".
+std::string NeesCell(const std::vector<const ExperimentResult*>& rs) {
+  if (rs.empty()) return "failed";
+  const double var = Mean(rs, [](const ExperimentResult& r) {
+    return r.nees_per_dof_sd_if_consistent * r.nees_per_dof_sd_if_consistent;
+  });
+  const double nees = Mean(rs, [](const ExperimentResult& r) { return r.final_nees_per_dof; });
+  if (!std::isfinite(var)) return absl::StrFormat("%.2f", nees);
+  return absl::StrFormat("%.2f ± %.2f", nees, std::sqrt(var / rs.size()));
 }
 
 std::string Report(const ReproduceOptions& o, const std::vector<Job>& jobs, double wall_s) {
+  const std::string seeds = o.seeds == 1 ? absl::StrCat("seed ", o.seed)
+                                         : absl::StrCat("seeds ", o.seed, " to ", o.seed + o.seeds - 1);
   std::string md = absl::StrFormat(
       "# Reproduction of the thesis's simulation results\n\n"
-      "%d passages per experiment, seed %d, %.0f s wall time on %d parallel jobs. Errors are the mean landmark "
-      "distance error after the last passage (m); NEES is per degree of freedom, averaged over the last 10%% of "
-      "passages (1 = consistent); time is the median wall time to apply one passage. Thesis times are Python "
-      "on a Xeon Silver 4114.\n\n",
-      o.passages, o.seed, wall_s, o.jobs);
+      "%d passages per experiment, %s, %.0f s wall time on %d parallel jobs. Every figure is the mean over the "
+      "seeds (with the range where shown). Errors are the mean landmark distance error after the last passage "
+      "(m). NEES is per degree of freedom, averaged over the last 10%% of passages (1 = consistent); after the "
+      "± is the standard deviation its mean over the seeds would have if the maps were consistent (errors "
+      "common to many landmarks make one run's NEES a draw of few degrees of freedom). Joint NEES uses the "
+      "cross-covariances. Time is the median wall time to apply one passage. Thesis times are Python on a Xeon "
+      "Silver 4114.\n\n",
+      o.passages, seeds, wall_s, o.jobs);
   md += "## Table 5.2: white noise\n\n"
         "| N | CC (ours) | CC (thesis) | DC (ours) | DC (thesis) | CC+GSD (ours) | CC+GSD (thesis) | NEES CC | NEES DC "
-        "| NEES CC+GSD | ms CC | ms DC | ms CC+GSD | thesis s CC / DC / CC+GSD |\n"
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n";
+        "| NEES CC+GSD | joint NEES CC / CC+GSD | ms CC | ms DC | ms CC+GSD | thesis s CC / DC / CC+GSD |\n"
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n";
   for (const ThesisRow& t : kThesisTable) {
-    const ExperimentResult* cc = Find(jobs, absl::StrCat("n", t.landmarks, "_cc_white"));
-    const ExperimentResult* dc = Find(jobs, absl::StrCat("n", t.landmarks, "_dc_white"));
-    const ExperimentResult* gsd = Find(jobs, absl::StrCat("n", t.landmarks, "_cc-gsd_white"));
-    absl::StrAppendFormat(&md, "| %d | %s | %.2f | %s | %.2f | %s | %.2f | %s | %s | %s | %s | %s | %s | %.2f / %.2f / %.2f |\n",
-                          t.landmarks, Cell(cc, &ExperimentResult::final_mean_dist_err_m, "%.3f"), t.cc,
-                          Cell(dc, &ExperimentResult::final_mean_dist_err_m, "%.3f"), t.dc,
-                          Cell(gsd, &ExperimentResult::final_mean_dist_err_m, "%.3f"), t.cc_gsd,
-                          Cell(cc, &ExperimentResult::final_nees_per_dof, "%.2f"),
-                          Cell(dc, &ExperimentResult::final_nees_per_dof, "%.2f"),
-                          Cell(gsd, &ExperimentResult::final_nees_per_dof, "%.2f"),
-                          Cell(cc, &ExperimentResult::median_passage_ms, "%.1f"),
-                          Cell(dc, &ExperimentResult::median_passage_ms, "%.1f"),
-                          Cell(gsd, &ExperimentResult::median_passage_ms, "%.1f"), t.t_cc, t.t_dc, t.t_cc_gsd);
+    const auto cc = Results(jobs, t.landmarks, "cc", NoiseConfig::kWhite);
+    const auto dc = Results(jobs, t.landmarks, "dc", NoiseConfig::kWhite);
+    const auto gsd = Results(jobs, t.landmarks, "cc-gsd", NoiseConfig::kWhite);
+    absl::StrAppendFormat(
+        &md, "| %d | %s | %.2f | %s | %.2f | %s | %.2f | %s | %s | %s | %s / %s | %s | %s | %s | %.2f / %.2f / %.2f |\n",
+        t.landmarks, Cell(cc, &ExperimentResult::final_mean_dist_err_m, "%.3f", true), t.cc,
+        Cell(dc, &ExperimentResult::final_mean_dist_err_m, "%.3f"), t.dc,
+        Cell(gsd, &ExperimentResult::final_mean_dist_err_m, "%.3f", true), t.cc_gsd, NeesCell(cc),
+        Cell(dc, &ExperimentResult::final_nees_per_dof, "%.0f"), NeesCell(gsd),
+        Cell(cc, &ExperimentResult::final_joint_nees_per_dof, "%.2f"),
+        Cell(gsd, &ExperimentResult::final_joint_nees_per_dof, "%.2f"),
+        Cell(cc, &ExperimentResult::median_passage_ms, "%.1f"), Cell(dc, &ExperimentResult::median_passage_ms, "%.1f"),
+        Cell(gsd, &ExperimentResult::median_passage_ms, "%.1f"), t.t_cc, t.t_dc, t.t_cc_gsd);
   }
   md += "\n## Robustness: N = 50, CC+GSD, the estimator assumes white noise\n\n"
         "| noise | error (ours) | error (thesis) | NEES (ours) | error after 40 passages (ours) |\n"
         "|---|---|---|---|---|\n";
   for (const ThesisRobustness& t : kThesisRobustness) {
-    const Job* job = nullptr;
-    for (const Job& j : jobs) {
-      if (j.name == absl::StrCat("n50_cc-gsd_", t.noise)) job = &j;
+    const auto rs = Results(jobs, 50, "cc-gsd", *ParseNoiseConfig(t.noise));
+    std::string after40 = "n/a";
+    if (!rs.empty() && std::all_of(rs.begin(), rs.end(), [](const ExperimentResult* r) { return r->records.size() >= 40; })) {
+      after40 = absl::StrFormat("%.3f", Mean(rs, [](const ExperimentResult& r) {
+                                  return r.records[39].metrics.mean_dist_err_m;
+                                }));
     }
-    const ExperimentResult* r = job && job->result.ok() ? &*job->result : nullptr;
-    const std::string after40 = r && r->records.size() >= 40
-                                    ? absl::StrFormat("%.3f", r->records[39].metrics.mean_dist_err_m)
-                                    : std::string("n/a");
     absl::StrAppendFormat(&md, "| %s | %s | %.2f | %s | %s |\n", t.noise,
-                          Cell(r, &ExperimentResult::final_mean_dist_err_m, "%.3f"), t.error,
-                          Cell(r, &ExperimentResult::final_nees_per_dof, "%.2f"), after40);
+                          Cell(rs, &ExperimentResult::final_mean_dist_err_m, "%.3f", true), t.error,
+                          Cell(rs, &ExperimentResult::final_nees_per_dof, "%.2f", true), after40);
   }
   md += "\nThesis: 1.99 m after 40 passages with ar1+yaw (field test: 1.90 m).\n";
   return md;
@@ -112,12 +151,17 @@ std::string Report(const ReproduceOptions& o, const std::vector<Job>& jobs, doub
 }  // namespace
 
 absl::Status RunReproduction(const ReproduceOptions& o) {
+  if (o.seeds < 1) return absl::InvalidArgumentError(absl::StrCat("seeds: must be >= 1, got ", o.seeds));
   std::vector<Job> jobs;
-  for (int n : {4, 25, 50, 75, 100}) {
-    for (const char* strategy : {"cc", "dc", "cc-gsd"}) jobs.push_back(MakeJob(o, n, strategy, NoiseConfig::kWhite));
-  }
-  for (NoiseConfig noise : {NoiseConfig::kGnssAr1, NoiseConfig::kYawBias, NoiseConfig::kGnssAr1YawBias}) {
-    jobs.push_back(MakeJob(o, 50, "cc-gsd", noise));
+  for (uint64_t seed = o.seed; seed < o.seed + o.seeds; ++seed) {
+    for (int n : {4, 25, 50, 75, 100}) {
+      for (const char* strategy : {"cc", "dc", "cc-gsd"}) {
+        jobs.push_back(MakeJob(o, n, strategy, NoiseConfig::kWhite, seed));
+      }
+    }
+    for (NoiseConfig noise : {NoiseConfig::kGnssAr1, NoiseConfig::kYawBias, NoiseConfig::kGnssAr1YawBias}) {
+      jobs.push_back(MakeJob(o, 50, "cc-gsd", noise, seed));
+    }
   }
   // Longest first, so that the two workers finish together.
   std::stable_sort(jobs.begin(), jobs.end(), [](const Job& a, const Job& b) {

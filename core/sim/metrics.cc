@@ -9,30 +9,35 @@ namespace crowdmap {
 
 namespace {
 
-// e^T Sigma^-1 e / (2N) with the full joint covariance of the mapped landmarks.
-double JointNeesPerDof(const MapReaderInterface& map, const std::vector<const TruthLandmark*>& mapped,
-                       const Eigen::VectorXd& errors) {
-  const int n = static_cast<int>(mapped.size());
+// The joint covariance of the map landmarks `ids`, 2x2 blocks in that order.
+Eigen::MatrixXd JointCovariance(const MapReaderInterface& map, const std::vector<LandmarkId>& ids) {
+  const int n = static_cast<int>(ids.size());
   Eigen::MatrixXd cov = Eigen::MatrixXd::Zero(2 * n, 2 * n);
   for (int i = 0; i < n; ++i) {
-    cov.block<2, 2>(2 * i, 2 * i) = map.FindLandmark(mapped[i]->id)->cov_en_m2;
+    cov.block<2, 2>(2 * i, 2 * i) = map.FindLandmark(ids[i])->cov_en_m2;
     for (int j = i + 1; j < n; ++j) {
       Eigen::Matrix2d c;
-      if (!map.CrossCovariance(mapped[i]->id, mapped[j]->id, &c)) continue;
+      if (!map.CrossCovariance(ids[i], ids[j], &c)) continue;
       cov.block<2, 2>(2 * i, 2 * j) = c;
       cov.block<2, 2>(2 * j, 2 * i) = c.transpose();
     }
   }
+  return cov;
+}
+
+// e^T Sigma^-1 e / (2N) with the full joint covariance of the mapped landmarks.
+double JointNeesPerDof(const MapReaderInterface& map, const std::vector<LandmarkId>& ids, const Eigen::VectorXd& errors) {
+  const Eigen::MatrixXd cov = JointCovariance(map, ids);
   Eigen::LLT<Eigen::MatrixXd> llt(cov);
   if (!cov.allFinite() || llt.info() != Eigen::Success) return std::numeric_limits<double>::quiet_NaN();
-  return errors.dot(llt.solve(errors)) / (2.0 * n);
+  return errors.dot(llt.solve(errors)) / (2.0 * ids.size());
 }
 
 }  // namespace
 
 MapErrorMetrics EvaluateMap(const MapReaderInterface& map, const std::vector<TruthLandmark>& truth) {
   MapErrorMetrics m;
-  std::vector<const TruthLandmark*> mapped;
+  std::vector<LandmarkId> mapped;
   std::vector<Eigen::Vector2d> errors;
   double nees_sum = 0.0;
   bool nees_defined = true;
@@ -41,7 +46,7 @@ MapErrorMetrics EvaluateMap(const MapReaderInterface& map, const std::vector<Tru
     if (!lm) continue;
     const Eigen::Vector2d e = EastNorthOffset(t.position, lm->position);
     ++m.landmarks_evaluated;
-    mapped.push_back(&t);
+    mapped.push_back(t.id);
     errors.push_back(e);
     m.mean_dist_err_m += e.norm();
     m.mean_east_err_m += e.x();
@@ -67,6 +72,37 @@ MapErrorMetrics EvaluateMap(const MapReaderInterface& map, const std::vector<Tru
   for (size_t i = 0; i < errors.size(); ++i) stacked.segment<2>(2 * i) = errors[i];
   m.joint_nees_per_dof = nees_defined ? JointNeesPerDof(map, mapped, stacked) : std::numeric_limits<double>::quiet_NaN();
   return m;
+}
+
+StackedMapErrors StackMapErrors(const MapReaderInterface& map, const std::vector<TruthLandmark>& truth) {
+  StackedMapErrors out;
+  std::vector<Eigen::Vector2d> errors;
+  for (const TruthLandmark& t : truth) {
+    const Landmark* lm = map.FindLandmark(t.id);
+    if (!lm) continue;
+    out.ids.push_back(t.id);
+    errors.push_back(EastNorthOffset(t.position, lm->position));
+  }
+  out.errors.resize(2 * errors.size());
+  for (size_t i = 0; i < errors.size(); ++i) out.errors.segment<2>(2 * i) = errors[i];
+  out.cov = JointCovariance(map, out.ids);
+  return out;
+}
+
+double NeesPerDofSdIfConsistent(const MapReaderInterface& map, const std::vector<TruthLandmark>& truth) {
+  const StackedMapErrors stacked = StackMapErrors(map, truth);
+  if (stacked.ids.empty()) return std::numeric_limits<double>::quiet_NaN();
+  const Eigen::MatrixXd& cov = stacked.cov;
+  // nees_per_dof = e^T D e / 2N with D the block diagonal of the 2x2 marginal inverses; for
+  // e ~ N(0, cov) its variance is 2 tr((D cov)^2) / (2N)^2.
+  Eigen::MatrixXd d_cov(cov.rows(), cov.cols());
+  for (size_t i = 0; i < stacked.ids.size(); ++i) {
+    Eigen::LLT<Eigen::Matrix2d> llt(cov.block<2, 2>(2 * i, 2 * i));
+    if (llt.info() != Eigen::Success) return std::numeric_limits<double>::quiet_NaN();
+    d_cov.middleRows<2>(2 * i) = llt.solve(cov.middleRows<2>(2 * i));
+  }
+  if (!d_cov.allFinite()) return std::numeric_limits<double>::quiet_NaN();
+  return std::sqrt(2.0 * (d_cov * d_cov).trace()) / (2.0 * stacked.ids.size());
 }
 
 }  // namespace crowdmap

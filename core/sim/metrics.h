@@ -3,6 +3,8 @@
 
 #include <vector>
 
+#include <Eigen/Core>
+
 #include "core/map/map_state.h"
 #include "core/sim/scenario.h"
 
@@ -25,6 +27,21 @@ struct MapErrorMetrics {
 };
 
 MapErrorMetrics EvaluateMap(const MapReaderInterface& map, const std::vector<TruthLandmark>& truth);
+
+// The errors (East/North at the truth, two rows per landmark) and the joint covariance of the
+// truth landmarks that are in the map, in the order of `truth`.
+struct StackedMapErrors {
+  std::vector<LandmarkId> ids;
+  Eigen::VectorXd errors;
+  Eigen::MatrixXd cov;
+};
+StackedMapErrors StackMapErrors(const MapReaderInterface& map, const std::vector<TruthLandmark>& truth);
+
+// The standard deviation that nees_per_dof would have from run to run if the map were consistent
+// (its errors drawn from its own joint covariance). Errors common to many landmarks make it large:
+// one run's nees_per_dof is then one draw of a few degrees of freedom, and only an average over
+// runs (seeds) tests consistency. NaN without a usable covariance.
+double NeesPerDofSdIfConsistent(const MapReaderInterface& map, const std::vector<TruthLandmark>& truth);
 
 }  // namespace crowdmap
 

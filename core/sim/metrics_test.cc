@@ -105,5 +105,21 @@ TEST(EvaluateMap, JointNeesUsesTheCrossCovariances) {
   EXPECT_NEAR(m.joint_nees_per_dof, 2 * (2 * x * x / (1 + rho)) / 4, 1e-5);
 }
 
+TEST(NeesPerDofSdIfConsistent, GrowsFromIndependentToCommonErrors) {
+  // nees_per_dof of two landmarks with correlation rho on each axis (scales do not matter):
+  // chi2(4)/4 (sd sqrt(1/2)) for rho = 0, chi2(2)/2 (sd 1) for rho = 1; in general
+  // sd = sqrt(2 tr(C^2)) / 4 with tr(C^2) = 4 + 4 rho^2.
+  const TruthLandmark a = MakeTruth(1, {0.0, 0.0}), b = MakeTruth(2, {20.0, 0.0});
+  for (double rho : {0.0, 0.6, 1.0}) {
+    MapState map;
+    map.PutLandmark(Displaced(a, {0.1, 0.2}, 0.25 * Eigen::Matrix2d::Identity()));
+    map.PutLandmark(Displaced(b, {0.3, -0.1}, 4.0 * Eigen::Matrix2d::Identity()));
+    if (rho > 0) map.PutCrossCovariance(1, 2, rho * 0.5 * 2.0 * Eigen::Matrix2d::Identity());
+    EXPECT_NEAR(NeesPerDofSdIfConsistent(map, {a, b}), std::sqrt(2.0 * (4.0 + 4.0 * rho * rho)) / 4.0, 1e-9)
+        << "rho=" << rho;
+  }
+  EXPECT_TRUE(std::isnan(NeesPerDofSdIfConsistent(MapState(), {a, b}))) << "nothing mapped";
+}
+
 }  // namespace
 }  // namespace crowdmap

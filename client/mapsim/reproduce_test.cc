@@ -1,0 +1,54 @@
+#include "client/mapsim/reproduce.h"
+
+#include <filesystem>
+#include <fstream>
+#include <string>
+
+#include <gtest/gtest.h>
+
+namespace crowdmap {
+namespace {
+
+std::string ReadAll(const std::filesystem::path& path) {
+  std::ifstream in(path);
+  return std::string((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+}
+
+TEST(Reproduce, RunsEveryExperimentForEachSeedAndReportsTheMeans) {
+  ReproduceOptions options;
+  options.out_dir = (std::filesystem::path(testing::TempDir()) / "reproduce").string();
+  options.passages = 2;
+  options.seed = 4;
+  options.seeds = 2;
+  ASSERT_TRUE(RunReproduction(options).ok());
+  for (const char* name : {"n4_cc_white_s4", "n100_cc-gsd_white_s5", "n50_cc-gsd_ar1+yaw_s5"}) {
+    EXPECT_TRUE(std::filesystem::exists(std::filesystem::path(options.out_dir) / name / "summary.json")) << name;
+  }
+  const std::string md = ReadAll(std::filesystem::path(options.out_dir) / "reproduction.md");
+  EXPECT_NE(md.find("seeds 4 to 5"), std::string::npos) << md;
+  // Each white-noise row: the mean error with its range over the seeds, the NEES with the spread a
+  // consistent map would give it ("±"), for every N.
+  for (const char* row : {"| 4 | ", "| 25 | ", "| 50 | ", "| 75 | ", "| 100 | "}) {
+    const size_t at = md.find(row);
+    ASSERT_NE(at, std::string::npos) << row;
+    const std::string line = md.substr(at, md.find('\n', at) - at);
+    EXPECT_NE(line.find(" ± "), std::string::npos) << line;
+    EXPECT_NE(line.find(") |"), std::string::npos) << line;
+    EXPECT_EQ(line.find("failed"), std::string::npos) << line;
+  }
+  for (const char* noise : {"| white |", "| yaw-bias |", "| gnss-ar1 |", "| ar1+yaw |"}) {
+    EXPECT_NE(md.find(noise), std::string::npos) << noise;
+  }
+}
+
+TEST(Reproduce, RefusesZeroSeeds) {
+  ReproduceOptions options;
+  options.out_dir = (std::filesystem::path(testing::TempDir()) / "reproduce_none").string();
+  options.seeds = 0;
+  const absl::Status s = RunReproduction(options);
+  EXPECT_EQ(s.code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_NE(s.message().find("seeds"), std::string::npos) << s;
+}
+
+}  // namespace
+}  // namespace crowdmap
