@@ -115,7 +115,8 @@ passage-consistency flags (and --landmarks, --seed, --detections-per-landmark an
   Prints the mean joint NEES per degree of freedom with each passage's own covariance (1 =
   consistent), the NEES of the errors' spread and of their mean against the covariance averaged
   over the passages, and the own-covariance NEES along the most and least precise fifth of the
-  directions.
+  directions, and the NEES and mean error of the passages' maps combined by their information, each
+  linearised at its own estimate.
 
 reproduce flags:
   --out DIR                   output folder (default out/reproduce); writes DIR/reproduction.md
@@ -411,10 +412,12 @@ absl::Status RunPassageConsistencyCommand(const std::vector<std::string>& args) 
   if (!result.ok()) return result.status();
   std::cout << absl::StrFormat(
       "passages_used=%d dof=%d own_nees_per_dof=%.3f spread_nees_per_dof=%.3f bias_nees_per_dof=%.4f "
-      "(unbiased: about %.4f) own_nees_most_precise_fifth=%.3f own_nees_least_precise_fifth=%.3f\n",
+      "(unbiased: about %.4f) own_nees_most_precise_fifth=%.3f own_nees_least_precise_fifth=%.3f "
+      "fused_nees_per_dof=%.3f fused_mean_error_en_m=%.3f,%.3f\n",
       result->passages_used, result->dof, result->own_nees_per_dof, result->spread_nees_per_dof,
       result->bias_nees_per_dof, 1.0 / result->passages_used, result->own_nees_most_precise_fifth,
-      result->own_nees_least_precise_fifth);
+      result->own_nees_least_precise_fifth, result->fused_nees_per_dof, result->fused_mean_error_en_m.x(),
+      result->fused_mean_error_en_m.y());
   return absl::OkStatus();
 }
 

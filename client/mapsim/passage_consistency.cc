@@ -31,6 +31,8 @@ absl::StatusOr<PassageConsistency> RunPassageConsistency(const PassageConsistenc
   out.dof = dof;
   Eigen::VectorXd error_sum = Eigen::VectorXd::Zero(dof);
   Eigen::MatrixXd error_outer = Eigen::MatrixXd::Zero(dof, dof), cov_sum = Eigen::MatrixXd::Zero(dof, dof);
+  Eigen::MatrixXd information_sum = Eigen::MatrixXd::Zero(dof, dof);
+  Eigen::VectorXd weighted_error_sum = Eigen::VectorXd::Zero(dof);
   const int fifth = std::max(1, dof / 5);
   double own = 0.0, precise = 0.0, loose = 0.0;
   for (int i = 0; i < options.passages; ++i) {
@@ -54,6 +56,10 @@ absl::StatusOr<PassageConsistency> RunPassageConsistency(const PassageConsistenc
     error_sum += stacked.errors;
     error_outer += stacked.errors * stacked.errors.transpose();
     cov_sum += stacked.cov;
+    const Eigen::MatrixXd information = eigen.eigenvectors() * eigen.eigenvalues().cwiseInverse().asDiagonal() *
+                                        eigen.eigenvectors().transpose();
+    information_sum += information;
+    weighted_error_sum += information * stacked.errors;
     ++out.passages_used;
   }
   const int n = out.passages_used;
@@ -67,6 +73,9 @@ absl::StatusOr<PassageConsistency> RunPassageConsistency(const PassageConsistenc
   if (mean_cov.info() != Eigen::Success) return absl::InternalError("the mean covariance is not positive definite");
   out.spread_nees_per_dof = mean_cov.solve(spread).trace() / dof;
   out.bias_nees_per_dof = mean_error.dot(mean_cov.solve(mean_error)) / dof;
+  const Eigen::VectorXd fused = information_sum.ldlt().solve(weighted_error_sum);
+  out.fused_nees_per_dof = fused.dot(information_sum * fused) / dof;
+  for (int i = 0; i < dof / 2; ++i) out.fused_mean_error_en_m += fused.segment<2>(2 * i) / (dof / 2);
   return out;
 }
 

@@ -3,6 +3,8 @@
 
 #include <functional>
 
+#include <Eigen/Core>
+
 #include "absl/status/statusor.h"
 #include "core/estimation/map_updater.h"
 #include "core/sim/scenario.h"
@@ -37,6 +39,12 @@ struct PassageConsistency {
   // nearby landmarks), and along the fifth with the largest.
   double own_nees_most_precise_fifth = 0.0;
   double own_nees_least_precise_fifth = 0.0;
+  // The passages' maps combined by their information (sum of C_k^-1 e_k over sum of C_k^-1), each
+  // linearised at its own estimate: its joint NEES per dof (1 when consistent), and its mean error
+  // over the landmarks, East and North (m). Information that varies with the passage's own error
+  // biases such a combination even when every passage alone is unbiased and consistent.
+  double fused_nees_per_dof = 0.0;
+  Eigen::Vector2d fused_mean_error_en_m = Eigen::Vector2d::Zero();
 };
 
 // Called after each passage with the number done.
