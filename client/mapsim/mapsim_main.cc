@@ -131,10 +131,11 @@ reproduce flags:
 // a sensor's noise, both as drawn and as declared in the passages.
 absl::Status ScaleNoise(const Flags& flags, ScenarioOptions* scenario) {
   NoiseModel& sensors = scenario->noise_model;
-  for (const auto& [name, sigma] : {std::pair<const char*, double*>{"steering-noise-scale", &sensors.steering_sigma_rad},
-                                    {"speed-noise-scale", &sensors.speed_sigma_mps},
-                                    {"gnss-noise-scale", &scenario->gnss_sigma_m},
-                                    {"pixel-noise-scale", &sensors.pixel_sigma_px}}) {
+  const std::pair<const char*, double*> sigmas[] = {{"steering-noise-scale", &sensors.steering_sigma_rad},
+                                                    {"speed-noise-scale", &sensors.speed_sigma_mps},
+                                                    {"gnss-noise-scale", &scenario->gnss_sigma_m},
+                                                    {"pixel-noise-scale", &sensors.pixel_sigma_px}};
+  for (const auto& [name, sigma] : sigmas) {
     absl::StatusOr<double> scale = flags.GetDouble(name, 1.0);
     if (!scale.ok()) return scale.status();
     if (!(*scale > 0.0)) return absl::InvalidArgumentError(absl::StrCat(name, ": must be > 0, got ", *scale));
@@ -422,7 +423,8 @@ absl::Status RunPassageConsistencyCommand(const std::vector<std::string>& args) 
 }
 
 absl::Status RunReproduceCommand(const std::vector<std::string>& args) {
-  absl::StatusOr<Flags> flags = Flags::Parse(args, {{"out", true}, {"passages", true}, {"jobs", true}, {"seed", true}, {"seeds", true}});
+  absl::StatusOr<Flags> flags =
+      Flags::Parse(args, {{"out", true}, {"passages", true}, {"jobs", true}, {"seed", true}, {"seeds", true}});
   if (!flags.ok()) return flags.status();
   ReproduceOptions options;
   absl::StatusOr<long long> passages = flags->GetInt("passages", options.passages),

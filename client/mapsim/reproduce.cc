@@ -2,11 +2,11 @@
 
 #include <algorithm>
 #include <atomic>
-#include <cmath>
-#include <functional>
 #include <chrono>
+#include <cmath>
 #include <filesystem>
 #include <fstream>
+#include <functional>
 #include <mutex>
 #include <thread>
 #include <vector>
@@ -119,7 +119,8 @@ std::string Report(const ReproduceOptions& o, const std::vector<Job>& jobs, doub
     const auto dc = Results(jobs, t.landmarks, "dc", NoiseConfig::kWhite);
     const auto gsd = Results(jobs, t.landmarks, "cc-gsd", NoiseConfig::kWhite);
     absl::StrAppendFormat(
-        &md, "| %d | %s | %.2f | %s | %.2f | %s | %.2f | %s | %s | %s | %s / %s | %s | %s | %s | %.2f / %.2f / %.2f |\n",
+        &md,
+        "| %d | %s | %.2f | %s | %.2f | %s | %.2f | %s | %s | %s | %s / %s | %s | %s | %s | %.2f / %.2f / %.2f |\n",
         t.landmarks, Cell(cc, &ExperimentResult::final_mean_dist_err_m, "%.3f", true), t.cc,
         Cell(dc, &ExperimentResult::final_mean_dist_err_m, "%.3f"), t.dc,
         Cell(gsd, &ExperimentResult::final_mean_dist_err_m, "%.3f", true), t.cc_gsd, NeesCell(cc),
@@ -135,7 +136,8 @@ std::string Report(const ReproduceOptions& o, const std::vector<Job>& jobs, doub
   for (const ThesisRobustness& t : kThesisRobustness) {
     const auto rs = Results(jobs, 50, "cc-gsd", *ParseNoiseConfig(t.noise));
     std::string after40 = "n/a";
-    if (!rs.empty() && std::all_of(rs.begin(), rs.end(), [](const ExperimentResult* r) { return r->records.size() >= 40; })) {
+    const auto has40 = [](const ExperimentResult* r) { return r->records.size() >= 40; };
+    if (!rs.empty() && std::all_of(rs.begin(), rs.end(), has40)) {
       after40 = absl::StrFormat("%.3f", Mean(rs, [](const ExperimentResult& r) {
                                   return r.records[39].metrics.mean_dist_err_m;
                                 }));

@@ -25,41 +25,29 @@ Eigen::MatrixXd JointCovariance(const MapReaderInterface& map, const std::vector
   return cov;
 }
 
-// e^T Sigma^-1 e / (2N) with the full joint covariance of the mapped landmarks.
-double JointNeesPerDof(const MapReaderInterface& map, const std::vector<LandmarkId>& ids, const Eigen::VectorXd& errors) {
-  const Eigen::MatrixXd cov = JointCovariance(map, ids);
-  Eigen::LLT<Eigen::MatrixXd> llt(cov);
-  if (!cov.allFinite() || llt.info() != Eigen::Success) return std::numeric_limits<double>::quiet_NaN();
-  return errors.dot(llt.solve(errors)) / (2.0 * ids.size());
-}
-
 }  // namespace
 
 MapErrorMetrics EvaluateMap(const MapReaderInterface& map, const std::vector<TruthLandmark>& truth) {
   MapErrorMetrics m;
-  std::vector<LandmarkId> mapped;
-  std::vector<Eigen::Vector2d> errors;
+  const StackedMapErrors stacked = StackMapErrors(map, truth);
   double nees_sum = 0.0;
   bool nees_defined = true;
-  for (const TruthLandmark& t : truth) {
-    const Landmark* lm = map.FindLandmark(t.id);
-    if (!lm) continue;
-    const Eigen::Vector2d e = EastNorthOffset(t.position, lm->position);
-    ++m.landmarks_evaluated;
-    mapped.push_back(t.id);
-    errors.push_back(e);
+  for (size_t i = 0; i < stacked.ids.size(); ++i) {
+    const Eigen::Vector2d e = stacked.errors.segment<2>(2 * i);
+    const Eigen::Matrix2d cov = stacked.cov.block<2, 2>(2 * i, 2 * i);
     m.mean_dist_err_m += e.norm();
     m.mean_east_err_m += e.x();
     m.mean_north_err_m += e.y();
-    m.east_3sigma_m += 3.0 * std::sqrt(lm->cov_en_m2(0, 0));
-    m.north_3sigma_m += 3.0 * std::sqrt(lm->cov_en_m2(1, 1));
-    Eigen::LLT<Eigen::Matrix2d> llt(lm->cov_en_m2);
-    if (!lm->cov_en_m2.allFinite() || llt.info() != Eigen::Success) {
+    m.east_3sigma_m += 3.0 * std::sqrt(cov(0, 0));
+    m.north_3sigma_m += 3.0 * std::sqrt(cov(1, 1));
+    Eigen::LLT<Eigen::Matrix2d> llt(cov);
+    if (!cov.allFinite() || llt.info() != Eigen::Success) {
       nees_defined = false;
     } else {
       nees_sum += e.dot(llt.solve(e));
     }
   }
+  m.landmarks_evaluated = static_cast<int>(stacked.ids.size());
   if (m.landmarks_evaluated == 0) return m;
   const double n = m.landmarks_evaluated;
   m.mean_dist_err_m /= n;
@@ -68,9 +56,11 @@ MapErrorMetrics EvaluateMap(const MapReaderInterface& map, const std::vector<Tru
   m.east_3sigma_m /= n;
   m.north_3sigma_m /= n;
   m.nees_per_dof = nees_defined ? nees_sum / n / 2.0 : std::numeric_limits<double>::quiet_NaN();
-  Eigen::VectorXd stacked(2 * errors.size());
-  for (size_t i = 0; i < errors.size(); ++i) stacked.segment<2>(2 * i) = errors[i];
-  m.joint_nees_per_dof = nees_defined ? JointNeesPerDof(map, mapped, stacked) : std::numeric_limits<double>::quiet_NaN();
+  // e^T Sigma^-1 e / (2N) with the full joint covariance of the mapped landmarks.
+  Eigen::LLT<Eigen::MatrixXd> joint(stacked.cov);
+  m.joint_nees_per_dof = nees_defined && stacked.cov.allFinite() && joint.info() == Eigen::Success
+                             ? stacked.errors.dot(joint.solve(stacked.errors)) / (2.0 * n)
+                             : std::numeric_limits<double>::quiet_NaN();
   return m;
 }
 
