@@ -4,6 +4,7 @@
 #include <filesystem>
 #include <fstream>
 #include <string>
+#include <utility>
 
 #include <gtest/gtest.h>
 
@@ -135,6 +136,16 @@ TEST(Experiment, OrderFileRoundTripsAndNamesTheBadLine) {
   EXPECT_EQ(ReadOrderFile((dir / "missing.txt").string()).status().code(), absl::StatusCode::kNotFound);
 }
 
+// The header line of a CSV file and the number of rows after it.
+std::pair<std::string, int> ReadCsv(const std::filesystem::path& path) {
+  std::ifstream csv(path);
+  std::string header;
+  std::getline(csv, header);
+  int rows = 0;
+  for (std::string line; std::getline(csv, line);) ++rows;
+  return {header, rows};
+}
+
 TEST(Experiment, WritesCsvSummaryAndPlot) {
   ExperimentOptions options;
   options.scenario.landmarks = 4;
@@ -143,14 +154,10 @@ TEST(Experiment, WritesCsvSummaryAndPlot) {
   ASSERT_TRUE(result.ok()) << result.status();
   const std::filesystem::path dir = std::filesystem::path(testing::TempDir()) / "experiment_outputs";
   ASSERT_TRUE(WriteExperimentOutputs(options, *result, dir.string()).ok());
-  std::ifstream csv(dir / "passages.csv");
-  std::string header;
-  std::getline(csv, header);
+  const auto [header, rows] = ReadCsv(dir / "passages.csv");
   EXPECT_EQ(header.rfind("passage,mean_dist_err_m,mean_east_err_m,mean_north_err_m,east_3sigma_m,north_3sigma_m,"
                          "nees_per_dof,solve_ms,subgraphs", 0),
             0u);
-  int rows = 0;
-  for (std::string line; std::getline(csv, line);) ++rows;
   EXPECT_EQ(rows, 3);
   std::ifstream json(dir / "summary.json");
   const std::string summary((std::istreambuf_iterator<char>(json)), std::istreambuf_iterator<char>());
@@ -162,18 +169,12 @@ TEST(Experiment, WritesCsvSummaryAndPlot) {
   EXPECT_GT(std::filesystem::file_size(dir / "errors.svg"), 1000u);
 
   // One row per mapped landmark, with its error and covariance; one row per pair of them.
-  std::ifstream landmarks(dir / "landmarks.csv");
-  std::getline(landmarks, header);
-  EXPECT_EQ(header, "landmark,true_east_m,true_north_m,east_err_m,north_err_m,cov_ee_m2,cov_en_m2,cov_nn_m2");
-  rows = 0;
-  for (std::string line; std::getline(landmarks, line);) ++rows;
-  EXPECT_EQ(rows, 4);
-  std::ifstream cross(dir / "cross_covariances.csv");
-  std::getline(cross, header);
-  EXPECT_EQ(header, "landmark_a,landmark_b,cov_ee_m2,cov_en_m2,cov_ne_m2,cov_nn_m2");
-  rows = 0;
-  for (std::string line; std::getline(cross, line);) ++rows;
-  EXPECT_EQ(rows, 6);
+  EXPECT_EQ(ReadCsv(dir / "landmarks.csv"),
+            std::make_pair(std::string("landmark,true_east_m,true_north_m,east_err_m,north_err_m,cov_ee_m2,"
+                                       "cov_en_m2,cov_nn_m2"),
+                           4));
+  EXPECT_EQ(ReadCsv(dir / "cross_covariances.csv"),
+            std::make_pair(std::string("landmark_a,landmark_b,cov_ee_m2,cov_en_m2,cov_ne_m2,cov_nn_m2"), 6));
 }
 
 }  // namespace
