@@ -1,5 +1,6 @@
 #include "client/mapsim/passage_consistency.h"
 
+#include <algorithm>
 #include <vector>
 
 #include <Eigen/Cholesky>
