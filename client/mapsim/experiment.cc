@@ -14,7 +14,6 @@
 #include "absl/strings/str_format.h"
 #include "client/mapsim/svg_plot.h"
 #include "core/estimation/triangulation.h"
-#include "core/geo/local_frame.h"
 
 namespace crowdmap {
 namespace {
@@ -175,14 +174,17 @@ absl::Status WriteExperimentOutputs(const ExperimentOptions& options, const Expe
 
   absl::StatusOr<Scenario> scenario = Scenario::Create(options.scenario);
   if (!scenario.ok()) return scenario.status();
+  const StackedMapErrors stacked = StackMapErrors(result.final_map, scenario->landmarks());
   std::ofstream landmarks(std::filesystem::path(dir) / "landmarks.csv");
   landmarks << "landmark,true_east_m,true_north_m,east_err_m,north_err_m,cov_ee_m2,cov_en_m2,cov_nn_m2\n";
+  size_t k = 0;  // stacked holds the mapped landmarks in the order of the truth
   for (const TruthLandmark& t : scenario->landmarks()) {
-    const Landmark* lm = result.final_map.FindLandmark(t.id);
-    if (!lm) continue;
-    const Eigen::Vector2d e = EastNorthOffset(t.position, lm->position);
+    if (k == stacked.ids.size() || stacked.ids[k] != t.id) continue;
+    const Eigen::Vector2d e = stacked.errors.segment<2>(2 * k);
+    const Eigen::Matrix2d c = stacked.cov.block<2, 2>(2 * k, 2 * k);
     landmarks << absl::StrFormat("%d,%.4f,%.4f,%.6f,%.6f,%.9g,%.9g,%.9g\n", t.id, t.position_m.x(), t.position_m.y(),
-                                 e.x(), e.y(), lm->cov_en_m2(0, 0), lm->cov_en_m2(0, 1), lm->cov_en_m2(1, 1));
+                                 e.x(), e.y(), c(0, 0), c(0, 1), c(1, 1));
+    ++k;
   }
   if (!landmarks) return absl::InternalError(absl::StrCat("cannot write ", dir, "/landmarks.csv"));
   std::ofstream cross(std::filesystem::path(dir) / "cross_covariances.csv");
