@@ -1,5 +1,6 @@
 #include "server/map_worker.h"
 
+#include <sched.h>
 #include <sys/resource.h>
 #include <sys/syscall.h>
 #include <unistd.h>
@@ -89,7 +90,9 @@ absl::Status MapWorker::LoadMirror() {
     }
   }
   map_ = std::move(map);
-  updater_ = std::make_unique<MapUpdater>(options_.update, std::move(kept), applied_count);
+  MapUpdateOptions update = options_.update;
+  if (options_.yield) update.yield_point = [this] { Yield(); };
+  updater_ = std::make_unique<MapUpdater>(update, std::move(kept), applied_count);
   return absl::OkStatus();
 }
 
@@ -97,6 +100,10 @@ MapWorker::~MapWorker() { Stop(); }
 
 void MapWorker::Start() {
   for (int i = 0; i < options_.workers; ++i) threads_.emplace_back([this] { Run(); });
+}
+
+void MapWorker::Yield() const {
+  if (options_.yield) sched_yield();
 }
 
 void MapWorker::Wake() {
@@ -182,6 +189,7 @@ void MapWorker::Apply(const ClaimedPassage& claimed, const Passage& passage) {
     auto update = updater_->Compute(passage, map_);
     if (update.ok()) {
       const PassageResult result = ResultFromSummary(update->summary, options_.update.strategy);
+      Yield();
       const auto commit_start = std::chrono::steady_clock::now();
       absl::Status committed = store_->CommitPassageApplied(record.id, update->delta, result);
       const double commit_ms =
@@ -189,6 +197,7 @@ void MapWorker::Apply(const ClaimedPassage& claimed, const Passage& passage) {
       if (committed.ok()) {
         map_.Apply(update->delta);
         updater_->Applied(passage);
+        Yield();
         notifier_->Publish(map_.version());
         spdlog::info(
             "event=applied passage={} vehicle={} id={} nodes={} subgraphs={} landmarks_updated={} "

@@ -30,6 +30,13 @@ struct MapWorkerOptions {
   // work: a positive value lets request handling preempt the solver, so reads stay fast while the
   // map is updated, and costs nothing when the CPU is otherwise idle.
   int nice = 10;
+  // Yield the CPU (sched_yield) at each MapUpdateOptions::yield_point of an update. Niceness alone
+  // does not keep reads fast: the kernel lets a running thread finish its time slice (over a
+  // millisecond) before a woken request thread gets the core, whatever the priorities, so a solver
+  // that computes without pause holds one of the cores for a slice at a time. Yielding every
+  // millisecond or so hands the core to waiting requests at once and costs a system call when none
+  // waits. See server/README.md for the measurements.
+  bool yield = true;
 
   absl::Status Validate() const;
 };
@@ -65,6 +72,8 @@ class MapWorker {
   void Process(ClaimedPassage claimed, uint64_t ticket);
   void Apply(const ClaimedPassage& claimed, const Passage& passage);
   void Finish(const StoredPassage& record, PassageState state, const std::string& reason);
+  // sched_yield() when options_.yield.
+  void Yield() const;
 
   MapStoreInterface* const store_;
   const MapWorkerOptions options_;

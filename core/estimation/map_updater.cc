@@ -23,6 +23,10 @@
 namespace crowdmap {
 namespace {
 
+void Yield(const MapUpdateOptions& options) {
+  if (options.yield_point) options.yield_point();
+}
+
 double MillisecondsSince(std::chrono::steady_clock::time_point start) {
   return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
 }
@@ -71,11 +75,33 @@ ceres::Solver::Options SolverOptions(int max_iterations) {
   return options;
 }
 
+// Calls options.yield_point after every solver iteration.
+class YieldEachIteration : public ceres::IterationCallback {
+ public:
+  explicit YieldEachIteration(const std::function<void()>& yield_point) : yield_point_(yield_point) {}
+  ceres::CallbackReturnType operator()(const ceres::IterationSummary&) override {
+    yield_point_();
+    return ceres::SOLVER_CONTINUE;
+  }
+
+ private:
+  const std::function<void()>& yield_point_;
+};
+
+// ceres::Solve with options.yield_point called after each iteration and at the end.
+void Solve(const MapUpdateOptions& options, ceres::Solver::Options solver_options, ceres::Problem* problem,
+           ceres::Solver::Summary* summary) {
+  YieldEachIteration callback(options.yield_point);
+  if (options.yield_point) solver_options.callbacks.push_back(&callback);
+  ceres::Solve(solver_options, problem, summary);
+  Yield(options);
+}
+
 // Refines the subgraph's initial poses: odometry + GNSS + the bearings of the map landmarks held
 // fixed, if any. The pixel model alone cannot start from poses tens of metres off (with coloured
 // GNSS noise the GNSS-aligned guess often is), the bounded bearing residual can.
-void InitializePoses(const PassageGraph& graph, const NodeRange& range, const Passage& passage, int max_iterations,
-                     SubgraphLandmarks* landmarks, std::vector<Pose2>* poses) {
+void InitializePoses(const PassageGraph& graph, const NodeRange& range, const Passage& passage,
+                     const MapUpdateOptions& update_options, SubgraphLandmarks* landmarks, std::vector<Pose2>* poses) {
   ceres::Problem problem;
   AddPoseGraphFactors(graph, range.first, range.last, passage.calibration.gnss_lever_arm_m, nullptr, poses, &problem);
   for (size_t i = 0; i < landmarks->ids.size(); ++i) {
@@ -90,11 +116,11 @@ void InitializePoses(const PassageGraph& graph, const NodeRange& range, const Pa
   // gets the full solve's iteration budget: from a guess metres off it can take 20 or more
   // iterations, and one stopped short of the basin leaves the full solve in a wrong minimum (which
   // the consistency test then mistakes for a noisy passage and down-weights).
-  ceres::Solver::Options options = SolverOptions(max_iterations);
+  ceres::Solver::Options options = SolverOptions(update_options.max_solver_iterations);
   options.function_tolerance = 1e-6;
   options.parameter_tolerance = 1e-6;
   ceres::Solver::Summary summary;
-  ceres::Solve(options, &problem, &summary);
+  Solve(update_options, options, &problem, &summary);
   // An unusable localisation leaves the poses as they were; the full solve still runs.
 }
 
@@ -155,11 +181,13 @@ absl::StatusOr<GraphLinearization> LinearizeSolution(ceres::Problem* problem, La
   absl::StatusOr<GraphLinearization> linearization = GraphLinearization::Compute(problem, landmark_blocks);
   if (!linearization.ok()) return linearization.status();
   summary->covariance_ms += MillisecondsSince(covariance_start);
+  Yield(options);
   if (options.bias_correction) {
     BiasCorrectionStats bias;
     if (absl::Status s = linearization->CorrectSecondOrderBias(problem, &bias); !s.ok()) return s;
     summary->bias_correction_ms += bias.ms;
     summary->max_bias_correction_m = std::max(summary->max_bias_correction_m, bias.max_landmark_shift_m);
+    Yield(options);
   }
   return linearization;
 }
@@ -173,7 +201,7 @@ absl::Status UpdateFromSubgraph(const Passage& passage, const PassageGraph& grap
   if (landmarks.ids.empty()) return absl::OkStatus();
   std::vector<Pose2> poses(graph.initial_poses.begin() + range.first, graph.initial_poses.begin() + range.last + 1);
   const auto solve_start = std::chrono::steady_clock::now();
-  InitializePoses(graph, range, passage, options.max_solver_iterations, &landmarks, &poses);
+  InitializePoses(graph, range, passage, options, &landmarks, &poses);
   summary->detections_dropped += InitializeLandmarks(
       poses, range, calib, options.edge_margin_sigmas * passage.noise.pixel_sigma_px, &landmarks);
   if (landmarks.ids.empty()) return absl::OkStatus();
@@ -199,7 +227,7 @@ absl::Status UpdateFromSubgraph(const Passage& passage, const PassageGraph& grap
   if (absl::Status s = update.AddMapPrior(correlated, &problem); !s.ok()) return s;
 
   ceres::Solver::Summary solver_summary;
-  ceres::Solve(SolverOptions(options.max_solver_iterations), &problem, &solver_summary);
+  Solve(options, SolverOptions(options.max_solver_iterations), &problem, &solver_summary);
   summary->solver_iterations += static_cast<int>(solver_summary.iterations.size());
   if (!solver_summary.IsSolutionUsable()) {
     return absl::InternalError(absl::StrCat("solver result unusable: ", solver_summary.message));
@@ -212,7 +240,7 @@ absl::Status UpdateFromSubgraph(const Passage& passage, const PassageGraph& grap
     summary->max_variance_factor = std::max(summary->max_variance_factor, variance_factor);
     measurement_weight.Reset(new ceres::ScaledLoss(nullptr, 1.0 / variance_factor, ceres::TAKE_OWNERSHIP),
                              ceres::TAKE_OWNERSHIP);
-    ceres::Solve(SolverOptions(options.max_solver_iterations), &problem, &solver_summary);
+    Solve(options, SolverOptions(options.max_solver_iterations), &problem, &solver_summary);
     summary->solver_iterations += static_cast<int>(solver_summary.iterations.size());
     if (!solver_summary.IsSolutionUsable()) {
       return absl::InternalError(absl::StrCat("solver result unusable after inflation: ", solver_summary.message));
@@ -241,6 +269,7 @@ absl::Status UpdateFromSubgraph(const Passage& passage, const PassageGraph& grap
   update_options.correlation_radius_m = options.correlation_radius_m;
   absl::StatusOr<LandmarkUpdateStats> stats = update.Commit(linearization->landmark_covariance(), update_options, touch);
   if (!stats.ok()) return stats.status();
+  Yield(options);
   summary->covariance_ms += stats->covariance_ms;
   for (int i = 0; i < update.size(); ++i) {
     if (update.in_map(i)) {
@@ -333,6 +362,7 @@ absl::StatusOr<PassageUpdate> ComputePassageUpdate(const Passage& passage, const
   graph_options.refine_initial_poses = false;  // done per subgraph, with the map
   absl::StatusOr<PassageGraph> graph = BuildPassageGraph(passage, graph_options);
   if (!graph.ok()) return graph.status();
+  Yield(options);
 
   PassageUpdateSummary summary;
   summary.nodes = graph->node_count();
@@ -435,7 +465,7 @@ absl::StatusOr<PassageUpdate> SolveJointly(const std::vector<Passage>& passages,
     for (const NodeRange& range : SubdivideGraph(graphs[p], options.max_subgraph_dim)) {
       SubgraphLandmarks known = GroupDetections(graphs[p], range, map);
       std::vector<Pose2> piece(poses[p].begin() + range.first, poses[p].begin() + range.last + 1);
-      InitializePoses(graphs[p], range, passages[p], options.max_solver_iterations, &known, &piece);
+      InitializePoses(graphs[p], range, passages[p], options, &known, &piece);
       std::copy(piece.begin(), piece.end(), poses[p].begin() + range.first);
     }
     summary.detections_dropped +=
@@ -497,7 +527,7 @@ absl::StatusOr<PassageUpdate> SolveJointly(const std::vector<Passage>& passages,
 
   const auto solve_start = std::chrono::steady_clock::now();
   ceres::Solver::Summary solver_summary;
-  ceres::Solve(SolverOptions(options.max_solver_iterations), &problem, &solver_summary);
+  Solve(options, SolverOptions(options.max_solver_iterations), &problem, &solver_summary);
   summary.solver_iterations += static_cast<int>(solver_summary.iterations.size());
   if (!solver_summary.IsSolutionUsable()) {
     return absl::InternalError(absl::StrCat("joint solve unusable: ", solver_summary.message));
@@ -523,7 +553,7 @@ absl::StatusOr<PassageUpdate> SolveJointly(const std::vector<Passage>& passages,
       }
     }
     if (inflated) {
-      ceres::Solve(SolverOptions(options.max_solver_iterations), &problem, &solver_summary);
+      Solve(options, SolverOptions(options.max_solver_iterations), &problem, &solver_summary);
       summary.solver_iterations += static_cast<int>(solver_summary.iterations.size());
       if (!solver_summary.IsSolutionUsable()) {
         return absl::InternalError(absl::StrCat("joint solve unusable after inflation: ", solver_summary.message));
@@ -551,6 +581,7 @@ absl::StatusOr<PassageUpdate> SolveJointly(const std::vector<Passage>& passages,
   };
   absl::StatusOr<LandmarkUpdateStats> stats = update.Commit(linearization->landmark_covariance(), update_options, touch);
   if (!stats.ok()) return stats.status();
+  Yield(options);
   summary.covariance_ms += stats->covariance_ms;
 
   // The result replaces the records of every landmark the passages saw, at one new version of

@@ -1,6 +1,7 @@
 #ifndef CROWDMAP_CORE_ESTIMATION_MAP_UPDATER_H_
 #define CROWDMAP_CORE_ESTIMATION_MAP_UPDATER_H_
 
+#include <functional>
 #include <limits>
 #include <string>
 #include <string_view>
@@ -73,6 +74,11 @@ struct MapUpdateOptions {
   // runs); a joint solve caught in a wrong minimum by far more. Under coloured GNSS noise, which
   // the estimator does not model, they often differ by more, and the sequential update is used.
   double max_joint_mahalanobis2 = 36.0;
+  // Called between the steps of an update (after every solver iteration and every stage of a
+  // subgraph's update: at most a few milliseconds apart, mostly well under one), on the thread
+  // computing it. A service gives its request threads the CPU there (see server/map_worker.cc).
+  // Empty: not called.
+  std::function<void()> yield_point;
 
   absl::Status Validate() const;
 };

@@ -86,6 +86,29 @@ TEST(ComputePassageUpdate, SecondPassageUpdatesAndShrinksTheCovariance) {
   EXPECT_EQ(map.FindLandmark(1)->passages_seen, 2);
 }
 
+TEST(ComputePassageUpdate, YieldPointIsCalledThroughoutAndChangesNothing) {
+  const Scenario scenario = MakeScenario(10);
+  MapState map;
+  map.Apply(ComputePassageUpdate(scenario.MakePassage(0), MapUpdateOptions(), map)->delta);
+  absl::StatusOr<PassageUpdate> plain = ComputePassageUpdate(scenario.MakePassage(1), MapUpdateOptions(), map);
+  MapUpdateOptions options;
+  int calls = 0;
+  options.yield_point = [&calls] { ++calls; };
+  absl::StatusOr<PassageUpdate> yielding = ComputePassageUpdate(scenario.MakePassage(1), options, map);
+  ASSERT_TRUE(plain.ok() && yielding.ok());
+  // At least once per solver iteration (two solves per subgraph) and per stage of each subgraph.
+  EXPECT_GE(calls, yielding->summary.solver_iterations + 3 * yielding->summary.subgraphs);
+  ASSERT_EQ(plain->delta.landmarks.size(), yielding->delta.landmarks.size());
+  for (const auto& [id, landmark] : plain->delta.landmarks) {
+    const Landmark& other = yielding->delta.landmarks.at(id);
+    EXPECT_EQ(landmark.position.lat_deg, other.position.lat_deg);
+    EXPECT_EQ(landmark.position.lon_deg, other.position.lon_deg);
+    EXPECT_EQ(landmark.cov_en_m2, other.cov_en_m2);
+  }
+  ASSERT_EQ(plain->delta.cross.size(), yielding->delta.cross.size());
+  for (const auto& [pair, block] : plain->delta.cross) EXPECT_EQ(block, yielding->delta.cross.at(pair));
+}
+
 TEST(ComputePassageUpdate, CorrelationRadiusBoundsTheCrossCovarianceBlocks) {
   const Scenario scenario = MakeScenario(25);
   MapUpdateOptions dense, bounded;

@@ -141,6 +141,10 @@ struct SqliteMapStoreOptions {
   int busy_timeout_ms = 5000;
   // Upper bound on pooled read connections kept open (more may be opened under load).
   int max_idle_readers = 32;
+  // Writes give the CPU to other threads (sched_yield) about every this many SQLite virtual
+  // machine steps (4000 is some 0.1 ms of a passage's commit), so that a large commit does not
+  // hold a core for milliseconds while requests wait. 0: never.
+  int write_yield_vm_steps = 0;
 
   absl::Status Validate() const;
 };

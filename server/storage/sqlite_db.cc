@@ -114,6 +114,21 @@ absl::StatusOr<std::unique_ptr<SqliteConnection>> SqliteConnection::Open(const s
   return db;
 }
 
+void SqliteConnection::OnProgress(int vm_steps, std::function<void()> callback) {
+  on_progress_ = std::move(callback);
+  if (vm_steps <= 0 || !on_progress_) {
+    sqlite3_progress_handler(db_, 0, nullptr, nullptr);
+    return;
+  }
+  sqlite3_progress_handler(
+      db_, vm_steps,
+      [](void* self) {
+        static_cast<SqliteConnection*>(self)->on_progress_();
+        return 0;  // continue the statement
+      },
+      this);
+}
+
 SqliteConnection::~SqliteConnection() {
   for (auto& [sql, stmt] : cache_) sqlite3_finalize(stmt);
   sqlite3_close(db_);

@@ -2,6 +2,7 @@
 #define CROWDMAP_SERVER_STORAGE_SQLITE_DB_H_
 
 #include <cstdint>
+#include <functional>
 #include <memory>
 #include <string>
 #include <string_view>
@@ -68,10 +69,16 @@ class SqliteConnection {
   int64_t LastInsertRowId() const;
   int Changes() const;
 
+  // Calls `callback` about every `vm_steps` virtual machine instructions of a statement
+  // (sqlite3_progress_handler), e.g. to yield the CPU during a long write. vm_steps 0 or an empty
+  // callback removes it.
+  void OnProgress(int vm_steps, std::function<void()> callback);
+
  private:
   explicit SqliteConnection(sqlite3* db) : db_(db) {}
   sqlite3* db_;
   std::unordered_map<std::string, sqlite3_stmt*> cache_;
+  std::function<void()> on_progress_;
 };
 
 // BEGIN IMMEDIATE ... COMMIT; rolls back when destroyed uncommitted.

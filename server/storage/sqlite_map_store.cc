@@ -1,6 +1,8 @@
 // The map side of the SQLite map store: open, reader pool, map commit and map reads.
 #include "server/storage/sqlite_map_store.h"
 
+#include <sched.h>
+
 #include <cmath>
 #include <functional>
 #include <unordered_set>
@@ -56,6 +58,7 @@ absl::Status ReadLandmarks(SqliteStatement& stmt, LandmarkPage* page, int limit)
 absl::Status SqliteMapStoreOptions::Validate() const {
   if (busy_timeout_ms < 0) return absl::InvalidArgumentError("busy_timeout_ms must be >= 0");
   if (max_idle_readers < 0) return absl::InvalidArgumentError("max_idle_readers must be >= 0");
+  if (write_yield_vm_steps < 0) return absl::InvalidArgumentError("write_yield_vm_steps must be >= 0");
   return absl::OkStatus();
 }
 
@@ -72,6 +75,7 @@ absl::StatusOr<std::unique_ptr<SqliteMapStore>> SqliteMapStore::Open(const std::
   auto writer = SqliteConnection::Open(path, options.busy_timeout_ms, /*read_only=*/false);
   if (!writer.ok()) return writer.status();
   if (auto s = MigrateSchema(writer->get()); !s.ok()) return s;
+  (*writer)->OnProgress(options.write_yield_vm_steps, [] { sched_yield(); });
   return std::unique_ptr<SqliteMapStore>(new SqliteMapStore(path, options, std::move(*writer)));
 }
 

@@ -7,6 +7,7 @@
 
 #include "gtest/gtest.h"
 #include "server/storage/cached_map_store.h"
+#include "server/storage/sqlite_db.h"
 #include "server/testing/temp_dir.h"
 
 namespace crowdmap {
@@ -79,6 +80,33 @@ TEST(SqliteMapStore, CreatesMigratedWalDatabaseOnFirstOpen) {
   store.reset();
   store = OpenStore(path);
   EXPECT_TRUE(store->FindPassage("v", "p").ok());
+}
+
+TEST(SqliteConnection, OnProgressIsCalledDuringALongStatementUntilRemoved) {
+  TempDir dir;
+  auto db = SqliteConnection::Open(dir.File("progress.db"), 1000, /*read_only=*/false);
+  ASSERT_TRUE(db.ok()) << db.status();
+  const std::string insert =
+      "WITH RECURSIVE n(i) AS (SELECT 1 UNION ALL SELECT i + 1 FROM n WHERE i < 10000) INSERT INTO t SELECT i FROM n";
+  ASSERT_TRUE((*db)->Exec("CREATE TABLE t (x INTEGER)").ok());
+  int calls = 0;
+  (*db)->OnProgress(1000, [&calls] { ++calls; });
+  ASSERT_TRUE((*db)->Exec(insert).ok());
+  EXPECT_GT(calls, 10);  // some 10 steps per row
+  const int before = calls;
+  (*db)->OnProgress(0, nullptr);
+  ASSERT_TRUE((*db)->Exec(insert).ok());
+  EXPECT_EQ(calls, before);
+  EXPECT_EQ(SqlInt(dir.File("progress.db"), "SELECT COUNT(*) FROM t"), 20000);
+}
+
+TEST(SqliteMapStore, RefusesNegativeWriteYieldSteps) {
+  TempDir dir;
+  SqliteMapStoreOptions options;
+  options.write_yield_vm_steps = -1;
+  auto store = CreateSqliteMapStore(dir.File("map.db"), options);
+  ASSERT_FALSE(store.ok());
+  EXPECT_NE(store.status().message().find("write_yield_vm_steps"), std::string::npos);
 }
 
 TEST(SqliteMapStore, RefusesDatabaseFromNewerSchema) {

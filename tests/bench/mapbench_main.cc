@@ -3,6 +3,7 @@
 //   mapbench upload [--clients 8] [--passages 2000] [--apply]
 //       durable-acknowledgement upload throughput of thesis-sized passages (165 s, 25 Hz odometry)
 //   mapbench query [--readers 16] [--seconds 10] [--cross] [--no-writes] [--apply-rate R] [--preload P]
+//                  [--worker-nice N] [--no-worker-yield]
 //       QueryRegion latency over a 1 km^2 box (about 100 landmarks) while passages are applied
 //       back to back (--apply-rate R: about R per second; --no-writes: none, the readers alone).
 //       The map first takes P passages (default: up to its last joint re-solve, 128), so that the
@@ -108,6 +109,9 @@ int Query(int argc, char** argv) {
   TempDir dir;
   MapServerOptions server_options = TestServerOptions(dir.File("map.db"), true);
   server_options.worker.nice = IntFlag(argc, argv, "--worker-nice", server_options.worker.nice);
+  // --no-worker-yield: the worker computes and commits without yielding the CPU (the ablation of
+  // MapWorkerOptions::yield).
+  if (BoolFlag(argc, argv, "--no-worker-yield")) server_options.worker.yield = false;
   auto server = MapServer::Start(server_options);
   if (!server.ok()) return 1;
   MockVehicle writer((*server)->address());
@@ -204,6 +208,7 @@ int main(int argc, char** argv) {
   if (argc >= 2 && std::strcmp(argv[1], "query") == 0) return crowdmap::Query(argc, argv);
   std::fprintf(stderr, "usage: mapbench upload [--clients 8] [--passages 2000] [--apply]\n"
                        "       mapbench query [--readers 16] [--seconds 10] [--cross] [--no-writes] [--apply-rate R]"
-                       " [--preload P]\n");
+                       " [--preload P]\n"
+                       "                      [--worker-nice N] [--no-worker-yield]\n");
   return 2;
 }
