@@ -125,6 +125,10 @@ reproduce flags:
   --seed S                    first noise seed (default 1)
   --seeds K                   run every experiment with seeds S..S+K-1 and report the means
                               (default 3; about 3 minutes per seed on 2 cores)
+  --nees-sd-target X          the CC and CC+GSD cells of table 5.2 take further seeds until the
+                              standard deviation of their mean NEES, were the maps consistent, is
+                              at most X (default 0.2; 0 = no further seeds)
+  --max-seeds M               at most M seeds per cell (default 20)
 )";
 
 // --steering-noise-scale, --speed-noise-scale, --gnss-noise-scale and --pixel-noise-scale scale
@@ -424,13 +428,22 @@ absl::Status RunPassageConsistencyCommand(const std::vector<std::string>& args) 
 
 absl::Status RunReproduceCommand(const std::vector<std::string>& args) {
   absl::StatusOr<Flags> flags =
-      Flags::Parse(args, {{"out", true}, {"passages", true}, {"jobs", true}, {"seed", true}, {"seeds", true}});
+      Flags::Parse(args, {{"out", true},
+                          {"passages", true},
+                          {"jobs", true},
+                          {"seed", true},
+                          {"seeds", true},
+                          {"nees-sd-target", true},
+                          {"max-seeds", true}});
   if (!flags.ok()) return flags.status();
   ReproduceOptions options;
   absl::StatusOr<long long> passages = flags->GetInt("passages", options.passages),
                             jobs = flags->GetInt("jobs", options.jobs), seed = flags->GetInt("seed", 1),
-                            seeds = flags->GetInt("seeds", options.seeds);
-  for (const absl::Status& s : {passages.status(), jobs.status(), seed.status(), seeds.status()}) {
+                            seeds = flags->GetInt("seeds", options.seeds),
+                            max_seeds = flags->GetInt("max-seeds", options.max_seeds);
+  absl::StatusOr<double> sd_target = flags->GetDouble("nees-sd-target", options.nees_sd_target);
+  for (const absl::Status& s :
+       {passages.status(), jobs.status(), seed.status(), seeds.status(), max_seeds.status(), sd_target.status()}) {
     if (!s.ok()) return s;
   }
   options.out_dir = flags->GetString("out", options.out_dir);
@@ -438,6 +451,8 @@ absl::Status RunReproduceCommand(const std::vector<std::string>& args) {
   options.jobs = static_cast<int>(*jobs);
   options.seed = static_cast<uint64_t>(*seed);
   options.seeds = static_cast<int>(*seeds);
+  options.max_seeds = static_cast<int>(*max_seeds);
+  options.nees_sd_target = *sd_target;
   return RunReproduction(options);
 }
 

@@ -1,8 +1,9 @@
 #include "client/mapsim/reproduce.h"
 
 #include <algorithm>
-#include <atomic>
 #include <chrono>
+#include <condition_variable>
+#include <deque>
 #include <cmath>
 #include <filesystem>
 #include <fstream>
@@ -23,6 +24,7 @@ namespace {
 struct Job {
   std::string name;
   ExperimentOptions options;
+  bool finished = false;
   absl::StatusOr<ExperimentResult> result = absl::UnknownError("not run");
 };
 
@@ -54,14 +56,21 @@ Job MakeJob(const ReproduceOptions& o, int landmarks, const std::string& strateg
   return job;
 }
 
+bool SameCell(const ExperimentOptions& a, const ExperimentOptions& b) {
+  return a.scenario.landmarks == b.scenario.landmarks && a.strategy == b.strategy && a.scenario.noise == b.scenario.noise;
+}
+
 // One cell of the report over the seeds: the results of every seed's experiment, or none if any
 // of them failed.
-std::vector<const ExperimentResult*> Results(const std::vector<Job>& jobs, int landmarks, const std::string& strategy,
+std::vector<const ExperimentResult*> Results(const std::deque<Job>& jobs, int landmarks, const std::string& strategy,
                                              NoiseConfig noise) {
+  ExperimentOptions cell;
+  cell.scenario.landmarks = landmarks;
+  cell.strategy = strategy;
+  cell.scenario.noise = noise;
   std::vector<const ExperimentResult*> out;
   for (const Job& j : jobs) {
-    const ExperimentOptions& e = j.options;
-    if (e.scenario.landmarks != landmarks || e.strategy != strategy || e.scenario.noise != noise) continue;
+    if (!SameCell(j.options, cell)) continue;
     if (!j.result.ok()) return {};
     out.push_back(&*j.result);
   }
@@ -85,19 +94,30 @@ std::string Cell(const std::vector<const ExperimentResult*>& rs, double Experime
   return absl::StrCat(cell, " (", absl::StrFormat(format, lo), "-", absl::StrFormat(format, hi), ")");
 }
 
-// The mean NEES over the seeds, with the standard deviation that mean would have for consistent
-// maps: "1.02 ± 0.21".
-std::string NeesCell(const std::vector<const ExperimentResult*>& rs) {
-  if (rs.empty()) return "failed";
+// The standard deviation the mean NEES over `rs` would have if the maps were consistent.
+double NeesSdOfMean(const std::vector<const ExperimentResult*>& rs) {
   const double var = Mean(rs, [](const ExperimentResult& r) {
     return r.nees_per_dof_sd_if_consistent * r.nees_per_dof_sd_if_consistent;
   });
-  const double nees = Mean(rs, [](const ExperimentResult& r) { return r.final_nees_per_dof; });
-  if (!std::isfinite(var)) return absl::StrFormat("%.2f", nees);
-  return absl::StrFormat("%.2f ± %.2f", nees, std::sqrt(var / rs.size()));
+  return std::sqrt(var / rs.size());
 }
 
-std::string Report(const ReproduceOptions& o, const std::vector<Job>& jobs, double wall_s) {
+// The mean NEES over the seeds, with the standard deviation that mean would have for consistent
+// maps and the number of seeds: "1.02 ± 0.21 (5)".
+std::string NeesCell(const std::vector<const ExperimentResult*>& rs) {
+  if (rs.empty()) return "failed";
+  const double nees = Mean(rs, [](const ExperimentResult& r) { return r.final_nees_per_dof; });
+  const double sd = NeesSdOfMean(rs);
+  if (!std::isfinite(sd)) return absl::StrFormat("%.2f (%d)", nees, rs.size());
+  return absl::StrFormat("%.2f ± %.2f (%d)", nees, sd, rs.size());
+}
+
+// Whether consistency is judged on this cell: CC and CC+GSD with white noise.
+bool IsConsistencyCell(const ExperimentOptions& e) {
+  return e.scenario.noise == NoiseConfig::kWhite && (e.strategy == "cc" || e.strategy == "cc-gsd");
+}
+
+std::string Report(const ReproduceOptions& o, const std::deque<Job>& jobs, double wall_s) {
   const std::string seeds = o.seeds == 1 ? absl::StrCat("seed ", o.seed)
                                          : absl::StrCat("seeds ", o.seed, " to ", o.seed + o.seeds - 1);
   std::string md = absl::StrFormat(
@@ -106,10 +126,12 @@ std::string Report(const ReproduceOptions& o, const std::vector<Job>& jobs, doub
       "seeds (with the range where shown). Errors are the mean landmark distance error after the last passage "
       "(m). NEES is per degree of freedom, averaged over the last 10%% of passages (1 = consistent); after the "
       "± is the standard deviation its mean over the seeds would have if the maps were consistent (errors "
-      "common to many landmarks make one run's NEES a draw of few degrees of freedom). Joint NEES uses the "
+      "common to many landmarks make one run's NEES a draw of few degrees of freedom), and in brackets the "
+      "number of seeds: the CC and CC+GSD cells take further seeds until that standard deviation is at most "
+      "%.2f (at most %d seeds), and their errors and times are means over the same seeds. Joint NEES uses the "
       "cross-covariances. Time is the median wall time to apply one passage. Thesis times are Python on a Xeon "
       "Silver 4114.\n\n",
-      o.passages, seeds, wall_s, o.jobs);
+      o.passages, seeds, wall_s, o.jobs, o.nees_sd_target, o.max_seeds);
   md += "## Table 5.2: white noise\n\n"
         "| N | CC (ours) | CC (thesis) | DC (ours) | DC (thesis) | CC+GSD (ours) | CC+GSD (thesis) | NEES CC | NEES DC "
         "| NEES CC+GSD | joint NEES CC / CC+GSD | ms CC | ms DC | ms CC+GSD | thesis s CC / DC / CC+GSD |\n"
@@ -150,44 +172,94 @@ std::string Report(const ReproduceOptions& o, const std::vector<Job>& jobs, doub
   return md;
 }
 
+// The seeds `job`'s cell still needs once all its runs so far are done: as many as bring the
+// standard deviation of its mean NEES (if consistent) to the target, estimated from those runs.
+int MoreSeedsNeeded(const ReproduceOptions& o, const std::deque<Job>& jobs, const Job& job) {
+  if (o.nees_sd_target <= 0.0 || !IsConsistencyCell(job.options)) return 0;
+  std::vector<const ExperimentResult*> done;
+  int runs = 0;
+  for (const Job& j : jobs) {
+    if (!SameCell(j.options, job.options)) continue;
+    ++runs;
+    if (!j.finished) return 0;      // the cell's other runs are not done yet
+    if (!j.result.ok()) return 0;  // a seed failed: the report shows it
+    done.push_back(&*j.result);
+  }
+  const double sd = NeesSdOfMean(done);
+  if (!std::isfinite(sd) || sd <= o.nees_sd_target) return 0;
+  const double needed = std::ceil(runs * (sd / o.nees_sd_target) * (sd / o.nees_sd_target));
+  return std::max(0, static_cast<int>(std::min<double>(o.max_seeds, needed)) - runs);
+}
+
 }  // namespace
 
 absl::Status RunReproduction(const ReproduceOptions& o) {
   if (o.seeds < 1) return absl::InvalidArgumentError(absl::StrCat("seeds: must be >= 1, got ", o.seeds));
-  std::vector<Job> jobs;
+  if (o.max_seeds < o.seeds) {
+    return absl::InvalidArgumentError(absl::StrCat("max_seeds: must be >= seeds (", o.seeds, "), got ", o.max_seeds));
+  }
+  if (!(o.nees_sd_target >= 0.0)) {
+    return absl::InvalidArgumentError(absl::StrCat("nees_sd_target: must be >= 0, got ", o.nees_sd_target));
+  }
+  std::vector<Job> initial;
   for (uint64_t seed = o.seed; seed < o.seed + o.seeds; ++seed) {
     for (int n : {4, 25, 50, 75, 100}) {
       for (const char* strategy : {"cc", "dc", "cc-gsd"}) {
-        jobs.push_back(MakeJob(o, n, strategy, NoiseConfig::kWhite, seed));
+        initial.push_back(MakeJob(o, n, strategy, NoiseConfig::kWhite, seed));
       }
     }
     for (NoiseConfig noise : {NoiseConfig::kGnssAr1, NoiseConfig::kYawBias, NoiseConfig::kGnssAr1YawBias}) {
-      jobs.push_back(MakeJob(o, 50, "cc-gsd", noise, seed));
+      initial.push_back(MakeJob(o, 50, "cc-gsd", noise, seed));
     }
   }
   // Longest first, so that the two workers finish together.
-  std::stable_sort(jobs.begin(), jobs.end(), [](const Job& a, const Job& b) {
+  std::stable_sort(initial.begin(), initial.end(), [](const Job& a, const Job& b) {
     return a.options.scenario.landmarks > b.options.scenario.landmarks;
   });
+  // A deque: jobs added while others run keep every reference valid.
+  std::deque<Job> jobs(initial.begin(), initial.end());
 
   const auto start = std::chrono::steady_clock::now();
-  std::atomic<size_t> next{0};
-  std::atomic<int> done{0};
-  std::mutex log_mutex;
+  std::mutex mu;  // guards jobs (the list and the results), next, running and the log
+  std::condition_variable changed;
+  size_t next = 0;
+  int running = 0;
+  int done = 0;
   auto worker = [&] {
-    for (size_t i = next++; i < jobs.size(); i = next++) {
-      Job& job = jobs[i];
-      job.result = RunExperiment(job.options);
+    std::unique_lock<std::mutex> lock(mu);
+    while (true) {
+      // A running job may still add seeds: wait for it before leaving.
+      changed.wait(lock, [&] { return next < jobs.size() || running == 0; });
+      if (next == jobs.size()) return;
+      Job& job = jobs[next++];
+      ++running;
+      lock.unlock();
+      absl::StatusOr<ExperimentResult> result = RunExperiment(job.options);
       const std::string dir = (std::filesystem::path(o.out_dir) / job.name).string();
-      absl::Status written = job.result.ok() ? WriteExperimentOutputs(job.options, *job.result, dir) : job.result.status();
-      std::lock_guard<std::mutex> lock(log_mutex);
-      const int finished = ++done;
+      absl::Status written = result.ok() ? WriteExperimentOutputs(job.options, *result, dir) : result.status();
+      lock.lock();
+      job.result = std::move(result);
+      job.finished = true;
+      --running;
+      ++done;
       if (!written.ok()) {
-        spdlog::error("[{}/{}] {}: {}", finished, jobs.size(), job.name, written.ToString());
+        spdlog::error("[{}/{}] {}: {}", done, jobs.size(), job.name, written.ToString());
       } else {
-        spdlog::info("[{}/{}] {}: error={:.3f} m nees={:.2f} median_ms={:.1f}", finished, jobs.size(), job.name,
+        spdlog::info("[{}/{}] {}: error={:.3f} m nees={:.2f} median_ms={:.1f}", done, jobs.size(), job.name,
                      job.result->final_mean_dist_err_m, job.result->final_nees_per_dof, job.result->median_passage_ms);
       }
+      const int more = MoreSeedsNeeded(o, jobs, job);
+      if (more > 0) {
+        int runs = 0;
+        for (const Job& j : jobs) runs += SameCell(j.options, job.options) ? 1 : 0;
+        spdlog::info("{} {} N={}: {} more seeds for the NEES", job.options.strategy,
+                     NoiseConfigName(job.options.scenario.noise), job.options.scenario.landmarks, more);
+        for (int k = 0; k < more; ++k) {
+          jobs.push_back(MakeJob(o, job.options.scenario.landmarks, job.options.strategy, job.options.scenario.noise,
+                                 o.seed + runs + k));
+        }
+      }
+      changed.notify_all();
     }
   };
   std::vector<std::thread> threads;

@@ -20,6 +20,7 @@ TEST(Reproduce, RunsEveryExperimentForEachSeedAndReportsTheMeans) {
   options.passages = 2;
   options.seed = 4;
   options.seeds = 2;
+  options.nees_sd_target = 0.0;  // no further seeds
   ASSERT_TRUE(RunReproduction(options).ok());
   for (const char* name : {"n4_cc_white_s4", "n100_cc-gsd_white_s5", "n50_cc-gsd_ar1+yaw_s5"}) {
     EXPECT_TRUE(std::filesystem::exists(std::filesystem::path(options.out_dir) / name / "summary.json")) << name;
@@ -41,6 +42,27 @@ TEST(Reproduce, RunsEveryExperimentForEachSeedAndReportsTheMeans) {
   }
 }
 
+TEST(Reproduce, ConsistencyCellsTakeSeedsUntilTheirMeanNeesIsPreciseEnough) {
+  ReproduceOptions options;
+  options.out_dir = (std::filesystem::path(testing::TempDir()) / "reproduce_more").string();
+  options.passages = 2;
+  options.seeds = 1;
+  options.max_seeds = 3;
+  options.nees_sd_target = 1e-6;  // never reached: every CC and CC+GSD cell takes max_seeds
+  ASSERT_TRUE(RunReproduction(options).ok());
+  const std::filesystem::path out(options.out_dir);
+  for (const char* name : {"n4_cc_white_s3", "n100_cc-gsd_white_s3"}) {
+    EXPECT_TRUE(std::filesystem::exists(out / name / "summary.json")) << name;
+  }
+  for (const char* name : {"n4_cc_white_s4", "n4_dc_white_s2", "n50_cc-gsd_gnss-ar1_s2"}) {
+    EXPECT_FALSE(std::filesystem::exists(out / name)) << name;
+  }
+  const std::string md = ReadAll(out / "reproduction.md");
+  const size_t at = md.find("| 4 | ");
+  ASSERT_NE(at, std::string::npos);
+  EXPECT_NE(md.substr(at, md.find('\n', at) - at).find(" (3) |"), std::string::npos) << md;
+}
+
 TEST(Reproduce, RefusesZeroSeeds) {
   ReproduceOptions options;
   options.out_dir = (std::filesystem::path(testing::TempDir()) / "reproduce_none").string();
@@ -48,6 +70,12 @@ TEST(Reproduce, RefusesZeroSeeds) {
   const absl::Status s = RunReproduction(options);
   EXPECT_EQ(s.code(), absl::StatusCode::kInvalidArgument);
   EXPECT_NE(s.message().find("seeds"), std::string::npos) << s;
+  options.seeds = 3;
+  options.max_seeds = 2;
+  EXPECT_NE(RunReproduction(options).message().find("max_seeds"), std::string::npos);
+  options.max_seeds = 20;
+  options.nees_sd_target = -1.0;
+  EXPECT_NE(RunReproduction(options).message().find("nees_sd_target"), std::string::npos);
 }
 
 }  // namespace
