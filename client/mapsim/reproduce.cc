@@ -2,9 +2,9 @@
 
 #include <algorithm>
 #include <chrono>
+#include <cmath>
 #include <condition_variable>
 #include <deque>
-#include <cmath>
 #include <filesystem>
 #include <fstream>
 #include <functional>
@@ -172,23 +172,24 @@ std::string Report(const ReproduceOptions& o, const std::deque<Job>& jobs, doubl
   return md;
 }
 
-// The seeds `job`'s cell still needs once all its runs so far are done: as many as bring the
+// The further seeds `job`'s cell needs once all its runs so far are done: as many as bring the
 // standard deviation of its mean NEES (if consistent) to the target, estimated from those runs.
-int MoreSeedsNeeded(const ReproduceOptions& o, const std::deque<Job>& jobs, const Job& job) {
-  if (o.nees_sd_target <= 0.0 || !IsConsistencyCell(job.options)) return 0;
+std::vector<uint64_t> FurtherSeeds(const ReproduceOptions& o, const std::deque<Job>& jobs, const Job& job) {
+  if (o.nees_sd_target <= 0.0 || !IsConsistencyCell(job.options)) return {};
   std::vector<const ExperimentResult*> done;
-  int runs = 0;
   for (const Job& j : jobs) {
     if (!SameCell(j.options, job.options)) continue;
-    ++runs;
-    if (!j.finished) return 0;      // the cell's other runs are not done yet
-    if (!j.result.ok()) return 0;  // a seed failed: the report shows it
+    if (!j.finished) return {};      // the cell's other runs are not done yet
+    if (!j.result.ok()) return {};  // a seed failed: the report shows it
     done.push_back(&*j.result);
   }
+  const int runs = static_cast<int>(done.size());  // seeds o.seed .. o.seed + runs - 1
   const double sd = NeesSdOfMean(done);
-  if (!std::isfinite(sd) || sd <= o.nees_sd_target) return 0;
+  if (!std::isfinite(sd) || sd <= o.nees_sd_target) return {};
   const double needed = std::ceil(runs * (sd / o.nees_sd_target) * (sd / o.nees_sd_target));
-  return std::max(0, static_cast<int>(std::min<double>(o.max_seeds, needed)) - runs);
+  std::vector<uint64_t> seeds;
+  for (int k = runs; k < std::min<double>(o.max_seeds, needed); ++k) seeds.push_back(o.seed + k);
+  return seeds;
 }
 
 }  // namespace
@@ -248,16 +249,13 @@ absl::Status RunReproduction(const ReproduceOptions& o) {
         spdlog::info("[{}/{}] {}: error={:.3f} m nees={:.2f} median_ms={:.1f}", done, jobs.size(), job.name,
                      job.result->final_mean_dist_err_m, job.result->final_nees_per_dof, job.result->median_passage_ms);
       }
-      const int more = MoreSeedsNeeded(o, jobs, job);
-      if (more > 0) {
-        int runs = 0;
-        for (const Job& j : jobs) runs += SameCell(j.options, job.options) ? 1 : 0;
-        spdlog::info("{} {} N={}: {} more seeds for the NEES", job.options.strategy,
-                     NoiseConfigName(job.options.scenario.noise), job.options.scenario.landmarks, more);
-        for (int k = 0; k < more; ++k) {
-          jobs.push_back(MakeJob(o, job.options.scenario.landmarks, job.options.strategy, job.options.scenario.noise,
-                                 o.seed + runs + k));
-        }
+      const std::vector<uint64_t> further = FurtherSeeds(o, jobs, job);
+      if (!further.empty()) {
+        spdlog::info("{} N={}: {} further seeds for the NEES", job.options.strategy, job.options.scenario.landmarks,
+                     further.size());
+      }
+      for (uint64_t seed : further) {
+        jobs.push_back(MakeJob(o, job.options.scenario.landmarks, job.options.strategy, job.options.scenario.noise, seed));
       }
       changed.notify_all();
     }

@@ -1,6 +1,6 @@
 // mapbench: measures the map service on loopback with an in-process server and a temporary
 // database (see server/README.md).
-//   mapbench upload [--clients 8] [--passages 2000] [--apply]
+//   mapbench upload [--clients 8] [--passages 2000] [--apply] [--no-worker-yield]
 //       durable-acknowledgement upload throughput of thesis-sized passages (165 s, 25 Hz odometry)
 //   mapbench query [--readers 16] [--seconds 10] [--cross] [--no-writes] [--apply-rate R] [--preload P]
 //                  [--worker-nice N] [--no-worker-yield]
@@ -67,6 +67,7 @@ int Upload(int argc, char** argv) {
 
   TempDir dir;
   MapServerOptions server_options = TestServerOptions(dir.File("map.db"), apply);
+  if (BoolFlag(argc, argv, "--no-worker-yield")) server_options.worker.yield = false;
   server_options.max_queue = 0;
   auto server = MapServer::Start(server_options);
   if (!server.ok()) return 1;
@@ -206,7 +207,7 @@ int main(int argc, char** argv) {
   crowdmap::TuneProcessForServing();  // as mapd does
   if (argc >= 2 && std::strcmp(argv[1], "upload") == 0) return crowdmap::Upload(argc, argv);
   if (argc >= 2 && std::strcmp(argv[1], "query") == 0) return crowdmap::Query(argc, argv);
-  std::fprintf(stderr, "usage: mapbench upload [--clients 8] [--passages 2000] [--apply]\n"
+  std::fprintf(stderr, "usage: mapbench upload [--clients 8] [--passages 2000] [--apply] [--no-worker-yield]\n"
                        "       mapbench query [--readers 16] [--seconds 10] [--cross] [--no-writes] [--apply-rate R]"
                        " [--preload P]\n"
                        "                      [--worker-nice N] [--no-worker-yield]\n");
