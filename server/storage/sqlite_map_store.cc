@@ -121,9 +121,13 @@ absl::Status SqliteMapStore::WriteLandmark(SqliteConnection* db, const Landmark&
   }
   const TileId tile = TileContaining(l.position);
   auto stmt = db->Prepare(
-      "INSERT OR REPLACE INTO landmarks (id, lat_deg, lon_deg, cov_ee, cov_en, cov_ne, cov_nn, version, "
+      "INSERT INTO landmarks (id, lat_deg, lon_deg, cov_ee, cov_en, cov_ne, cov_nn, version, "
       "passages_seen, last_seen_unix_ms, state, tile_x, tile_y) "
-      "VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13)");
+      "VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13) ON CONFLICT (id) DO UPDATE SET "
+      "lat_deg = excluded.lat_deg, lon_deg = excluded.lon_deg, cov_ee = excluded.cov_ee, cov_en = excluded.cov_en, "
+      "cov_ne = excluded.cov_ne, cov_nn = excluded.cov_nn, version = excluded.version, "
+      "passages_seen = excluded.passages_seen, last_seen_unix_ms = excluded.last_seen_unix_ms, "
+      "state = excluded.state, tile_x = excluded.tile_x, tile_y = excluded.tile_y");
   if (!stmt.ok()) return stmt.status();
   stmt->Bind(1, static_cast<int64_t>(l.id))
       .Bind(2, l.position.lat_deg)
@@ -332,20 +336,23 @@ absl::StatusOr<MapStats> SqliteMapStore::GetStats() {
   auto version = ReadMapVersion(db->get());
   if (!version.ok()) return version.status();
   stats.map_version = *version;
-  auto counts = (*db)->Prepare(
-      "SELECT (SELECT COUNT(*) FROM landmarks), (SELECT COUNT(*) FROM cross_covariances)");
+  // Kept by the schema's triggers (migration 2), so no table is scanned.
+  auto counts = (*db)->Prepare("SELECT name, n FROM row_counts");
   if (!counts.ok()) return counts.status();
-  if (auto row = counts->Step(); !row.ok()) return row.status();
-  stats.landmark_count = counts->Int(0);
-  stats.cross_count = counts->Int(1);
-  auto states = (*db)->Prepare("SELECT state, COUNT(*) FROM passages GROUP BY state");
-  if (!states.ok()) return states.status();
   while (true) {
-    auto row = states->Step();
+    auto row = counts->Step();
     if (!row.ok()) return row.status();
     if (!*row) break;
-    const int64_t state = states->Int(0);
-    if (state >= 1 && state <= 5) stats.passages_by_state[state] = states->Int(1);
+    const std::string name = counts->Text(0);
+    const int64_t n = counts->Int(1);
+    if (name == "landmarks") {
+      stats.landmark_count = n;
+    } else if (name == "cross_covariances") {
+      stats.cross_count = n;
+    }
+    for (int state = 1; state <= 5; ++state) {
+      if (name == absl::StrCat("passages_", state)) stats.passages_by_state[state] = n;
+    }
   }
   return stats;
 }

@@ -262,6 +262,94 @@ TEST(SqliteMapStore, CommitWritesMapVersionAndResultTogether) {
   EXPECT_EQ(stats->queue_depth(), 0);
 }
 
+// GetStats reads counts kept by triggers; they must equal the tables' own counts.
+void ExpectStatsEqualTableCounts(MapStoreInterface* store, const std::string& path) {
+  auto stats = store->GetStats();
+  ASSERT_TRUE(stats.ok()) << stats.status();
+  EXPECT_EQ(stats->landmark_count, SqlInt(path, "SELECT COUNT(*) FROM landmarks"));
+  EXPECT_EQ(stats->cross_count, SqlInt(path, "SELECT COUNT(*) FROM cross_covariances"));
+  for (int state = 1; state <= 5; ++state) {
+    EXPECT_EQ(stats->passages_by_state[state],
+              SqlInt(path, "SELECT COUNT(*) FROM passages WHERE state = " + std::to_string(state)))
+        << "state " << state;
+  }
+}
+
+TEST(SqliteMapStore, StatsFollowEveryWriteWithoutScanningTheTables) {
+  TempDir dir;
+  const std::string path = dir.File("map.db");
+  auto store = OpenStore(path);
+  ASSERT_TRUE(store->EnqueuePassages({MakeUpload("v", "1"), MakeUpload("v", "2"), MakeUpload("v", "3"),
+                                      MakeUpload("v", "4"), MakeUpload("v", "1")},
+                                     0)
+                  .ok());
+  ExpectStatsEqualTableCounts(store.get(), path);
+  Eigen::Matrix2d block;
+  block << 0.01, 0.02, 0.03, 0.04;
+  // First commit: three new landmarks and their three cross blocks.
+  auto first = store->ClaimNextPassage();
+  ASSERT_TRUE(first.ok() && first->has_value());
+  MapDelta delta;
+  delta.base_version = 0;
+  delta.version = 1;
+  for (LandmarkId id : {1, 2, 3}) delta.landmarks[id] = MakeLandmark(id, 48.7 + 1e-4 * id, 2.17, 1);
+  delta.cross[{1, 2}] = delta.cross[{1, 3}] = delta.cross[{2, 3}] = block;
+  ASSERT_TRUE(store->CommitPassageApplied((*first)->record.id, delta, PassageResult()).ok());
+  ExpectStatsEqualTableCounts(store.get(), path);
+  // Second commit rewrites them all and adds one landmark with one block.
+  auto second = store->ClaimNextPassage();
+  ASSERT_TRUE(second.ok() && second->has_value());
+  delta.base_version = 1;
+  delta.version = 2;
+  for (LandmarkId id : {1, 2, 3, 4}) delta.landmarks[id] = MakeLandmark(id, 48.7 + 2e-4 * id, 2.17, 2);
+  delta.cross[{3, 4}] = block;
+  ASSERT_TRUE(store->CommitPassageApplied((*second)->record.id, delta, PassageResult()).ok());
+  ExpectStatsEqualTableCounts(store.get(), path);
+  EXPECT_EQ(store->GetStats()->landmark_count, 4);
+  EXPECT_EQ(store->GetStats()->cross_count, 4);
+  // A rejection, a claim left processing and returned to the queue.
+  auto third = store->ClaimNextPassage();
+  ASSERT_TRUE(third.ok() && third->has_value());
+  ASSERT_TRUE(store->FinishPassageWithoutChange((*third)->record.id, PassageState::kRejected, "bad").ok());
+  ASSERT_TRUE(store->ClaimNextPassage().ok());
+  ExpectStatsEqualTableCounts(store.get(), path);
+  ASSERT_TRUE(store->RequeueProcessingPassages().ok());
+  ExpectStatsEqualTableCounts(store.get(), path);
+  EXPECT_EQ(store->GetStats()->queue_depth(), 1);
+}
+
+TEST(SqliteMapStore, MigrationCountsTheRowsOfAnExistingDatabase) {
+  TempDir dir;
+  const std::string path = dir.File("map.db");
+  {
+    auto store = OpenStore(path);
+    ASSERT_TRUE(store->EnqueuePassages({MakeUpload("v", "1"), MakeUpload("v", "2")}, 0).ok());
+    const int64_t id = EnqueueAndClaim(store.get(), "3");
+    MapDelta delta;
+    delta.version = 1;
+    delta.landmarks[5] = MakeLandmark(5, 48.7, 2.17, 1);
+    delta.landmarks[6] = MakeLandmark(6, 48.7001, 2.17, 1);
+    delta.cross[{5, 6}] = Eigen::Matrix2d::Identity() * 0.01;
+    ASSERT_TRUE(store->CommitPassageApplied(id, delta, PassageResult()).ok());
+  }
+  // Back to schema 1, as a database written before the counts were kept.
+  sqlite3* db = nullptr;
+  ASSERT_EQ(sqlite3_open(path.c_str(), &db), SQLITE_OK);
+  for (const char* trigger : {"count_landmark_insert", "count_landmark_delete", "count_cross_insert",
+                              "count_cross_delete", "count_passage_insert", "count_passage_state",
+                              "count_passage_delete"}) {
+    ASSERT_EQ(sqlite3_exec(db, (std::string("DROP TRIGGER ") + trigger).c_str(), nullptr, nullptr, nullptr), SQLITE_OK);
+  }
+  ASSERT_EQ(sqlite3_exec(db, "DROP TABLE row_counts; PRAGMA user_version = 1", nullptr, nullptr, nullptr), SQLITE_OK);
+  sqlite3_close(db);
+
+  auto store = OpenStore(path);
+  EXPECT_EQ(SqlInt(path, "PRAGMA user_version"), 2);
+  ExpectStatsEqualTableCounts(store.get(), path);
+  EXPECT_EQ(store->GetStats()->landmark_count, 2);
+  EXPECT_EQ(store->GetStats()->passages_by_state[static_cast<int>(PassageState::kQueued)], 2);
+}
+
 TEST(SqliteMapStore, CommitAgainstStaleVersionChangesNothing) {
   TempDir dir;
   const std::string path = dir.File("map.db");

@@ -89,6 +89,40 @@ const std::vector<const char*>& Migrations() {
       ) STRICT, WITHOUT ROWID;
       CREATE INDEX cross_by_b ON cross_covariances (b, a);
       )sql",
+      // 1 -> 2: row counts kept by triggers in the writing transaction, so that the map's
+      // statistics (GetMapInfo) do not scan tables that grow with the map and its history.
+      // Landmarks and cross-covariances are written by upsert (an INSERT OR REPLACE would not fire
+      // the delete trigger) and never deleted today; the delete triggers keep the counts right if
+      // they ever are.
+      R"sql(
+      CREATE TABLE row_counts (
+        name TEXT PRIMARY KEY,
+        n INTEGER NOT NULL
+      ) STRICT, WITHOUT ROWID;
+      INSERT INTO row_counts (name, n)
+        SELECT 'landmarks', COUNT(*) FROM landmarks
+        UNION ALL SELECT 'cross_covariances', COUNT(*) FROM cross_covariances
+        UNION ALL SELECT 'passages_' || s.state, (SELECT COUNT(*) FROM passages WHERE passages.state = s.state)
+          FROM (SELECT 0 AS state UNION ALL SELECT 1 UNION ALL SELECT 2 UNION ALL SELECT 3 UNION ALL SELECT 4
+                UNION ALL SELECT 5) AS s;
+      CREATE TRIGGER count_landmark_insert AFTER INSERT ON landmarks
+        BEGIN UPDATE row_counts SET n = n + 1 WHERE name = 'landmarks'; END;
+      CREATE TRIGGER count_landmark_delete AFTER DELETE ON landmarks
+        BEGIN UPDATE row_counts SET n = n - 1 WHERE name = 'landmarks'; END;
+      CREATE TRIGGER count_cross_insert AFTER INSERT ON cross_covariances
+        BEGIN UPDATE row_counts SET n = n + 1 WHERE name = 'cross_covariances'; END;
+      CREATE TRIGGER count_cross_delete AFTER DELETE ON cross_covariances
+        BEGIN UPDATE row_counts SET n = n - 1 WHERE name = 'cross_covariances'; END;
+      CREATE TRIGGER count_passage_insert AFTER INSERT ON passages
+        BEGIN UPDATE row_counts SET n = n + 1 WHERE name = 'passages_' || NEW.state; END;
+      CREATE TRIGGER count_passage_state AFTER UPDATE OF state ON passages WHEN OLD.state <> NEW.state
+        BEGIN
+          UPDATE row_counts SET n = n - 1 WHERE name = 'passages_' || OLD.state;
+          UPDATE row_counts SET n = n + 1 WHERE name = 'passages_' || NEW.state;
+        END;
+      CREATE TRIGGER count_passage_delete AFTER DELETE ON passages
+        BEGIN UPDATE row_counts SET n = n - 1 WHERE name = 'passages_' || OLD.state; END;
+      )sql",
   };
   return kMigrations;
 }
