@@ -189,12 +189,12 @@ absl::Status WriteExperimentOutputs(const ExperimentOptions& options, const Expe
   if (!landmarks) return absl::InternalError(absl::StrCat("cannot write ", dir, "/landmarks.csv"));
   std::ofstream cross(std::filesystem::path(dir) / "cross_covariances.csv");
   cross << "landmark_a,landmark_b,cov_ee_m2,cov_en_m2,cov_ne_m2,cov_nn_m2\n";
-  const std::vector<LandmarkId> ids = result.final_map.LandmarkIds();
-  for (size_t i = 0; i < ids.size(); ++i) {
-    for (size_t j = i + 1; j < ids.size(); ++j) {
-      Eigen::Matrix2d c;
-      if (!result.final_map.CrossCovariance(ids[i], ids[j], &c)) continue;
-      cross << absl::StrFormat("%d,%d,%.9g,%.9g,%.9g,%.9g\n", ids[i], ids[j], c(0, 0), c(0, 1), c(1, 0), c(1, 1));
+  for (size_t i = 0; i < stacked.ids.size(); ++i) {
+    for (size_t j = i + 1; j < stacked.ids.size(); ++j) {
+      const Eigen::Matrix2d c = stacked.cov.block<2, 2>(2 * i, 2 * j);
+      if (c.isZero(0.0)) continue;
+      cross << absl::StrFormat("%d,%d,%.9g,%.9g,%.9g,%.9g\n", stacked.ids[i], stacked.ids[j], c(0, 0), c(0, 1), c(1, 0),
+                               c(1, 1));
     }
   }
   if (!cross) return absl::InternalError(absl::StrCat("cannot write ", dir, "/cross_covariances.csv"));

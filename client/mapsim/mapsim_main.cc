@@ -47,7 +47,7 @@ experiment flags:
   --out DIR                   output folder (default out/experiment): passages.csv, summary.json, errors.svg
   --max-subgraph-dim D        cc-gsd state-dimension bound per subgraph (default 500)
   --detections-per-landmark K last K >= 2 detections per landmark and passage, 0 = all (default 5)
-  --correlation-radius-m R    keep cross-covariances only within R metres (default: dense)
+  --window-hops H             re-estimate the map within H links of each graph (0 = whole map, exact)
   --warmup-passages B         the map's first B passages are solved jointly, re-solved with
                               each one (default 8; 0 = off)
   --relinearize-until-passages R  after the warm-up, re-solve all the map's passages jointly each
@@ -152,7 +152,7 @@ absl::Status RunExperimentCommand(const std::vector<std::string>& args) {
   absl::StatusOr<Flags> flags = Flags::Parse(args, {{"landmarks", true}, {"passages", true}, {"strategy", true},
                                                     {"noise", true}, {"seed", true}, {"out", true},
                                                     {"max-subgraph-dim", true}, {"detections-per-landmark", true},
-                                                    {"correlation-radius-m", true}, {"warmup-passages", true},
+                                                    {"window-hops", true}, {"warmup-passages", true},
                                                     {"relinearize-until-passages", true}, {"max-chi2-per-dof", true},
                                                     {"inflation-test-sigmas", true}, {"edge-margin-sigmas", true},
                                                     {"shuffle-window", true}, {"shuffle-from", true}, {"shuffle-seed", true},
@@ -169,13 +169,13 @@ absl::Status RunExperimentCommand(const std::vector<std::string>& args) {
                             relinearize =
                                 flags->GetInt("relinearize-until-passages", options.update.relinearize_until_passages),
                             shuffle_window = flags->GetInt("shuffle-window", 0),
-                            shuffle_from = flags->GetInt("shuffle-from", 0), shuffle_seed = flags->GetInt("shuffle-seed", 1);
-  absl::StatusOr<double> radius = flags->GetDouble("correlation-radius-m", options.update.correlation_radius_m),
-                         chi2 = flags->GetDouble("max-chi2-per-dof", options.update.max_chi2_per_dof),
+                            shuffle_from = flags->GetInt("shuffle-from", 0), shuffle_seed = flags->GetInt("shuffle-seed", 1),
+                            window_hops = flags->GetInt("window-hops", options.update.window_hops);
+  absl::StatusOr<double> chi2 = flags->GetDouble("max-chi2-per-dof", options.update.max_chi2_per_dof),
                          inflation = flags->GetDouble("inflation-test-sigmas", options.update.inflation_test_sigmas),
                          edge_margin = flags->GetDouble("edge-margin-sigmas", options.update.edge_margin_sigmas);
   for (const absl::Status& s : {landmarks.status(), passages.status(), seed.status(), dim.status(),
-                                per_landmark.status(), warmup.status(), relinearize.status(), radius.status(),
+                                per_landmark.status(), warmup.status(), relinearize.status(), window_hops.status(),
                                 chi2.status(), inflation.status(), edge_margin.status(), shuffle_window.status(),
                                 shuffle_from.status(), shuffle_seed.status()}) {
     if (!s.ok()) return s;
@@ -192,7 +192,7 @@ absl::Status RunExperimentCommand(const std::vector<std::string>& args) {
   options.update.detections_per_landmark = static_cast<int>(*per_landmark);
   options.update.warmup_passages = static_cast<int>(*warmup);
   options.update.relinearize_until_passages = static_cast<int>(*relinearize);
-  options.update.correlation_radius_m = *radius;
+  options.update.window_hops = static_cast<int>(*window_hops);
   options.update.max_chi2_per_dof = *chi2;
   options.update.inflation_test_sigmas = *inflation;
   options.update.edge_margin_sigmas = *edge_margin;

@@ -7,44 +7,53 @@
 
 namespace crowdmap {
 
-SelectedInverse::SelectedInverse(const Eigen::SimplicialLLT<Eigen::SparseMatrix<double>>& factor)
-    : perm_(factor.permutationP().indices()), l_(factor.matrixL()) {
-  l_.makeCompressed();
-  const int n = static_cast<int>(l_.cols());
-  const int* outer = l_.outerIndexPtr();
-  const int* inner = l_.innerIndexPtr();
-  const double* lv = l_.valuePtr();
-  values_.assign(l_.nonZeros(), 0.0);
-  // Entry (row, col), row >= col, in column col (row indices sorted, the diagonal first).
-  auto at = [&](int row, int col) -> double {
-    const int* it = std::lower_bound(inner + outer[col], inner + outer[col + 1], row);
-    return values_[it - inner];
-  };
-  // L^T Sigma = L^-1, columns from the last: for i >= j on the pattern of column j,
-  //   Sigma_ij = (delta_ij / L_jj - sum_{k > j} L_kj Sigma_ki) / L_jj,
-  // where every Sigma_ki needed lies on the pattern (a property of Cholesky fill).
-  for (int j = n - 1; j >= 0; --j) {
-    const int first = outer[j], last = outer[j + 1];
-    const double ljj = lv[first];
-    for (int q = last - 1; q >= first; --q) {
-      const int i = inner[q];
-      double s = i == j ? 1.0 / ljj : 0.0;
-      for (int r = first + 1; r < last; ++r) {
-        const int k = inner[r];
-        s -= lv[r] * (k >= i ? at(k, i) : at(i, k));
-      }
-      values_[q] = s / ljj;
+absl::StatusOr<LandmarkInformation> EliminateToLandmarks(ceres::Problem* problem,
+                                                         const std::vector<ceres::ResidualBlockId>& residuals,
+                                                         const std::vector<double*>& landmarks) {
+  std::vector<double*> ordered, blocks;
+  std::unordered_map<const double*, bool> seen;
+  for (double* block : landmarks) seen[block] = true;
+  for (ceres::ResidualBlockId id : residuals) {
+    problem->GetParameterBlocksForResidualBlock(id, &blocks);
+    for (double* block : blocks) {
+      if (seen.emplace(block, true).second) ordered.push_back(block);
     }
   }
-}
+  int nx = 0;
+  for (double* block : ordered) nx += problem->ParameterBlockSize(block);
+  const int nl = 2 * static_cast<int>(landmarks.size());
+  ordered.insert(ordered.end(), landmarks.begin(), landmarks.end());
 
-double SelectedInverse::operator()(int i, int j) const {
-  int a = perm_[i], b = perm_[j];
-  if (a < b) std::swap(a, b);
-  const int* begin = l_.innerIndexPtr() + l_.outerIndexPtr()[b];
-  const int* end = l_.innerIndexPtr() + l_.outerIndexPtr()[b + 1];
-  const int* it = std::lower_bound(begin, end, a);
-  return it != end && *it == a ? values_[it - l_.innerIndexPtr()] : 0.0;
+  ceres::Problem::EvaluateOptions evaluate;
+  evaluate.parameter_blocks = ordered;
+  evaluate.residual_blocks = residuals;
+  evaluate.num_threads = 1;
+  std::vector<double> r;
+  ceres::CRSMatrix crs;
+  if (!problem->Evaluate(evaluate, nullptr, &r, nullptr, &crs)) {
+    return absl::InternalError("landmark information: the Jacobian could not be evaluated");
+  }
+  const Eigen::Map<const Eigen::SparseMatrix<double, Eigen::RowMajor>> jacobian(
+      crs.num_rows, crs.num_cols, static_cast<int>(crs.values.size()), crs.rows.data(), crs.cols.data(),
+      crs.values.data());
+  const Eigen::SparseMatrix<double> jt = jacobian.transpose();
+  const Eigen::SparseMatrix<double> h = jt * jacobian;
+  const Eigen::VectorXd g = jt * Eigen::Map<const Eigen::VectorXd>(r.data(), static_cast<int>(r.size()));
+  LandmarkInformation out;
+  out.information = Eigen::MatrixXd(h.bottomRightCorner(nl, nl));
+  out.gradient = g.tail(nl);
+  if (nx > 0) {
+    Eigen::SimplicialLLT<Eigen::SparseMatrix<double>> a_llt(h.topLeftCorner(nx, nx));
+    if (a_llt.info() != Eigen::Success) {
+      return absl::InternalError("landmark information: the eliminated blocks are rank deficient");
+    }
+    const Eigen::MatrixXd b = Eigen::MatrixXd(h.topRightCorner(nx, nl));
+    const Eigen::MatrixXd w = a_llt.solve(b);
+    out.information -= b.transpose() * w;
+    out.gradient -= w.transpose() * g.head(nx);
+  }
+  out.information = 0.5 * (out.information + out.information.transpose());
+  return out;
 }
 
 absl::StatusOr<GraphLinearization> GraphLinearization::Compute(ceres::Problem* problem,

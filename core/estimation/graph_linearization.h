@@ -12,22 +12,22 @@
 #include <ceres/ceres.h>
 
 #include "absl/status/statusor.h"
+#include "core/map/selected_inverse.h"
 
 namespace crowdmap {
 
-// Entries of A^-1 on the pattern of the Cholesky factor of a sparse symmetric positive definite A
-// (Takahashi's recursion): every (i, j) where A is non-zero, and its fill.
-class SelectedInverse {
- public:
-  explicit SelectedInverse(const Eigen::SimplicialLLT<Eigen::SparseMatrix<double>>& factor);
-  // (A^-1)_ij; 0 off the factor's pattern (where the entry is not computed, not zero).
-  double operator()(int i, int j) const;
-
- private:
-  Eigen::VectorXi perm_;           // original index -> factor index
-  Eigen::SparseMatrix<double> l_;  // lower Cholesky factor of the permuted matrix
-  std::vector<double> values_;     // inverse entries on l_'s pattern
+// What some residual blocks say about some landmarks at the problem's current point once the
+// other parameter blocks they involve are eliminated: their cost is, to second order,
+// const + gradient^T d + 1/2 d^T information d in the landmarks' displacement d (2 per landmark,
+// in the order given). Landmarks the blocks do not involve get zero rows.
+struct LandmarkInformation {
+  Eigen::MatrixXd information;
+  Eigen::VectorXd gradient;
 };
+
+absl::StatusOr<LandmarkInformation> EliminateToLandmarks(ceres::Problem* problem,
+                                                         const std::vector<ceres::ResidualBlockId>& residuals,
+                                                         const std::vector<double*>& landmarks);
 
 struct BiasCorrectionStats {
   double max_landmark_shift_m = 0.0;

@@ -2,7 +2,7 @@
 #define CROWDMAP_CORE_ESTIMATION_LANDMARK_UPDATE_H_
 
 #include <functional>
-#include <limits>
+#include <string>
 #include <vector>
 
 #include <Eigen/Cholesky>
@@ -12,12 +12,15 @@
 #include "absl/status/statusor.h"
 #include "core/geo/local_frame.h"
 #include "core/map/map_state.h"
+#include "core/map/map_window.h"
 
 namespace crowdmap {
 
 struct LandmarkUpdateOptions {
-  bool correlated = true;  // CC (joint prior, cross-covariances kept) or DC (2x2 priors only)
-  double correlation_radius_m = std::numeric_limits<double>::infinity();
+  bool correlated = true;  // CC (joint prior, one joint factor) or DC (2x2 priors, one factor per landmark)
+  MapWindowOptions window;
+  std::string vehicle_id;  // provenance of the factor
+  std::string passage_id;
 };
 
 struct LandmarkUpdateStats {
@@ -30,15 +33,16 @@ struct LandmarkUpdateStats {
 // The map side of one (sub)graph solve (DESIGN section 5), for the graph's landmarks S = O u N
 // (O: already in the map, N: new):
 //   1. AddMapPrior: the CC prior on O (mean mu_O, information inverse of the MARGINAL Sigma_OO,
-//      checked positive definite) or one DC prior per landmark.
+//      recovered from the map's information) or one DC prior per landmark.
 //   2. the caller solves the problem;
-//   3. Commit: Sigma'_SS from ceres::Covariance, then the Gaussian conditioning of the map
-//      landmarks U outside the graph correlated with O, with A = Sigma_UO Sigma_OO^-1:
-//        mu'_U = mu_U + A (mu'_O - mu_O),  Sigma'_US = A Sigma'_OS,
-//        Sigma'_UU = Sigma_UU + A (Sigma'_OO - Sigma_OO) A^T,
-//      all written to the map at a new version. Exact for linear-Gaussian problems.
-// Everything is computed in the graph's local frame; covariances enter and leave it through
-// the Jacobian of the East/North-at-landmark to local-frame map.
+//   3. Commit: with the graph's information about S at the solution (the inverse of its marginal
+//      covariance) Lambda' and its bias-corrected estimate x', the graph's own factor is what it
+//      adds to the prior P:
+//        information Lambda' - P,   information vector Lambda' x' - P mu_O,
+//      the information of its measurements once its poses are eliminated. It is added to the map
+//      (in the landmarks' anchor offsets) and the map is re-solved around S, which moves the
+//      correlated landmarks outside the graph as exact Gaussian conditioning would. DC keeps one
+//      factor per landmark from the 2x2 marginals, so its map holds no correlations.
 class LandmarkUpdate {
  public:
   // `map` is read for the prior and receives the changes.
@@ -51,23 +55,17 @@ class LandmarkUpdate {
   double* block(int i) { return positions_[i].data(); }
 
   // Adds the map prior for the landmarks already in the map. FailedPrecondition when the map's
-  // covariance sub-block is not positive definite.
-  absl::Status AddMapPrior(bool correlated, ceres::Problem* problem);
+  // information around them is not positive definite.
+  absl::Status AddMapPrior(bool correlated, const MapWindowOptions& window, ceres::Problem* problem);
 
   // After a usable solve: with the graph landmarks' estimate in their blocks and `cov_ss` their
-  // marginal covariance (GraphLinearization), conditions the correlated landmarks outside the
-  // graph and writes every change at a new map version. `touch` is called on each record of the
+  // marginal covariance (GraphLinearization), adds the graph's factor to the map, re-solves it
+  // and writes every change at a new map version. `touch` is called on each record of the
   // graph's landmarks before it is written (counts).
   absl::StatusOr<LandmarkUpdateStats> Commit(const Eigen::MatrixXd& cov_ss, const LandmarkUpdateOptions& options,
                                              const std::function<void(Landmark*)>& touch);
 
  private:
-  // Covariance of landmarks a and b in the local frame (zero when not stored).
-  Eigen::Matrix2d LocalCross(LandmarkId a, const Eigen::Matrix2d& ra, LandmarkId b, const Eigen::Matrix2d& rb) const;
-  // Writes one landmark record at `version` from its local-frame mean and covariance.
-  void WriteLandmark(Landmark record, const Eigen::Vector2d& mean, const Eigen::Matrix2d& cov, int64_t version,
-                     Eigen::Matrix2d* from_local);
-
   const LocalFrame& frame_;
   MapOverlay* map_;
   std::vector<LandmarkId> ids_;
@@ -75,13 +73,19 @@ class LandmarkUpdate {
   std::vector<Eigen::Vector2d> positions_;
   std::vector<int> prior_index_;    // indices (into ids_) of the map landmarks O
   Eigen::VectorXd prior_mean_;      // mu_O, local frame
-  Eigen::MatrixXd prior_cov_;       // Sigma_OO, local frame
-  Eigen::LLT<Eigen::MatrixXd> prior_llt_;
-  std::vector<Eigen::Matrix2d> to_local_;  // East/North at landmark -> local, for O
+  Eigen::MatrixXd prior_information_;  // P on O, local frame
 };
 
-// Squared-distance check against the correlation radius.
-bool WithinCorrelationRadius(const Eigen::Vector2d& a, const Eigen::Vector2d& b, double radius_m);
+// Adds `factor` (whose information is over the graph's local-frame positions `local`, stacked as
+// the factor's landmarks) to the map in the landmarks' anchor offsets, creating the records of new
+// landmarks at their position in `local`. Exposed for the joint solve.
+void AddLocalFactor(const LocalFrame& frame, const Eigen::VectorXd& local, MapFactor factor, MapOverlay* map);
+
+// Re-solves the map around `seeds` after factors changed, writing the changed records at
+// `version`; `touch` is called on the seeds' records. Returns how many landmarks other than the
+// seeds were written.
+absl::StatusOr<int> ResolveAround(const std::vector<LandmarkId>& seeds, const MapWindowOptions& window, int64_t version,
+                                  const std::function<void(Landmark*)>& touch, MapOverlay* map);
 
 }  // namespace crowdmap
 

@@ -6,6 +6,7 @@
 #include <map>
 #include <memory>
 #include <optional>
+#include <set>
 #include <unordered_set>
 
 #include <ceres/ceres.h>
@@ -173,11 +174,9 @@ int InitializeLandmarks(const std::vector<Pose2>& poses, const NodeRange& range,
 
 // After a usable solve: the landmarks' marginal covariance at the solution and (if enabled) the
 // second-order bias correction of the solution, with their times added to `summary`.
-absl::StatusOr<GraphLinearization> LinearizeSolution(ceres::Problem* problem, LandmarkUpdate* update,
+absl::StatusOr<GraphLinearization> LinearizeSolution(ceres::Problem* problem, const std::vector<double*>& landmark_blocks,
                                                      const MapUpdateOptions& options, PassageUpdateSummary* summary) {
   const auto covariance_start = std::chrono::steady_clock::now();
-  std::vector<double*> landmark_blocks;
-  for (int i = 0; i < update->size(); ++i) landmark_blocks.push_back(update->block(i));
   absl::StatusOr<GraphLinearization> linearization = GraphLinearization::Compute(problem, landmark_blocks);
   if (!linearization.ok()) return linearization.status();
   summary->covariance_ms += MillisecondsSince(covariance_start);
@@ -224,7 +223,12 @@ absl::Status UpdateFromSubgraph(const Passage& passage, const PassageGraph& grap
     }
   }
   const bool correlated = options.strategy != UpdateStrategy::kDecorrelated;
-  if (absl::Status s = update.AddMapPrior(correlated, &problem); !s.ok()) return s;
+  LandmarkUpdateOptions update_options;
+  update_options.correlated = correlated;
+  update_options.window.hops = options.window_hops;
+  update_options.vehicle_id = passage.vehicle_id;
+  update_options.passage_id = passage.passage_id;
+  if (absl::Status s = update.AddMapPrior(correlated, update_options.window, &problem); !s.ok()) return s;
 
   ceres::Solver::Summary solver_summary;
   Solve(options, SolverOptions(options.max_solver_iterations), &problem, &solver_summary);
@@ -255,7 +259,9 @@ absl::Status UpdateFromSubgraph(const Passage& passage, const PassageGraph& grap
         chi2, dof, options.max_chi2_per_dof));
   }
 
-  absl::StatusOr<GraphLinearization> linearization = LinearizeSolution(&problem, &update, options, summary);
+  std::vector<double*> landmark_blocks;
+  for (int i = 0; i < update.size(); ++i) landmark_blocks.push_back(update.block(i));
+  absl::StatusOr<GraphLinearization> linearization = LinearizeSolution(&problem, landmark_blocks, options, summary);
   if (!linearization.ok()) return linearization.status();
 
   const int64_t seen_ms = passage.start_time_unix_ms;
@@ -264,9 +270,6 @@ absl::Status UpdateFromSubgraph(const Passage& passage, const PassageGraph& grap
     record->passages_seen += 1;
     record->last_seen_unix_ms = std::max(record->last_seen_unix_ms, seen_ms);
   };
-  LandmarkUpdateOptions update_options;
-  update_options.correlated = correlated;
-  update_options.correlation_radius_m = options.correlation_radius_m;
   absl::StatusOr<LandmarkUpdateStats> stats = update.Commit(linearization->landmark_covariance(), update_options, touch);
   if (!stats.ok()) return stats.status();
   Yield(options);
@@ -312,9 +315,8 @@ absl::Status MapUpdateOptions::Validate() const {
         "detections_per_landmark: must be 0 (all) or >= 2 (a new landmark needs two bearings), got ",
         detections_per_landmark));
   }
-  if (!(correlation_radius_m > 0.0)) {
-    return absl::InvalidArgumentError(
-        absl::StrCat("correlation_radius_m: must be > 0 (inf = dense), got ", correlation_radius_m));
+  if (window_hops < 0) {
+    return absl::InvalidArgumentError(absl::StrCat("window_hops: must be >= 0 (0 = whole map), got ", window_hops));
   }
   if (!(inflation_test_sigmas >= 0.0)) {
     return absl::InvalidArgumentError(
@@ -485,13 +487,13 @@ absl::StatusOr<PassageUpdate> SolveJointly(const std::vector<Passage>& passages,
   if (seen_by.empty()) return absl::InvalidArgumentError("detections: no landmark of the passages could be estimated");
   std::vector<LandmarkId> ids;
   for (const auto& [id, n] : seen_by) ids.push_back(id);
-  const MapState empty;
-  MapOverlay fresh(empty);
-  LandmarkUpdate update(frame, &fresh, ids);
+  std::map<LandmarkId, Eigen::Vector2d> position;  // the landmarks' parameter blocks
+  for (LandmarkId id : ids) position[id] = initial[id];
   std::map<LandmarkId, double*> block_of;
-  for (int i = 0; i < update.size(); ++i) {
-    Eigen::Map<Eigen::Vector2d>(update.block(i)) = initial[update.id(i)];
-    block_of[update.id(i)] = update.block(i);
+  std::vector<double*> landmark_blocks;
+  for (auto& [id, x] : position) {
+    block_of[id] = x.data();
+    landmark_blocks.push_back(x.data());
   }
 
   // One problem; each passage's measurements carry their own weight (consistency test below).
@@ -570,28 +572,96 @@ absl::StatusOr<PassageUpdate> SolveJointly(const std::vector<Passage>& passages,
                         2.0 * solver_summary.final_cost, dof, options.max_chi2_per_dof));
   }
 
-  absl::StatusOr<GraphLinearization> linearization = LinearizeSolution(&problem, &update, options, &summary);
+  // Each passage's own factor, at the solution: its poses are disjoint from the others', so the
+  // joint information is exactly the sum of these.
+  std::vector<LandmarkInformation> information(count);
+  std::vector<std::vector<double*>> blocks_seen(count);
+  for (int p = 0; p < count; ++p) {
+    for (LandmarkId id : seen[p].ids) blocks_seen[p].push_back(block_of[id]);
+    absl::StatusOr<LandmarkInformation> info = EliminateToLandmarks(&problem, blocks_of[p], blocks_seen[p]);
+    if (!info.ok()) return failed(p, info.status());
+    information[p] = *std::move(info);
+  }
+  absl::StatusOr<GraphLinearization> linearization = LinearizeSolution(&problem, landmark_blocks, options, &summary);
   if (!linearization.ok()) return linearization.status();
-  LandmarkUpdateOptions update_options;
-  update_options.correlated = options.strategy != UpdateStrategy::kDecorrelated;
-  update_options.correlation_radius_m = options.correlation_radius_m;
+
+  // The result replaces the factors of the passages, at one new version of `map`; a passage's
+  // factor carries its share of the bias correction.
+  const auto covariance_start = std::chrono::steady_clock::now();
+  MapOverlay overlay(map);
+  std::vector<int64_t> factor_ids;
+  for (LandmarkId id : ids) {
+    if (map.FindLandmark(id) != nullptr) map.AppendFactorIds(id, &factor_ids);
+  }
+  std::set<std::pair<std::string, std::string>> batch;
+  for (const Passage& passage : passages) batch.emplace(passage.vehicle_id, passage.passage_id);
+  for (int64_t id : factor_ids) {
+    const MapFactor* f = overlay.FindFactor(id);
+    if (f != nullptr && batch.count({f->vehicle_id, f->passage_id})) overlay.RemoveFactor(id);
+  }
+  const bool correlated = options.strategy != UpdateStrategy::kDecorrelated;
+  if (correlated) {
+    // The passages' factors must sum to the joint solution: Lambda_p (x_c + c) - g_p does, with
+    // x_c the corrected solution and c = Lambda^-1 sum_p g_p (zero at an exact optimum; a solve
+    // stopped by its function tolerance leaves a small gradient in weakly determined directions).
+    std::map<LandmarkId, int> column;
+    for (LandmarkId id : ids) column.emplace(id, static_cast<int>(2 * column.size()));
+    const int n = static_cast<int>(2 * ids.size());
+    Eigen::MatrixXd total = Eigen::MatrixXd::Zero(n, n);
+    Eigen::VectorXd gradient = Eigen::VectorXd::Zero(n);
+    for (int p = 0; p < count; ++p) {
+      const int k = static_cast<int>(seen[p].ids.size());
+      for (int i = 0; i < k; ++i) {
+        const int ci = column[seen[p].ids[i]];
+        gradient.segment<2>(ci) += information[p].gradient.segment<2>(2 * i);
+        for (int j = 0; j < k; ++j) {
+          total.block<2, 2>(ci, column[seen[p].ids[j]]) += information[p].information.block<2, 2>(2 * i, 2 * j);
+        }
+      }
+    }
+    const Eigen::VectorXd correction = total.ldlt().solve(gradient);
+    for (int p = 0; p < count; ++p) {
+      const int k = static_cast<int>(seen[p].ids.size());
+      Eigen::VectorXd x(2 * k), c(2 * k);
+      for (int i = 0; i < k; ++i) {
+        x.segment<2>(2 * i) = position[seen[p].ids[i]];
+        c.segment<2>(2 * i) = correction.segment<2>(column[seen[p].ids[i]]);
+      }
+      MapFactor f;
+      f.vehicle_id = passages[p].vehicle_id;
+      f.passage_id = passages[p].passage_id;
+      f.landmarks = seen[p].ids;
+      f.information = information[p].information;
+      f.information_vector = information[p].information * (x + c) - information[p].gradient;
+      AddLocalFactor(frame, x, std::move(f), &overlay);
+    }
+  } else {
+    // dc: one factor per landmark from the joint marginals, attributed to the last passage.
+    const Eigen::MatrixXd& cov = linearization->landmark_covariance();
+    for (size_t i = 0; i < ids.size(); ++i) {
+      MapFactor f;
+      f.vehicle_id = passages.back().vehicle_id;
+      f.passage_id = passages.back().passage_id;
+      f.landmarks = {ids[i]};
+      f.information = cov.block<2, 2>(2 * i, 2 * i).inverse();
+      f.information_vector = f.information * position[ids[i]];
+      AddLocalFactor(frame, position[ids[i]], std::move(f), &overlay);
+    }
+  }
+  const int64_t version = overlay.BumpVersion();
   auto touch = [&](Landmark* record) {
     record->passages_seen = seen_by[record->id];
     record->last_seen_unix_ms = last_seen_ms[record->id];
   };
-  absl::StatusOr<LandmarkUpdateStats> stats = update.Commit(linearization->landmark_covariance(), update_options, touch);
-  if (!stats.ok()) return stats.status();
+  MapWindowOptions window;
+  window.hops = correlated ? options.window_hops : 1;
+  absl::StatusOr<int> conditioned = ResolveAround(ids, window, version, touch, &overlay);
+  if (!conditioned.ok()) return conditioned.status();
   Yield(options);
-  summary.covariance_ms += stats->covariance_ms;
-
-  // The result replaces the records of every landmark the passages saw, at one new version of
-  // `map`.
-  MapDelta delta = fresh.TakeDelta();
-  delta.base_version = map.version();
-  delta.version = map.version() + 1;
-  for (auto& [id, record] : delta.landmarks) {
-    record.version = delta.version;
-    ++(map.FindLandmark(id) != nullptr ? summary.landmarks_updated : summary.landmarks_created);
+  summary.covariance_ms += MillisecondsSince(covariance_start);
+  MapDelta delta = overlay.TakeDelta();
+  for (const auto& [id, record] : delta.landmarks) {
+    if (seen_by.count(id)) ++(map.FindLandmark(id) != nullptr ? summary.landmarks_updated : summary.landmarks_created);
   }
   summary.map_version = delta.version;
   summary.total_ms = MillisecondsSince(start);

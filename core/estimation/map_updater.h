@@ -35,8 +35,12 @@ struct MapUpdateOptions {
   // inwards (see InitializeLandmarks). Sequential updates only (not the warm-up's joint solve).
   // 0 uses them all.
   double edge_margin_sigmas = 3.0;
-  // Cross-covariance blocks are kept only between landmarks closer than this (infinity = dense).
-  double correlation_radius_m = std::numeric_limits<double>::infinity();
+  // The map is re-estimated after each (sub)graph, and its covariance recovered for the prior,
+  // over the landmarks within this many links (shared factors) of the graph's landmarks; the
+  // rest of the map is held at its estimate, and the covariance is conservative (never smaller
+  // than the exact one). 0 = the whole connected part of the map: exact, with a cost that grows
+  // with it.
+  int window_hops = 0;
   int max_solver_iterations = 100;
   // Adaptive covariance inflation: when a (sub)graph solve's chi-square (2 x final cost) exceeds
   // its degrees of freedom by more than this many standard deviations (sqrt(2 dof)), the data

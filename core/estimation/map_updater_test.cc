@@ -1,8 +1,10 @@
 #include "core/estimation/map_updater.h"
 
 #include <Eigen/Cholesky>
+#include <Eigen/Eigenvalues>
 #include <gtest/gtest.h>
 
+#include "core/map/map_window.h"
 #include "core/sim/metrics.h"
 #include "core/sim/scenario.h"
 
@@ -23,8 +25,8 @@ TEST(MapUpdateOptions, RejectsOutOfRangeValuesNamingTheField) {
   options.max_subgraph_dim = 5;
   EXPECT_NE(options.Validate().message().find("max_subgraph_dim"), std::string::npos);
   options = MapUpdateOptions();
-  options.correlation_radius_m = 0.0;
-  EXPECT_NE(options.Validate().message().find("correlation_radius_m"), std::string::npos);
+  options.window_hops = -1;
+  EXPECT_NE(options.Validate().message().find("window_hops"), std::string::npos);
   options = MapUpdateOptions();
   options.detections_per_landmark = -1;
   EXPECT_NE(options.Validate().message().find("detections_per_landmark"), std::string::npos);
@@ -105,28 +107,42 @@ TEST(ComputePassageUpdate, YieldPointIsCalledThroughoutAndChangesNothing) {
     EXPECT_EQ(landmark.position.lon_deg, other.position.lon_deg);
     EXPECT_EQ(landmark.cov_en_m2, other.cov_en_m2);
   }
-  ASSERT_EQ(plain->delta.cross.size(), yielding->delta.cross.size());
-  for (const auto& [pair, block] : plain->delta.cross) EXPECT_EQ(block, yielding->delta.cross.at(pair));
+  ASSERT_EQ(plain->delta.added_factors.size(), yielding->delta.added_factors.size());
+  for (const auto& [id, factor] : plain->delta.added_factors) {
+    EXPECT_EQ(factor.information, yielding->delta.added_factors.at(id).information);
+    EXPECT_EQ(factor.information_vector, yielding->delta.added_factors.at(id).information_vector);
+  }
 }
 
-TEST(ComputePassageUpdate, CorrelationRadiusBoundsTheCrossCovarianceBlocks) {
+TEST(ComputePassageUpdate, BoundedWindowStaysConservative) {
+  // With a window of one link the prior and the written marginals come from windows that do not
+  // cover the map: no marginal the map stores may be smaller than the exact marginal of the
+  // information it holds, and the estimate stays close to the exact update's.
   const Scenario scenario = MakeScenario(25);
-  MapUpdateOptions dense, bounded;
-  bounded.correlation_radius_m = 150.0;
-  MapState dense_map, bounded_map;
-  dense_map.Apply(ComputePassageUpdate(scenario.MakePassage(0), dense, dense_map)->delta);
-  bounded_map.Apply(ComputePassageUpdate(scenario.MakePassage(0), bounded, bounded_map)->delta);
-  EXPECT_GT(bounded_map.cross_block_count(), 0u);
-  EXPECT_LT(bounded_map.cross_block_count(), dense_map.cross_block_count());
-  // Every stored block joins landmarks within the radius.
-  for (LandmarkId a : bounded_map.LandmarkIds()) {
-    std::vector<LandmarkId> neighbours;
-    bounded_map.AppendNeighbors(a, &neighbours);
-    for (LandmarkId b : neighbours) {
-      EXPECT_LE(EastNorthOffset(bounded_map.FindLandmark(a)->position, bounded_map.FindLandmark(b)->position).norm(),
-                150.0);
-    }
+  MapUpdateOptions exact, windowed;
+  windowed.window_hops = 1;
+  windowed.max_subgraph_dim = 60;  // several subgraphs, so that the map is not one clique
+  exact.max_subgraph_dim = 60;
+  MapState exact_map, windowed_map;
+  for (int p = 0; p < 3; ++p) {
+    absl::StatusOr<PassageUpdate> e = ComputePassageUpdate(scenario.MakePassage(p), exact, exact_map);
+    absl::StatusOr<PassageUpdate> w = ComputePassageUpdate(scenario.MakePassage(p), windowed, windowed_map);
+    ASSERT_TRUE(e.ok() && w.ok()) << e.status() << w.status();
+    exact_map.Apply(e->delta);
+    windowed_map.Apply(w->delta);
   }
+  ASSERT_EQ(exact_map.landmark_count(), windowed_map.landmark_count());
+  int less_confident = 0;
+  for (LandmarkId id : windowed_map.LandmarkIds()) {
+    absl::StatusOr<Eigen::MatrixXd> marginal = JointCovariance(windowed_map, {id});
+    ASSERT_TRUE(marginal.ok()) << marginal.status();
+    const Eigen::Matrix2d difference = windowed_map.FindLandmark(id)->cov_en_m2 - *marginal;
+    EXPECT_GT(Eigen::SelfAdjointEigenSolver<Eigen::Matrix2d>(difference).eigenvalues().minCoeff(), -1e-9) << id;
+    less_confident += difference.trace() > 1e-9;
+    EXPECT_LT(EastNorthOffset(exact_map.FindLandmark(id)->position, windowed_map.FindLandmark(id)->position).norm(), 0.5)
+        << id;
+  }
+  EXPECT_GT(less_confident, 0) << "the windows lost some information";
 }
 
 TEST(ComputePassageUpdate, PassageWithoutUsableDetectionsIsRejectedWithoutADelta) {
@@ -191,7 +207,7 @@ TEST(ComputeBatchUpdate, SolvesThePassagesJointlyAndCountsWhoSawEachLandmark) {
     EXPECT_EQ(l.version, 1) << l.id;
     EXPECT_EQ(Eigen::LLT<Eigen::Matrix2d>(l.cov_en_m2).info(), Eigen::Success) << l.id;
   });
-  EXPECT_EQ(map.cross_block_count(), 10u * 9u / 2u);
+  EXPECT_EQ(map.factor_count(), 2u) << "one factor per passage";
 
   // Against a map that holds the first passage's result, the same solve replaces those records. It
   // starts elsewhere (from that map), so it matches to the solver's convergence: well under a

@@ -1,8 +1,10 @@
 // On a linear-Gaussian problem the sequential map update (CC prior from the marginal covariance,
-// solve, landmark covariance, conditioning of the correlated landmarks outside the graph) is
-// exact: passage by passage it must give the same map, means and full covariance, as one batch
-// solve over all passages.
+// solve, the graph's factor added to the map's information, re-solve) is exact: passage by
+// passage, in any order, it must give the same map, means and full covariance, as one batch solve
+// over all passages; and taking one passage back must give the batch solve without it.
+#include <algorithm>
 #include <memory>
+#include <string>
 #include <random>
 #include <vector>
 
@@ -11,6 +13,8 @@
 #include "core/estimation/factors.h"
 #include "core/estimation/graph_linearization.h"
 #include "core/estimation/landmark_update.h"
+#include "core/estimation/passage_exclusion.h"
+#include "core/map/map_window.h"
 
 namespace crowdmap {
 namespace {
@@ -112,11 +116,12 @@ struct JointEstimate {
   Eigen::MatrixXd cov;
 };
 
-JointEstimate BatchSolve(const std::vector<ToyPassage>& passages) {
+JointEstimate BatchSolve(const std::vector<ToyPassage>& passages, int left_out = -1) {
   ceres::Problem problem;
   std::vector<Eigen::Vector2d> landmarks(kLandmarks, Eigen::Vector2d::Zero());
   std::vector<std::vector<Eigen::Vector2d>> poses(passages.size(), std::vector<Eigen::Vector2d>(kPoses));
   for (size_t j = 0; j < passages.size(); ++j) {
+    if (static_cast<int>(j) == left_out) continue;
     AddPassageFactors(passages[j], &poses[j], [&](int i) { return landmarks[i].data(); }, &problem);
   }
   SolveExactly(&problem);
@@ -142,9 +147,17 @@ const LocalFrame& ToyFrame() {
   return frame;
 }
 
-MapState SequentialSolve(const std::vector<ToyPassage>& passages, bool correlated) {
+std::vector<int> InOrder() {
+  std::vector<int> order;
+  for (int j = 0; j < kPassages; ++j) order.push_back(j);
+  return order;
+}
+
+MapState SequentialSolve(const std::vector<ToyPassage>& passages, bool correlated,
+                         const std::vector<int>& order = InOrder()) {
   MapState map;
-  for (const ToyPassage& p : passages) {
+  for (int j : order) {
+    const ToyPassage& p = passages[j];
     MapOverlay overlay(map);
     std::vector<LandmarkId> ids;
     for (const auto& o : p.observations) {
@@ -160,10 +173,12 @@ MapState SequentialSolve(const std::vector<ToyPassage>& passages, bool correlate
           return update.block(i);
         },
         &problem);
-    EXPECT_TRUE(update.AddMapPrior(correlated, &problem).ok());
+    EXPECT_TRUE(update.AddMapPrior(correlated, MapWindowOptions{}, &problem).ok());
     SolveExactly(&problem);
     LandmarkUpdateOptions options;
     options.correlated = correlated;
+    options.vehicle_id = "toy";
+    options.passage_id = "p" + std::to_string(j);
     std::vector<double*> blocks;
     for (int i = 0; i < update.size(); ++i) blocks.push_back(update.block(i));
     absl::StatusOr<GraphLinearization> linearization = GraphLinearization::Compute(&problem, blocks);
@@ -182,17 +197,20 @@ MapState SequentialSolve(const std::vector<ToyPassage>& passages, bool correlate
 JointEstimate FromMap(const MapState& map) {
   JointEstimate e;
   e.mean.resize(2 * kLandmarks);
-  e.cov.setZero(2 * kLandmarks, 2 * kLandmarks);
+  std::vector<LandmarkId> ids;
   for (int i = 0; i < kLandmarks; ++i) {
     const Landmark* l = map.FindLandmark(i);
     EXPECT_NE(l, nullptr);
-    if (!l) continue;
+    if (!l) return e;
     e.mean.segment<2>(2 * i) = ToyFrame().ToLocal(l->position);
-    e.cov.block<2, 2>(2 * i, 2 * i) = l->cov_en_m2;
-    for (int j = 0; j < kLandmarks; ++j) {
-      Eigen::Matrix2d c;
-      if (j != i && map.CrossCovariance(i, j, &c)) e.cov.block<2, 2>(2 * i, 2 * j) = c;
-    }
+    ids.push_back(i);
+  }
+  absl::StatusOr<Eigen::MatrixXd> cov = JointCovariance(map, ids);
+  EXPECT_TRUE(cov.ok()) << cov.status();
+  if (cov.ok()) e.cov = *cov;
+  // The stored marginals are the joint covariance's diagonal blocks.
+  for (int i = 0; i < kLandmarks && cov.ok(); ++i) {
+    EXPECT_LT((map.FindLandmark(i)->cov_en_m2 - cov->block<2, 2>(2 * i, 2 * i)).cwiseAbs().maxCoeff(), 1e-10);
   }
   return e;
 }
@@ -205,6 +223,44 @@ TEST(SequentialUpdate, CorrelatedEqualsBatchOnALinearProblem) {
       << "sequential\n" << sequential.mean.transpose() << "\nbatch\n" << batch.mean.transpose();
   EXPECT_LT((sequential.cov - batch.cov).cwiseAbs().maxCoeff(), 1e-8)
       << "difference\n" << (sequential.cov - batch.cov);
+}
+
+TEST(SequentialUpdate, OrderOfThePassagesDoesNotChangeTheMap) {
+  const std::vector<ToyPassage> passages = MakePassages();
+  std::vector<int> reversed = InOrder(), interleaved;
+  std::reverse(reversed.begin(), reversed.end());
+  for (int j = 1; j < kPassages; j += 2) interleaved.push_back(j);
+  for (int j = 0; j < kPassages; j += 2) interleaved.push_back(j);
+  const JointEstimate in_order = FromMap(SequentialSolve(passages, true));
+  for (const std::vector<int>& order : {reversed, interleaved}) {
+    const JointEstimate other = FromMap(SequentialSolve(passages, true, order));
+    EXPECT_LT((other.mean - in_order.mean).cwiseAbs().maxCoeff(), 1e-8);
+    EXPECT_LT((other.cov - in_order.cov).cwiseAbs().maxCoeff(), 1e-8);
+  }
+}
+
+TEST(SequentialUpdate, ExcludingAPassageGivesTheBatchSolveWithoutIt) {
+  const std::vector<ToyPassage> passages = MakePassages();
+  for (int left_out : {0, 3, kPassages - 1}) {
+    MapState map = SequentialSolve(passages, true);
+    const size_t factors = map.factor_count();
+    MapUpdateOptions options;
+    absl::StatusOr<PassageUpdate> exclusion =
+        ComputePassageExclusion("toy", "p" + std::to_string(left_out), options, map);
+    ASSERT_TRUE(exclusion.ok()) << exclusion.status();
+    map.Apply(exclusion->delta);
+    EXPECT_EQ(map.factor_count(), factors - 1);
+    const JointEstimate batch = BatchSolve(passages, left_out);
+    const JointEstimate excluded = FromMap(map);
+    EXPECT_LT((excluded.mean - batch.mean).cwiseAbs().maxCoeff(), 1e-6) << "left out " << left_out;
+    EXPECT_LT((excluded.cov - batch.cov).cwiseAbs().maxCoeff(), 1e-6) << "left out " << left_out;
+  }
+}
+
+TEST(SequentialUpdate, ExcludingAnUnknownPassageIsNotFound) {
+  const MapState map = SequentialSolve(MakePassages(), true);
+  EXPECT_EQ(ComputePassageExclusion("toy", "nope", MapUpdateOptions{}, map).status().code(),
+            absl::StatusCode::kNotFound);
 }
 
 TEST(SequentialUpdate, DecorrelatedDiffersFromBatchOnTheSameProblem) {

@@ -3,99 +3,229 @@
 #include <algorithm>
 
 namespace crowdmap {
-namespace {
 
-LandmarkPair OrderedPair(LandmarkId a, LandmarkId b) { return a < b ? LandmarkPair{a, b} : LandmarkPair{b, a}; }
+void AssembledInformation::Add(const MapFactor& factor, int sign) {
+  const int k = static_cast<int>(factor.landmarks.size());
+  for (int i = 0; i < k; ++i) {
+    const LandmarkId a = factor.landmarks[i];
+    auto [it, inserted] = vector_.try_emplace(a, Eigen::Vector2d::Zero());
+    it->second += sign * factor.information_vector.segment<2>(2 * i);
+    auto& row = rows_[a];
+    for (int j = 0; j < k; ++j) {
+      InformationBlock& block = row[factor.landmarks[j]];
+      block.value += sign * factor.information.block<2, 2>(2 * i, 2 * j);
+      block.factors += sign;
+      if (block.factors == 0 && !difference_) row.erase(factor.landmarks[j]);
+    }
+    if (row.empty() && !difference_) {
+      rows_.erase(a);
+      vector_.erase(a);
+    }
+  }
+}
 
-}  // namespace
+InformationBlock AssembledInformation::Block(LandmarkId a, LandmarkId b) const {
+  auto it = rows_.find(a);
+  if (it == rows_.end()) return {};
+  auto jt = it->second.find(b);
+  return jt == it->second.end() ? InformationBlock{} : jt->second;
+}
+
+Eigen::Vector2d AssembledInformation::Vector(LandmarkId id) const {
+  auto it = vector_.find(id);
+  return it == vector_.end() ? Eigen::Vector2d::Zero() : it->second;
+}
+
+void AssembledInformation::ForEachLinked(LandmarkId a,
+                                         const std::function<void(LandmarkId, const InformationBlock&)>& fn) const {
+  auto it = rows_.find(a);
+  if (it == rows_.end()) return;
+  for (const auto& [b, block] : it->second) {
+    if (b != a) fn(b, block);
+  }
+}
 
 const Landmark* MapState::FindLandmark(LandmarkId id) const {
-  auto it = entries_.find(id);
-  return it == entries_.end() ? nullptr : &it->second.landmark;
+  auto it = landmarks_.find(id);
+  return it == landmarks_.end() ? nullptr : &it->second;
 }
 
-bool MapState::CrossCovariance(LandmarkId a, LandmarkId b, Eigen::Matrix2d* cov) const {
-  auto it = entries_.find(a);
-  if (it == entries_.end()) return false;
-  auto jt = it->second.cross.find(b);
-  if (jt == it->second.cross.end()) return false;
-  *cov = jt->second;
-  return true;
+const MapFactor* MapState::FindFactor(int64_t id) const {
+  auto it = factors_.find(id);
+  return it == factors_.end() ? nullptr : &it->second;
 }
 
-void MapState::AppendNeighbors(LandmarkId id, std::vector<LandmarkId>* out) const {
-  auto it = entries_.find(id);
-  if (it == entries_.end()) return;
-  for (const auto& [other, block] : it->second.cross) out->push_back(other);
+void MapState::AppendFactorIds(LandmarkId id, std::vector<int64_t>* out) const {
+  auto it = factors_of_.find(id);
+  if (it != factors_of_.end()) out->insert(out->end(), it->second.begin(), it->second.end());
+}
+
+void MapState::AppendLinked(LandmarkId id, std::vector<LandmarkId>* out) const {
+  information_.ForEachLinked(id, [&](LandmarkId b, const InformationBlock&) { out->push_back(b); });
+}
+
+void MapState::AppendPassageFactorIds(const std::string& vehicle_id, const std::string& passage_id,
+                                      std::vector<int64_t>* out) const {
+  auto it = factors_of_passage_.find({vehicle_id, passage_id});
+  if (it != factors_of_passage_.end()) out->insert(out->end(), it->second.begin(), it->second.end());
 }
 
 void MapState::ForEachLandmark(const std::function<void(const Landmark&)>& fn) const {
-  for (const auto& [id, entry] : entries_) fn(entry.landmark);
+  for (const auto& [id, landmark] : landmarks_) fn(landmark);
+}
+
+void MapState::ForEachFactor(const std::function<void(const MapFactor&)>& fn) const {
+  for (const auto& [id, factor] : factors_) fn(factor);
 }
 
 std::vector<LandmarkId> MapState::LandmarkIds() const {
   std::vector<LandmarkId> ids;
-  ids.reserve(entries_.size());
-  for (const auto& [id, entry] : entries_) ids.push_back(id);
+  ids.reserve(landmarks_.size());
+  for (const auto& [id, landmark] : landmarks_) ids.push_back(id);
   std::sort(ids.begin(), ids.end());
   return ids;
 }
 
 void MapState::PutLandmark(const Landmark& landmark) {
-  entries_[landmark.id].landmark = landmark;
+  landmarks_[landmark.id] = landmark;
   version_ = std::max(version_, landmark.version);
 }
 
-void MapState::PutCrossCovariance(LandmarkId a, LandmarkId b, const Eigen::Matrix2d& cov_ab) {
-  auto& forward = entries_[a].cross;
-  if (forward.find(b) == forward.end()) ++cross_block_count_;
-  forward[b] = cov_ab;
-  entries_[b].cross[a] = cov_ab.transpose();
+void MapState::PutFactor(MapFactor factor) {
+  RemoveFactor(factor.id);
+  for (LandmarkId id : factor.landmarks) factors_of_[id].push_back(factor.id);
+  information_.Add(factor, +1);
+  factors_of_passage_[{factor.vehicle_id, factor.passage_id}].push_back(factor.id);
+  last_factor_id_ = std::max(last_factor_id_, factor.id);
+  const int64_t id = factor.id;
+  factors_.emplace(id, std::move(factor));
+}
+
+void MapState::RemoveFactor(int64_t id) {
+  auto it = factors_.find(id);
+  if (it == factors_.end()) return;
+  information_.Add(it->second, -1);
+  auto passage = factors_of_passage_.find({it->second.vehicle_id, it->second.passage_id});
+  if (passage != factors_of_passage_.end()) {
+    std::vector<int64_t>& ids = passage->second;
+    ids.erase(std::remove(ids.begin(), ids.end(), id), ids.end());
+    if (ids.empty()) factors_of_passage_.erase(passage);
+  }
+  for (LandmarkId landmark : it->second.landmarks) {
+    std::vector<int64_t>& ids = factors_of_[landmark];
+    ids.erase(std::remove(ids.begin(), ids.end(), id), ids.end());
+    if (ids.empty()) factors_of_.erase(landmark);
+  }
+  factors_.erase(it);
 }
 
 void MapState::Apply(const MapDelta& delta) {
+  for (int64_t id : delta.removed_factors) RemoveFactor(id);
+  for (const auto& [id, factor] : delta.added_factors) PutFactor(factor);
   for (const auto& [id, landmark] : delta.landmarks) PutLandmark(landmark);
-  for (const auto& [pair, block] : delta.cross) PutCrossCovariance(pair.first, pair.second, block);
+  for (LandmarkId id : delta.removed_landmarks) RemoveLandmark(id);
   version_ = std::max(version_, delta.version);
 }
 
-MapOverlay::MapOverlay(const MapReaderInterface& base) : base_(base) {
+MapOverlay::MapOverlay(const MapReaderInterface& base) : base_(base), last_factor_id_(base.last_factor_id()) {
   delta_.base_version = base.version();
   delta_.version = base.version();
 }
 
 const Landmark* MapOverlay::FindLandmark(LandmarkId id) const {
+  if (std::find(delta_.removed_landmarks.begin(), delta_.removed_landmarks.end(), id) != delta_.removed_landmarks.end()) {
+    return nullptr;
+  }
   auto it = delta_.landmarks.find(id);
   return it != delta_.landmarks.end() ? &it->second : base_.FindLandmark(id);
 }
 
-bool MapOverlay::CrossCovariance(LandmarkId a, LandmarkId b, Eigen::Matrix2d* cov) const {
-  auto it = delta_.cross.find(OrderedPair(a, b));
-  if (it == delta_.cross.end()) return base_.CrossCovariance(a, b, cov);
-  *cov = a < b ? it->second : Eigen::Matrix2d(it->second.transpose());
-  return true;
+InformationBlock MapOverlay::Information(LandmarkId a, LandmarkId b) const {
+  InformationBlock block = base_.Information(a, b);
+  const InformationBlock change = change_.Block(a, b);
+  block.value += change.value;
+  block.factors += change.factors;
+  return block;
 }
 
-void MapOverlay::AppendNeighbors(LandmarkId id, std::vector<LandmarkId>* out) const {
-  base_.AppendNeighbors(id, out);
-  // Only pairs the base lacks are recorded here, so nothing is reported twice.
-  auto it = added_neighbors_.find(id);
-  if (it != added_neighbors_.end()) out->insert(out->end(), it->second.begin(), it->second.end());
+Eigen::Vector2d MapOverlay::InformationVector(LandmarkId id) const {
+  return base_.InformationVector(id) + change_.Vector(id);
 }
 
-void MapOverlay::PutLandmark(const Landmark& landmark) { delta_.landmarks[landmark.id] = landmark; }
-
-void MapOverlay::PutCrossCovariance(LandmarkId a, LandmarkId b, const Eigen::Matrix2d& cov_ab) {
-  const LandmarkPair key = OrderedPair(a, b);
-  auto [it, inserted] = delta_.cross.try_emplace(key);
-  it->second = a < b ? cov_ab : Eigen::Matrix2d(cov_ab.transpose());
-  if (inserted) {
-    Eigen::Matrix2d unused;
-    if (!base_.CrossCovariance(a, b, &unused)) {
-      added_neighbors_[a].push_back(b);
-      added_neighbors_[b].push_back(a);
-    }
+void MapOverlay::AppendLinked(LandmarkId id, std::vector<LandmarkId>* out) const {
+  std::vector<LandmarkId> candidates;
+  base_.AppendLinked(id, &candidates);
+  change_.ForEachLinked(id, [&](LandmarkId b, const InformationBlock&) { candidates.push_back(b); });
+  std::sort(candidates.begin(), candidates.end());
+  candidates.erase(std::unique(candidates.begin(), candidates.end()), candidates.end());
+  for (LandmarkId b : candidates) {
+    if (Information(id, b).factors > 0) out->push_back(b);
   }
+}
+
+const MapFactor* MapOverlay::FindFactor(int64_t id) const {
+  auto it = delta_.added_factors.find(id);
+  if (it != delta_.added_factors.end()) return &it->second;
+  return removed_.count(id) ? nullptr : base_.FindFactor(id);
+}
+
+void MapOverlay::AppendFactorIds(LandmarkId id, std::vector<int64_t>* out) const {
+  const size_t start = out->size();
+  base_.AppendFactorIds(id, out);
+  if (!removed_.empty()) {
+    out->erase(std::remove_if(out->begin() + start, out->end(), [&](int64_t f) { return removed_.count(f) > 0; }),
+               out->end());
+  }
+  auto it = added_of_.find(id);
+  if (it != added_of_.end()) out->insert(out->end(), it->second.begin(), it->second.end());
+}
+
+void MapOverlay::AppendPassageFactorIds(const std::string& vehicle_id, const std::string& passage_id,
+                                        std::vector<int64_t>* out) const {
+  const size_t start = out->size();
+  base_.AppendPassageFactorIds(vehicle_id, passage_id, out);
+  out->erase(std::remove_if(out->begin() + start, out->end(), [&](int64_t f) { return removed_.count(f) > 0; }),
+             out->end());
+  for (const auto& [id, factor] : delta_.added_factors) {
+    if (factor.vehicle_id == vehicle_id && factor.passage_id == passage_id) out->push_back(id);
+  }
+}
+
+void MapOverlay::PutLandmark(const Landmark& landmark) {
+  delta_.landmarks[landmark.id] = landmark;
+  auto& removed = delta_.removed_landmarks;
+  removed.erase(std::remove(removed.begin(), removed.end(), landmark.id), removed.end());
+}
+
+void MapOverlay::RemoveLandmark(LandmarkId id) {
+  delta_.landmarks.erase(id);
+  delta_.removed_landmarks.push_back(id);
+}
+
+int64_t MapOverlay::AddFactor(MapFactor factor) {
+  factor.id = ++last_factor_id_;
+  for (LandmarkId landmark : factor.landmarks) added_of_[landmark].push_back(factor.id);
+  change_.Add(factor, +1);
+  const int64_t id = factor.id;
+  delta_.added_factors.emplace(id, std::move(factor));
+  return id;
+}
+
+void MapOverlay::RemoveFactor(int64_t id) {
+  auto it = delta_.added_factors.find(id);
+  if (it != delta_.added_factors.end()) {
+    change_.Add(it->second, -1);
+    for (LandmarkId landmark : it->second.landmarks) {
+      std::vector<int64_t>& ids = added_of_[landmark];
+      ids.erase(std::remove(ids.begin(), ids.end(), id), ids.end());
+    }
+    delta_.added_factors.erase(it);
+    return;
+  }
+  const MapFactor* factor = base_.FindFactor(id);
+  if (factor == nullptr || !removed_.insert(id).second) return;
+  change_.Add(*factor, -1);
+  delta_.removed_factors.push_back(id);
 }
 
 }  // namespace crowdmap

@@ -3,8 +3,10 @@
 
 #include <cstdint>
 #include <functional>
+#include <map>
+#include <string>
 #include <unordered_map>
-#include <utility>
+#include <unordered_set>
 #include <vector>
 
 #include <Eigen/Core>
@@ -16,37 +18,86 @@ namespace crowdmap {
 
 enum class LandmarkState { kActive = 1 };
 
-// A mapped landmark. Its covariance is in metres^2 in the East/North frame at its position.
+// A mapped landmark. Its estimate is an East/North offset from a fixed anchor (its first
+// position): the variables of the map's factors. Its covariance is the marginal, in metres^2 in
+// the East/North frame at the anchor (which differs from the frame at the position by a rotation
+// of offset / earth radius, under 1e-5 rad for any offset the map can hold).
 struct Landmark {
   LandmarkId id = 0;
+  LatLon anchor;
   LatLon position;
   Eigen::Matrix2d cov_en_m2 = Eigen::Matrix2d::Identity();
   int64_t version = 0;          // map version that last changed it
   int64_t passages_seen = 0;    // passages that detected it
   int64_t last_seen_unix_ms = 0;
   LandmarkState state = LandmarkState::kActive;
+
+  // East/North offset (m) of the position from the anchor.
+  Eigen::Vector2d Offset() const { return EastNorthOffset(anchor, position); }
 };
 
-// Ordered key of a landmark pair (first < second).
-using LandmarkPair = std::pair<LandmarkId, LandmarkId>;
-
-struct LandmarkPairHash {
-  size_t operator()(const LandmarkPair& p) const {
-    return std::hash<int64_t>()(p.first) * 0x9E3779B97F4A7C15ull ^ std::hash<int64_t>()(p.second);
-  }
+// One Gaussian factor on a few landmarks: the information a (sub)graph of one passage brought
+// about them once its poses were eliminated. With d the landmarks' offsets from their anchors
+// (East, North, metres; stacked in `landmarks` order), it adds
+//   1/2 d^T information d - information_vector^T d
+// to the map's negative log-likelihood. The map's information is the sum of its factors.
+struct MapFactor {
+  int64_t id = 0;                   // unique in the map
+  std::string vehicle_id;           // provenance: the passage it came from
+  std::string passage_id;
+  std::vector<LandmarkId> landmarks;
+  Eigen::MatrixXd information;      // 2k x 2k, symmetric positive semi-definite
+  Eigen::VectorXd information_vector;  // 2k
 };
 
-// Read access to a map: landmarks and the sparse cross-covariance blocks between them.
-// Cross block Sigma_ab has rows in a's East/North frame and columns in b's.
+// One 2x2 block (a, b) of the map's information matrix: the sum of its factors' blocks, rows in
+// a's offsets, columns in b's.
+struct InformationBlock {
+  Eigen::Matrix2d value = Eigen::Matrix2d::Zero();
+  int factors = 0;  // factors contributing to it; 0 = the block is structurally zero
+};
+
+// Read access to a map: landmarks, the factors that define its information, the information
+// matrix and vector they sum to (kept assembled, sparse), and its version.
 class MapReaderInterface {
  public:
   virtual ~MapReaderInterface() = default;
   virtual const Landmark* FindLandmark(LandmarkId id) const = 0;
-  // Sigma_ab; false (and *cov untouched) when no block is stored, meaning zero correlation.
-  virtual bool CrossCovariance(LandmarkId a, LandmarkId b, Eigen::Matrix2d* cov) const = 0;
-  // Appends the ids that share a stored cross block with `id`.
-  virtual void AppendNeighbors(LandmarkId id, std::vector<LandmarkId>* out) const = 0;
+  // Block (a, b) of the information matrix; a == b is the landmark's own block.
+  virtual InformationBlock Information(LandmarkId a, LandmarkId b) const = 0;
+  virtual Eigen::Vector2d InformationVector(LandmarkId id) const = 0;
+  // Appends the other landmarks that share a factor with `id` (each once).
+  virtual void AppendLinked(LandmarkId id, std::vector<LandmarkId>* out) const = 0;
+  virtual const MapFactor* FindFactor(int64_t id) const = 0;
+  // Appends the ids of the factors on landmark `id`.
+  virtual void AppendFactorIds(LandmarkId id, std::vector<int64_t>* out) const = 0;
+  // Appends the ids of the factors that came from one passage.
+  virtual void AppendPassageFactorIds(const std::string& vehicle_id, const std::string& passage_id,
+                                      std::vector<int64_t>* out) const = 0;
+  // Largest factor id ever used (ids are not reused, also after a removal).
+  virtual int64_t last_factor_id() const = 0;
   virtual int64_t version() const = 0;
+};
+
+// The information matrix and vector that a set of factors sums to, as sparse 2x2 blocks.
+class AssembledInformation {
+ public:
+  // A difference (of added and removed factors) keeps blocks whose factor count returns to zero:
+  // their values need not.
+  explicit AssembledInformation(bool difference = false) : difference_(difference) {}
+
+  // Adds (sign +1) or subtracts (sign -1) a factor.
+  void Add(const MapFactor& factor, int sign);
+  // Block (a, b); zero with factors == 0 when absent.
+  InformationBlock Block(LandmarkId a, LandmarkId b) const;
+  Eigen::Vector2d Vector(LandmarkId id) const;
+  // Calls fn(b, block) for every stored block (a, b), b != a.
+  void ForEachLinked(LandmarkId a, const std::function<void(LandmarkId, const InformationBlock&)>& fn) const;
+
+ private:
+  std::unordered_map<LandmarkId, std::unordered_map<LandmarkId, InformationBlock>> rows_;
+  std::unordered_map<LandmarkId, Eigen::Vector2d> vector_;
+  bool difference_;
 };
 
 // The changes one passage makes to a map; applied atomically (in memory or in one transaction).
@@ -54,40 +105,54 @@ struct MapDelta {
   int64_t base_version = 0;  // map version the delta was computed against
   int64_t version = 0;       // map version after applying it
   std::unordered_map<LandmarkId, Landmark> landmarks;  // full new records, created or changed
-  std::unordered_map<LandmarkPair, Eigen::Matrix2d, LandmarkPairHash> cross;  // key first<second
+  std::map<int64_t, MapFactor> added_factors;          // by id
+  std::vector<int64_t> removed_factors;                // ids of base factors removed
+  std::vector<LandmarkId> removed_landmarks;            // left without any factor
 
-  bool empty() const { return landmarks.empty() && cross.empty(); }
+  bool empty() const {
+    return landmarks.empty() && added_factors.empty() && removed_factors.empty() && removed_landmarks.empty();
+  }
 };
 
 // In-memory map: the estimation core's map type, mirrored by the persistent store.
 class MapState : public MapReaderInterface {
  public:
   const Landmark* FindLandmark(LandmarkId id) const override;
-  bool CrossCovariance(LandmarkId a, LandmarkId b, Eigen::Matrix2d* cov) const override;
-  void AppendNeighbors(LandmarkId id, std::vector<LandmarkId>* out) const override;
+  InformationBlock Information(LandmarkId a, LandmarkId b) const override { return information_.Block(a, b); }
+  Eigen::Vector2d InformationVector(LandmarkId id) const override { return information_.Vector(id); }
+  void AppendLinked(LandmarkId id, std::vector<LandmarkId>* out) const override;
+  const MapFactor* FindFactor(int64_t id) const override;
+  void AppendFactorIds(LandmarkId id, std::vector<int64_t>* out) const override;
+  void AppendPassageFactorIds(const std::string& vehicle_id, const std::string& passage_id,
+                              std::vector<int64_t>* out) const override;
+  int64_t last_factor_id() const override { return last_factor_id_; }
   int64_t version() const override { return version_; }
 
-  size_t landmark_count() const { return entries_.size(); }
-  size_t cross_block_count() const { return cross_block_count_; }
+  size_t landmark_count() const { return landmarks_.size(); }
+  size_t factor_count() const { return factors_.size(); }
   void ForEachLandmark(const std::function<void(const Landmark&)>& fn) const;
+  void ForEachFactor(const std::function<void(const MapFactor&)>& fn) const;
   // Ids in increasing order.
   std::vector<LandmarkId> LandmarkIds() const;
 
   // Inserts or replaces records; used by the store when loading. Sets the version when larger.
   void PutLandmark(const Landmark& landmark);
-  void PutCrossCovariance(LandmarkId a, LandmarkId b, const Eigen::Matrix2d& cov_ab);
+  void PutFactor(MapFactor factor);
+  void RemoveFactor(int64_t id);
+  void RemoveLandmark(LandmarkId id) { landmarks_.erase(id); }
   void set_version(int64_t v) { version_ = v; }
+  void set_last_factor_id(int64_t id) { last_factor_id_ = std::max(last_factor_id_, id); }
 
   // Applies a delta computed against this map's current version.
   void Apply(const MapDelta& delta);
 
  private:
-  struct Entry {
-    Landmark landmark;
-    std::unordered_map<LandmarkId, Eigen::Matrix2d> cross;  // Sigma_{this, other}
-  };
-  std::unordered_map<LandmarkId, Entry> entries_;
-  size_t cross_block_count_ = 0;
+  std::unordered_map<LandmarkId, Landmark> landmarks_;
+  std::unordered_map<int64_t, MapFactor> factors_;
+  std::unordered_map<LandmarkId, std::vector<int64_t>> factors_of_;
+  std::map<std::pair<std::string, std::string>, std::vector<int64_t>> factors_of_passage_;
+  AssembledInformation information_;
+  int64_t last_factor_id_ = 0;
   int64_t version_ = 0;
 };
 
@@ -97,12 +162,23 @@ class MapOverlay : public MapReaderInterface {
   explicit MapOverlay(const MapReaderInterface& base);
 
   const Landmark* FindLandmark(LandmarkId id) const override;
-  bool CrossCovariance(LandmarkId a, LandmarkId b, Eigen::Matrix2d* cov) const override;
-  void AppendNeighbors(LandmarkId id, std::vector<LandmarkId>* out) const override;
+  InformationBlock Information(LandmarkId a, LandmarkId b) const override;
+  Eigen::Vector2d InformationVector(LandmarkId id) const override;
+  void AppendLinked(LandmarkId id, std::vector<LandmarkId>* out) const override;
+  const MapFactor* FindFactor(int64_t id) const override;
+  void AppendFactorIds(LandmarkId id, std::vector<int64_t>* out) const override;
+  void AppendPassageFactorIds(const std::string& vehicle_id, const std::string& passage_id,
+                              std::vector<int64_t>* out) const override;
+  int64_t last_factor_id() const override { return last_factor_id_; }
   int64_t version() const override { return delta_.version; }
 
   void PutLandmark(const Landmark& landmark);
-  void PutCrossCovariance(LandmarkId a, LandmarkId b, const Eigen::Matrix2d& cov_ab);
+  // Removes a landmark (one left without factors).
+  void RemoveLandmark(LandmarkId id);
+  // Adds a factor under a new id; returns the id.
+  int64_t AddFactor(MapFactor factor);
+  // Removes a factor of the base or one added here.
+  void RemoveFactor(int64_t id);
   // Starts the next map version; returns it.
   int64_t BumpVersion() { return ++delta_.version; }
 
@@ -112,7 +188,10 @@ class MapOverlay : public MapReaderInterface {
  private:
   const MapReaderInterface& base_;
   MapDelta delta_;
-  std::unordered_map<LandmarkId, std::vector<LandmarkId>> added_neighbors_;
+  int64_t last_factor_id_ = 0;
+  std::unordered_set<int64_t> removed_;
+  std::unordered_map<LandmarkId, std::vector<int64_t>> added_of_;
+  AssembledInformation change_{/*difference=*/true};  // added factors minus removed ones
 };
 
 }  // namespace crowdmap

@@ -5,27 +5,9 @@
 
 #include <Eigen/Cholesky>
 
+#include "core/map/map_window.h"
+
 namespace crowdmap {
-
-namespace {
-
-// The joint covariance of the map landmarks `ids`, 2x2 blocks in that order.
-Eigen::MatrixXd JointCovariance(const MapReaderInterface& map, const std::vector<LandmarkId>& ids) {
-  const int n = static_cast<int>(ids.size());
-  Eigen::MatrixXd cov = Eigen::MatrixXd::Zero(2 * n, 2 * n);
-  for (int i = 0; i < n; ++i) {
-    cov.block<2, 2>(2 * i, 2 * i) = map.FindLandmark(ids[i])->cov_en_m2;
-    for (int j = i + 1; j < n; ++j) {
-      Eigen::Matrix2d c;
-      if (!map.CrossCovariance(ids[i], ids[j], &c)) continue;
-      cov.block<2, 2>(2 * i, 2 * j) = c;
-      cov.block<2, 2>(2 * j, 2 * i) = c.transpose();
-    }
-  }
-  return cov;
-}
-
-}  // namespace
 
 MapErrorMetrics EvaluateMap(const MapReaderInterface& map, const std::vector<TruthLandmark>& truth) {
   MapErrorMetrics m;
@@ -75,7 +57,9 @@ StackedMapErrors StackMapErrors(const MapReaderInterface& map, const std::vector
   }
   out.errors.resize(2 * errors.size());
   for (size_t i = 0; i < errors.size(); ++i) out.errors.segment<2>(2 * i) = errors[i];
-  out.cov = JointCovariance(map, out.ids);
+  absl::StatusOr<Eigen::MatrixXd> cov = JointCovariance(map, out.ids);
+  const int n = static_cast<int>(2 * out.ids.size());
+  out.cov = cov.ok() ? *cov : Eigen::MatrixXd::Constant(n, n, std::numeric_limits<double>::quiet_NaN());
   return out;
 }
 

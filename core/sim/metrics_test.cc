@@ -4,6 +4,7 @@
 #include <limits>
 #include <vector>
 
+#include <Eigen/LU>
 #include <gtest/gtest.h>
 
 namespace crowdmap {
@@ -24,8 +25,29 @@ Landmark Displaced(const TruthLandmark& t, const Eigen::Vector2d& offset_en, con
   Landmark l;
   l.id = t.id;
   l.position = LocalFrame(t.position).ToGeo(offset_en);
+  l.anchor = l.position;
   l.cov_en_m2 = cov;
   return l;
+}
+
+// Makes `cov` the joint covariance of landmarks `ids`: one factor with its inverse replaces
+// theirs.
+void SetJointCovariance(const std::vector<LandmarkId>& ids, const Eigen::MatrixXd& cov, MapState* map) {
+  std::vector<int64_t> old;
+  for (LandmarkId id : ids) map->AppendFactorIds(id, &old);
+  for (int64_t id : old) map->RemoveFactor(id);
+  MapFactor f;
+  f.id = map->last_factor_id() + 1;
+  f.landmarks = ids;
+  f.information = cov.inverse();
+  f.information_vector = Eigen::VectorXd::Zero(cov.rows());
+  map->PutFactor(f);
+}
+
+// Puts the landmark with its covariance as the map's information about it.
+void Put(const Landmark& l, MapState* map) {
+  map->PutLandmark(l);
+  SetJointCovariance({l.id}, l.cov_en_m2, map);
 }
 
 Eigen::Matrix2d Cov(double ee, double en, double nn) {
@@ -39,10 +61,10 @@ TEST(EvaluateMap, GivesExactErrorsSigmasAndNeesOnAHandMadeMap) {
                                             MakeTruth(3, {-300.0, 200.0})};
   MapState map;
   // Offsets (0.3, 0.4), (-0.6, 0.8), (0, -2): distances 0.5, 1.0, 2.0.
-  map.PutLandmark(Displaced(truth[0], {0.3, 0.4}, Cov(0.25, 0.0, 1.0)));
-  map.PutLandmark(Displaced(truth[1], {-0.6, 0.8}, Cov(0.25, 0.0, 1.0)));
+  Put(Displaced(truth[0], {0.3, 0.4}, Cov(0.25, 0.0, 1.0)), &map);
+  Put(Displaced(truth[1], {-0.6, 0.8}, Cov(0.25, 0.0, 1.0)), &map);
   // Correlated covariance [[2, 1], [1, 2]]: inverse (1/3) [[2, -1], [-1, 2]].
-  map.PutLandmark(Displaced(truth[2], {0.0, -2.0}, Cov(2.0, 1.0, 2.0)));
+  Put(Displaced(truth[2], {0.0, -2.0}, Cov(2.0, 1.0, 2.0)), &map);
 
   const MapErrorMetrics m = EvaluateMap(map, truth);
   EXPECT_EQ(m.landmarks_evaluated, 3);
@@ -61,9 +83,9 @@ TEST(EvaluateMap, GivesExactErrorsSigmasAndNeesOnAHandMadeMap) {
 TEST(EvaluateMap, SkipsLandmarksMissingFromTheMapAndIgnoresExtraOnes) {
   const TruthLandmark a = MakeTruth(1, {10.0, 10.0}), missing = MakeTruth(99, {50.0, 0.0});
   MapState map;
-  map.PutLandmark(Displaced(a, {3.0, -4.0}, Cov(1.0, 0.0, 1.0)));
+  Put(Displaced(a, {3.0, -4.0}, Cov(1.0, 0.0, 1.0)), &map);
   Landmark extra = Displaced(MakeTruth(7, {0.0, 0.0}), {100.0, 100.0}, Cov(1.0, 0.0, 1.0));
-  map.PutLandmark(extra);  // in the map, not in the truth: not evaluated
+  Put(extra, &map);  // in the map, not in the truth: not evaluated
   const MapErrorMetrics m = EvaluateMap(map, {missing, a});
   EXPECT_EQ(m.landmarks_evaluated, 1);
   EXPECT_NEAR(m.mean_dist_err_m, 5.0, 1e-6);
@@ -82,8 +104,8 @@ TEST(EvaluateMap, GivesZerosForAnEmptyMap) {
 TEST(EvaluateMap, NanCovarianceGivesNanNeesButStillMeasuresTheErrors) {
   const TruthLandmark a = MakeTruth(1, {0.0, 0.0}), b = MakeTruth(2, {40.0, 0.0});
   MapState map;
-  map.PutLandmark(Displaced(a, {1.0, 0.0}, Eigen::Matrix2d::Constant(std::numeric_limits<double>::quiet_NaN())));
-  map.PutLandmark(Displaced(b, {0.0, 3.0}, Cov(1.0, 0.0, 1.0)));
+  Put(Displaced(a, {1.0, 0.0}, Eigen::Matrix2d::Constant(std::numeric_limits<double>::quiet_NaN())), &map);
+  Put(Displaced(b, {0.0, 3.0}, Cov(1.0, 0.0, 1.0)), &map);
   const MapErrorMetrics m = EvaluateMap(map, {a, b});
   EXPECT_EQ(m.landmarks_evaluated, 2);
   EXPECT_NEAR(m.mean_dist_err_m, 2.0, 1e-6);
@@ -97,9 +119,11 @@ TEST(EvaluateMap, JointNeesUsesTheCrossCovariances) {
   const double x = 1.5, rho = 0.6;
   const TruthLandmark a = MakeTruth(1, {0.0, 0.0}), b = MakeTruth(2, {20.0, 0.0});
   MapState map;
-  map.PutLandmark(Displaced(a, {x, x}, Eigen::Matrix2d::Identity()));
-  map.PutLandmark(Displaced(b, {x, x}, Eigen::Matrix2d::Identity()));
-  map.PutCrossCovariance(1, 2, rho * Eigen::Matrix2d::Identity());
+  Put(Displaced(a, {x, x}, Eigen::Matrix2d::Identity()), &map);
+  Put(Displaced(b, {x, x}, Eigen::Matrix2d::Identity()), &map);
+  Eigen::MatrixXd joint = Eigen::MatrixXd::Identity(4, 4);
+  joint.block<2, 2>(0, 2) = joint.block<2, 2>(2, 0) = rho * Eigen::Matrix2d::Identity();
+  SetJointCovariance({1, 2}, joint, &map);
   const MapErrorMetrics m = EvaluateMap(map, {a, b});
   EXPECT_NEAR(m.nees_per_dof, (2 * x * x + 2 * x * x) / 2 / 2, 1e-5) << "per landmark: blocks only";
   EXPECT_NEAR(m.joint_nees_per_dof, 2 * (2 * x * x / (1 + rho)) / 4, 1e-5);
@@ -110,11 +134,15 @@ TEST(NeesPerDofSdIfConsistent, GrowsFromIndependentToCommonErrors) {
   // chi2(4)/4 (sd sqrt(1/2)) for rho = 0, chi2(2)/2 (sd 1) for rho = 1; in general
   // sd = sqrt(2 tr(C^2)) / 4 with tr(C^2) = 4 + 4 rho^2.
   const TruthLandmark a = MakeTruth(1, {0.0, 0.0}), b = MakeTruth(2, {20.0, 0.0});
-  for (double rho : {0.0, 0.6, 1.0}) {
+  for (double rho : {0.0, 0.6, 0.999}) {  // rho = 1 has no information form
     MapState map;
-    map.PutLandmark(Displaced(a, {0.1, 0.2}, 0.25 * Eigen::Matrix2d::Identity()));
-    map.PutLandmark(Displaced(b, {0.3, -0.1}, 4.0 * Eigen::Matrix2d::Identity()));
-    if (rho > 0) map.PutCrossCovariance(1, 2, rho * 0.5 * 2.0 * Eigen::Matrix2d::Identity());
+    Put(Displaced(a, {0.1, 0.2}, 0.25 * Eigen::Matrix2d::Identity()), &map);
+    Put(Displaced(b, {0.3, -0.1}, 4.0 * Eigen::Matrix2d::Identity()), &map);
+    Eigen::MatrixXd joint = Eigen::MatrixXd::Zero(4, 4);
+    joint.block<2, 2>(0, 0) = 0.25 * Eigen::Matrix2d::Identity();
+    joint.block<2, 2>(2, 2) = 4.0 * Eigen::Matrix2d::Identity();
+    joint.block<2, 2>(0, 2) = joint.block<2, 2>(2, 0) = rho * 0.5 * 2.0 * Eigen::Matrix2d::Identity();
+    SetJointCovariance({1, 2}, joint, &map);
     EXPECT_NEAR(NeesPerDofSdIfConsistent(map, {a, b}), std::sqrt(2.0 * (4.0 + 4.0 * rho * rho)) / 4.0, 1e-9)
         << "rho=" << rho;
   }

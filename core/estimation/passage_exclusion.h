@@ -1,0 +1,23 @@
+#ifndef CROWDMAP_CORE_ESTIMATION_PASSAGE_EXCLUSION_H_
+#define CROWDMAP_CORE_ESTIMATION_PASSAGE_EXCLUSION_H_
+
+#include <string>
+
+#include "absl/status/statusor.h"
+#include "core/estimation/map_updater.h"
+#include "core/map/map_state.h"
+
+namespace crowdmap {
+
+// The map change that takes back everything one passage brought: its factors are subtracted from
+// the map's information, the map is re-solved around the landmarks they were on, and landmarks
+// left without any factor are removed. The result is the map built without the passage, up to
+// the linearisation points of the other passages' factors (exact on linear problems). `map` is
+// only read. NotFound when the map holds no factor of the passage; FailedPrecondition when what
+// remains does not determine a landmark (nothing is changed then).
+absl::StatusOr<PassageUpdate> ComputePassageExclusion(const std::string& vehicle_id, const std::string& passage_id,
+                                                      const MapUpdateOptions& options, const MapReaderInterface& map);
+
+}  // namespace crowdmap
+
+#endif  // CROWDMAP_CORE_ESTIMATION_PASSAGE_EXCLUSION_H_

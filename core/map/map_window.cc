@@ -1,0 +1,199 @@
+#include "core/map/map_window.h"
+
+#include <algorithm>
+#include <unordered_set>
+
+#include <Eigen/Eigenvalues>
+
+#include "absl/strings/str_cat.h"
+#include "core/map/selected_inverse.h"
+
+namespace crowdmap {
+namespace {
+
+using Triplets = std::vector<Eigen::Triplet<double>>;
+
+void AddBlock(int row, int col, const Eigen::Ref<const Eigen::MatrixXd>& block, Triplets* out) {
+  for (int r = 0; r < block.rows(); ++r) {
+    for (int c = 0; c < block.cols(); ++c) out->emplace_back(row + r, col + c, block(r, c));
+  }
+}
+
+// Information of a positive semi-definite `info` on the entries `keep` once the others are
+// eliminated: keep-keep - keep-other other-other^+ other-keep (the pseudo-inverse: a factor may
+// carry no information in some directions of the landmarks it eliminates).
+Eigen::MatrixXd SchurComplement(const Eigen::MatrixXd& info, const std::vector<int>& keep,
+                                const std::vector<int>& other) {
+  const int k = static_cast<int>(keep.size()), o = static_cast<int>(other.size());
+  Eigen::MatrixXd kk(k, k), ko(k, o), oo(o, o);
+  for (int a = 0; a < k; ++a) {
+    for (int b = 0; b < k; ++b) kk(a, b) = info(keep[a], keep[b]);
+    for (int b = 0; b < o; ++b) ko(a, b) = info(keep[a], other[b]);
+  }
+  for (int a = 0; a < o; ++a) {
+    for (int b = 0; b < o; ++b) oo(a, b) = info(other[a], other[b]);
+  }
+  Eigen::SelfAdjointEigenSolver<Eigen::MatrixXd> eig(0.5 * (oo + oo.transpose()));
+  const double floor = 1e-12 * std::max(1.0, eig.eigenvalues().cwiseAbs().maxCoeff());
+  Eigen::VectorXd inverse = eig.eigenvalues();
+  for (int i = 0; i < o; ++i) inverse(i) = inverse(i) > floor ? 1.0 / inverse(i) : 0.0;
+  const Eigen::MatrixXd kv = ko * eig.eigenvectors();
+  Eigen::MatrixXd schur = kk - kv * inverse.asDiagonal() * kv.transpose();
+  return 0.5 * (schur + schur.transpose());
+}
+
+}  // namespace
+
+absl::Status MapWindowOptions::Validate() const {
+  if (hops < 0) return absl::InvalidArgumentError(absl::StrCat("window hops: must be >= 0, got ", hops));
+  return absl::OkStatus();
+}
+
+absl::StatusOr<MapWindow> MapWindow::Build(const MapReaderInterface& map, const std::vector<LandmarkId>& seeds,
+                                           const MapWindowOptions& options) {
+  if (absl::Status s = options.Validate(); !s.ok()) return s;
+  MapWindow w;
+  // Breadth-first over the links, level by level.
+  std::vector<LandmarkId> frontier;
+  for (LandmarkId id : seeds) {
+    if (map.FindLandmark(id) == nullptr) return absl::NotFoundError(absl::StrCat("landmark ", id, ": not in the map"));
+    if (w.index_.emplace(id, static_cast<int>(w.ids_.size())).second) {
+      w.ids_.push_back(id);
+      frontier.push_back(id);
+    }
+  }
+  std::vector<LandmarkId> linked;
+  for (int hop = 0; !frontier.empty() && (options.hops == 0 || hop < options.hops); ++hop) {
+    std::vector<LandmarkId> next;
+    for (LandmarkId id : frontier) {
+      linked.clear();
+      map.AppendLinked(id, &linked);
+      for (LandmarkId other : linked) {
+        if (w.index_.emplace(other, static_cast<int>(w.ids_.size())).second) {
+          w.ids_.push_back(other);
+          next.push_back(other);
+        }
+      }
+    }
+    frontier = std::move(next);
+  }
+
+  // The window's information, with the landmarks outside held at their estimate.
+  const int n = static_cast<int>(w.ids_.size());
+  Triplets triplets;
+  Eigen::VectorXd rhs(2 * n);
+  std::unordered_set<LandmarkId> edge;  // window landmarks linked to the outside
+  for (int i = 0; i < n; ++i) {
+    const LandmarkId a = w.ids_[i];
+    rhs.segment<2>(2 * i) = map.InformationVector(a);
+    AddBlock(2 * i, 2 * i, map.Information(a, a).value, &triplets);
+    linked.clear();
+    map.AppendLinked(a, &linked);
+    for (LandmarkId b : linked) {
+      const Eigen::Matrix2d block = map.Information(a, b).value;
+      const int j = w.index(b);
+      if (j >= 0) {
+        AddBlock(2 * i, 2 * j, block, &triplets);
+      } else {
+        rhs.segment<2>(2 * i) -= block * map.FindLandmark(b)->Offset();
+        edge.insert(a);
+      }
+    }
+  }
+  Eigen::SparseMatrix<double> information(2 * n, 2 * n);
+  information.setFromTriplets(triplets.begin(), triplets.end());
+  auto mean_llt = std::make_shared<Llt>(information);
+  if (mean_llt->info() != Eigen::Success) {
+    return absl::FailedPreconditionError(
+        absl::StrCat("map information over ", n, " landmarks is not positive definite"));
+  }
+  w.offsets_ = mean_llt->solve(rhs);
+  if (!w.offsets_.allFinite()) return absl::InternalError("map estimate is not finite");
+  w.closed_ = edge.empty();
+  if (w.closed_) {
+    w.covariance_llt_ = std::move(mean_llt);
+    return w;
+  }
+
+  // Conservative covariance: every factor that reaches outside enters through its marginal on the
+  // window instead of its conditional.
+  std::unordered_set<int64_t> crossing;
+  std::vector<int64_t> factor_ids;
+  for (LandmarkId a : edge) {
+    factor_ids.clear();
+    map.AppendFactorIds(a, &factor_ids);
+    for (int64_t id : factor_ids) {
+      const MapFactor* f = map.FindFactor(id);
+      for (LandmarkId l : f->landmarks) {
+        if (w.index(l) < 0) {
+          crossing.insert(id);
+          break;
+        }
+      }
+    }
+  }
+  for (int64_t id : crossing) {
+    const MapFactor& f = *map.FindFactor(id);
+    std::vector<int> keep, other, keep_index;
+    for (size_t k = 0; k < f.landmarks.size(); ++k) {
+      const int j = w.index(f.landmarks[k]);
+      for (int c = 0; c < 2; ++c) (j >= 0 ? keep : other).push_back(static_cast<int>(2 * k) + c);
+      if (j >= 0) keep_index.push_back(j);
+    }
+    const Eigen::MatrixXd schur = SchurComplement(f.information, keep, other);
+    for (size_t a = 0; a < keep_index.size(); ++a) {
+      for (size_t b = 0; b < keep_index.size(); ++b) {
+        const Eigen::Matrix2d conditional = f.information.block<2, 2>(keep[2 * a], keep[2 * b]);
+        AddBlock(2 * keep_index[a], 2 * keep_index[b], schur.block<2, 2>(2 * a, 2 * b) - conditional, &triplets);
+      }
+    }
+  }
+  information.setFromTriplets(triplets.begin(), triplets.end());
+  w.covariance_llt_ = std::make_shared<Llt>(information);
+  if (w.covariance_llt_->info() != Eigen::Success) {
+    return absl::FailedPreconditionError(
+        absl::StrCat("map marginal information over ", n, " landmarks is not positive definite"));
+  }
+  return w;
+}
+
+int MapWindow::index(LandmarkId id) const {
+  auto it = index_.find(id);
+  return it == index_.end() ? -1 : it->second;
+}
+
+absl::StatusOr<Eigen::MatrixXd> MapWindow::Covariance(const std::vector<LandmarkId>& ids) const {
+  const int n = static_cast<int>(ids_.size()), m = static_cast<int>(ids.size());
+  Eigen::MatrixXd unit = Eigen::MatrixXd::Zero(2 * n, 2 * m);
+  std::vector<int> at(m);
+  for (int k = 0; k < m; ++k) {
+    at[k] = index(ids[k]);
+    if (at[k] < 0) return absl::InvalidArgumentError(absl::StrCat("landmark ", ids[k], ": outside the window"));
+    unit.block<2, 2>(2 * at[k], 2 * k).setIdentity();
+  }
+  const Eigen::MatrixXd columns = covariance_llt_->solve(unit);
+  Eigen::MatrixXd cov(2 * m, 2 * m);
+  for (int k = 0; k < m; ++k) cov.middleRows<2>(2 * k) = columns.middleRows<2>(2 * at[k]);
+  cov = 0.5 * (cov + cov.transpose());
+  if (!cov.allFinite()) return absl::InternalError("map covariance is not finite");
+  return cov;
+}
+
+std::vector<Eigen::Matrix2d> MapWindow::Marginals() const {
+  const SelectedInverse inverse(*covariance_llt_);
+  std::vector<Eigen::Matrix2d> out(ids_.size());
+  for (size_t i = 0; i < ids_.size(); ++i) {
+    const int r = static_cast<int>(2 * i);
+    out[i] << inverse(r, r), inverse(r, r + 1), inverse(r + 1, r), inverse(r + 1, r + 1);
+  }
+  return out;
+}
+
+absl::StatusOr<Eigen::MatrixXd> JointCovariance(const MapReaderInterface& map, const std::vector<LandmarkId>& ids,
+                                                const MapWindowOptions& options) {
+  absl::StatusOr<MapWindow> window = MapWindow::Build(map, ids, options);
+  if (!window.ok()) return window.status();
+  return window->Covariance(ids);
+}
+
+}  // namespace crowdmap

@@ -1,0 +1,68 @@
+#ifndef CROWDMAP_CORE_MAP_MAP_WINDOW_H_
+#define CROWDMAP_CORE_MAP_MAP_WINDOW_H_
+
+#include <memory>
+#include <unordered_map>
+#include <vector>
+
+#include <Eigen/Core>
+#include <Eigen/SparseCholesky>
+#include <Eigen/SparseCore>
+
+#include "absl/status/statusor.h"
+#include "core/map/map_state.h"
+
+namespace crowdmap {
+
+struct MapWindowOptions {
+  // Landmarks within this many links (a link: a factor shared by two landmarks) of the seeds are
+  // estimated; the rest of the map is held at its estimate. 0 = no limit: the seeds' whole
+  // connected part of the map, where estimates and covariances are exact.
+  int hops = 0;
+
+  absl::Status Validate() const;
+};
+
+// The map's estimate and covariance over the landmarks around some seeds, from the sparse
+// information matrix of its factors (a sparse Cholesky factorisation of the window).
+//   - Estimate: the window's offsets minimise the map's cost with every landmark outside held at
+//     its estimate (the conditional mean; the map's own mean when the window is closed).
+//   - Covariance: exact when the window is closed (no factor reaches outside it). Otherwise each
+//     factor that reaches outside enters through its own marginal on the window's landmarks (its
+//     Schur complement), which is no more informative than the map's: the covariance is then
+//     conservative, never smaller than the exact marginal.
+class MapWindow {
+ public:
+  static absl::StatusOr<MapWindow> Build(const MapReaderInterface& map, const std::vector<LandmarkId>& seeds,
+                                         const MapWindowOptions& options);
+
+  // The window's landmarks; the seeds first, in the order given.
+  const std::vector<LandmarkId>& landmarks() const { return ids_; }
+  // Position of `id` in landmarks(), -1 when outside the window.
+  int index(LandmarkId id) const;
+  bool closed() const { return closed_; }
+  // Offsets from the anchors (East, North, metres), 2 per landmark in landmarks() order.
+  const Eigen::VectorXd& offsets() const { return offsets_; }
+  // Joint covariance of `ids` (all in the window), East/North at their anchors.
+  absl::StatusOr<Eigen::MatrixXd> Covariance(const std::vector<LandmarkId>& ids) const;
+  // 2x2 marginal covariance of every window landmark, in landmarks() order.
+  std::vector<Eigen::Matrix2d> Marginals() const;
+
+ private:
+  using Llt = Eigen::SimplicialLLT<Eigen::SparseMatrix<double>>;
+  MapWindow() = default;
+
+  std::vector<LandmarkId> ids_;
+  std::unordered_map<LandmarkId, int> index_;
+  bool closed_ = true;
+  Eigen::VectorXd offsets_;
+  std::shared_ptr<const Llt> covariance_llt_;  // of the (conservative) window information
+};
+
+// Joint covariance of `ids` in `map` (East/North at the anchors), through a MapWindow around them.
+absl::StatusOr<Eigen::MatrixXd> JointCovariance(const MapReaderInterface& map, const std::vector<LandmarkId>& ids,
+                                                const MapWindowOptions& options = {});
+
+}  // namespace crowdmap
+
+#endif  // CROWDMAP_CORE_MAP_MAP_WINDOW_H_

@@ -1,0 +1,126 @@
+#include "core/map/map_window.h"
+
+#include <random>
+
+#include <Eigen/Eigenvalues>
+#include <gtest/gtest.h>
+
+namespace crowdmap {
+namespace {
+
+// A chain of `n` landmarks; factor k links landmarks k and k+1 with a random positive definite
+// information, so the map's information is block tridiagonal.
+MapState Chain(int n, uint64_t seed) {
+  std::mt19937_64 rng(seed);
+  std::normal_distribution<double> g(0.0, 1.0);
+  MapState map;
+  for (int i = 0; i < n; ++i) {
+    Landmark l;
+    l.id = i + 1;
+    l.anchor = {45.0, 4.0 + 1e-4 * i};
+    l.position = l.anchor;
+    map.PutLandmark(l);
+  }
+  for (int k = 0; k + 1 < n; ++k) {
+    Eigen::MatrixXd a(6, 4);
+    for (int r = 0; r < 6; ++r) {
+      for (int c = 0; c < 4; ++c) a(r, c) = g(rng);
+    }
+    MapFactor f;
+    f.id = k + 1;
+    f.landmarks = {k + 1, k + 2};
+    f.information = a.transpose() * a;
+    f.information_vector = Eigen::Vector4d(g(rng), g(rng), g(rng), g(rng));
+    map.PutFactor(f);
+  }
+  return map;
+}
+
+Eigen::MatrixXd DenseInformation(const MapState& map, int n, Eigen::VectorXd* vector) {
+  Eigen::MatrixXd h = Eigen::MatrixXd::Zero(2 * n, 2 * n);
+  vector->setZero(2 * n);
+  for (int i = 0; i < n; ++i) {
+    vector->segment<2>(2 * i) = map.InformationVector(i + 1);
+    for (int j = 0; j < n; ++j) h.block<2, 2>(2 * i, 2 * j) = map.Information(i + 1, j + 1).value;
+  }
+  return h;
+}
+
+TEST(MapWindow, WholeMapGivesTheExactEstimateAndCovariance) {
+  const int n = 12;
+  const MapState map = Chain(n, 1);
+  Eigen::VectorXd eta;
+  const Eigen::MatrixXd h = DenseInformation(map, n, &eta);
+  const Eigen::MatrixXd cov = h.inverse();
+  const Eigen::VectorXd mean = h.ldlt().solve(eta);
+  absl::StatusOr<MapWindow> w = MapWindow::Build(map, {5}, MapWindowOptions{});
+  ASSERT_TRUE(w.ok()) << w.status();
+  EXPECT_TRUE(w->closed());
+  ASSERT_EQ(w->landmarks().size(), static_cast<size_t>(n));
+  EXPECT_EQ(w->landmarks().front(), 5) << "seeds first";
+  const std::vector<Eigen::Matrix2d> marginals = w->Marginals();
+  for (int k = 0; k < n; ++k) {
+    const int i = w->landmarks()[k] - 1;
+    EXPECT_LT((w->offsets().segment<2>(2 * k) - mean.segment<2>(2 * i)).cwiseAbs().maxCoeff(), 1e-9);
+    EXPECT_LT((marginals[k] - cov.block<2, 2>(2 * i, 2 * i)).cwiseAbs().maxCoeff(), 1e-9);
+  }
+  absl::StatusOr<Eigen::MatrixXd> joint = w->Covariance({2, 11});
+  ASSERT_TRUE(joint.ok());
+  EXPECT_LT((joint->block<2, 2>(0, 2) - cov.block<2, 2>(2, 20)).cwiseAbs().maxCoeff(), 1e-9) << "far apart, exact";
+}
+
+TEST(MapWindow, BoundedWindowIsConservativeAndConditionsOnTheRest) {
+  const int n = 12;
+  MapState map = Chain(n, 2);
+  Eigen::VectorXd eta;
+  const Eigen::MatrixXd h = DenseInformation(map, n, &eta);
+  const Eigen::MatrixXd cov = h.inverse();
+  MapWindowOptions options;
+  options.hops = 2;
+  absl::StatusOr<MapWindow> w = MapWindow::Build(map, {6}, options);
+  ASSERT_TRUE(w.ok()) << w.status();
+  EXPECT_FALSE(w->closed());
+  EXPECT_EQ(w->landmarks().size(), 5u) << "landmarks 4..8";
+  const std::vector<LandmarkId> ids = {4, 5, 6, 7, 8};
+  absl::StatusOr<Eigen::MatrixXd> window_cov = w->Covariance(ids);
+  ASSERT_TRUE(window_cov.ok());
+  const Eigen::MatrixXd exact = cov.block(6, 6, 10, 10);
+  // Never smaller than the exact marginal (the difference is positive semi-definite) ...
+  Eigen::SelfAdjointEigenSolver<Eigen::MatrixXd> diff(*window_cov - exact);
+  EXPECT_GT(diff.eigenvalues().minCoeff(), -1e-9);
+  // ... and not equal to it: the window lost information.
+  EXPECT_GT(diff.eigenvalues().maxCoeff(), 1e-6);
+  // With the rest held at the estimate the window is the conditional solve: with the rest at the
+  // exact mean, the window's estimate is the exact mean.
+  const Eigen::VectorXd mean = h.ldlt().solve(eta);
+  MapState at_mean = map;
+  for (int i = 0; i < n; ++i) {
+    Landmark l = *map.FindLandmark(i + 1);
+    l.position = LocalFrame(l.anchor).ToGeo(mean.segment<2>(2 * i));
+    at_mean.PutLandmark(l);
+  }
+  absl::StatusOr<MapWindow> conditional = MapWindow::Build(at_mean, {6}, options);
+  ASSERT_TRUE(conditional.ok());
+  for (size_t k = 0; k < ids.size(); ++k) {
+    const int i = conditional->landmarks()[k] - 1;
+    EXPECT_LT((conditional->offsets().segment<2>(2 * k) - mean.segment<2>(2 * i)).cwiseAbs().maxCoeff(), 1e-6);
+  }
+}
+
+TEST(MapWindow, UnknownSeedAndSingularInformationFailCleanly) {
+  MapState map = Chain(3, 3);
+  EXPECT_EQ(MapWindow::Build(map, {99}, {}).status().code(), absl::StatusCode::kNotFound);
+  MapFactor flat;
+  flat.id = 10;
+  flat.landmarks = {1};
+  flat.information = -100.0 * Eigen::Matrix2d::Identity();
+  flat.information_vector = Eigen::Vector2d::Zero();
+  map.PutFactor(flat);
+  EXPECT_EQ(MapWindow::Build(map, {1}, {}).status().code(), absl::StatusCode::kFailedPrecondition);
+  MapWindowOptions bad;
+  bad.hops = -1;
+  EXPECT_EQ(MapWindow::Build(map, {1}, bad).status().code(), absl::StatusCode::kInvalidArgument);
+}
+
+}  // namespace
+}  // namespace crowdmap

@@ -1,0 +1,47 @@
+#include "core/map/selected_inverse.h"
+
+#include <algorithm>
+
+namespace crowdmap {
+
+SelectedInverse::SelectedInverse(const Eigen::SimplicialLLT<Eigen::SparseMatrix<double>>& factor)
+    : perm_(factor.permutationP().indices()), l_(factor.matrixL()) {
+  l_.makeCompressed();
+  const int n = static_cast<int>(l_.cols());
+  const int* outer = l_.outerIndexPtr();
+  const int* inner = l_.innerIndexPtr();
+  const double* lv = l_.valuePtr();
+  values_.assign(l_.nonZeros(), 0.0);
+  // Entry (row, col), row >= col, in column col (row indices sorted, the diagonal first).
+  auto at = [&](int row, int col) -> double {
+    const int* it = std::lower_bound(inner + outer[col], inner + outer[col + 1], row);
+    return values_[it - inner];
+  };
+  // L^T Sigma = L^-1, columns from the last: for i >= j on the pattern of column j,
+  //   Sigma_ij = (delta_ij / L_jj - sum_{k > j} L_kj Sigma_ki) / L_jj,
+  // where every Sigma_ki needed lies on the pattern (a property of Cholesky fill).
+  for (int j = n - 1; j >= 0; --j) {
+    const int first = outer[j], last = outer[j + 1];
+    const double ljj = lv[first];
+    for (int q = last - 1; q >= first; --q) {
+      const int i = inner[q];
+      double s = i == j ? 1.0 / ljj : 0.0;
+      for (int r = first + 1; r < last; ++r) {
+        const int k = inner[r];
+        s -= lv[r] * (k >= i ? at(k, i) : at(i, k));
+      }
+      values_[q] = s / ljj;
+    }
+  }
+}
+
+double SelectedInverse::operator()(int i, int j) const {
+  int a = perm_[i], b = perm_[j];
+  if (a < b) std::swap(a, b);
+  const int* begin = l_.innerIndexPtr() + l_.outerIndexPtr()[b];
+  const int* end = l_.innerIndexPtr() + l_.outerIndexPtr()[b + 1];
+  const int* it = std::lower_bound(begin, end, a);
+  return it != end && *it == a ? values_[it - l_.innerIndexPtr()] : 0.0;
+}
+
+}  // namespace crowdmap
