@@ -121,7 +121,7 @@ grpc::Status MapService::GetMapInfo(grpc::ServerContext* ctx, const pb::GetMapIn
   if (!stats.ok()) return log.Done(stats.status());
   response->set_map_version(stats->map_version);
   response->set_landmark_count(stats->landmark_count);
-  response->set_cross_covariance_count(stats->cross_count);
+  response->set_factor_count(stats->factor_count);
   response->set_queue_depth(stats->queue_depth());
   response->set_passages_queued(stats->passages_by_state[static_cast<int>(PassageState::kQueued)]);
   response->set_passages_processing(stats->passages_by_state[static_cast<int>(PassageState::kProcessing)]);
@@ -132,7 +132,7 @@ grpc::Status MapService::GetMapInfo(grpc::ServerContext* ctx, const pb::GetMapIn
   response->set_warmup_passages(context_->update.warmup_passages);
   response->set_relinearize_until_passages(context_->update.relinearize_until_passages);
   response->set_max_subgraph_dim(context_->update.max_subgraph_dim);
-  response->set_correlation_radius_m(context_->update.correlation_radius_m);
+  response->set_window_hops(context_->update.window_hops);
   log.Add(absl::StrCat("map_version=", stats->map_version, " queue_depth=", stats->queue_depth()));
   return log.Done(absl::OkStatus());
 }

@@ -54,10 +54,11 @@ absl::StatusOr<std::unique_ptr<MapServer>> MapServer::Start(const MapServerOptio
   if (ec) return absl::FailedPreconditionError(absl::StrCat("db: cannot create ", db_dir.string(), ": ", ec.message()));
   SqliteMapStoreOptions store_options;
   if (options.worker.yield) store_options.write_yield_vm_steps = kWriteYieldVmSteps;
+  store_options.covariance_window_hops = options.worker.update.window_hops;
   auto sqlite = CreateSqliteMapStore(options.db_path, store_options);
   if (!sqlite.ok()) return sqlite.status();
   // Map reads are served from memory; SQLite stays the source of truth.
-  auto store = CachedMapStore::Create(std::move(*sqlite));
+  auto store = CachedMapStore::Create(std::move(*sqlite), options.worker.update.window_hops);
   if (!store.ok()) return store.status();
   server->store_ = std::move(*store);
   server->committer_ = std::make_unique<UploadCommitter>(server->store_.get(), options.max_queue);

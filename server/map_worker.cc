@@ -60,8 +60,8 @@ absl::StatusOr<std::unique_ptr<MapWorker>> MapWorker::Create(MapStoreInterface* 
   if (*requeued > 0) spdlog::warn("event=requeue passages={} reason=\"processing at start-up\"", *requeued);
   if (auto s = worker->LoadMirror(); !s.ok()) return s;
   notifier->Publish(worker->map_.version());
-  spdlog::info("event=map_loaded landmarks={} cross_blocks={} map_version={} warming_up={} next_joint_solve={}",
-               worker->map_.landmark_count(), worker->map_.cross_block_count(), worker->map_.version(),
+  spdlog::info("event=map_loaded landmarks={} factors={} map_version={} warming_up={} next_joint_solve={}",
+               worker->map_.landmark_count(), worker->map_.factor_count(), worker->map_.version(),
                worker->updater_->warming_up(), worker->updater_->joint_next());
   return worker;
 }
@@ -202,10 +202,10 @@ void MapWorker::Apply(const ClaimedPassage& claimed, const Passage& passage) {
         spdlog::info(
             "event=applied passage={} vehicle={} id={} nodes={} subgraphs={} landmarks_updated={} "
             "landmarks_created={} landmarks_conditioned={} solve_ms={:.1f} total_ms={:.1f} commit_ms={:.1f} "
-            "cross_blocks={} map_version={}",
+            "factors_added={} map_version={}",
             record.passage_id, record.vehicle_id, record.id, result.nodes, result.subgraphs,
             result.landmarks_updated, result.landmarks_created, result.landmarks_conditioned, result.solve_ms,
-            result.total_ms, commit_ms, update->delta.cross.size(), map_.version());
+            result.total_ms, commit_ms, update->delta.added_factors.size(), map_.version());
         return;
       }
       error = absl::StrCat("commit: ", committed.ToString());

@@ -15,7 +15,7 @@ namespace {
 
 const std::vector<std::string>& SettingNames() {
   static const std::vector<std::string> kNames = {
-      "listen", "db", "strategy", "max-subgraph-dim", "correlation-radius-m", "warmup-passages", "relinearize-until-passages", "workers",
+      "listen", "db", "strategy", "max-subgraph-dim", "window-hops", "warmup-passages", "relinearize-until-passages", "workers",
       "worker-nice", "max-queue", "max-message-mb", "max-passage-mb", "log-level"};
   return kNames;
 }
@@ -61,13 +61,6 @@ absl::StatusOr<int64_t> ToInt(const std::string& name, const std::string& value)
   return v;
 }
 
-absl::StatusOr<double> ToDouble(const std::string& name, const std::string& value) {
-  if (value == "inf" || value == "infinity") return std::numeric_limits<double>::infinity();
-  double v = 0;
-  if (!absl::SimpleAtod(value, &v)) return absl::InvalidArgumentError(absl::StrCat("--", name, ": expected a number, got '", value, "'"));
-  return v;
-}
-
 }  // namespace
 
 std::string MapdUsage() {
@@ -79,8 +72,9 @@ Usage: mapd [--flag value | --flag=value]...
   --db PATH                   SQLite map database, created on first start (default ./var/map.db)
   --strategy NAME             map update strategy: cc | dc | cc-gsd (default cc-gsd)
   --max-subgraph-dim N        largest subgraph state dimension with cc-gsd (default 500)
-  --correlation-radius-m M    keep cross-covariances only between landmarks closer than M metres
-                              (default inf: dense)
+  --window-hops N             after each subgraph the map is re-solved, and covariances are
+                              recovered, within N links (shared factors) of its landmarks;
+                              outside covariances are conservative (default 0: whole map, exact)
   --warmup-passages N         a new map's first N passages are solved jointly, re-solved with
                               each one, so their arrival order does not stay in the map
                               (default 8; 0 = off; see README)
@@ -159,14 +153,11 @@ absl::StatusOr<MapdConfig> ParseMapdConfig(const std::vector<std::string>& args,
       o.worker.update.strategy = *strategy;
     } else if (name == "log-level") {
       config.log_level = value;
-    } else if (name == "correlation-radius-m") {
-      auto v = ToDouble(name, value);
-      if (!v.ok()) return v.status();
-      o.worker.update.correlation_radius_m = *v;
     } else {
       auto v = ToInt(name, value);
       if (!v.ok()) return v.status();
       if (name == "max-subgraph-dim") o.worker.update.max_subgraph_dim = static_cast<int>(*v);
+      if (name == "window-hops") o.worker.update.window_hops = static_cast<int>(*v);
       if (name == "warmup-passages") o.worker.update.warmup_passages = static_cast<int>(*v);
       if (name == "relinearize-until-passages") o.worker.update.relinearize_until_passages = static_cast<int>(*v);
       if (name == "workers") o.worker.workers = static_cast<int>(*v);

@@ -52,7 +52,7 @@ TEST(MapdConfig, RejectsUnknownFlagsAndBadValues) {
 }
 
 TEST(MapdConfig, ReadsUpdateOptions) {
-  auto c = ParseMapdConfig({"--max-subgraph-dim", "300", "--correlation-radius-m", "150.5"}, FakeEnv({}));
+  auto c = ParseMapdConfig({"--max-subgraph-dim", "300", "--window-hops", "3"}, FakeEnv({}));
   ASSERT_TRUE(c.ok()) << c.status();
   EXPECT_EQ(c->server.worker.update.max_subgraph_dim, 300);
   EXPECT_EQ(c->server.worker.update.warmup_passages, 8);
@@ -69,7 +69,7 @@ TEST(MapdConfig, ReadsUpdateOptions) {
   auto bad = ParseMapdConfig({"--warmup-passages", "-1"}, FakeEnv({}));
   ASSERT_FALSE(bad.ok());
   EXPECT_NE(bad.status().message().find("warmup_passages"), std::string::npos) << bad.status();
-  EXPECT_EQ(c->server.worker.update.correlation_radius_m, 150.5);
+  EXPECT_EQ(c->server.worker.update.window_hops, 3);
   EXPECT_EQ(c->server.worker.nice, 10);
   auto n = ParseMapdConfig({}, FakeEnv({{"MAPD_WORKER_NICE", "0"}}));
   ASSERT_TRUE(n.ok()) << n.status();

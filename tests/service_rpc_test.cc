@@ -6,6 +6,7 @@
 #include <set>
 #include <thread>
 
+#include "core/map/map_window.h"
 #include "server/testing/temp_dir.h"
 #include "server/wire_convert.h"
 #include "tests/support/mock_vehicle.h"
@@ -183,15 +184,15 @@ TEST_F(ServiceRpc, QueryRegionPagesCoverTheMapWithCovariances) {
     for (const pb::Landmark& l : response.landmarks()) {
       ids.insert(l.id());
       const Landmark& expected = *full->FindLandmark(l.id());
-      EXPECT_EQ(l.cov_en_m2().ee(), expected.cov_en_m2(0, 0));
+      EXPECT_NEAR(l.cov_en_m2().ee(), expected.cov_en_m2(0, 0), 1e-9);
       EXPECT_GT(l.cov_en_m2().ee(), 0.0);
       EXPECT_EQ(l.tile().z(), 16);
     }
     for (const pb::CrossCovariance& c : response.cross_covariances()) {
       EXPECT_LT(c.first_id(), c.second_id());
-      Eigen::Matrix2d block;
-      ASSERT_TRUE(full->CrossCovariance(c.first_id(), c.second_id(), &block));
-      EXPECT_EQ(c.cov_m2().en(), block(0, 1));
+      absl::StatusOr<Eigen::MatrixXd> joint = JointCovariance(*full, {c.first_id(), c.second_id()});
+      ASSERT_TRUE(joint.ok()) << joint.status();
+      EXPECT_NEAR(c.cov_m2().en(), (*joint)(0, 3), 1e-9);
     }
     token = response.next_page_token();
     if (!token.empty()) {
@@ -207,8 +208,8 @@ TEST_F(ServiceRpc, QueryRegionPagesCoverTheMapWithCovariances) {
     }
   } while (!token.empty());
   EXPECT_EQ(ids.size(), 6u);
-  // The single-page download returns the cross blocks among all landmarks (the map is dense).
-  EXPECT_GT(full->cross_block_count(), 0u);
+  // The download is the region's joint Gaussian: one factor on all its landmarks.
+  EXPECT_EQ(full->factor_count(), 1u);
 }
 
 TEST_F(ServiceRpc, GetTileReturnsItsLandmarksAndVersion) {

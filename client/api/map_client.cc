@@ -1,5 +1,9 @@
 #include "client/api/map_client.h"
 
+#include <map>
+
+#include <Eigen/Cholesky>
+
 #include <algorithm>
 #include <thread>
 
@@ -185,12 +189,39 @@ absl::StatusOr<RegionMap> MapClient::QueryRegion(const pb::BoundingBox& box, boo
 absl::StatusOr<MapState> MapClient::DownloadMap(const pb::BoundingBox& box) {
   absl::StatusOr<RegionMap> region = QueryRegion(box, /*include_cross=*/true);
   if (!region.ok()) return region.status();
+  // The region's Gaussian in information form: one factor with the inverse of its joint
+  // covariance, the landmarks anchored at their positions.
   MapState map;
-  for (const pb::Landmark& l : region->landmarks) map.PutLandmark(LandmarkFromProto(l));
+  std::map<LandmarkId, int> index;
+  MapFactor factor;
+  factor.id = 1;
+  for (const pb::Landmark& l : region->landmarks) {
+    Landmark record = LandmarkFromProto(l);
+    record.anchor = record.position;
+    index[record.id] = static_cast<int>(factor.landmarks.size());
+    factor.landmarks.push_back(record.id);
+    map.PutLandmark(record);
+  }
+  const int n = 2 * static_cast<int>(factor.landmarks.size());
+  Eigen::MatrixXd cov = Eigen::MatrixXd::Zero(n, n);
+  for (const pb::Landmark& l : region->landmarks) {
+    const int i = 2 * index[l.id()];
+    cov.block<2, 2>(i, i) = map.FindLandmark(l.id())->cov_en_m2;
+  }
   for (const pb::CrossCovariance& c : region->cross_covariances) {
+    if (!index.count(c.first_id()) || !index.count(c.second_id())) continue;
     Eigen::Matrix2d block;
     block << c.cov_m2().ee(), c.cov_m2().en(), c.cov_m2().ne(), c.cov_m2().nn();
-    map.PutCrossCovariance(c.first_id(), c.second_id(), block);
+    const int i = 2 * index[c.first_id()], j = 2 * index[c.second_id()];
+    cov.block<2, 2>(i, j) = block;
+    cov.block<2, 2>(j, i) = block.transpose();
+  }
+  if (n > 0) {
+    Eigen::LLT<Eigen::MatrixXd> llt(0.5 * (cov + cov.transpose()));
+    if (llt.info() != Eigen::Success) return absl::DataLossError("the region's joint covariance is not positive definite");
+    factor.information = llt.solve(Eigen::MatrixXd::Identity(n, n));
+    factor.information_vector = Eigen::VectorXd::Zero(n);
+    map.PutFactor(std::move(factor));
   }
   map.set_version(region->map_version);
   return map;

@@ -219,13 +219,13 @@ absl::Status Info(const Flags& flags, Context& ctx) {
     return absl::OkStatus();
   }
   *ctx.out << absl::StrFormat(
-      "map version:       %d\nlandmarks:         %d\ncross blocks:      %d\nstrategy:          %s "
+      "map version:       %d\nlandmarks:         %d\nfactors:           %d\nstrategy:          %s "
       "(warm-up %d passages, re-solved at each doubling up to %d, subgraph dim %d, "
-      "correlation radius %g m)\n"
+      "window %d links%s)\n"
       "queue depth:       %d\npassages:          queued=%d processing=%d applied=%d rejected=%d failed=%d\n",
-      info->map_version(), info->landmark_count(), info->cross_covariance_count(), info->strategy(),
+      info->map_version(), info->landmark_count(), info->factor_count(), info->strategy(),
       info->warmup_passages(), info->relinearize_until_passages(), info->max_subgraph_dim(),
-      info->correlation_radius_m(), info->queue_depth(), info->passages_queued(), info->passages_processing(),
+      info->window_hops(), info->window_hops() == 0 ? ": whole map" : "", info->queue_depth(), info->passages_queued(), info->passages_processing(),
       info->passages_applied(), info->passages_rejected(), info->passages_failed());
   return absl::OkStatus();
 }

@@ -217,7 +217,7 @@ absl::StatusOr<FleetResult> RunFleet(const FleetOptions& options,
   result.server_update.warmup_passages = start_info->warmup_passages();
   result.server_update.relinearize_until_passages = start_info->relinearize_until_passages();
   result.server_update.max_subgraph_dim = start_info->max_subgraph_dim();
-  result.server_update.correlation_radius_m = start_info->correlation_radius_m();
+  result.server_update.window_hops = start_info->window_hops();
   if (!options.strategy.empty() && options.strategy != result.server_strategy) {
     return absl::FailedPreconditionError(absl::StrCat("the server runs strategy '", result.server_strategy,
                                                       "', not '", options.strategy, "' (mapd --strategy)"));

@@ -3,6 +3,8 @@
 #include <algorithm>
 #include <set>
 
+#include "server/storage/covariance_page.h"
+
 namespace crowdmap {
 namespace {
 
@@ -15,11 +17,12 @@ bool ById(const Landmark& a, const Landmark& b) { return a.id < b.id; }
 
 }  // namespace
 
-absl::StatusOr<std::unique_ptr<CachedMapStore>> CachedMapStore::Create(std::unique_ptr<MapStoreInterface> inner) {
+absl::StatusOr<std::unique_ptr<CachedMapStore>> CachedMapStore::Create(std::unique_ptr<MapStoreInterface> inner,
+                                                                       int covariance_window_hops) {
   if (inner == nullptr) return absl::InvalidArgumentError("CachedMapStore needs a store to wrap");
-  MapState map;
-  if (auto s = inner->LoadMap(&map); !s.ok()) return s;
-  std::unique_ptr<CachedMapStore> store(new CachedMapStore(std::move(inner)));
+  std::unique_ptr<CachedMapStore> store(new CachedMapStore(std::move(inner), covariance_window_hops));
+  MapState& map = store->map_;
+  if (auto s = store->inner_->LoadMap(&map); !s.ok()) return s;
   std::unordered_map<TileKey, Bucket> buckets;
   map.ForEachLandmark([&](const Landmark& l) {
     const TileKey key = KeyOf(TileContaining(l.position));
@@ -45,6 +48,8 @@ absl::Status CachedMapStore::CommitPassageApplied(int64_t id, const MapDelta& de
   std::lock_guard<std::mutex> lock(writer_mu_);
   if (auto s = inner_->CommitPassageApplied(id, delta, result); !s.ok()) return s;
   std::shared_ptr<const View> next = ApplyToView(delta);
+  std::unique_lock<std::shared_mutex> map_lock(map_mu_);
+  map_.Apply(delta);
   std::lock_guard<std::mutex> publish(view_mu_);
   view_ = std::move(next);
   return absl::OkStatus();
@@ -61,6 +66,12 @@ std::shared_ptr<const CachedMapStore::View> CachedMapStore::ApplyToView(const Ma
     std::vector<const Landmark*> upserts;
   };
   std::unordered_map<TileKey, Change> changes;
+  for (LandmarkId lid : delta.removed_landmarks) {
+    auto old = tile_of_.find(lid);
+    if (old == tile_of_.end()) continue;
+    changes[old->second].leaving.insert(lid);
+    tile_of_.erase(old);
+  }
   for (const auto& [lid, landmark] : delta.landmarks) {
     const TileKey key = KeyOf(TileContaining(landmark.position));
     changes[key].upserts.push_back(&landmark);
@@ -114,7 +125,9 @@ std::vector<Landmark> CachedMapStore::Select(const View& view, const BoundingBox
 
 absl::StatusOr<LandmarkPage> CachedMapStore::QueryRegion(const BoundingBox& box, LandmarkId after_id, int limit,
                                                          bool include_cross) {
-  if (include_cross) return inner_->QueryRegion(box, after_id, limit, include_cross);
+  // With covariances, the view and the map are read under the map's lock: the same version.
+  std::shared_lock<std::shared_mutex> map_lock(map_mu_, std::defer_lock);
+  if (include_cross) map_lock.lock();
   const std::shared_ptr<const View> view = CurrentView();
   LandmarkPage page;
   page.map_version = view->version;
@@ -123,15 +136,23 @@ absl::StatusOr<LandmarkPage> CachedMapStore::QueryRegion(const BoundingBox& box,
     page.landmarks.resize(limit);
     page.more = true;
   }
+  if (include_cross) {
+    if (auto s = AppendCrossCovariances(map_, covariance_window_hops_, &page); !s.ok()) return s;
+  }
   return page;
 }
 
 absl::StatusOr<LandmarkPage> CachedMapStore::GetTile(const TileId& tile, bool include_cross) {
-  if (include_cross || tile.z != kStorageZoom || !IsValidTile(tile)) return inner_->GetTile(tile, include_cross);
+  if (tile.z != kStorageZoom || !IsValidTile(tile)) return inner_->GetTile(tile, include_cross);
+  std::shared_lock<std::shared_mutex> map_lock(map_mu_, std::defer_lock);
+  if (include_cross) map_lock.lock();
   const std::shared_ptr<const View> view = CurrentView();
   LandmarkPage page;
   page.map_version = view->version;
   if (auto it = view->tiles.find(KeyOf(tile)); it != view->tiles.end()) page.landmarks = *it->second;
+  if (include_cross) {
+    if (auto s = AppendCrossCovariances(map_, covariance_window_hops_, &page); !s.ok()) return s;
+  }
   return page;
 }
 

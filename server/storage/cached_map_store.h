@@ -4,6 +4,7 @@
 #include <cstdint>
 #include <memory>
 #include <mutex>
+#include <shared_mutex>
 #include <unordered_map>
 #include <vector>
 
@@ -11,9 +12,10 @@
 
 namespace crowdmap {
 
-// A MapStoreInterface that answers the hot map reads (QueryRegion and GetTile without cross
-// covariances, ChangedLandmarks) from an immutable in-memory copy of the landmarks, and forwards
-// everything else to the store it wraps, which stays the source of truth.
+// A MapStoreInterface that answers the map reads (QueryRegion, GetTile, ChangedLandmarks) from an
+// in-memory copy of the map, and forwards everything else to the store it wraps, which stays the
+// source of truth. Reads without covariances use immutable per-tile snapshots of the landmarks;
+// reads with cross-covariances recover them from an in-memory copy of the map's factors.
 //
 // The copy is loaded from the inner store when the cache is created and is replaced after each
 // successful CommitPassageApplied by applying the same delta, so a read sees either the map before
@@ -22,7 +24,9 @@ namespace crowdmap {
 // the tiles it touches (plus the table of tile pointers).
 class CachedMapStore : public MapStoreInterface {
  public:
-  static absl::StatusOr<std::unique_ptr<CachedMapStore>> Create(std::unique_ptr<MapStoreInterface> inner);
+  // `covariance_window_hops`: see SqliteMapStoreOptions::covariance_window_hops.
+  static absl::StatusOr<std::unique_ptr<CachedMapStore>> Create(std::unique_ptr<MapStoreInterface> inner,
+                                                                int covariance_window_hops = 0);
 
   absl::StatusOr<std::vector<absl::StatusOr<EnqueueOutcome>>> EnqueuePassages(const std::vector<NewPassage>& passages,
                                                                               int64_t max_queue) override {
@@ -65,7 +69,8 @@ class CachedMapStore : public MapStoreInterface {
     std::unordered_map<TileKey, std::shared_ptr<const Bucket>> tiles;
   };
 
-  explicit CachedMapStore(std::unique_ptr<MapStoreInterface> inner) : inner_(std::move(inner)) {}
+  CachedMapStore(std::unique_ptr<MapStoreInterface> inner, int covariance_window_hops)
+      : inner_(std::move(inner)), covariance_window_hops_(covariance_window_hops) {}
 
   static TileKey KeyOf(const TileId& tile) { return (static_cast<uint64_t>(tile.x) << 32) | static_cast<uint32_t>(tile.y); }
   std::shared_ptr<const View> CurrentView() const;
@@ -76,6 +81,11 @@ class CachedMapStore : public MapStoreInterface {
   static std::vector<Landmark> Select(const View& view, const BoundingBox& box, const Keep& keep);
 
   const std::unique_ptr<MapStoreInterface> inner_;
+  const int covariance_window_hops_;
+  // The map with its factors, for covariance reads; written under an exclusive lock by commits,
+  // together with the view's publication.
+  mutable std::shared_mutex map_mu_;
+  MapState map_;
   mutable std::mutex view_mu_;  // guards the pointer only; held for a copy of it
   std::shared_ptr<const View> view_;
   std::mutex writer_mu_;                                 // orders commits and their publication

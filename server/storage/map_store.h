@@ -78,9 +78,14 @@ struct PassageQuery {
   std::string vehicle_id;  // empty = any
 };
 
+// Ordered key of a landmark pair (first < second).
+using LandmarkPair = std::pair<LandmarkId, LandmarkId>;
+
 struct LandmarkPage {
   std::vector<Landmark> landmarks;            // increasing id
-  std::vector<std::pair<LandmarkPair, Eigen::Matrix2d>> cross;  // among `landmarks`, first < second
+  // Cross-covariances among `landmarks` (every pair, first < second), recovered from the map's
+  // information on request.
+  std::vector<std::pair<LandmarkPair, Eigen::Matrix2d>> cross;
   int64_t map_version = 0;
   bool more = false;  // further landmarks match after the last one returned
 };
@@ -88,7 +93,7 @@ struct LandmarkPage {
 struct MapStats {
   int64_t map_version = 0;
   int64_t landmark_count = 0;
-  int64_t cross_count = 0;
+  int64_t factor_count = 0;
   int64_t passages_by_state[6] = {0, 0, 0, 0, 0, 0};  // indexed by PassageState
   int64_t queue_depth() const { return passages_by_state[1] + passages_by_state[2]; }
 };
@@ -125,9 +130,9 @@ class MapStoreInterface {
   // Start-up recovery: every processing passage goes back to queued. Returns how many.
   virtual absl::StatusOr<int> RequeueProcessingPassages() = 0;
 
-  // Loads the whole map (landmarks, cross blocks, version) into `map`.
+  // Loads the whole map (landmarks, factors, version) into `map`.
   virtual absl::Status LoadMap(MapState* map) = 0;
-  // Landmarks inside `box` with id > after_id, at most `limit` (0 = all), with cross blocks on request.
+  // Landmarks inside `box` with id > after_id, at most `limit` (0 = all), with their cross-covariances on request.
   virtual absl::StatusOr<LandmarkPage> QueryRegion(const BoundingBox& box, LandmarkId after_id, int limit,
                                                    bool include_cross) = 0;
   // Landmarks stored in the storage-zoom tile, with cross blocks on request.
@@ -145,6 +150,9 @@ struct SqliteMapStoreOptions {
   // machine steps (4000 is some 0.1 ms of a passage's commit), so that a large commit does not
   // hold a core for milliseconds while requests wait. 0: never.
   int write_yield_vm_steps = 0;
+  // Cross-covariances of a read are recovered within this many links of the landmarks read
+  // (MapWindowOptions::hops; 0 = the whole connected map, exact).
+  int covariance_window_hops = 0;
 
   absl::Status Validate() const;
 };

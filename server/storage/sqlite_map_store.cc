@@ -10,6 +10,8 @@
 #include <Eigen/LU>
 
 #include "absl/strings/str_cat.h"
+#include "server/storage/covariance_page.h"
+#include "server/storage/factor_codec.h"
 #include "server/storage/sqlite_schema.h"
 
 namespace crowdmap {
@@ -17,7 +19,7 @@ namespace {
 
 constexpr char kLandmarkColumns[] =
     "SELECT l.id, l.lat_deg, l.lon_deg, l.cov_ee, l.cov_en, l.cov_ne, l.cov_nn, l.version, l.passages_seen, "
-    "l.last_seen_unix_ms, l.state FROM landmarks l ";
+    "l.last_seen_unix_ms, l.state, l.anchor_lat_deg, l.anchor_lon_deg FROM landmarks l ";
 // Candidates from the R*Tree (float boxes, rounded outwards), then the exact test on the row.
 constexpr char kInBox[] =
     "JOIN landmark_boxes b ON b.id = l.id "
@@ -33,6 +35,7 @@ Landmark LandmarkFromRow(const SqliteStatement& s) {
   l.passages_seen = s.Int(8);
   l.last_seen_unix_ms = s.Int(9);
   l.state = static_cast<LandmarkState>(s.Int(10));
+  l.anchor = LatLon{s.Double(11), s.Double(12)};
   return l;
 }
 
@@ -122,12 +125,13 @@ absl::Status SqliteMapStore::WriteLandmark(SqliteConnection* db, const Landmark&
   const TileId tile = TileContaining(l.position);
   auto stmt = db->Prepare(
       "INSERT INTO landmarks (id, lat_deg, lon_deg, cov_ee, cov_en, cov_ne, cov_nn, version, "
-      "passages_seen, last_seen_unix_ms, state, tile_x, tile_y) "
-      "VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13) ON CONFLICT (id) DO UPDATE SET "
+      "passages_seen, last_seen_unix_ms, state, tile_x, tile_y, anchor_lat_deg, anchor_lon_deg) "
+      "VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13, ?14, ?15) ON CONFLICT (id) DO UPDATE SET "
       "lat_deg = excluded.lat_deg, lon_deg = excluded.lon_deg, cov_ee = excluded.cov_ee, cov_en = excluded.cov_en, "
       "cov_ne = excluded.cov_ne, cov_nn = excluded.cov_nn, version = excluded.version, "
       "passages_seen = excluded.passages_seen, last_seen_unix_ms = excluded.last_seen_unix_ms, "
-      "state = excluded.state, tile_x = excluded.tile_x, tile_y = excluded.tile_y");
+      "state = excluded.state, tile_x = excluded.tile_x, tile_y = excluded.tile_y, "
+      "anchor_lat_deg = excluded.anchor_lat_deg, anchor_lon_deg = excluded.anchor_lon_deg");
   if (!stmt.ok()) return stmt.status();
   stmt->Bind(1, static_cast<int64_t>(l.id))
       .Bind(2, l.position.lat_deg)
@@ -141,7 +145,9 @@ absl::Status SqliteMapStore::WriteLandmark(SqliteConnection* db, const Landmark&
       .Bind(10, l.last_seen_unix_ms)
       .Bind(11, static_cast<int64_t>(l.state))
       .Bind(12, static_cast<int64_t>(tile.x))
-      .Bind(13, static_cast<int64_t>(tile.y));
+      .Bind(13, static_cast<int64_t>(tile.y))
+      .Bind(14, l.anchor.lat_deg)
+      .Bind(15, l.anchor.lon_deg);
   if (auto s = stmt->Run(); !s.ok()) return s;
   auto box = db->Prepare("INSERT OR REPLACE INTO landmark_boxes (id, min_lat, max_lat, min_lon, max_lon) "
                          "VALUES (?1, ?2, ?2, ?3, ?3)");
@@ -170,22 +176,43 @@ absl::Status SqliteMapStore::CommitPassageApplied(int64_t id, const MapDelta& de
   for (const auto& [lid, landmark] : delta.landmarks) {
     if (auto s = WriteLandmark(db, landmark); !s.ok()) return s;
   }
-  for (const auto& [pair, block] : delta.cross) {
-    if (!(pair.first < pair.second) || !block.allFinite()) {
-      return absl::InternalError(absl::StrCat("invalid cross block (", pair.first, ", ", pair.second, ")"));
+  for (LandmarkId lid : delta.removed_landmarks) {
+    for (const char* sql : {"DELETE FROM landmarks WHERE id = ?1", "DELETE FROM landmark_boxes WHERE id = ?1"}) {
+      auto stmt = db->Prepare(sql);
+      if (!stmt.ok()) return stmt.status();
+      stmt->Bind(1, static_cast<int64_t>(lid));
+      if (auto s = stmt->Run(); !s.ok()) return s;
     }
-    // An upsert rewrites the row in place; INSERT OR REPLACE would delete and re-insert it and its
-    // cross_by_b entry (twice the b-tree work on the commit's largest part).
-    auto stmt = db->Prepare("INSERT INTO cross_covariances (a, b, c_ee, c_en, c_ne, c_nn) "
-                            "VALUES (?1, ?2, ?3, ?4, ?5, ?6) ON CONFLICT (a, b) DO UPDATE SET "
-                            "c_ee = excluded.c_ee, c_en = excluded.c_en, c_ne = excluded.c_ne, c_nn = excluded.c_nn");
+  }
+  for (int64_t fid : delta.removed_factors) {
+    auto stmt = db->Prepare("DELETE FROM factors WHERE id = ?1");
     if (!stmt.ok()) return stmt.status();
-    stmt->Bind(1, static_cast<int64_t>(pair.first))
-        .Bind(2, static_cast<int64_t>(pair.second))
-        .Bind(3, block(0, 0))
-        .Bind(4, block(0, 1))
-        .Bind(5, block(1, 0))
-        .Bind(6, block(1, 1));
+    stmt->Bind(1, fid);
+    if (auto s = stmt->Run(); !s.ok()) return s;
+  }
+  int64_t last_factor_id = 0;
+  for (const auto& [fid, factor] : delta.added_factors) {
+    if (!factor.information.allFinite() || !factor.information_vector.allFinite()) {
+      return absl::InternalError(absl::StrCat("factor ", fid, " has non-finite numbers"));
+    }
+    const EncodedFactor encoded = EncodeFactor(factor);
+    auto stmt = db->Prepare(
+        "INSERT INTO factors (id, vehicle_id, passage_id, landmark_ids, information, information_vector) "
+        "VALUES (?1, ?2, ?3, ?4, ?5, ?6)");
+    if (!stmt.ok()) return stmt.status();
+    stmt->Bind(1, fid)
+        .Bind(2, std::string_view(factor.vehicle_id))
+        .Bind(3, std::string_view(factor.passage_id))
+        .BindBlob(4, encoded.landmark_ids)
+        .BindBlob(5, encoded.information)
+        .BindBlob(6, encoded.information_vector);
+    if (auto s = stmt->Run(); !s.ok()) return s;
+    last_factor_id = std::max(last_factor_id, fid);
+  }
+  if (last_factor_id > 0) {
+    auto stmt = db->Prepare("UPDATE map_meta SET value = MAX(value, ?1) WHERE key = 'last_factor_id'");
+    if (!stmt.ok()) return stmt.status();
+    stmt->Bind(1, last_factor_id);
     if (auto s = stmt->Run(); !s.ok()) return s;
   }
   auto set_version = db->Prepare("UPDATE map_meta SET value = ?1 WHERE key = 'map_version'");
@@ -227,7 +254,11 @@ absl::Status SqliteMapStore::LoadMap(MapState* map) {
   if (!db.ok()) return db.status();
   auto snapshot = SqliteReadTransaction::Begin(db->get());
   if (!snapshot.ok()) return snapshot.status();
-  auto landmarks = (*db)->Prepare(absl::StrCat(kLandmarkColumns, "ORDER BY l.id"));
+  return ReadMap(db->get(), map);
+}
+
+absl::Status SqliteMapStore::ReadMap(SqliteConnection* db, MapState* map) {
+  auto landmarks = db->Prepare(absl::StrCat(kLandmarkColumns, "ORDER BY l.id"));
   if (!landmarks.ok()) return landmarks.status();
   while (true) {
     auto row = landmarks->Step();
@@ -235,40 +266,26 @@ absl::Status SqliteMapStore::LoadMap(MapState* map) {
     if (!*row) break;
     map->PutLandmark(LandmarkFromRow(*landmarks));
   }
-  auto cross = (*db)->Prepare("SELECT a, b, c_ee, c_en, c_ne, c_nn FROM cross_covariances ORDER BY a, b");
-  if (!cross.ok()) return cross.status();
+  auto factors = db->Prepare(
+      "SELECT id, vehicle_id, passage_id, landmark_ids, information, information_vector FROM factors ORDER BY id");
+  if (!factors.ok()) return factors.status();
   while (true) {
-    auto row = cross->Step();
+    auto row = factors->Step();
     if (!row.ok()) return row.status();
     if (!*row) break;
-    Eigen::Matrix2d block;
-    block << cross->Double(2), cross->Double(3), cross->Double(4), cross->Double(5);
-    map->PutCrossCovariance(cross->Int(0), cross->Int(1), block);
+    absl::StatusOr<MapFactor> factor = DecodeFactor(
+        factors->Int(0), factors->Text(1), factors->Text(2),
+        EncodedFactor{factors->Blob(3), factors->Blob(4), factors->Blob(5)});
+    if (!factor.ok()) return factor.status();
+    map->PutFactor(*std::move(factor));
   }
-  auto version = ReadMapVersion(db->get());
+  auto last = db->Prepare("SELECT value FROM map_meta WHERE key = 'last_factor_id'");
+  if (!last.ok()) return last.status();
+  if (auto row = last->Step(); !row.ok()) return row.status();
+  map->set_last_factor_id(last->Int(0));
+  auto version = ReadMapVersion(db);
   if (!version.ok()) return version.status();
   map->set_version(*version);
-  return absl::OkStatus();
-}
-
-absl::Status SqliteMapStore::AppendCrossAmong(SqliteConnection* db, LandmarkPage* page) {
-  std::unordered_set<LandmarkId> ids;
-  for (const Landmark& l : page->landmarks) ids.insert(l.id);
-  for (const Landmark& l : page->landmarks) {
-    auto stmt = db->Prepare("SELECT b, c_ee, c_en, c_ne, c_nn FROM cross_covariances WHERE a = ?1 ORDER BY b");
-    if (!stmt.ok()) return stmt.status();
-    stmt->Bind(1, static_cast<int64_t>(l.id));
-    while (true) {
-      auto row = stmt->Step();
-      if (!row.ok()) return row.status();
-      if (!*row) break;
-      const LandmarkId b = stmt->Int(0);
-      if (ids.count(b) == 0) continue;
-      Eigen::Matrix2d block;
-      block << stmt->Double(1), stmt->Double(2), stmt->Double(3), stmt->Double(4);
-      page->cross.emplace_back(LandmarkPair{l.id, b}, block);
-    }
-  }
   return absl::OkStatus();
 }
 
@@ -288,8 +305,11 @@ absl::StatusOr<LandmarkPage> SqliteMapStore::ReadPage(const std::string& where,
   if (!stmt.ok()) return stmt.status();
   bind(*stmt);
   if (auto s = ReadLandmarks(*stmt, &page, limit); !s.ok()) return s;
-  if (include_cross) {
-    if (auto s = AppendCrossAmong(db->get(), &page); !s.ok()) return s;
+  if (include_cross && !page.landmarks.empty()) {
+    // Without a map in memory (CachedMapStore has one), the whole map is read in the snapshot.
+    MapState map;
+    if (auto s = ReadMap(db->get(), &map); !s.ok()) return s;
+    if (auto s = AppendCrossCovariances(map, options_.covariance_window_hops, &page); !s.ok()) return s;
   }
   return page;
 }
@@ -347,8 +367,8 @@ absl::StatusOr<MapStats> SqliteMapStore::GetStats() {
     const int64_t n = counts->Int(1);
     if (name == "landmarks") {
       stats.landmark_count = n;
-    } else if (name == "cross_covariances") {
-      stats.cross_count = n;
+    } else if (name == "factors") {
+      stats.factor_count = n;
     }
     for (int state = 1; state <= 5; ++state) {
       if (name == absl::StrCat("passages_", state)) stats.passages_by_state[state] = n;

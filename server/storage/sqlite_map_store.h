@@ -67,7 +67,8 @@ class SqliteMapStore : public MapStoreInterface {
                                                                       const std::string& passage_id);
   static absl::StatusOr<int64_t> ReadMapVersion(SqliteConnection* db);
   static absl::Status WriteLandmark(SqliteConnection* db, const Landmark& landmark);
-  static absl::Status AppendCrossAmong(SqliteConnection* db, LandmarkPage* page);
+  // Reads landmarks, factors and version (in the caller's transaction).
+  static absl::Status ReadMap(SqliteConnection* db, MapState* map);
   // Landmarks selected by `where` (after the common column list), bound by `bind`, read in one
   // snapshot with the map version; limit 0 = all.
   absl::StatusOr<LandmarkPage> ReadPage(const std::string& where, const std::function<void(SqliteStatement&)>& bind,

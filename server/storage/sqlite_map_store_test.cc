@@ -8,6 +8,9 @@
 #include "gtest/gtest.h"
 #include "server/storage/cached_map_store.h"
 #include "server/storage/sqlite_db.h"
+#include "server/storage/sqlite_schema.h"
+#include "core/map/map_window.h"
+#include <Eigen/LU>
 #include "server/testing/temp_dir.h"
 
 namespace crowdmap {
@@ -21,11 +24,32 @@ Landmark MakeLandmark(LandmarkId id, double lat, double lon, int64_t version) {
   Landmark l;
   l.id = id;
   l.position = {lat, lon};
+  l.anchor = {lat - 1e-6, lon + 2e-6};
   l.cov_en_m2 << 0.5, 0.1, 0.1, 0.7;
   l.version = version;
   l.passages_seen = 1;
   l.last_seen_unix_ms = 42;
   return l;
+}
+
+// A factor whose information is the inverse of `cov` (its landmarks at their anchors).
+MapFactor MakeFactor(int64_t id, const std::vector<LandmarkId>& ids, const Eigen::MatrixXd& cov) {
+  MapFactor f;
+  f.id = id;
+  f.vehicle_id = "v";
+  f.passage_id = "p" + std::to_string(id);
+  f.landmarks = ids;
+  const Eigen::MatrixXd inverse = cov.inverse();
+  f.information = 0.5 * (inverse + inverse.transpose());  // symmetric, as the core's are
+  f.information_vector = Eigen::VectorXd::LinSpaced(cov.rows(), 0.5, 1.5);
+  return f;
+}
+
+// The joint covariance of two landmarks with the marginals of MakeLandmark and cross block `c`.
+Eigen::MatrixXd PairCovariance(const Eigen::Matrix2d& c) {
+  Eigen::MatrixXd cov(4, 4);
+  cov << 0.5, 0.1, c(0, 0), c(0, 1), 0.1, 0.7, c(1, 0), c(1, 1), c(0, 0), c(1, 0), 0.5, 0.1, c(0, 1), c(1, 1), 0.1, 0.7;
+  return cov;
 }
 
 std::unique_ptr<MapStoreInterface> OpenStore(const std::string& path) {
@@ -229,7 +253,7 @@ TEST(SqliteMapStore, CommitWritesMapVersionAndResultTogether) {
   delta.landmarks[9] = MakeLandmark(9, 48.7001, 2.1701, 1);
   Eigen::Matrix2d block;
   block << 0.01, 0.02, 0.03, 0.04;
-  delta.cross[{7, 9}] = block;
+  delta.added_factors[1] = MakeFactor(1, {7, 9}, PairCovariance(block));
   PassageResult result;
   result.landmarks_created = 2;
   result.subgraphs = 2;
@@ -250,14 +274,19 @@ TEST(SqliteMapStore, CommitWritesMapVersionAndResultTogether) {
   ASSERT_EQ(map.landmark_count(), 2u);
   EXPECT_EQ(map.FindLandmark(7)->position.lat_deg, 48.7);
   EXPECT_EQ(map.FindLandmark(7)->cov_en_m2, delta.landmarks[7].cov_en_m2);
-  Eigen::Matrix2d got;
-  ASSERT_TRUE(map.CrossCovariance(9, 7, &got));
-  EXPECT_EQ(got, Eigen::Matrix2d(block.transpose()));
+  EXPECT_EQ(map.FindLandmark(7)->anchor.lon_deg, delta.landmarks[7].anchor.lon_deg);
+  ASSERT_EQ(map.factor_count(), 1u);
+  const MapFactor& factor = *map.FindFactor(1);
+  EXPECT_EQ(factor.landmarks, (std::vector<LandmarkId>{7, 9}));
+  EXPECT_EQ(factor.passage_id, "p1");
+  EXPECT_EQ(factor.information, delta.added_factors[1].information) << "stored bit for bit";
+  EXPECT_EQ(factor.information_vector, delta.added_factors[1].information_vector);
+  EXPECT_EQ(map.last_factor_id(), 1);
   auto stats = store->GetStats();
   ASSERT_TRUE(stats.ok());
   EXPECT_EQ(stats->map_version, 2);
   EXPECT_EQ(stats->landmark_count, 2);
-  EXPECT_EQ(stats->cross_count, 1);
+  EXPECT_EQ(stats->factor_count, 1);
   EXPECT_EQ(stats->passages_by_state[static_cast<int>(PassageState::kApplied)], 1);
   EXPECT_EQ(stats->queue_depth(), 0);
 }
@@ -267,7 +296,7 @@ void ExpectStatsEqualTableCounts(MapStoreInterface* store, const std::string& pa
   auto stats = store->GetStats();
   ASSERT_TRUE(stats.ok()) << stats.status();
   EXPECT_EQ(stats->landmark_count, SqlInt(path, "SELECT COUNT(*) FROM landmarks"));
-  EXPECT_EQ(stats->cross_count, SqlInt(path, "SELECT COUNT(*) FROM cross_covariances"));
+  EXPECT_EQ(stats->factor_count, SqlInt(path, "SELECT COUNT(*) FROM factors"));
   for (int state = 1; state <= 5; ++state) {
     EXPECT_EQ(stats->passages_by_state[state],
               SqlInt(path, "SELECT COUNT(*) FROM passages WHERE state = " + std::to_string(state)))
@@ -286,27 +315,34 @@ TEST(SqliteMapStore, StatsFollowEveryWriteWithoutScanningTheTables) {
   ExpectStatsEqualTableCounts(store.get(), path);
   Eigen::Matrix2d block;
   block << 0.01, 0.02, 0.03, 0.04;
-  // First commit: three new landmarks and their three cross blocks.
+  // First commit: three new landmarks and two factors.
   auto first = store->ClaimNextPassage();
   ASSERT_TRUE(first.ok() && first->has_value());
   MapDelta delta;
   delta.base_version = 0;
   delta.version = 1;
   for (LandmarkId id : {1, 2, 3}) delta.landmarks[id] = MakeLandmark(id, 48.7 + 1e-4 * id, 2.17, 1);
-  delta.cross[{1, 2}] = delta.cross[{1, 3}] = delta.cross[{2, 3}] = block;
+  delta.added_factors[1] = MakeFactor(1, {1, 2}, PairCovariance(block));
+  delta.added_factors[2] = MakeFactor(2, {3}, Eigen::Matrix2d::Identity());
   ASSERT_TRUE(store->CommitPassageApplied((*first)->record.id, delta, PassageResult()).ok());
   ExpectStatsEqualTableCounts(store.get(), path);
-  // Second commit rewrites them all and adds one landmark with one block.
+  // Second commit rewrites them all, replaces a factor and removes a landmark.
   auto second = store->ClaimNextPassage();
   ASSERT_TRUE(second.ok() && second->has_value());
   delta.base_version = 1;
   delta.version = 2;
   for (LandmarkId id : {1, 2, 3, 4}) delta.landmarks[id] = MakeLandmark(id, 48.7 + 2e-4 * id, 2.17, 2);
-  delta.cross[{3, 4}] = block;
+  delta.added_factors.clear();
+  delta.added_factors[3] = MakeFactor(3, {3, 4}, PairCovariance(block));
+  delta.removed_factors = {2};
+  delta.landmarks.erase(1);
+  delta.removed_landmarks = {1};
   ASSERT_TRUE(store->CommitPassageApplied((*second)->record.id, delta, PassageResult()).ok());
   ExpectStatsEqualTableCounts(store.get(), path);
-  EXPECT_EQ(store->GetStats()->landmark_count, 4);
-  EXPECT_EQ(store->GetStats()->cross_count, 4);
+  EXPECT_EQ(store->GetStats()->landmark_count, 3);
+  EXPECT_EQ(store->GetStats()->factor_count, 2);
+  EXPECT_EQ(SqlInt(path, "SELECT COUNT(*) FROM landmark_boxes WHERE id = 1"), 0) << "its box went with it";
+  EXPECT_EQ(SqlInt(path, "SELECT value FROM map_meta WHERE key = 'last_factor_id'"), 3);
   // A rejection, a claim left processing and returned to the queue.
   auto third = store->ClaimNextPassage();
   ASSERT_TRUE(third.ok() && third->has_value());
@@ -318,36 +354,68 @@ TEST(SqliteMapStore, StatsFollowEveryWriteWithoutScanningTheTables) {
   EXPECT_EQ(store->GetStats()->queue_depth(), 1);
 }
 
-TEST(SqliteMapStore, MigrationCountsTheRowsOfAnExistingDatabase) {
-  TempDir dir;
-  const std::string path = dir.File("map.db");
-  {
-    auto store = OpenStore(path);
-    ASSERT_TRUE(store->EnqueuePassages({MakeUpload("v", "1"), MakeUpload("v", "2")}, 0).ok());
-    const int64_t id = EnqueueAndClaim(store.get(), "3");
-    MapDelta delta;
-    delta.version = 1;
-    delta.landmarks[5] = MakeLandmark(5, 48.7, 2.17, 1);
-    delta.landmarks[6] = MakeLandmark(6, 48.7001, 2.17, 1);
-    delta.cross[{5, 6}] = Eigen::Matrix2d::Identity() * 0.01;
-    ASSERT_TRUE(store->CommitPassageApplied(id, delta, PassageResult()).ok());
+// A database written by schema 2 (the dense covariance as cross blocks), opened by this release.
+class SchemaTwoDatabase : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    path_ = dir_.File("map.db");
+    auto db = SqliteConnection::Open(path_, 5000, /*read_only=*/false);
+    ASSERT_TRUE(db.ok()) << db.status();
+    ASSERT_TRUE(MigrateSchema(db->get(), 2).ok());
+    // Three landmarks: 1 and 2 correlated, 3 alone; two queued passages.
+    ASSERT_TRUE((*db)->Exec(R"sql(
+        INSERT INTO landmarks (id, lat_deg, lon_deg, cov_ee, cov_en, cov_ne, cov_nn, version, passages_seen,
+                               last_seen_unix_ms, state, tile_x, tile_y)
+          VALUES (1, 48.70, 2.17, 0.5, 0.1, 0.1, 0.7, 4, 3, 0, 1, 0, 0),
+                 (2, 48.701, 2.17, 0.6, 0.0, 0.0, 0.6, 4, 3, 0, 1, 0, 0),
+                 (3, 48.702, 2.17, 0.9, 0.0, 0.0, 0.4, 4, 1, 0, 1, 0, 0);
+        INSERT INTO cross_covariances (a, b, c_ee, c_en, c_ne, c_nn) VALUES (1, 2, 0.2, 0.05, -0.03, 0.25);
+        INSERT INTO passages (vehicle_id, passage_id, state, received_unix_ms, size_bytes)
+          VALUES ('v', '1', 1, 0, 5), ('v', '2', 1, 0, 5);
+        UPDATE map_meta SET value = 4 WHERE key = 'map_version';
+        )sql")
+                    .ok());
   }
-  // Back to schema 1, as a database written before the counts were kept.
-  sqlite3* db = nullptr;
-  ASSERT_EQ(sqlite3_open(path.c_str(), &db), SQLITE_OK);
-  for (const char* trigger : {"count_landmark_insert", "count_landmark_delete", "count_cross_insert",
-                              "count_cross_delete", "count_passage_insert", "count_passage_state",
-                              "count_passage_delete"}) {
-    ASSERT_EQ(sqlite3_exec(db, (std::string("DROP TRIGGER ") + trigger).c_str(), nullptr, nullptr, nullptr), SQLITE_OK);
-  }
-  ASSERT_EQ(sqlite3_exec(db, "DROP TABLE row_counts; PRAGMA user_version = 1", nullptr, nullptr, nullptr), SQLITE_OK);
-  sqlite3_close(db);
+  TempDir dir_;
+  std::string path_;
+};
 
-  auto store = OpenStore(path);
-  EXPECT_EQ(SqlInt(path, "PRAGMA user_version"), 2);
-  ExpectStatsEqualTableCounts(store.get(), path);
-  EXPECT_EQ(store->GetStats()->landmark_count, 2);
+TEST_F(SchemaTwoDatabase, MigrationTurnsTheDenseCovarianceIntoTheSameGaussian) {
+  auto store = OpenStore(path_);
+  ASSERT_NE(store, nullptr);
+  EXPECT_EQ(SqlInt(path_, "PRAGMA user_version"), 3);
+  EXPECT_EQ(SqlInt(path_, "SELECT COUNT(*) FROM sqlite_master WHERE name = 'cross_covariances'"), 0);
+  ExpectStatsEqualTableCounts(store.get(), path_);
+  EXPECT_EQ(store->GetStats()->factor_count, 2) << "one factor per correlated group";
   EXPECT_EQ(store->GetStats()->passages_by_state[static_cast<int>(PassageState::kQueued)], 2);
+  MapState map;
+  ASSERT_TRUE(store->LoadMap(&map).ok());
+  EXPECT_EQ(map.version(), 4);
+  EXPECT_EQ(map.FindLandmark(2)->Offset().norm(), 0.0) << "anchored at its position";
+  absl::StatusOr<Eigen::MatrixXd> cov = JointCovariance(map, {1, 2, 3});
+  ASSERT_TRUE(cov.ok()) << cov.status();
+  Eigen::MatrixXd expected = Eigen::MatrixXd::Zero(6, 6);
+  expected << 0.5, 0.1, 0.2, 0.05, 0, 0,  //
+      0.1, 0.7, -0.03, 0.25, 0, 0,        //
+      0.2, -0.03, 0.6, 0, 0, 0,           //
+      0.05, 0.25, 0, 0.6, 0, 0,           //
+      0, 0, 0, 0, 0.9, 0,                 //
+      0, 0, 0, 0, 0, 0.4;
+  EXPECT_LT((*cov - expected).cwiseAbs().maxCoeff(), 1e-12);
+  // The map's estimate stays where it was.
+  absl::StatusOr<MapWindow> window = MapWindow::Build(map, {1, 2, 3}, {});
+  ASSERT_TRUE(window.ok());
+  EXPECT_LT(window->offsets().cwiseAbs().maxCoeff(), 1e-12);
+}
+
+TEST_F(SchemaTwoDatabase, CovarianceThatIsNotPositiveDefiniteStopsTheMigrationWithoutAChange) {
+  {
+    auto db = SqliteConnection::Open(path_, 5000, /*read_only=*/false);
+    ASSERT_TRUE((*db)->Exec("UPDATE cross_covariances SET c_ee = 5.0").ok());
+  }
+  EXPECT_EQ(CreateSqliteMapStore(path_).status().code(), absl::StatusCode::kDataLoss);
+  EXPECT_EQ(SqlInt(path_, "PRAGMA user_version"), 2) << "the migration's transaction rolled back";
+  EXPECT_EQ(SqlInt(path_, "SELECT COUNT(*) FROM cross_covariances"), 1);
 }
 
 TEST(SqliteMapStore, CommitAgainstStaleVersionChangesNothing) {
@@ -398,9 +466,11 @@ class SqliteMapStoreReads : public ::testing::TestWithParam<bool> {
         delta.landmarks[lid] = MakeLandmark(lid, 48.70 + 0.001 * i, 2.17 + 0.0015 * j, 1 + i % 3);
       }
     }
-    Eigen::Matrix2d block = Eigen::Matrix2d::Constant(0.01);
-    delta.cross[{100, 101}] = block;
-    delta.cross[{100, 124}] = block;
+    // One joint factor on 100 and 101 (cross block 0.01), one factor on each other landmark.
+    delta.added_factors[1] = MakeFactor(1, {100, 101}, PairCovariance(Eigen::Matrix2d::Constant(0.01)));
+    for (LandmarkId lid = 102; lid < 125; ++lid) {
+      delta.added_factors[lid] = MakeFactor(lid, {lid}, delta.landmarks[lid].cov_en_m2);
+    }
     ASSERT_TRUE(store_->CommitPassageApplied(id, delta, {}).ok());
   }
 
@@ -418,9 +488,17 @@ TEST_P(SqliteMapStoreReads, QueryRegionReturnsExactlyTheLandmarksInsideTheBox) {
   EXPECT_EQ(ids, (std::vector<LandmarkId>{100, 101, 102, 105, 106, 107}));
   EXPECT_FALSE(page->more);
   EXPECT_EQ(page->map_version, 3);
-  // Only the block whose both ends are returned.
-  ASSERT_EQ(page->cross.size(), 1u);
-  EXPECT_EQ(page->cross[0].first, (LandmarkPair{100, 101}));
+  // Every pair among them, from the factors: only 100 and 101 are correlated.
+  ASSERT_EQ(page->cross.size(), 15u);
+  for (const auto& [pair, block] : page->cross) {
+    EXPECT_LT(pair.first, pair.second);
+    const double expected = pair == LandmarkPair{100, 101} ? 0.01 : 0.0;
+    EXPECT_LT((block - Eigen::Matrix2d::Constant(expected)).cwiseAbs().maxCoeff(), 1e-12)
+        << pair.first << "," << pair.second;
+  }
+  for (const Landmark& l : page->landmarks) {
+    EXPECT_LT((l.cov_en_m2 - MakeLandmark(l.id, 0, 0, 0).cov_en_m2).cwiseAbs().maxCoeff(), 1e-12) << l.id;
+  }
 }
 
 TEST_P(SqliteMapStoreReads, QueryRegionPagesInIdOrder) {

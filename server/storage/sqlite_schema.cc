@@ -1,17 +1,126 @@
 #include "server/storage/sqlite_schema.h"
 
+#include <functional>
+#include <map>
+#include <numeric>
 #include <vector>
 
+#include <Eigen/Cholesky>
+
 #include "absl/strings/str_cat.h"
+#include "server/storage/factor_codec.h"
 
 namespace crowdmap {
 namespace {
 
+// Schema 2 kept the dense joint covariance as 2x2 blocks. Each connected group of landmarks (joined
+// by stored blocks) becomes one factor with the inverse of the group's joint covariance: the same
+// Gaussian, so the map is unchanged. Anchors are the positions, so the information vectors are 0.
+absl::Status ConvertCrossCovariancesToFactors(SqliteConnection* db) {
+  auto rows = db->Prepare("SELECT id, cov_ee, cov_en, cov_ne, cov_nn FROM landmarks ORDER BY id");
+  if (!rows.ok()) return rows.status();
+  std::map<int64_t, int> index;
+  std::vector<int64_t> ids;
+  std::vector<Eigen::Matrix2d> marginal;
+  while (true) {
+    auto row = rows->Step();
+    if (!row.ok()) return row.status();
+    if (!*row) break;
+    index[rows->Int(0)] = static_cast<int>(ids.size());
+    ids.push_back(rows->Int(0));
+    Eigen::Matrix2d c;
+    c << rows->Double(1), rows->Double(2), rows->Double(3), rows->Double(4);
+    marginal.push_back(c);
+  }
+  std::vector<int> parent(ids.size());
+  std::iota(parent.begin(), parent.end(), 0);
+  std::function<int(int)> root = [&](int i) { return parent[i] == i ? i : parent[i] = root(parent[i]); };
+  struct Block {
+    int a, b;
+    Eigen::Matrix2d value;
+  };
+  std::vector<Block> blocks;
+  auto cross = db->Prepare("SELECT a, b, c_ee, c_en, c_ne, c_nn FROM cross_covariances");
+  if (!cross.ok()) return cross.status();
+  while (true) {
+    auto row = cross->Step();
+    if (!row.ok()) return row.status();
+    if (!*row) break;
+    if (!index.count(cross->Int(0)) || !index.count(cross->Int(1))) continue;
+    Block b{index[cross->Int(0)], index[cross->Int(1)], Eigen::Matrix2d()};
+    b.value << cross->Double(2), cross->Double(3), cross->Double(4), cross->Double(5);
+    blocks.push_back(b);
+    parent[root(b.a)] = root(b.b);
+  }
+  std::map<int, std::vector<int>> groups;
+  for (size_t i = 0; i < ids.size(); ++i) groups[root(static_cast<int>(i))].push_back(static_cast<int>(i));
+  std::map<int, int> position_in_group;
+  for (const auto& [r, members] : groups) {
+    for (size_t k = 0; k < members.size(); ++k) position_in_group[members[k]] = static_cast<int>(k);
+  }
+  std::map<int, Eigen::MatrixXd> covariance;
+  for (const auto& [r, members] : groups) {
+    Eigen::MatrixXd& cov = covariance[r];
+    cov.setZero(2 * members.size(), 2 * members.size());
+    for (size_t k = 0; k < members.size(); ++k) cov.block<2, 2>(2 * k, 2 * k) = marginal[members[k]];
+  }
+  for (const Block& b : blocks) {
+    Eigen::MatrixXd& cov = covariance[root(b.a)];
+    const int i = position_in_group[b.a], j = position_in_group[b.b];
+    cov.block<2, 2>(2 * i, 2 * j) = b.value;
+    cov.block<2, 2>(2 * j, 2 * i) = b.value.transpose();
+  }
+  int64_t factor_id = 0;
+  for (const auto& [r, members] : groups) {
+    const Eigen::MatrixXd& cov = covariance[r];
+    Eigen::LLT<Eigen::MatrixXd> llt(0.5 * (cov + cov.transpose()));
+    if (llt.info() != Eigen::Success) {
+      return absl::DataLossError(absl::StrCat("schema 3: the stored covariance of the ", members.size(),
+                                              " landmarks around landmark ", ids[members[0]],
+                                              " is not positive definite and cannot be converted"));
+    }
+    MapFactor f;
+    f.id = ++factor_id;
+    f.passage_id = "schema-2-covariance";
+    for (int m : members) f.landmarks.push_back(ids[m]);
+    f.information = llt.solve(Eigen::MatrixXd::Identity(cov.rows(), cov.cols()));
+    f.information = 0.5 * (f.information + f.information.transpose());
+    f.information_vector = Eigen::VectorXd::Zero(cov.rows());
+    const EncodedFactor encoded = EncodeFactor(f);
+    auto insert = db->Prepare(
+        "INSERT INTO factors (id, vehicle_id, passage_id, landmark_ids, information, information_vector) "
+        "VALUES (?1, ?2, ?3, ?4, ?5, ?6)");
+    if (!insert.ok()) return insert.status();
+    insert->Bind(1, f.id)
+        .Bind(2, std::string_view(f.vehicle_id))
+        .Bind(3, std::string_view(f.passage_id))
+        .BindBlob(4, encoded.landmark_ids)
+        .BindBlob(5, encoded.information)
+        .BindBlob(6, encoded.information_vector);
+    if (auto s = insert->Run(); !s.ok()) return s;
+  }
+  auto last = db->Prepare("UPDATE map_meta SET value = ?1 WHERE key = 'last_factor_id'");
+  if (!last.ok()) return last.status();
+  last->Bind(1, factor_id);
+  if (auto s = last->Run(); !s.ok()) return s;
+  return db->Exec(R"sql(
+      DROP TRIGGER count_cross_insert;
+      DROP TRIGGER count_cross_delete;
+      DROP TABLE cross_covariances;
+      DELETE FROM row_counts WHERE name = 'cross_covariances';
+      )sql");
+}
+
+struct Migration {
+  const char* sql;
+  std::function<absl::Status(SqliteConnection*)> then;  // may be empty
+};
+
 // Migration i takes the schema from user_version i to i + 1. Append only; never edit a released one.
-const std::vector<const char*>& Migrations() {
-  static const std::vector<const char*> kMigrations = {
+const std::vector<Migration>& Migrations() {
+  static const std::vector<Migration> kMigrations = {
       // 0 -> 1: durable passage queue, map, R*Tree index, cross-covariance blocks, map version.
-      R"sql(
+      {R"sql(
       CREATE TABLE map_meta (
         key TEXT PRIMARY KEY,
         value INTEGER NOT NULL
@@ -88,13 +197,13 @@ const std::vector<const char*>& Migrations() {
         CHECK (a < b)
       ) STRICT, WITHOUT ROWID;
       CREATE INDEX cross_by_b ON cross_covariances (b, a);
-      )sql",
+      )sql", nullptr},
       // 1 -> 2: row counts kept by triggers in the writing transaction, so that the map's
       // statistics (GetMapInfo) do not scan tables that grow with the map and its history.
       // Landmarks and cross-covariances are written by upsert (an INSERT OR REPLACE would not fire
       // the delete trigger) and never deleted today; the delete triggers keep the counts right if
       // they ever are.
-      R"sql(
+      {R"sql(
       CREATE TABLE row_counts (
         name TEXT PRIMARY KEY,
         n INTEGER NOT NULL
@@ -122,7 +231,32 @@ const std::vector<const char*>& Migrations() {
         END;
       CREATE TRIGGER count_passage_delete AFTER DELETE ON passages
         BEGIN UPDATE row_counts SET n = n - 1 WHERE name = 'passages_' || OLD.state; END;
+      )sql", nullptr},
+      // 2 -> 3: the map in information form. Landmarks get a fixed anchor (their estimate is an
+      // East/North offset from it); the map's information is a sum of factors, one per applied
+      // subgraph, kept with the passage they came from. The dense cross-covariance blocks are
+      // converted to factors (ConvertCrossCovariancesToFactors) and dropped.
+      {R"sql(
+      ALTER TABLE landmarks ADD COLUMN anchor_lat_deg REAL NOT NULL DEFAULT 0;
+      ALTER TABLE landmarks ADD COLUMN anchor_lon_deg REAL NOT NULL DEFAULT 0;
+      UPDATE landmarks SET anchor_lat_deg = lat_deg, anchor_lon_deg = lon_deg;
+      INSERT INTO map_meta (key, value) VALUES ('last_factor_id', 0);
+      CREATE TABLE factors (
+        id INTEGER PRIMARY KEY,
+        vehicle_id TEXT NOT NULL,
+        passage_id TEXT NOT NULL,
+        landmark_ids BLOB NOT NULL,        -- k int64
+        information BLOB NOT NULL,         -- upper triangle of the 2k x 2k information, row by row, doubles
+        information_vector BLOB NOT NULL   -- 2k doubles
+      ) STRICT;
+      CREATE INDEX factors_by_passage ON factors (vehicle_id, passage_id);
+      INSERT INTO row_counts (name, n) VALUES ('factors', 0);
+      CREATE TRIGGER count_factor_insert AFTER INSERT ON factors
+        BEGIN UPDATE row_counts SET n = n + 1 WHERE name = 'factors'; END;
+      CREATE TRIGGER count_factor_delete AFTER DELETE ON factors
+        BEGIN UPDATE row_counts SET n = n - 1 WHERE name = 'factors'; END;
       )sql",
+       ConvertCrossCovariancesToFactors},
   };
   return kMigrations;
 }
@@ -131,18 +265,23 @@ const std::vector<const char*>& Migrations() {
 
 int LatestSchemaVersion() { return static_cast<int>(Migrations().size()); }
 
-absl::Status MigrateSchema(SqliteConnection* db) {
+absl::Status MigrateSchema(SqliteConnection* db, int target_version) {
+  if (target_version < 0) target_version = LatestSchemaVersion();
   while (true) {
     auto txn = SqliteWriteTransaction::Begin(db);
     if (!txn.ok()) return txn.status();
     auto version = db->PragmaInt("user_version");
     if (!version.ok()) return version.status();
-    if (*version == LatestSchemaVersion()) return txn->Commit();
+    if (*version >= target_version && *version <= LatestSchemaVersion()) return txn->Commit();
     if (*version > LatestSchemaVersion() || *version < 0) {
       return absl::FailedPreconditionError(absl::StrCat("database schema version ", *version,
                                                         " is newer than this server's ", LatestSchemaVersion()));
     }
-    if (auto s = db->Exec(Migrations()[*version]); !s.ok()) return s;
+    const Migration& migration = Migrations()[*version];
+    if (auto s = db->Exec(migration.sql); !s.ok()) return s;
+    if (migration.then) {
+      if (auto s = migration.then(db); !s.ok()) return s;
+    }
     if (auto s = db->Exec(absl::StrCat("PRAGMA user_version = ", *version + 1)); !s.ok()) return s;
     if (auto s = txn->Commit(); !s.ok()) return s;
   }

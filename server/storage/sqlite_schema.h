@@ -9,9 +9,9 @@ namespace crowdmap {
 // Latest schema version (PRAGMA user_version after migration).
 int LatestSchemaVersion();
 
-// Brings the database to the latest schema, one migration per transaction. FailedPrecondition when
-// the file comes from a newer release.
-absl::Status MigrateSchema(SqliteConnection* db);
+// Brings the database to the latest schema (or to `target_version`, for tests of a migration), one
+// migration per transaction. FailedPrecondition when the file comes from a newer release.
+absl::Status MigrateSchema(SqliteConnection* db, int target_version = -1);
 
 }  // namespace crowdmap
 
