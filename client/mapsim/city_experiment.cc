@@ -109,7 +109,9 @@ absl::StatusOr<CityExperimentResult> RunCityExperiment(const CityExperimentOptio
       p.passages_done = done;
       p.passages_total = options.passages;
       p.landmarks_mapped = map.landmark_count();
-      p.mean_error_m = Mean(ErrorsM(CityMapErrors(map, *city)));
+      const std::vector<double> errors_m = ErrorsM(CityMapErrors(map, *city));
+      p.mean_error_m = Mean(errors_m);
+      p.median_error_m = Quantile(errors_m, 0.5);
       p.p50_ms = Quantile(result.passage_ms, 0.5);
       p.p95_ms = Quantile(result.passage_ms, 0.95);
       progress(p);

@@ -39,6 +39,7 @@ struct CityProgress {
   int passages_total = 0;
   size_t landmarks_mapped = 0;
   double mean_error_m = 0.0;  // over the mapped landmarks
+  double median_error_m = 0.0;
   double p50_ms = 0.0;        // per passage, so far
   double p95_ms = 0.0;
 };

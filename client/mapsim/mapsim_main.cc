@@ -344,9 +344,9 @@ absl::Status RunCityCommand(const std::vector<std::string>& args) {
 
   auto progress = [&](const CityProgress& p) {
     if (quiet) return;
-    std::cerr << absl::StrFormat("passage %d/%d  landmarks mapped %d  mean error %.3f m  p50 %.1f ms  p95 %.1f ms\n",
-                                 p.passages_done, p.passages_total, p.landmarks_mapped, p.mean_error_m, p.p50_ms,
-                                 p.p95_ms);
+    std::cerr << absl::StrFormat(
+        "passage %d/%d  landmarks mapped %d  error mean %.3f m median %.3f m  p50 %.1f ms  p95 %.1f ms per passage\n",
+        p.passages_done, p.passages_total, p.landmarks_mapped, p.mean_error_m, p.median_error_m, p.p50_ms, p.p95_ms);
   };
   absl::StatusOr<CityExperimentResult> result = RunCityExperiment(options, progress);
   if (!result.ok()) return result.status();

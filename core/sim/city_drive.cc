@@ -61,7 +61,7 @@ class LanePath {
 
 struct Route {
   LanePath lane;
-  std::vector<double> turn_s_m;  // arc length of each turn's vertex
+  std::vector<double> turn_s_m;  // arc length at the middle of each turn's arc
   double heading_rad = 0.0;
 };
 
@@ -127,7 +127,7 @@ Route RandomRoute(const CityLayout& layout, double lane_offset_m, double length_
 }
 
 // Highest speed at arc length s_m that still lets the vehicle slow to turn_mps for each turn
-// (from one lookahead before the turn's vertex to one after).
+// (from one lookahead before the middle of its arc to one after).
 double AllowedSpeed(const std::vector<double>& turn_s_m, double s_m, double cruise_mps, double turn_mps) {
   double v = cruise_mps;
   for (double turn : turn_s_m) {
