@@ -318,15 +318,20 @@ absl::Status WriteFleetOutputs(const FleetOptions& options, const FleetResult& r
 }
 
 absl::Status ExportPassages(const ScenarioOptions& options, int passages, bool binary, const std::string& dir) {
-  if (passages < 1) return absl::InvalidArgumentError("passages: must be >= 1");
   absl::StatusOr<Scenario> scenario = Scenario::Create(options);
   if (!scenario.ok()) return scenario.status();
+  return ExportPassages([&](int i) { return scenario->MakePassage(i); }, passages, binary, dir);
+}
+
+absl::Status ExportPassages(const std::function<Passage(int)>& make_passage, int passages, bool binary,
+                            const std::string& dir) {
+  if (passages < 1) return absl::InvalidArgumentError("passages: must be >= 1");
   std::error_code ec;
   std::filesystem::create_directories(dir, ec);
   if (ec) return absl::UnavailableError(absl::StrCat(dir, ": ", ec.message()));
   for (int i = 0; i < passages; ++i) {
     pb::Passage wire;
-    PassageToProto(scenario->MakePassage(i), &wire);
+    PassageToProto(make_passage(i), &wire);
     const std::string path = absl::StrFormat("%s/passage-%05d.%s", dir, i, binary ? "pb" : "json");
     if (absl::Status s = WritePassageFile(wire, binary ? PassageFileFormat::kBinary : PassageFileFormat::kJson, path);
         !s.ok()) {

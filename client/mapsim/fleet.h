@@ -79,6 +79,9 @@ absl::Status WriteFleetOutputs(const FleetOptions& options, const FleetResult& r
 // Writes passages 0..P-1 of the scenario to DIR/passage-NNNNN.json (or .pb), files that
 // `mapctl upload` accepts.
 absl::Status ExportPassages(const ScenarioOptions& scenario, int passages, bool binary, const std::string& dir);
+// The same for passages make_passage(0..P-1) of any source (e.g. CityScenario::MakePassage).
+absl::Status ExportPassages(const std::function<Passage(int)>& make_passage, int passages, bool binary,
+                            const std::string& dir);
 
 }  // namespace crowdmap
 

@@ -11,6 +11,7 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
 #include "client/common/flags.h"
+#include "client/mapsim/city_experiment.h"
 #include "client/mapsim/experiment.h"
 #include "client/mapsim/passage_consistency.h"
 #include "client/mapsim/pose_bias.h"
@@ -27,6 +28,8 @@ constexpr char kUsage[] = R"(mapsim: simulate crowdsourced landmark mapping (the
 
 Usage:
   mapsim experiment [flags]   run passages through the estimation core in-process
+  mapsim city       [flags]   the same on a city: a street grid with buildings, a fleet driving
+                              random partial routes
   mapsim reproduce  [flags]   run the thesis's table 5.2 and robustness grids
   mapsim pose-bias  [flags]   mean pose error of single-passage odometry + GNSS solves along the
                               route (the bias of the MAP estimate), before and after the
@@ -70,6 +73,30 @@ experiment flags:
                               scale a sensor's noise, drawn and modelled alike (default 1)
   --no-bias-correction        skip the second-order bias correction of each solution
   --quiet                     no progress line
+
+city flags:
+  --blocks-x N, --blocks-y N  street grid of N x N blocks (default 6 x 6)
+  --block-m M                 distance between streets, m (default 150)
+  --passages P                passages applied in order to an empty map (default 200)
+  --route-m M                 distance driven per passage, m (default 2000)
+  --vehicles V                fleet size; passage i is driven by vehicle i % V (default 20)
+  --seed S                    routes and noise (default 1)
+  --layout-seed S             street jitter and landmarks (default 1)
+  --noise X                   white | gnss-ar1 | yaw-bias | ar1+yaw (default white)
+  --vehicle-yaw-bias-sigma-rad X  each vehicle's own camera yaw error, Gaussian (default 0)
+  --rate-variation X          each vehicle's sensor rates scaled by a factor in [1-X, 1+X] (default 0)
+  --no-occlusion              buildings do not hide landmarks
+  --steering-noise-scale X, --speed-noise-scale X, --gnss-noise-scale X, --pixel-noise-scale X
+                              as for experiment
+  --strategy S                cc | dc | cc-gsd (default cc-gsd)
+  --correlation-radius-m R, --warmup-passages B, --relinearize-until-passages R
+                              as for experiment
+  --progress-every P          progress line on stderr every P passages (default 10)
+  --out DIR                   output folder (default out/city): summary.json, landmarks.csv
+  --export-passages DIR2      also write passages 0..P-1 as files for `mapctl upload`
+                              (DIR2/passage-00000.json, ... as export-passages does)
+  --export-format F           json | binary (default json)
+  --quiet                     no progress lines
 
 fleet flags (and --landmarks, --noise, --seed, --quiet as for experiment):
   --server HOST:PORT          mapd address (default 127.0.0.1:50051)
@@ -133,12 +160,11 @@ reproduce flags:
 
 // --steering-noise-scale, --speed-noise-scale, --gnss-noise-scale and --pixel-noise-scale scale
 // a sensor's noise, both as drawn and as declared in the passages.
-absl::Status ScaleNoise(const Flags& flags, ScenarioOptions* scenario) {
-  NoiseModel& sensors = scenario->noise_model;
-  const std::pair<const char*, double*> sigmas[] = {{"steering-noise-scale", &sensors.steering_sigma_rad},
-                                                    {"speed-noise-scale", &sensors.speed_sigma_mps},
-                                                    {"gnss-noise-scale", &scenario->gnss_sigma_m},
-                                                    {"pixel-noise-scale", &sensors.pixel_sigma_px}};
+absl::Status ScaleNoise(const Flags& flags, NoiseModel* sensors, double* gnss_sigma_m) {
+  const std::pair<const char*, double*> sigmas[] = {{"steering-noise-scale", &sensors->steering_sigma_rad},
+                                                    {"speed-noise-scale", &sensors->speed_sigma_mps},
+                                                    {"gnss-noise-scale", gnss_sigma_m},
+                                                    {"pixel-noise-scale", &sensors->pixel_sigma_px}};
   for (const auto& [name, sigma] : sigmas) {
     absl::StatusOr<double> scale = flags.GetDouble(name, 1.0);
     if (!scale.ok()) return scale.status();
@@ -146,6 +172,10 @@ absl::Status ScaleNoise(const Flags& flags, ScenarioOptions* scenario) {
     *sigma *= *scale;
   }
   return absl::OkStatus();
+}
+
+absl::Status ScaleNoise(const Flags& flags, ScenarioOptions* scenario) {
+  return ScaleNoise(flags, &scenario->noise_model, &scenario->gnss_sigma_m);
 }
 
 absl::Status RunExperimentCommand(const std::vector<std::string>& args) {
@@ -231,6 +261,97 @@ absl::Status RunExperimentCommand(const std::vector<std::string>& args) {
       result->final_mean_dist_err_m, result->final_nees_per_dof, result->final_joint_nees_per_dof,
       result->median_passage_ms, result->failed_passages, result->inflated_passages, result->joint_rejected_passages,
       out);
+  return absl::OkStatus();
+}
+
+absl::Status RunCityCommand(const std::vector<std::string>& args) {
+  absl::StatusOr<Flags> flags = Flags::Parse(
+      args, {{"blocks-x", true}, {"blocks-y", true}, {"block-m", true}, {"passages", true}, {"route-m", true},
+             {"vehicles", true}, {"seed", true}, {"layout-seed", true}, {"noise", true},
+             {"vehicle-yaw-bias-sigma-rad", true}, {"rate-variation", true}, {"no-occlusion", false},
+             {"strategy", true}, {"correlation-radius-m", true}, {"warmup-passages", true},
+             {"relinearize-until-passages", true}, {"progress-every", true}, {"out", true},
+             {"export-passages", true}, {"export-format", true}, {"steering-noise-scale", true},
+             {"speed-noise-scale", true}, {"gnss-noise-scale", true}, {"pixel-noise-scale", true}, {"quiet", false}});
+  if (!flags.ok()) return flags.status();
+  CityExperimentOptions options;
+  CityScenarioOptions& city = options.city;
+  absl::StatusOr<long long> blocks_x = flags->GetInt("blocks-x", city.blocks_x),
+                            blocks_y = flags->GetInt("blocks-y", city.blocks_y),
+                            passages = flags->GetInt("passages", options.passages),
+                            vehicles = flags->GetInt("vehicles", city.vehicles), seed = flags->GetInt("seed", 1),
+                            layout_seed = flags->GetInt("layout-seed", 1),
+                            warmup = flags->GetInt("warmup-passages", options.update.warmup_passages),
+                            relinearize =
+                                flags->GetInt("relinearize-until-passages", options.update.relinearize_until_passages),
+                            every = flags->GetInt("progress-every", options.progress_every_passages);
+  absl::StatusOr<double> block_m = flags->GetDouble("block-m", city.block_m),
+                         route_m = flags->GetDouble("route-m", city.route_length_m),
+                         yaw_sigma = flags->GetDouble("vehicle-yaw-bias-sigma-rad", city.vehicle_yaw_bias_sigma_rad),
+                         rate_variation = flags->GetDouble("rate-variation", city.rate_variation),
+                         radius = flags->GetDouble("correlation-radius-m", options.update.correlation_radius_m);
+  for (const absl::Status& s : {blocks_x.status(), blocks_y.status(), passages.status(), vehicles.status(),
+                                seed.status(), layout_seed.status(), warmup.status(), relinearize.status(),
+                                every.status(), block_m.status(), route_m.status(), yaw_sigma.status(),
+                                rate_variation.status(), radius.status()}) {
+    if (!s.ok()) return s;
+  }
+  absl::StatusOr<NoiseConfig> noise = ParseNoiseConfig(flags->GetString("noise", "white"));
+  if (!noise.ok()) return noise.status();
+  absl::StatusOr<UpdateStrategy> strategy = ParseUpdateStrategy(flags->GetString("strategy", "cc-gsd"));
+  if (!strategy.ok()) return strategy.status();
+  city.blocks_x = static_cast<int>(*blocks_x);
+  city.blocks_y = static_cast<int>(*blocks_y);
+  city.block_m = *block_m;
+  city.route_length_m = *route_m;
+  city.vehicles = static_cast<int>(*vehicles);
+  city.seed = static_cast<uint64_t>(*seed);
+  city.layout_seed = static_cast<uint64_t>(*layout_seed);
+  city.noise = *noise;
+  city.vehicle_yaw_bias_sigma_rad = *yaw_sigma;
+  city.rate_variation = *rate_variation;
+  city.occlusion = !flags->Has("no-occlusion");
+  if (absl::Status s = ScaleNoise(*flags, &city.noise_model, &city.gnss_sigma_m); !s.ok()) return s;
+  options.passages = static_cast<int>(*passages);
+  options.progress_every_passages = static_cast<int>(*every);
+  options.update.strategy = *strategy;
+  options.update.correlation_radius_m = *radius;
+  options.update.warmup_passages = static_cast<int>(*warmup);
+  options.update.relinearize_until_passages = static_cast<int>(*relinearize);
+  if (absl::Status s = options.Validate(); !s.ok()) return s;
+  const std::string out = flags->GetString("out", "out/city");
+  const bool quiet = flags->Has("quiet");
+
+  if (flags->Has("export-passages")) {
+#if CROWDMAP_MAPSIM_SERVICE
+    const std::string format = flags->GetString("export-format", "json");
+    if (format != "json" && format != "binary") {
+      return absl::InvalidArgumentError(absl::StrCat("--export-format: '", format, "' is not json or binary"));
+    }
+    absl::StatusOr<CityScenario> scenario = CityScenario::Create(city);
+    if (!scenario.ok()) return scenario.status();
+    const std::string dir = flags->GetString("export-passages", "");
+    if (absl::Status s = ExportPassages([&](int i) { return scenario->MakePassage(i); }, options.passages,
+                                        format == "binary", dir);
+        !s.ok()) {
+      return s;
+    }
+    std::cout << absl::StrFormat("wrote %d passages to %s\n", options.passages, dir);
+#else
+    return absl::UnimplementedError("--export-passages: this mapsim was built without the service (gRPC)");
+#endif
+  }
+
+  auto progress = [&](const CityProgress& p) {
+    if (quiet) return;
+    std::cerr << absl::StrFormat(
+        "passage %d/%d  landmarks mapped %d  error mean %.3f m median %.3f m  p50 %.1f ms  p95 %.1f ms per passage\n",
+        p.passages_done, p.passages_total, p.landmarks_mapped, p.mean_error_m, p.median_error_m, p.p50_ms, p.p95_ms);
+  };
+  absl::StatusOr<CityExperimentResult> result = RunCityExperiment(options, progress);
+  if (!result.ok()) return result.status();
+  if (absl::Status s = WriteCityOutputs(options, *result, out); !s.ok()) return s;
+  std::cout << result->Brief() << absl::StrFormat(" layout_s=%.3f out=%s\n", result->layout_s, out);
   return absl::OkStatus();
 }
 
@@ -479,6 +600,8 @@ int main(int argc, char** argv) {
   absl::Status status;
   if (command == "experiment") {
     status = crowdmap::RunExperimentCommand(args);
+  } else if (command == "city") {
+    status = crowdmap::RunCityCommand(args);
   } else if (command == "reproduce") {
     status = crowdmap::RunReproduceCommand(args);
   } else if (command == "pose-bias") {

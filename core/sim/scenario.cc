@@ -5,7 +5,7 @@
 #include <random>
 
 #include "absl/strings/str_cat.h"
-#include "core/model/camera_model.h"
+#include "core/sim/sensor_simulation.h"
 
 namespace crowdmap {
 namespace {
@@ -36,13 +36,6 @@ double CurvatureAt(double t) {
 }
 
 double SpeedAt(double t) { return kMeanSpeedMps + 1.5 * std::sin(2.0 * M_PI * t / 70.0) + 0.5 * std::sin(2.0 * M_PI * t / 23.0); }
-
-uint64_t SplitMix64(uint64_t x) {
-  x += 0x9E3779B97F4A7C15ull;
-  x = (x ^ (x >> 30)) * 0xBF58476D1CE4E5B9ull;
-  x = (x ^ (x >> 27)) * 0x94D049BB133111EBull;
-  return x ^ (x >> 31);
-}
 
 // The thesis's four real traffic signs stand at fixed places; the others are random but depend
 // only on their index, so a scenario with more landmarks extends one with fewer.
@@ -139,18 +132,13 @@ absl::StatusOr<Scenario> Scenario::Create(const ScenarioOptions& options) {
 }
 
 Pose2 Scenario::TruePoseAt(double t) const {
-  const double dt = 1.0 / options_.odometry_rate_hz;
-  const int j = std::clamp(static_cast<int>(std::floor(t / dt + 1e-9)), 0, static_cast<int>(true_poses_.size()) - 1);
-  const double rest = t - true_inputs_[j].t_s;
-  if (rest <= 0.0) return true_poses_[j];
-  return BicycleStep(true_poses_[j], true_inputs_[j].speed_mps, true_inputs_[j].steering_rad, rest,
-                     options_.calibration.wheelbase_m);
+  return PoseAlongInputs(true_poses_, true_inputs_, 1.0 / options_.odometry_rate_hz, options_.calibration.wheelbase_m,
+                         t);
 }
 
 Passage Scenario::MakePassage(int index) const {
   const ScenarioOptions& o = options_;
-  std::mt19937_64 rng(SplitMix64(SplitMix64(o.seed) ^ static_cast<uint64_t>(index)));
-  std::normal_distribution<double> normal(0.0, 1.0);
+  NoiseSource noise(SplitMix64(SplitMix64(o.seed) ^ static_cast<uint64_t>(index)));
 
   Passage p;
   p.vehicle_id = absl::StrCat("sim-", index % 1000);
@@ -158,35 +146,14 @@ Passage Scenario::MakePassage(int index) const {
   p.start_time_unix_ms = 1767225600000LL + static_cast<int64_t>(index) * 200000;
   p.calibration = o.calibration;
   p.noise = o.noise_model;
+  p.odometry = SimulateOdometry(true_inputs_, o.duration_s, o.noise_model, &noise);
 
-  for (const OdometrySample& truth : true_inputs_) {
-    if (truth.t_s > o.duration_s + 1e-9) break;
-    p.odometry.push_back({truth.t_s, truth.speed_mps + o.noise_model.speed_sigma_mps * normal(rng),
-                          truth.steering_rad + o.noise_model.steering_sigma_rad * normal(rng)});
-  }
-
-  const bool ar1 = o.noise == NoiseConfig::kGnssAr1 || o.noise == NoiseConfig::kGnssAr1YawBias;
-  const double beta = std::sqrt(1.0 - o.gnss_ar1_alpha * o.gnss_ar1_alpha);
-  Eigen::Vector2d error(o.gnss_sigma_m * normal(rng), o.gnss_sigma_m * normal(rng));  // stationary start
-  const int fixes = static_cast<int>(std::floor(o.duration_s * o.gnss_rate_hz + 1e-9)) + 1;
-  for (int k = 0; k < fixes; ++k) {
-    const double t = k / o.gnss_rate_hz;
-    if (k > 0) {
-      const Eigen::Vector2d w(o.gnss_sigma_m * normal(rng), o.gnss_sigma_m * normal(rng));
-      error = ar1 ? Eigen::Vector2d(o.gnss_ar1_alpha * error + beta * w) : w;
-    }
-    const Pose2 pose = TruePoseAt(t);
-    const double c = std::cos(pose.z()), s = std::sin(pose.z());
-    const Eigen::Vector2d& arm = o.calibration.gnss_lever_arm_m;
-    const Eigen::Vector2d antenna = pose.head<2>() + Eigen::Vector2d(c * arm.x() - s * arm.y(), s * arm.x() + c * arm.y());
-    const LatLon fix = frame_.ToGeo(antenna + error);
-    GnssFix g;
-    g.t_s = t;
-    g.lat_deg = fix.lat_deg;
-    g.lon_deg = fix.lon_deg;
-    g.cov_en_m2 = Eigen::Matrix2d::Identity() * o.gnss_sigma_m * o.gnss_sigma_m;
-    p.gnss.push_back(g);
-  }
+  GnssSimulation gnss;
+  gnss.rate_hz = o.gnss_rate_hz;
+  gnss.sigma_m = o.gnss_sigma_m;
+  gnss.ar1 = o.noise == NoiseConfig::kGnssAr1 || o.noise == NoiseConfig::kGnssAr1YawBias;
+  gnss.ar1_alpha = o.gnss_ar1_alpha;
+  p.gnss = SimulateGnss([this](double t) { return TruePoseAt(t); }, o.duration_s, frame_, o.calibration, gnss, &noise);
 
   const bool yaw_bias = o.noise == NoiseConfig::kYawBias || o.noise == NoiseConfig::kGnssAr1YawBias;
   Calibration true_camera = o.calibration;
@@ -196,14 +163,13 @@ Passage Scenario::MakePassage(int index) const {
     const double t = k / o.camera_rate_hz;
     const Pose2 pose = TruePoseAt(t);
     for (const TruthLandmark& lm : landmarks_) {
-      const Eigen::Vector2d cam = LandmarkInCameraFrame(pose, lm.position_m, true_camera);
-      const double range = cam.norm();
-      if (cam.x() <= 0.0 || range < o.min_detection_range_m || range > o.max_detection_range_m) continue;
-      const double u_true = -true_camera.fx_px * cam.y() / cam.x() + true_camera.cx_px;
-      if (u_true < 0.0 || u_true > true_camera.image_width_px) continue;
-      const double u = u_true + o.noise_model.pixel_sigma_px * normal(rng);
-      if (u < 0.0 || u > true_camera.image_width_px) continue;  // a detector reports only inside the image
-      p.detections.push_back({t, lm.id, u});
+      double u_true = 0.0, u = 0.0;
+      if (!TruePixel(pose, lm.position_m, true_camera, o.min_detection_range_m, o.max_detection_range_m, &u_true)) {
+        continue;
+      }
+      if (DetectedPixel(u_true, true_camera, o.noise_model.pixel_sigma_px, &noise, &u)) {
+        p.detections.push_back({t, lm.id, u});
+      }
     }
   }
   return p;

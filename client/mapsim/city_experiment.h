@@ -1,0 +1,76 @@
+#ifndef CROWDMAP_CLIENT_MAPSIM_CITY_EXPERIMENT_H_
+#define CROWDMAP_CLIENT_MAPSIM_CITY_EXPERIMENT_H_
+
+#include <functional>
+#include <string>
+#include <vector>
+
+#include <Eigen/Core>
+
+#include "absl/status/statusor.h"
+#include "core/estimation/map_updater.h"
+#include "core/sim/city_scenario.h"
+
+namespace crowdmap {
+
+// `mapsim city`: passages 0..P-1 of a city scenario applied in order to an empty map in-process.
+struct CityExperimentOptions {
+  CityScenarioOptions city;
+  int passages = 200;
+  MapUpdateOptions update;
+  int progress_every_passages = 10;  // progress callback period
+
+  absl::Status Validate() const;
+};
+
+// One mapped landmark against the truth, in the city frame (m).
+struct CityLandmarkError {
+  LandmarkId id = 0;
+  Eigen::Vector2d truth_m = Eigen::Vector2d::Zero();
+  Eigen::Vector2d estimate_m = Eigen::Vector2d::Zero();
+  double sigma_east_m = 0.0;
+  double sigma_north_m = 0.0;
+  double error_m() const { return (estimate_m - truth_m).norm(); }
+};
+
+// Where the run is, for progress output.
+struct CityProgress {
+  int passages_done = 0;
+  int passages_total = 0;
+  size_t landmarks_mapped = 0;
+  double mean_error_m = 0.0;  // over the mapped landmarks
+  double median_error_m = 0.0;
+  double p50_ms = 0.0;        // per passage, so far
+  double p95_ms = 0.0;
+};
+
+struct CityExperimentResult {
+  size_t layout_landmarks = 0;
+  double layout_s = 0.0;  // time to build the layout
+  int passages = 0;
+  int failed_passages = 0;  // refused by the estimator (the map is unchanged by them)
+  std::vector<double> passage_ms;         // wall time of each passage: simulation excluded
+  std::vector<CityLandmarkError> errors;  // the final map's landmarks, by id
+  double mean_error_m = 0.0;
+  double median_error_m = 0.0;
+  double p95_error_m = 0.0;
+  double p50_ms = 0.0;
+  double p95_ms = 0.0;
+
+  // One key=value line.
+  std::string Brief() const;
+};
+
+// The mapped landmarks of `map` against the scenario's truth, by id.
+std::vector<CityLandmarkError> CityMapErrors(const MapState& map, const CityScenario& city);
+
+absl::StatusOr<CityExperimentResult> RunCityExperiment(const CityExperimentOptions& options,
+                                                       const std::function<void(const CityProgress&)>& progress = nullptr);
+
+// Writes DIR/summary.json and DIR/landmarks.csv (id, truth and estimate East/North, error, sigmas).
+absl::Status WriteCityOutputs(const CityExperimentOptions& options, const CityExperimentResult& result,
+                              const std::string& dir);
+
+}  // namespace crowdmap
+
+#endif  // CROWDMAP_CLIENT_MAPSIM_CITY_EXPERIMENT_H_

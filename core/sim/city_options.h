@@ -1,0 +1,66 @@
+#ifndef CROWDMAP_CORE_SIM_CITY_OPTIONS_H_
+#define CROWDMAP_CORE_SIM_CITY_OPTIONS_H_
+
+#include <cstdint>
+
+#include "absl/status/status.h"
+#include "core/geo/local_frame.h"
+#include "core/model/passage.h"
+#include "core/sim/scenario.h"
+
+namespace crowdmap {
+
+// The city scenario (see CityScenario): a street grid with buildings, landmarks along the streets
+// and a fleet driving random partial routes through it.
+struct CityScenarioOptions {
+  // --- Street grid (the layout depends only on these and layout_seed) ---
+  int blocks_x = 6;                 // blocks from west to east
+  int blocks_y = 6;                 // blocks from south to north
+  double block_m = 150.0;           // nominal distance between neighbouring street centrelines
+  double street_jitter_m = 3.0;     // each street's centreline is moved by up to this, per layout
+  double road_width_m = 10.0;       // carriageway, kerb to kerb; vehicles keep right
+  double building_setback_m = 8.0;  // kerb to facade; must exceed landmark_kerb_offset_max_m
+  LatLon origin{45.76, 4.84};       // WGS84 position of the nominal south-west intersection
+  uint64_t layout_seed = 1;
+  // Landmarks stand on both sides of every street, this far apart along it (uniform)...
+  double spacing_min_m = 8.0;
+  double spacing_max_m = 40.0;
+  // ...this far beyond the kerb (uniform)...
+  double landmark_kerb_offset_min_m = 2.0;
+  double landmark_kerb_offset_max_m = 6.0;
+  // ...and at least this far from the kerb of a crossing street.
+  double corner_clearance_m = 3.0;
+
+  // --- Fleet: passage i is driven by vehicle i % vehicles and drawn from (seed, i) only ---
+  uint64_t seed = 1;
+  int vehicles = 20;
+  double route_length_m = 2000.0;  // distance driven per passage
+  double speed_min_mps = 8.0;      // cruise speed of a passage, uniform in [min, max]
+  double speed_max_mps = 14.0;
+  double turn_speed_mps = 5.0;     // speed through a turn at an intersection
+  double max_steering_rad = 0.6;
+  // Each vehicle's sensor rates are those below times a factor drawn in [1 - x, 1 + x]. 0 = off.
+  double rate_variation = 0.0;
+
+  // --- Sensors ---
+  NoiseConfig noise = NoiseConfig::kWhite;
+  double odometry_rate_hz = 25.0;
+  double gnss_rate_hz = 1.0;
+  double camera_rate_hz = 2.0;
+  double gnss_sigma_m = 10.0;
+  double gnss_ar1_alpha = 0.988;          // with noise gnss-ar1 and ar1+yaw
+  double camera_yaw_bias_rad = 0.009;     // with noise yaw-bias and ar1+yaw, the same on every vehicle
+  double vehicle_yaw_bias_sigma_rad = 0.0;  // each vehicle's own camera yaw error, Gaussian; 0 = off
+  double min_detection_range_m = 5.0;
+  double max_detection_range_m = 50.0;
+  bool occlusion = true;  // buildings hide the landmarks behind them
+  Calibration calibration;  // true calibration (and what the vehicles report)
+  NoiseModel noise_model;   // sigmas used both to draw noise and in the uploaded passages
+
+  // InvalidArgument naming the first bad field, e.g. "block_m: ...".
+  absl::Status Validate() const;
+};
+
+}  // namespace crowdmap
+
+#endif  // CROWDMAP_CORE_SIM_CITY_OPTIONS_H_

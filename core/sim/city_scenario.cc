@@ -1,0 +1,110 @@
+#include "core/sim/city_scenario.h"
+
+#include <algorithm>
+#include <cmath>
+#include <random>
+
+#include "absl/strings/str_cat.h"
+#include "core/sim/sensor_simulation.h"
+
+namespace crowdmap {
+namespace {
+
+constexpr uint64_t kVehicleStream = 0x7E41C1Eull;
+constexpr uint64_t kPassageStream = 0xC17Dull;
+
+bool HasYawBias(NoiseConfig noise) { return noise == NoiseConfig::kYawBias || noise == NoiseConfig::kGnssAr1YawBias; }
+bool HasGnssAr1(NoiseConfig noise) { return noise == NoiseConfig::kGnssAr1 || noise == NoiseConfig::kGnssAr1YawBias; }
+
+uint64_t PassageSeed(uint64_t seed, int index) {
+  return SplitMix64(SplitMix64(seed ^ kPassageStream) ^ static_cast<uint64_t>(index));
+}
+
+}  // namespace
+
+absl::StatusOr<CityScenario> CityScenario::Create(const CityScenarioOptions& options) {
+  if (absl::Status s = options.Validate(); !s.ok()) return s;
+  return CityScenario(options);
+}
+
+CityVehicle CityScenario::Vehicle(int vehicle_index) const {
+  const CityScenarioOptions& o = options_;
+  std::mt19937_64 rng(SplitMix64(SplitMix64(o.seed ^ kVehicleStream) ^ static_cast<uint64_t>(vehicle_index)));
+  std::uniform_real_distribution<double> rate_factor(1.0 - o.rate_variation, 1.0 + o.rate_variation);
+  std::normal_distribution<double> normal(0.0, 1.0);
+  CityVehicle v;
+  v.index = vehicle_index;
+  v.vehicle_id = absl::StrCat("city-v", vehicle_index);
+  v.odometry_rate_hz = o.odometry_rate_hz * rate_factor(rng);
+  v.gnss_rate_hz = o.gnss_rate_hz * rate_factor(rng);
+  v.camera_rate_hz = o.camera_rate_hz * rate_factor(rng);
+  v.true_camera = o.calibration;
+  v.true_camera.camera_yaw_rad += o.vehicle_yaw_bias_sigma_rad * normal(rng);
+  if (HasYawBias(o.noise)) v.true_camera.camera_yaw_rad += o.camera_yaw_bias_rad;
+  return v;
+}
+
+CityDrive CityScenario::TrueDrive(int index) const {
+  const CityVehicle vehicle = Vehicle(index % options_.vehicles);
+  std::mt19937_64 rng(PassageSeed(options_.seed, index));
+  const double cruise_mps = std::uniform_real_distribution<double>(options_.speed_min_mps, options_.speed_max_mps)(rng);
+  return DriveRandomRoute(layout_, options_, 1.0 / vehicle.odometry_rate_hz, cruise_mps, &rng);
+}
+
+Passage CityScenario::MakePassage(int index) const { return MakePassageWithTruth(index).first; }
+
+std::pair<Passage, CityDrive> CityScenario::MakePassageWithTruth(int index) const {
+  const CityScenarioOptions& o = options_;
+  const CityVehicle vehicle = Vehicle(index % o.vehicles);
+  CityDrive drive = TrueDrive(index);
+  NoiseSource noise(SplitMix64(PassageSeed(o.seed, index)));
+
+  Passage p;
+  p.vehicle_id = vehicle.vehicle_id;
+  p.passage_id = absl::StrCat("city-p", index, "-s", o.seed, "-l", o.layout_seed, "-g", o.blocks_x, "x", o.blocks_y,
+                              "x", o.block_m, "-r", o.route_length_m, "-", NoiseConfigName(o.noise));
+  p.start_time_unix_ms = 1767225600000LL + static_cast<int64_t>(index) * 300000;
+  p.calibration = o.calibration;
+  p.noise = o.noise_model;
+  p.odometry = SimulateOdometry(drive.inputs, drive.duration_s, o.noise_model, &noise);
+
+  GnssSimulation gnss;
+  gnss.rate_hz = vehicle.gnss_rate_hz;
+  gnss.sigma_m = o.gnss_sigma_m;
+  gnss.ar1 = HasGnssAr1(o.noise);
+  gnss.ar1_alpha = o.gnss_ar1_alpha;
+  p.gnss = SimulateGnss([&drive](double t) { return drive.PoseAt(t); }, drive.duration_s, frame(), o.calibration,
+                        gnss, &noise);
+
+  const int frames = static_cast<int>(std::floor(drive.duration_s * vehicle.camera_rate_hz + 1e-9)) + 1;
+  for (int k = 0; k < frames; ++k) {
+    const double t = k / vehicle.camera_rate_hz;
+    for (const VisibleLandmark& seen : VisibleLandmarks(drive.PoseAt(t), vehicle.true_camera)) {
+      double u = 0.0;
+      if (DetectedPixel(seen.u_px, vehicle.true_camera, o.noise_model.pixel_sigma_px, &noise, &u)) {
+        p.detections.push_back({t, seen.id, u});
+      }
+    }
+  }
+  return {std::move(p), std::move(drive)};
+}
+
+std::vector<VisibleLandmark> CityScenario::VisibleLandmarks(const Pose2& pose, const Calibration& camera) const {
+  const double c = std::cos(pose.z()), s = std::sin(pose.z());
+  const Eigen::Vector2d& offset = camera.camera_position_m;
+  const Eigen::Vector2d camera_m =
+      pose.head<2>() + Eigen::Vector2d(c * offset.x() - s * offset.y(), s * offset.x() + c * offset.y());
+  std::vector<VisibleLandmark> seen;
+  layout_.ForEachLandmarkNear(camera_m, options_.max_detection_range_m, [&](const TruthLandmark& lm) {
+    double u = 0.0;
+    if (!TruePixel(pose, lm.position_m, camera, options_.min_detection_range_m, options_.max_detection_range_m, &u)) {
+      return;
+    }
+    if (options_.occlusion && !layout_.LineOfSightClear(camera_m, lm.position_m)) return;
+    seen.push_back({lm.id, u});
+  });
+  std::sort(seen.begin(), seen.end(), [](const VisibleLandmark& a, const VisibleLandmark& b) { return a.id < b.id; });
+  return seen;
+}
+
+}  // namespace crowdmap
