@@ -89,7 +89,7 @@ city flags:
   --steering-noise-scale X, --speed-noise-scale X, --gnss-noise-scale X, --pixel-noise-scale X
                               as for experiment
   --strategy S                cc | dc | cc-gsd (default cc-gsd)
-  --correlation-radius-m R, --warmup-passages B, --relinearize-until-passages R
+  --window-hops H, --warmup-passages B, --relinearize-until-passages R
                               as for experiment
   --progress-every P          progress line on stderr every P passages (default 10)
   --out DIR                   output folder (default out/city): summary.json, landmarks.csv
@@ -269,7 +269,7 @@ absl::Status RunCityCommand(const std::vector<std::string>& args) {
       args, {{"blocks-x", true}, {"blocks-y", true}, {"block-m", true}, {"passages", true}, {"route-m", true},
              {"vehicles", true}, {"seed", true}, {"layout-seed", true}, {"noise", true},
              {"vehicle-yaw-bias-sigma-rad", true}, {"rate-variation", true}, {"no-occlusion", false},
-             {"strategy", true}, {"correlation-radius-m", true}, {"warmup-passages", true},
+             {"strategy", true}, {"window-hops", true}, {"warmup-passages", true},
              {"relinearize-until-passages", true}, {"progress-every", true}, {"out", true},
              {"export-passages", true}, {"export-format", true}, {"steering-noise-scale", true},
              {"speed-noise-scale", true}, {"gnss-noise-scale", true}, {"pixel-noise-scale", true}, {"quiet", false}});
@@ -284,16 +284,16 @@ absl::Status RunCityCommand(const std::vector<std::string>& args) {
                             warmup = flags->GetInt("warmup-passages", options.update.warmup_passages),
                             relinearize =
                                 flags->GetInt("relinearize-until-passages", options.update.relinearize_until_passages),
-                            every = flags->GetInt("progress-every", options.progress_every_passages);
+                            every = flags->GetInt("progress-every", options.progress_every_passages),
+                            window_hops = flags->GetInt("window-hops", options.update.window_hops);
   absl::StatusOr<double> block_m = flags->GetDouble("block-m", city.block_m),
                          route_m = flags->GetDouble("route-m", city.route_length_m),
                          yaw_sigma = flags->GetDouble("vehicle-yaw-bias-sigma-rad", city.vehicle_yaw_bias_sigma_rad),
-                         rate_variation = flags->GetDouble("rate-variation", city.rate_variation),
-                         radius = flags->GetDouble("correlation-radius-m", options.update.correlation_radius_m);
+                         rate_variation = flags->GetDouble("rate-variation", city.rate_variation);
   for (const absl::Status& s : {blocks_x.status(), blocks_y.status(), passages.status(), vehicles.status(),
                                 seed.status(), layout_seed.status(), warmup.status(), relinearize.status(),
                                 every.status(), block_m.status(), route_m.status(), yaw_sigma.status(),
-                                rate_variation.status(), radius.status()}) {
+                                rate_variation.status(), window_hops.status()}) {
     if (!s.ok()) return s;
   }
   absl::StatusOr<NoiseConfig> noise = ParseNoiseConfig(flags->GetString("noise", "white"));
@@ -315,7 +315,7 @@ absl::Status RunCityCommand(const std::vector<std::string>& args) {
   options.passages = static_cast<int>(*passages);
   options.progress_every_passages = static_cast<int>(*every);
   options.update.strategy = *strategy;
-  options.update.correlation_radius_m = *radius;
+  options.update.window_hops = static_cast<int>(*window_hops);
   options.update.warmup_passages = static_cast<int>(*warmup);
   options.update.relinearize_until_passages = static_cast<int>(*relinearize);
   if (absl::Status s = options.Validate(); !s.ok()) return s;
