@@ -10,6 +10,7 @@
 #include "core/estimation/map_updater.h"
 #include "mapservice/v1/map_service.grpc.pb.h"
 #include "server/map_worker.h"
+#include "server/request_log.h"
 #include "server/storage/map_store.h"
 #include "server/upload_committer.h"
 #include "server/version_notifier.h"
@@ -84,8 +85,13 @@ class MapService final : public MapServiceBase {
                            grpc::ServerWriter<pb::WatchRegionResponse>* writer) override;
   grpc::Status GetMapInfo(grpc::ServerContext* ctx, const pb::GetMapInfoRequest* request,
                           pb::MapInfo* response) override;
+  grpc::Status ExcludePassage(grpc::ServerContext* ctx, const pb::ExcludePassageRequest* request,
+                              pb::ExcludePassageResponse* response) override;
 
  private:
+  // The record named by an id, or by vehicle_id and passage_id.
+  absl::StatusOr<StoredPassage> FindRecord(int64_t id, const std::string& vehicle_id, const std::string& passage_id,
+                                           RequestLog* log);
   // Validates, commits and acknowledges one upload (both upload RPCs end here).
   absl::Status AcceptUpload(const pb::Passage& wire, size_t wire_bytes, std::string payload,
                             pb::UploadPassageResponse* response);

@@ -10,6 +10,7 @@
 #include <spdlog/spdlog.h>
 
 #include "absl/strings/str_cat.h"
+#include "core/estimation/passage_exclusion.h"
 #include "server/wire_convert.h"
 
 namespace crowdmap {
@@ -232,6 +233,42 @@ void MapWorker::Apply(const ClaimedPassage& claimed, const Passage& passage) {
     auto recorded = store_->RecordFailedAttempt(record.id, error);
     attempts = recorded.ok() ? *recorded : attempts + 1;
   }
+}
+
+absl::StatusOr<PassageUpdateSummary> MapWorker::Exclude(const StoredPassage& record) {
+  uint64_t ticket = 0;
+  {
+    std::lock_guard<std::mutex> lock(claim_mu_);
+    ticket = next_ticket_++;
+  }
+  std::unique_lock<std::mutex> lock(turn_mu_);
+  turn_cv_.wait(lock, [&] { return serving_ticket_ == ticket || stopping_.load(); });
+  lock.unlock();
+  absl::StatusOr<PassageUpdateSummary> out = absl::UnavailableError("server is shutting down");
+  if (!stopping_) {
+    absl::StatusOr<PassageUpdate> exclusion =
+        ComputePassageExclusion(record.vehicle_id, record.passage_id, options_.update, map_);
+    if (!exclusion.ok()) {
+      out = exclusion.status();
+    } else if (absl::Status s = store_->CommitPassageExcluded(record.id, exclusion->delta); !s.ok()) {
+      out = s;
+    } else {
+      map_.Apply(exclusion->delta);
+      updater_->Excluded(record.vehicle_id, record.passage_id);
+      notifier_->Publish(map_.version());
+      spdlog::info("event=excluded passage={} vehicle={} id={} landmarks_updated={} landmarks_removed={} "
+                   "landmarks_conditioned={} total_ms={:.1f} map_version={}",
+                   record.passage_id, record.vehicle_id, record.id, exclusion->summary.landmarks_updated,
+                   exclusion->summary.landmarks_removed, exclusion->summary.landmarks_conditioned,
+                   exclusion->summary.total_ms, map_.version());
+      out = exclusion->summary;
+    }
+  }
+  lock.lock();
+  if (serving_ticket_ == ticket) ++serving_ticket_;
+  lock.unlock();
+  turn_cv_.notify_all();
+  return out;
 }
 
 void MapWorker::Finish(const StoredPassage& record, PassageState state, const std::string& reason) {

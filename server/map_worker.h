@@ -61,6 +61,9 @@ class MapWorker {
   void Wake();
   // Finishes the passages being applied, returns claimed but unstarted ones to the queue, joins.
   void Stop();
+  // Takes an applied passage out of the map (ComputePassageExclusion, then CommitPassageExcluded),
+  // after the passages already claimed; runs on the calling thread. Unavailable when stopping.
+  absl::StatusOr<PassageUpdateSummary> Exclude(const StoredPassage& record);
 
  private:
   MapWorker(MapStoreInterface* store, const MapWorkerOptions& options, VersionNotifier* notifier)

@@ -103,21 +103,47 @@ grpc::Status MapService::UploadPassageChunked(grpc::ServerContext* ctx,
   return log.Done(s);
 }
 
+absl::StatusOr<StoredPassage> MapService::FindRecord(int64_t id, const std::string& vehicle_id,
+                                                     const std::string& passage_id, RequestLog* log) {
+  if (id != 0) {
+    log->Add(absl::StrCat("id=", id));
+    return context_->store->GetPassage(id);
+  }
+  if (!vehicle_id.empty() && !passage_id.empty()) {
+    log->Add(absl::StrCat("passage=", passage_id, " vehicle=", vehicle_id));
+    return context_->store->FindPassage(vehicle_id, passage_id);
+  }
+  return absl::InvalidArgumentError("id: give the passage id, or vehicle_id and passage_id");
+}
+
 grpc::Status MapService::GetPassage(grpc::ServerContext* ctx, const pb::GetPassageRequest* request,
                                     pb::PassageStatus* response) {
   RequestLog log("GetPassage", ctx);
-  absl::StatusOr<StoredPassage> record;
-  if (request->id() != 0) {
-    log.Add(absl::StrCat("id=", request->id()));
-    record = context_->store->GetPassage(request->id());
-  } else if (!request->vehicle_id().empty() && !request->passage_id().empty()) {
-    log.Add(absl::StrCat("passage=", request->passage_id(), " vehicle=", request->vehicle_id()));
-    record = context_->store->FindPassage(request->vehicle_id(), request->passage_id());
-  } else {
-    record = absl::InvalidArgumentError("id: give the passage id, or vehicle_id and passage_id");
-  }
+  absl::StatusOr<StoredPassage> record = FindRecord(request->id(), request->vehicle_id(), request->passage_id(), &log);
   if (record.ok()) StoredPassageToProto(*record, response);
   return log.Done(record.status());
+}
+
+grpc::Status MapService::ExcludePassage(grpc::ServerContext* ctx, const pb::ExcludePassageRequest* request,
+                                        pb::ExcludePassageResponse* response) {
+  RequestLog log("ExcludePassage", ctx);
+  absl::StatusOr<StoredPassage> record = FindRecord(request->id(), request->vehicle_id(), request->passage_id(), &log);
+  if (!record.ok()) return log.Done(record.status());
+  if (record->state != PassageState::kApplied) {
+    return log.Done(absl::FailedPreconditionError(absl::StrCat(
+        "passage ", record->id, " is ", PassageStateName(record->state), ": only an applied passage can be excluded")));
+  }
+  absl::StatusOr<PassageUpdateSummary> summary = context_->worker->Exclude(*record);
+  if (!summary.ok()) return log.Done(summary.status());
+  absl::StatusOr<StoredPassage> now = context_->store->GetPassage(record->id);
+  if (!now.ok()) return log.Done(now.status());
+  StoredPassageToProto(*now, response->mutable_status());
+  response->set_map_version(summary->map_version);
+  response->set_landmarks_updated(summary->landmarks_updated);
+  response->set_landmarks_removed(summary->landmarks_removed);
+  response->set_landmarks_conditioned(summary->landmarks_conditioned);
+  log.Add(absl::StrCat("map_version=", summary->map_version, " removed=", summary->landmarks_removed));
+  return log.Done(absl::OkStatus());
 }
 
 grpc::Status MapService::ListPassages(grpc::ServerContext* ctx, const pb::ListPassagesRequest* request,

@@ -178,6 +178,7 @@ pb::PassageState PassageStateToProto(PassageState state) {
     case PassageState::kApplied: return pb::PASSAGE_STATE_APPLIED;
     case PassageState::kRejected: return pb::PASSAGE_STATE_REJECTED;
     case PassageState::kFailed: return pb::PASSAGE_STATE_FAILED;
+    case PassageState::kExcluded: return pb::PASSAGE_STATE_EXCLUDED;
   }
   return pb::PASSAGE_STATE_UNSPECIFIED;
 }
@@ -190,6 +191,7 @@ absl::StatusOr<std::optional<PassageState>> PassageStateFromProto(pb::PassageSta
     case pb::PASSAGE_STATE_APPLIED: return std::optional<PassageState>(PassageState::kApplied);
     case pb::PASSAGE_STATE_REJECTED: return std::optional<PassageState>(PassageState::kRejected);
     case pb::PASSAGE_STATE_FAILED: return std::optional<PassageState>(PassageState::kFailed);
+    case pb::PASSAGE_STATE_EXCLUDED: return std::optional<PassageState>(PassageState::kExcluded);
     default: return Invalid("state", absl::StrCat("unknown passage state ", static_cast<int>(state)));
   }
 }

@@ -110,6 +110,18 @@ absl::StatusOr<pb::PassageStatus> MapClient::GetPassage(int64_t id) {
   return status;
 }
 
+absl::StatusOr<pb::ExcludePassageResponse> MapClient::ExcludePassage(const PassageKey& key) {
+  grpc::ClientContext ctx;
+  SetDeadline(&ctx);
+  pb::ExcludePassageRequest request;
+  request.set_id(key.id);
+  request.set_vehicle_id(key.vehicle_id);
+  request.set_passage_id(key.passage_id);
+  pb::ExcludePassageResponse response;
+  if (absl::Status s = FromGrpcStatus(stub_->ExcludePassage(&ctx, request, &response)); !s.ok()) return s;
+  return response;
+}
+
 absl::StatusOr<pb::PassageStatus> MapClient::GetPassage(const std::string& vehicle_id,
                                                        const std::string& passage_id) {
   grpc::ClientContext ctx;

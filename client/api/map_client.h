@@ -47,6 +47,13 @@ pb::BoundingBox WorldBox();
 
 // Client of mapservice.v1: a deadline on every call; uploads (idempotent on passage_id) retried
 // with exponential backoff on UNAVAILABLE and RESOURCE_EXHAUSTED. Thread-safe.
+// A passage named by its server id (non-zero), or by vehicle_id and passage_id.
+struct PassageKey {
+  int64_t id = 0;
+  std::string vehicle_id;
+  std::string passage_id;
+};
+
 class MapClient {
  public:
   static absl::StatusOr<std::unique_ptr<MapClient>> Create(const MapClientOptions& options);
@@ -54,6 +61,8 @@ class MapClient {
   // UploadPassage, or UploadPassageChunked above unary_upload_limit_bytes; retried as above.
   absl::StatusOr<pb::UploadPassageResponse> Upload(const pb::Passage& passage);
   absl::StatusOr<pb::PassageStatus> GetPassage(int64_t id);
+  // Takes an applied passage out of the map (administration).
+  absl::StatusOr<pb::ExcludePassageResponse> ExcludePassage(const PassageKey& key);
   absl::StatusOr<pb::PassageStatus> GetPassage(const std::string& vehicle_id, const std::string& passage_id);
   // Every passage (all pages) in `state`; nullopt = all states.
   absl::StatusOr<std::vector<pb::PassageStatus>> ListPassages(std::optional<pb::PassageState> state);

@@ -31,6 +31,9 @@ Commands:
   upload FILE...                 upload passage files (protobuf JSON or binary mapservice.v1.Passage)
   status ID                      one passage: server id, or VEHICLE/PASSAGE_ID
   passages [--state S]           uploaded passages; S = queued | processing | applied | rejected | failed
+                                 | excluded
+  exclude ID                     take an applied passage out of the map (server id, or
+                                 VEHICLE/PASSAGE_ID): the map becomes what it would be without it
   info                           map version, landmark and queue counts, strategy
   tile Z X Y                     landmarks of one z16 tile
   region --bbox MINLON,MINLAT,MAXLON,MAXLAT
@@ -74,13 +77,14 @@ std::string StateName(pb::PassageState state) {
     case pb::PASSAGE_STATE_APPLIED: return "applied";
     case pb::PASSAGE_STATE_REJECTED: return "rejected";
     case pb::PASSAGE_STATE_FAILED: return "failed";
+    case pb::PASSAGE_STATE_EXCLUDED: return "excluded";
     default: return "unspecified";
   }
 }
 
 absl::StatusOr<pb::PassageState> ParseState(const std::string& name) {
   for (pb::PassageState s : {pb::PASSAGE_STATE_QUEUED, pb::PASSAGE_STATE_PROCESSING, pb::PASSAGE_STATE_APPLIED,
-                             pb::PASSAGE_STATE_REJECTED, pb::PASSAGE_STATE_FAILED}) {
+                             pb::PASSAGE_STATE_REJECTED, pb::PASSAGE_STATE_FAILED, pb::PASSAGE_STATE_EXCLUDED}) {
     if (StateName(s) == name) return s;
   }
   return absl::InvalidArgumentError(
@@ -155,18 +159,27 @@ absl::Status Upload(const Flags& flags, Context& ctx) {
   return absl::OkStatus();
 }
 
-absl::Status Status(const Flags& flags, Context& ctx) {
-  if (flags.positional().size() != 1) return absl::InvalidArgumentError("status: give one ID (number or VEHICLE/PASSAGE_ID)");
-  const std::string& arg = flags.positional()[0];
-  absl::StatusOr<pb::PassageStatus> status;
-  int64_t id = 0;
-  if (absl::SimpleAtoi(arg, &id)) {
-    status = ctx.client->GetPassage(id);
-  } else if (size_t slash = arg.find('/'); slash != std::string::npos) {
-    status = ctx.client->GetPassage(arg.substr(0, slash), arg.substr(slash + 1));
-  } else {
-    return absl::InvalidArgumentError(absl::StrCat("status: '", arg, "' is neither a number nor VEHICLE/PASSAGE_ID"));
+// The passage named by a command's one argument: a server id, or VEHICLE/PASSAGE_ID.
+absl::StatusOr<PassageKey> PassageArgument(const std::string& command, const Flags& flags) {
+  if (flags.positional().size() != 1) {
+    return absl::InvalidArgumentError(absl::StrCat(command, ": give one ID (number or VEHICLE/PASSAGE_ID)"));
   }
+  const std::string& arg = flags.positional()[0];
+  PassageKey key;
+  if (absl::SimpleAtoi(arg, &key.id)) return key;
+  if (size_t slash = arg.find('/'); slash != std::string::npos) {
+    key.vehicle_id = arg.substr(0, slash);
+    key.passage_id = arg.substr(slash + 1);
+    return key;
+  }
+  return absl::InvalidArgumentError(absl::StrCat(command, ": '", arg, "' is neither a number nor VEHICLE/PASSAGE_ID"));
+}
+
+absl::Status Status(const Flags& flags, Context& ctx) {
+  absl::StatusOr<PassageKey> key = PassageArgument("status", flags);
+  if (!key.ok()) return key.status();
+  absl::StatusOr<pb::PassageStatus> status =
+      key->id != 0 ? ctx.client->GetPassage(key->id) : ctx.client->GetPassage(key->vehicle_id, key->passage_id);
   if (!status.ok()) return status.status();
   if (ctx.json) {
     *ctx.out << ToJson(*status);
@@ -186,6 +199,23 @@ absl::Status Status(const Flags& flags, Context& ctx) {
                            r.strategy(), r.nodes(), r.subgraphs(), r.landmarks_updated(), r.landmarks_created(),
                            r.landmarks_conditioned(), r.detections_used(), r.total_ms(), r.map_version());
   }
+  return absl::OkStatus();
+}
+
+absl::Status Exclude(const Flags& flags, Context& ctx) {
+  absl::StatusOr<PassageKey> key = PassageArgument("exclude", flags);
+  if (!key.ok()) return key.status();
+  absl::StatusOr<pb::ExcludePassageResponse> response = ctx.client->ExcludePassage(*key);
+  if (!response.ok()) return response.status();
+  if (ctx.json) {
+    *ctx.out << ToJson(*response);
+    return absl::OkStatus();
+  }
+  *ctx.out << absl::StrFormat("passage %d (%s/%s) excluded: map version %d, %d landmarks re-estimated, %d removed, "
+                              "%d moved through their correlation\n",
+                              response->status().id(), response->status().vehicle_id(),
+                              response->status().passage_id(), response->map_version(), response->landmarks_updated(),
+                              response->landmarks_removed(), response->landmarks_conditioned());
   return absl::OkStatus();
 }
 
@@ -330,6 +360,7 @@ const std::map<std::string, CommandSpec>& Commands() {
   static const auto* commands = new std::map<std::string, CommandSpec>{
       {"upload", {&Upload, {}}},
       {"status", {&Status, {}}},
+      {"exclude", {&Exclude, {}}},
       {"passages", {&Passages, {{"state", true}}}},
       {"info", {&Info, {}}},
       {"tile", {&Tile, {}}},

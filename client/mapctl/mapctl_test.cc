@@ -115,6 +115,24 @@ TEST_F(MapctlTest, UploadedFilesAreAppliedAndListed) {
   EXPECT_TRUE(absl::StrContains(by_key.out, "\"PASSAGE_STATE_APPLIED\"")) << by_key.out;
 }
 
+TEST_F(MapctlTest, ExcludeTakesAnAppliedPassageOutOfTheMap) {
+  UploadAndApply(3);
+  const Passage second = Scenario::Create(scenario_)->MakePassage(1);
+  CliRun r = Mapctl({"exclude", second.vehicle_id + "/" + second.passage_id}, address_);
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_TRUE(absl::StrContains(r.out, "passage 2 (" + second.vehicle_id + "/" + second.passage_id + ") excluded"))
+      << r.out;
+  CliRun status = Mapctl({"status", "2"}, address_);
+  EXPECT_TRUE(absl::StrContains(status.out, "state:       excluded")) << status.out;
+  CliRun listed = Mapctl({"passages", "--state", "excluded"}, address_);
+  EXPECT_TRUE(absl::StrContains(listed.out, "1 passages")) << listed.out;
+  CliRun again = Mapctl({"exclude", "2"}, address_);
+  EXPECT_TRUE(OneErrorLine(again)) << again.err;
+  EXPECT_TRUE(absl::StrContains(again.err, "only an applied passage can be excluded")) << again.err;
+  CliRun usage = Mapctl({"exclude"}, address_);
+  EXPECT_TRUE(OneErrorLine(usage)) << usage.err;
+}
+
 TEST_F(MapctlTest, MapReadsShowEveryLandmark) {
   UploadAndApply(2);
   const int landmarks = scenario_.landmarks;

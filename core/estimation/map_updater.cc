@@ -749,6 +749,14 @@ absl::StatusOr<PassageUpdate> MapUpdater::Compute(const Passage& passage, const 
   return ComputeBatchUpdate(batch, options_, map);
 }
 
+void MapUpdater::Excluded(const std::string& vehicle_id, const std::string& passage_id) {
+  const auto it = std::find_if(kept_.begin(), kept_.end(), [&](const Passage& p) {
+    return p.vehicle_id == vehicle_id && p.passage_id == passage_id;
+  });
+  if (it != kept_.end()) kept_.erase(it);
+  applied_count_ = std::max<int64_t>(0, applied_count_ - 1);
+}
+
 void MapUpdater::Applied(const Passage& passage) {
   const int64_t kept = static_cast<int64_t>(kept_.size());
   if (kept == applied_count_ && kept < JointSolvePassages(options_)) kept_.push_back(passage);

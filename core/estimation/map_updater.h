@@ -94,6 +94,7 @@ struct PassageUpdateSummary {
   int landmarks_updated = 0;      // already in the map and seen by the passage
   int landmarks_created = 0;      // new to the map
   int landmarks_conditioned = 0;  // outside the passage, moved through their correlation
+  int landmarks_removed = 0;      // left without information (by an exclusion)
   int detections_used = 0;
   int detections_dropped = 0;     // e.g. behind the camera at the initial guess
   int solver_iterations = 0;
@@ -169,6 +170,9 @@ class MapUpdater {
   absl::StatusOr<PassageUpdate> Compute(const Passage& passage, const MapReaderInterface& map) const;
   // Records that the delta Compute returned for `passage` was applied to the map.
   void Applied(const Passage& passage);
+  // Records that an applied passage was taken out of the map (ComputePassageExclusion): later
+  // joint solves leave it out.
+  void Excluded(const std::string& vehicle_id, const std::string& passage_id);
 
  private:
   MapUpdateOptions options_;

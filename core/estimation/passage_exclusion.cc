@@ -48,6 +48,7 @@ absl::StatusOr<PassageUpdate> ComputePassageExclusion(const std::string& vehicle
     out.summary.landmarks_conditioned = *conditioned;
   }
   out.summary.landmarks_updated = static_cast<int>(seeds.size());
+  out.summary.landmarks_removed = static_cast<int>(touched.size() - seeds.size());
   out.summary.map_version = version;
   out.delta = overlay.TakeDelta();
   out.summary.total_ms =

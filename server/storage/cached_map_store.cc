@@ -47,12 +47,23 @@ std::shared_ptr<const CachedMapStore::View> CachedMapStore::CurrentView() const 
 absl::Status CachedMapStore::CommitPassageApplied(int64_t id, const MapDelta& delta, const PassageResult& result) {
   std::lock_guard<std::mutex> lock(writer_mu_);
   if (auto s = inner_->CommitPassageApplied(id, delta, result); !s.ok()) return s;
+  Publish(delta);
+  return absl::OkStatus();
+}
+
+absl::Status CachedMapStore::CommitPassageExcluded(int64_t id, const MapDelta& delta) {
+  std::lock_guard<std::mutex> lock(writer_mu_);
+  if (auto s = inner_->CommitPassageExcluded(id, delta); !s.ok()) return s;
+  Publish(delta);
+  return absl::OkStatus();
+}
+
+void CachedMapStore::Publish(const MapDelta& delta) {
   std::shared_ptr<const View> next = ApplyToView(delta);
   std::unique_lock<std::shared_mutex> map_lock(map_mu_);
   map_.Apply(delta);
   std::lock_guard<std::mutex> publish(view_mu_);
   view_ = std::move(next);
-  return absl::OkStatus();
 }
 
 std::shared_ptr<const CachedMapStore::View> CachedMapStore::ApplyToView(const MapDelta& delta) {

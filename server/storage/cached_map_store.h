@@ -53,6 +53,7 @@ class CachedMapStore : public MapStoreInterface {
 
   // Commits through the inner store, then publishes the new copy.
   absl::Status CommitPassageApplied(int64_t id, const MapDelta& delta, const PassageResult& result) override;
+  absl::Status CommitPassageExcluded(int64_t id, const MapDelta& delta) override;
 
   // Served from the copy; requests with cross covariances go to the inner store.
   absl::StatusOr<LandmarkPage> QueryRegion(const BoundingBox& box, LandmarkId after_id, int limit,
@@ -74,6 +75,8 @@ class CachedMapStore : public MapStoreInterface {
 
   static TileKey KeyOf(const TileId& tile) { return (static_cast<uint64_t>(tile.x) << 32) | static_cast<uint32_t>(tile.y); }
   std::shared_ptr<const View> CurrentView() const;
+  // After a commit of `delta`: applies it to the map and publishes the new view (writer only).
+  void Publish(const MapDelta& delta);
   // Builds the view that results from applying `delta` to the current one (writer only).
   std::shared_ptr<const View> ApplyToView(const MapDelta& delta);
   // The landmarks of `view` inside `box` that pass `keep`, in increasing id order.

@@ -13,7 +13,7 @@
 
 namespace crowdmap {
 
-enum class PassageState { kQueued = 1, kProcessing = 2, kApplied = 3, kRejected = 4, kFailed = 5 };
+enum class PassageState { kQueued = 1, kProcessing = 2, kApplied = 3, kRejected = 4, kFailed = 5, kExcluded = 6 };
 
 const char* PassageStateName(PassageState state);
 
@@ -94,7 +94,7 @@ struct MapStats {
   int64_t map_version = 0;
   int64_t landmark_count = 0;
   int64_t factor_count = 0;
-  int64_t passages_by_state[6] = {0, 0, 0, 0, 0, 0};  // indexed by PassageState
+  int64_t passages_by_state[7] = {0, 0, 0, 0, 0, 0, 0};  // indexed by PassageState
   int64_t queue_depth() const { return passages_by_state[1] + passages_by_state[2]; }
 };
 
@@ -121,6 +121,10 @@ class MapStoreInterface {
   // the passage applied with its result. FailedPrecondition when the stored map version is not
   // delta.base_version or the passage is not processing.
   virtual absl::Status CommitPassageApplied(int64_t id, const MapDelta& delta, const PassageResult& result) = 0;
+  // In one transaction: writes the map change that takes an applied passage out of the map (see
+  // ComputePassageExclusion) and marks it excluded. FailedPrecondition when the stored map version
+  // is not delta.base_version or the passage is not applied.
+  virtual absl::Status CommitPassageExcluded(int64_t id, const MapDelta& delta) = 0;
   // Ends a processing passage without a map change: state `final_state` (rejected or failed)
   // or queued (to retry), with the reason.
   virtual absl::Status FinishPassageWithoutChange(int64_t id, PassageState state, const std::string& reason) = 0;

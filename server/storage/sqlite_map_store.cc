@@ -156,23 +156,28 @@ absl::Status SqliteMapStore::WriteLandmark(SqliteConnection* db, const Landmark&
   return box->Run();
 }
 
-absl::Status SqliteMapStore::CommitPassageApplied(int64_t id, const MapDelta& delta, const PassageResult& result) {
-  std::lock_guard<std::mutex> lock(writer_mu_);
-  SqliteConnection* db = writer_.get();
-  auto txn = SqliteWriteTransaction::Begin(db);
-  if (!txn.ok()) return txn.status();
+absl::Status SqliteMapStore::CheckBaseVersion(SqliteConnection* db, const MapDelta& delta) {
   auto version = ReadMapVersion(db);
   if (!version.ok()) return version.status();
   if (*version != delta.base_version) {
     return absl::FailedPreconditionError(absl::StrCat("map delta computed against version ", delta.base_version,
                                                       " but the stored map is at version ", *version));
   }
+  return absl::OkStatus();
+}
+
+absl::Status SqliteMapStore::CheckPassageState(SqliteConnection* db, int64_t id, PassageState state) {
   auto passage = ReadPassage(db, id);
   if (!passage.ok()) return passage.status();
-  if (!passage->has_value() || (*passage)->state != PassageState::kProcessing) {
-    return absl::FailedPreconditionError(absl::StrCat("passage id ", id, " is not processing"));
+  if (!passage->has_value()) return absl::FailedPreconditionError(absl::StrCat("passage id ", id, ": not found"));
+  if ((*passage)->state != state) {
+    return absl::FailedPreconditionError(absl::StrCat("passage id ", id, " is ", PassageStateName((*passage)->state),
+                                                      ", not ", PassageStateName(state)));
   }
+  return absl::OkStatus();
+}
 
+absl::Status SqliteMapStore::WriteMapDelta(SqliteConnection* db, const MapDelta& delta) {
   for (const auto& [lid, landmark] : delta.landmarks) {
     if (auto s = WriteLandmark(db, landmark); !s.ok()) return s;
   }
@@ -219,6 +224,33 @@ absl::Status SqliteMapStore::CommitPassageApplied(int64_t id, const MapDelta& de
   if (!set_version.ok()) return set_version.status();
   set_version->Bind(1, std::max(delta.version, delta.base_version));
   if (auto s = set_version->Run(); !s.ok()) return s;
+
+  return absl::OkStatus();
+}
+
+absl::Status SqliteMapStore::CommitPassageExcluded(int64_t id, const MapDelta& delta) {
+  std::lock_guard<std::mutex> lock(writer_mu_);
+  SqliteConnection* db = writer_.get();
+  auto txn = SqliteWriteTransaction::Begin(db);
+  if (!txn.ok()) return txn.status();
+  if (auto s = CheckBaseVersion(db, delta); !s.ok()) return s;
+  if (auto s = CheckPassageState(db, id, PassageState::kApplied); !s.ok()) return s;
+  if (auto s = WriteMapDelta(db, delta); !s.ok()) return s;
+  auto mark = db->Prepare("UPDATE passages SET state = 6, finished_unix_ms = ?2 WHERE id = ?1");
+  if (!mark.ok()) return mark.status();
+  mark->Bind(1, id).Bind(2, NowUnixMs());
+  if (auto s = mark->Run(); !s.ok()) return s;
+  return txn->Commit();
+}
+
+absl::Status SqliteMapStore::CommitPassageApplied(int64_t id, const MapDelta& delta, const PassageResult& result) {
+  std::lock_guard<std::mutex> lock(writer_mu_);
+  SqliteConnection* db = writer_.get();
+  auto txn = SqliteWriteTransaction::Begin(db);
+  if (!txn.ok()) return txn.status();
+  if (auto s = CheckBaseVersion(db, delta); !s.ok()) return s;
+  if (auto s = CheckPassageState(db, id, PassageState::kProcessing); !s.ok()) return s;
+  if (auto s = WriteMapDelta(db, delta); !s.ok()) return s;
 
   auto mark = db->Prepare("UPDATE passages SET state = 3, error = '', finished_unix_ms = ?2 WHERE id = ?1");
   if (!mark.ok()) return mark.status();
@@ -370,7 +402,7 @@ absl::StatusOr<MapStats> SqliteMapStore::GetStats() {
     } else if (name == "factors") {
       stats.factor_count = n;
     }
-    for (int state = 1; state <= 5; ++state) {
+    for (int state = 1; state <= 6; ++state) {
       if (name == absl::StrCat("passages_", state)) stats.passages_by_state[state] = n;
     }
   }

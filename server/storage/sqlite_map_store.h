@@ -28,6 +28,7 @@ class SqliteMapStore : public MapStoreInterface {
   absl::StatusOr<std::string> GetPassagePayload(int64_t id) override;
   absl::StatusOr<std::optional<ClaimedPassage>> ClaimNextPassage() override;
   absl::Status CommitPassageApplied(int64_t id, const MapDelta& delta, const PassageResult& result) override;
+  absl::Status CommitPassageExcluded(int64_t id, const MapDelta& delta) override;
   absl::Status FinishPassageWithoutChange(int64_t id, PassageState state, const std::string& reason) override;
   absl::StatusOr<int> RecordFailedAttempt(int64_t id, const std::string& reason) override;
   absl::StatusOr<int> RequeueProcessingPassages() override;
@@ -67,6 +68,11 @@ class SqliteMapStore : public MapStoreInterface {
                                                                       const std::string& passage_id);
   static absl::StatusOr<int64_t> ReadMapVersion(SqliteConnection* db);
   static absl::Status WriteLandmark(SqliteConnection* db, const Landmark& landmark);
+  // In the writer's transaction: the stored version is delta.base_version; passage `id` is in `state`.
+  static absl::Status CheckBaseVersion(SqliteConnection* db, const MapDelta& delta);
+  static absl::Status CheckPassageState(SqliteConnection* db, int64_t id, PassageState state);
+  // Writes the delta's landmarks, removals and factors and its version (in the writer's transaction).
+  static absl::Status WriteMapDelta(SqliteConnection* db, const MapDelta& delta);
   // Reads landmarks, factors and version (in the caller's transaction).
   static absl::Status ReadMap(SqliteConnection* db, MapState* map);
   // Landmarks selected by `where` (after the common column list), bound by `bind`, read in one

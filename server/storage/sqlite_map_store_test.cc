@@ -297,7 +297,7 @@ void ExpectStatsEqualTableCounts(MapStoreInterface* store, const std::string& pa
   ASSERT_TRUE(stats.ok()) << stats.status();
   EXPECT_EQ(stats->landmark_count, SqlInt(path, "SELECT COUNT(*) FROM landmarks"));
   EXPECT_EQ(stats->factor_count, SqlInt(path, "SELECT COUNT(*) FROM factors"));
-  for (int state = 1; state <= 5; ++state) {
+  for (int state = 1; state <= 6; ++state) {
     EXPECT_EQ(stats->passages_by_state[state],
               SqlInt(path, "SELECT COUNT(*) FROM passages WHERE state = " + std::to_string(state)))
         << "state " << state;
@@ -416,6 +416,43 @@ TEST_F(SchemaTwoDatabase, CovarianceThatIsNotPositiveDefiniteStopsTheMigrationWi
   EXPECT_EQ(CreateSqliteMapStore(path_).status().code(), absl::StatusCode::kDataLoss);
   EXPECT_EQ(SqlInt(path_, "PRAGMA user_version"), 2) << "the migration's transaction rolled back";
   EXPECT_EQ(SqlInt(path_, "SELECT COUNT(*) FROM cross_covariances"), 1);
+}
+
+TEST(SqliteMapStore, ExclusionWritesItsDeltaAndMarksThePassageInOneTransaction) {
+  TempDir dir;
+  const std::string path = dir.File("map.db");
+  auto store = OpenStore(path);
+  const int64_t id = EnqueueAndClaim(store.get(), "p");
+  MapDelta applied;
+  applied.version = 1;
+  applied.landmarks[1] = MakeLandmark(1, 48.7, 2.17, 1);
+  applied.landmarks[2] = MakeLandmark(2, 48.7001, 2.17, 1);
+  applied.added_factors[1] = MakeFactor(1, {1, 2}, PairCovariance(Eigen::Matrix2d::Constant(0.01)));
+  // Only an applied passage can be excluded.
+  EXPECT_EQ(store->CommitPassageExcluded(id, MapDelta()).code(), absl::StatusCode::kFailedPrecondition);
+  ASSERT_TRUE(store->CommitPassageApplied(id, applied, {}).ok());
+
+  MapDelta exclusion;
+  exclusion.base_version = 1;
+  exclusion.version = 2;
+  exclusion.removed_factors = {1};
+  exclusion.removed_landmarks = {1, 2};
+  MapDelta stale = exclusion;
+  stale.base_version = 0;
+  EXPECT_EQ(store->CommitPassageExcluded(id, stale).code(), absl::StatusCode::kFailedPrecondition);
+  EXPECT_EQ(store->GetPassage(id)->state, PassageState::kApplied) << "refused: nothing changed";
+  ASSERT_TRUE(store->CommitPassageExcluded(id, exclusion).ok());
+  EXPECT_EQ(store->GetPassage(id)->state, PassageState::kExcluded);
+  ExpectStatsEqualTableCounts(store.get(), path);
+  EXPECT_EQ(store->GetStats()->passages_by_state[static_cast<int>(PassageState::kExcluded)], 1);
+  MapState map;
+  ASSERT_TRUE(store->LoadMap(&map).ok());
+  EXPECT_EQ(map.landmark_count(), 0u);
+  EXPECT_EQ(map.factor_count(), 0u);
+  EXPECT_EQ(map.version(), 2);
+  EXPECT_EQ(map.last_factor_id(), 1) << "factor ids are not reused";
+  EXPECT_EQ(store->CommitPassageExcluded(id, exclusion).code(), absl::StatusCode::kFailedPrecondition)
+      << "already excluded";
 }
 
 TEST(SqliteMapStore, CommitAgainstStaleVersionChangesNothing) {

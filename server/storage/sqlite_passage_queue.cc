@@ -71,6 +71,7 @@ const char* PassageStateName(PassageState state) {
     case PassageState::kApplied: return "applied";
     case PassageState::kRejected: return "rejected";
     case PassageState::kFailed: return "failed";
+    case PassageState::kExcluded: return "excluded";
   }
   return "unknown";
 }

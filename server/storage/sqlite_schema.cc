@@ -250,7 +250,7 @@ const std::vector<Migration>& Migrations() {
         information_vector BLOB NOT NULL   -- 2k doubles
       ) STRICT;
       CREATE INDEX factors_by_passage ON factors (vehicle_id, passage_id);
-      INSERT INTO row_counts (name, n) VALUES ('factors', 0);
+      INSERT INTO row_counts (name, n) VALUES ('factors', 0), ('passages_6', 0);
       CREATE TRIGGER count_factor_insert AFTER INSERT ON factors
         BEGIN UPDATE row_counts SET n = n + 1 WHERE name = 'factors'; END;
       CREATE TRIGGER count_factor_delete AFTER DELETE ON factors

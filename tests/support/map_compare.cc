@@ -42,10 +42,11 @@ namespace crowdmap {
   return ::testing::AssertionSuccess();
 }
 
-MapState MapFromPassages(const Scenario& scenario, int passages, const MapUpdateOptions& options) {
+MapState MapFromPassages(const Scenario& scenario, int passages, const MapUpdateOptions& options, int skip) {
   MapState map;
   MapUpdater updater(options);
   for (int i = 0; i < passages; ++i) {
+    if (i == skip) continue;
     const Passage passage = scenario.MakePassage(i);
     absl::StatusOr<PassageUpdate> update = updater.Compute(passage, map);
     EXPECT_TRUE(update.ok()) << update.status();

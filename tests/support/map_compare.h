@@ -14,8 +14,9 @@ namespace crowdmap {
                                      double cov_tol_m2);
 
 // The map the service builds with `options` from the scenario's first `passages` passages
-// applied in order, computed in-process.
-MapState MapFromPassages(const Scenario& scenario, int passages, const MapUpdateOptions& options = MapUpdateOptions());
+// applied in order (all but `skip`, if given), computed in-process.
+MapState MapFromPassages(const Scenario& scenario, int passages, const MapUpdateOptions& options = MapUpdateOptions(),
+                         int skip = -1);
 
 }  // namespace crowdmap
 

@@ -20,6 +20,7 @@ class MockVehicle {
   explicit MockVehicle(const std::string& address, int max_message_mb = 64);
 
   pb::MapService::Stub* stub() { return client_->stub(); }
+  MapClient* client() { return client_.get(); }
   const std::shared_ptr<grpc::Channel>& channel() const { return client_->channel(); }
 
   // One attempt, no retry.
