@@ -15,9 +15,24 @@ double MillisecondsSince(std::chrono::steady_clock::time_point start) {
 
 Eigen::MatrixXd Symmetrized(const Eigen::MatrixXd& m) { return 0.5 * (m + m.transpose()); }
 
-// A landmark offset that moved by less than this is not rewritten (a change of the conditioning
-// far away from a graph, below any use).
-constexpr double kMinWrittenChangeM = 1e-9;
+// A landmark outside a graph whose estimate moved by less than this is not rewritten (a change of
+// the conditioning far from the graph, below any use).
+constexpr double kMinWrittenChangeM = 1e-6;
+
+// Derivative of the graph's local coordinates with respect to a landmark's offset from its anchor
+// (East/North at the anchor), at `offset`: the tangent frames at the anchor and at the landmark
+// differ by a rotation of offset / earth radius, so EnToLocal alone is off by about 1e-6 per metre.
+// Central differences of the exact map, with 100 m steps: the truncation error (step / earth
+// radius)^2 and the rounding (1e-9 m / step) both stay near 1e-10.
+Eigen::Matrix2d OffsetToLocal(const LocalFrame& frame, const LatLon& anchor, const Eigen::Vector2d& offset) {
+  const LocalFrame at_anchor(anchor);
+  Eigen::Matrix2d t;
+  for (int k = 0; k < 2; ++k) {
+    const Eigen::Vector2d step = 100.0 * Eigen::Vector2d::Unit(k);
+    t.col(k) = (frame.ToLocal(at_anchor.ToGeo(offset + step)) - frame.ToLocal(at_anchor.ToGeo(offset - step))) / 200.0;
+  }
+  return t;
+}
 
 }  // namespace
 
@@ -44,7 +59,8 @@ absl::Status LandmarkUpdate::AddMapPrior(bool correlated, const MapWindowOptions
   if (m == 0) return absl::OkStatus();
   std::vector<Eigen::Matrix2d> to_local(m);
   for (int k = 0; k < m; ++k) {
-    to_local[k] = frame_.EnToLocal(map_->FindLandmark(prior_ids[k])->position);
+    const Landmark* lm = map_->FindLandmark(prior_ids[k]);
+    to_local[k] = OffsetToLocal(frame_, lm->anchor, lm->Offset());
     prior_mean_.segment<2>(2 * k) = positions_[prior_index_[k]];
   }
   if (!correlated) {
@@ -133,7 +149,15 @@ absl::StatusOr<LandmarkUpdateStats> LandmarkUpdate::Commit(const Eigen::MatrixXd
   const int64_t version = map_->BumpVersion();
   MapWindowOptions window = options.window;
   if (!options.correlated) window.hops = 1;  // DC factors link no landmarks
-  absl::StatusOr<int> conditioned = ResolveAround(ids_, window, version, touch, map_);
+  // The graph's posterior is the seeds' new marginal: exact when its prior was (the map's
+  // marginal), otherwise no smaller than the exact one.
+  MarginalRefresh refresh;
+  for (int i = 0; i < n; ++i) {
+    const Landmark* lm = map_->FindLandmark(ids_[i]);  // written by AddLocalFactor: anchored
+    const Eigen::Matrix2d from_local = OffsetToLocal(frame_, lm->anchor, EastNorthOffset(lm->anchor, frame_.ToGeo(positions_[i]))).inverse();
+    refresh.seeds.push_back(from_local * cov_ss.block<2, 2>(2 * i, 2 * i) * from_local.transpose());
+  }
+  absl::StatusOr<int> conditioned = ResolveAround(ids_, refresh, window, version, touch, map_);
   if (!conditioned.ok()) return conditioned.status();
   stats.conditioned = *conditioned;
   stats.covariance_ms = MillisecondsSince(start);
@@ -156,8 +180,8 @@ void AddLocalFactor(const LocalFrame& frame, const Eigen::VectorXd& local, MapFa
       map->PutLandmark(record);
     }
     const LatLon anchor = known ? known->anchor : position;
-    t.block<2, 2>(2 * i, 2 * i) = frame.EnToLocal(position);
     offsets.segment<2>(2 * i) = EastNorthOffset(anchor, position);
+    t.block<2, 2>(2 * i, 2 * i) = OffsetToLocal(frame, anchor, offsets.segment<2>(2 * i));
   }
   const Eigen::VectorXd gradient = factor.information_vector - factor.information * local;
   factor.information = Symmetrized(t.transpose() * factor.information * t);
@@ -165,28 +189,31 @@ void AddLocalFactor(const LocalFrame& frame, const Eigen::VectorXd& local, MapFa
   map->AddFactor(std::move(factor));
 }
 
-absl::StatusOr<int> ResolveAround(const std::vector<LandmarkId>& seeds, const MapWindowOptions& window_options,
-                                  int64_t version, const std::function<void(Landmark*)>& touch, MapOverlay* map) {
+absl::StatusOr<int> ResolveAround(const std::vector<LandmarkId>& seeds, const MarginalRefresh& refresh,
+                                  const MapWindowOptions& window_options, int64_t version,
+                                  const std::function<void(Landmark*)>& touch, MapOverlay* map) {
   absl::StatusOr<MapWindow> window = MapWindow::Build(*map, seeds, window_options);
   if (!window.ok()) return window.status();
   const std::vector<LandmarkId>& ids = window->landmarks();
-  const int seed_count = static_cast<int>(seeds.size());
-  std::vector<Eigen::Matrix2d> marginals;
-  if (window->closed()) {
+  const size_t seed_count = seeds.size();
+  std::vector<Eigen::Matrix2d> marginals = refresh.seeds;
+  if (refresh.others) {
     marginals = window->Marginals();
-  } else {
+  } else if (marginals.size() != seed_count) {
     absl::StatusOr<Eigen::MatrixXd> cov = window->Covariance(seeds);
     if (!cov.ok()) return cov.status();
-    for (int i = 0; i < seed_count; ++i) marginals.push_back(cov->block<2, 2>(2 * i, 2 * i));
+    marginals.clear();
+    for (size_t i = 0; i < seed_count; ++i) marginals.push_back(cov->block<2, 2>(2 * i, 2 * i));
   }
   int conditioned = 0;
   for (size_t i = 0; i < ids.size(); ++i) {
     Landmark record = *map->FindLandmark(ids[i]);
     const Eigen::Vector2d offset = window->offsets().segment<2>(2 * i);
-    const bool seed = static_cast<int>(i) < seed_count;
-    if (!seed && !window->closed() && (offset - record.Offset()).norm() < kMinWrittenChangeM) continue;
+    const bool seed = i < seed_count;
+    const bool refreshed = i < marginals.size();
+    if (!seed && !refreshed && (offset - record.Offset()).norm() < kMinWrittenChangeM) continue;
     record.position = LocalFrame(record.anchor).ToGeo(offset);
-    if (i < marginals.size()) record.cov_en_m2 = 0.5 * (marginals[i] + marginals[i].transpose());
+    if (refreshed) record.cov_en_m2 = 0.5 * (marginals[i] + marginals[i].transpose());
     record.version = version;
     if (seed) {
       touch(&record);

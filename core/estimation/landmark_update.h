@@ -81,10 +81,23 @@ class LandmarkUpdate {
 // landmarks at their position in `local`. Exposed for the joint solve.
 void AddLocalFactor(const LocalFrame& frame, const Eigen::VectorXd& local, MapFactor factor, MapOverlay* map);
 
-// Re-solves the map around `seeds` after factors changed, writing the changed records at
-// `version`; `touch` is called on the seeds' records. Returns how many landmarks other than the
-// seeds were written.
-absl::StatusOr<int> ResolveAround(const std::vector<LandmarkId>& seeds, const MapWindowOptions& window, int64_t version,
+// How ResolveAround refreshes the stored marginal covariances.
+struct MarginalRefresh {
+  // The seeds' new marginals (East/North at their anchors), when the caller has them (a graph's
+  // posterior); empty: recovered from the window.
+  std::vector<Eigen::Matrix2d> seeds;
+  // Also recover the marginals of the other landmarks the window re-estimates. Needed when
+  // information was removed (their stored marginals would be too small); otherwise they stay as
+  // they were, which only information added since can have made larger than the exact ones.
+  bool others = false;
+};
+
+// Re-solves the map around `seeds` after factors changed, writing the records that changed at
+// `version` (the seeds always; others when they moved by more than a micrometre or their marginal
+// was refreshed); `touch` is called on the seeds' records. Returns how many landmarks other than
+// the seeds were written.
+absl::StatusOr<int> ResolveAround(const std::vector<LandmarkId>& seeds, const MarginalRefresh& refresh,
+                                  const MapWindowOptions& window, int64_t version,
                                   const std::function<void(Landmark*)>& touch, MapOverlay* map);
 
 }  // namespace crowdmap

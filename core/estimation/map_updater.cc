@@ -655,7 +655,10 @@ absl::StatusOr<PassageUpdate> SolveJointly(const std::vector<Passage>& passages,
   };
   MapWindowOptions window;
   window.hops = correlated ? options.window_hops : 1;
-  absl::StatusOr<int> conditioned = ResolveAround(ids, window, version, touch, &overlay);
+  // The joint solve's marginals are the map's: no prior, every factor of the passages replaced.
+  MarginalRefresh refresh;
+  refresh.others = true;  // other landmarks' factors are replaced too, when the passages saw them
+  absl::StatusOr<int> conditioned = ResolveAround(ids, refresh, window, version, touch, &overlay);
   if (!conditioned.ok()) return conditioned.status();
   Yield(options);
   summary.covariance_ms += MillisecondsSince(covariance_start);

@@ -43,7 +43,9 @@ absl::StatusOr<PassageUpdate> ComputePassageExclusion(const std::string& vehicle
   window.hops = options.strategy == UpdateStrategy::kDecorrelated ? 1 : options.window_hops;
   auto touch = [](Landmark* record) { record->passages_seen = std::max<int64_t>(0, record->passages_seen - 1); };
   if (!seeds.empty()) {
-    absl::StatusOr<int> conditioned = ResolveAround(seeds, window, version, touch, &overlay);
+    MarginalRefresh refresh;
+    refresh.others = true;  // information was removed: every marginal in the window grows
+    absl::StatusOr<int> conditioned = ResolveAround(seeds, refresh, window, version, touch, &overlay);
     if (!conditioned.ok()) return conditioned.status();
     out.summary.landmarks_conditioned = *conditioned;
   }
