@@ -125,6 +125,18 @@ void InitializePoses(const PassageGraph& graph, const NodeRange& range, const Pa
   // An unusable localisation leaves the poses as they were; the full solve still runs.
 }
 
+// The widest angle between two of the unit `directions`.
+double WidestAngleRad(const std::vector<Eigen::Vector2d>& directions) {
+  double widest = 0.0;
+  for (size_t i = 0; i < directions.size(); ++i) {
+    for (size_t j = i + 1; j < directions.size(); ++j) {
+      const double cross = directions[i].x() * directions[j].y() - directions[i].y() * directions[j].x();
+      widest = std::max(widest, std::abs(std::atan2(cross, directions[i].dot(directions[j]))));
+    }
+  }
+  return widest;
+}
+
 // Initial positions of the new landmarks (intersection of their rays) and the detections usable
 // at the initial guess: landmark in front of the camera and, for map landmarks and a positive
 // `edge_margin_px`, predicted at least that far inside the image. A detector reports only
@@ -134,7 +146,7 @@ void InitializePoses(const PassageGraph& graph, const NodeRange& range, const Pa
 // adding one. Landmarks that cannot be initialised, new ones with fewer than two usable rays, are
 // left out. Returns the detections dropped.
 int InitializeLandmarks(const std::vector<Pose2>& poses, const NodeRange& range, const Calibration& calib,
-                        double edge_margin_px, SubgraphLandmarks* landmarks) {
+                        double edge_margin_px, double min_parallax_rad, SubgraphLandmarks* landmarks) {
   SubgraphLandmarks kept;
   int dropped = 0;
   for (size_t i = 0; i < landmarks->ids.size(); ++i) {
@@ -142,9 +154,14 @@ int InitializeLandmarks(const std::vector<Pose2>& poses, const NodeRange& range,
     Eigen::Vector2d initial = landmarks->initial[i];
     if (!landmarks->known[i]) {
       RayIntersection lines;
-      for (const CameraObservation* d : detections) lines.Add(CameraRay(poses[d->node - range.first], calib, d->u_px));
+      std::vector<Eigen::Vector2d> directions;
+      for (const CameraObservation* d : detections) {
+        const BearingRay ray = CameraRay(poses[d->node - range.first], calib, d->u_px);
+        lines.Add(ray);
+        directions.push_back(ray.direction);
+      }
       std::optional<Eigen::Vector2d> p = lines.Solve();
-      if (!p) {
+      if (!p || WidestAngleRad(directions) < min_parallax_rad) {
         dropped += static_cast<int>(detections.size());
         continue;
       }
@@ -201,8 +218,9 @@ absl::Status UpdateFromSubgraph(const Passage& passage, const PassageGraph& grap
   std::vector<Pose2> poses(graph.initial_poses.begin() + range.first, graph.initial_poses.begin() + range.last + 1);
   const auto solve_start = std::chrono::steady_clock::now();
   InitializePoses(graph, range, passage, options, &landmarks, &poses);
-  summary->detections_dropped += InitializeLandmarks(
-      poses, range, calib, options.edge_margin_sigmas * passage.noise.pixel_sigma_px, &landmarks);
+  summary->detections_dropped +=
+      InitializeLandmarks(poses, range, calib, options.edge_margin_sigmas * passage.noise.pixel_sigma_px,
+                          options.min_new_landmark_parallax_rad, &landmarks);
   if (landmarks.ids.empty()) return absl::OkStatus();
 
   LandmarkUpdate update(graph.frame, map, landmarks.ids);
@@ -314,6 +332,10 @@ absl::Status MapUpdateOptions::Validate() const {
     return absl::InvalidArgumentError(absl::StrCat(
         "detections_per_landmark: must be 0 (all) or >= 2 (a new landmark needs two bearings), got ",
         detections_per_landmark));
+  }
+  if (!(min_new_landmark_parallax_rad >= 0.0 && min_new_landmark_parallax_rad < 1.5)) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("min_new_landmark_parallax_rad: must lie in [0, 1.5), got ", min_new_landmark_parallax_rad));
   }
   if (window_hops < 0) {
     return absl::InvalidArgumentError(absl::StrCat("window_hops: must be >= 0 (0 = whole map), got ", window_hops));
@@ -472,7 +494,8 @@ absl::StatusOr<PassageUpdate> SolveJointly(const std::vector<Passage>& passages,
     }
     summary.detections_dropped +=
         InitializeLandmarks(poses[p], all, passages[p].calibration,
-                            options.edge_margin_sigmas * passages[p].noise.pixel_sigma_px, &seen[p]);
+                            options.edge_margin_sigmas * passages[p].noise.pixel_sigma_px,
+                            options.min_new_landmark_parallax_rad, &seen[p]);
   }
 
   // Landmarks with a usable detection, how many passages saw each, and when last.

@@ -35,6 +35,11 @@ struct MapUpdateOptions {
   // inwards (see InitializeLandmarks). Sequential updates only (not the warm-up's joint solve).
   // 0 uses them all.
   double edge_margin_sigmas = 3.0;
+  // A landmark new to the map is created only when the passage's rays to it span at least this
+  // angle (rad): with less its distance along the rays is undetermined (a landmark approached
+  // head-on at the end of a street), and a solve places it hundreds of metres off with a
+  // covariance that does not show it. 0 = any two rays that intersect.
+  double min_new_landmark_parallax_rad = 0.05;
   // The map is re-estimated after each (sub)graph, and its covariance recovered for the prior,
   // over the landmarks within this many links (shared factors) of the graph's landmarks; the
   // rest of the map is held at its estimate, and the covariance is conservative (never smaller

@@ -147,6 +147,27 @@ TEST(ComputePassageUpdate, BoundedWindowStaysConservative) {
   EXPECT_GT(less_confident, 0) << "the windows lost some information";
 }
 
+TEST(ComputePassageUpdate, NewLandmarksNeedRaysSpanningTheMinimumParallax) {
+  const Scenario scenario = MakeScenario(10);
+  const Passage passage = scenario.MakePassage(0);
+  MapUpdateOptions options;
+  const MapState empty;
+  absl::StatusOr<PassageUpdate> normal = ComputePassageUpdate(passage, options, empty);
+  ASSERT_TRUE(normal.ok()) << normal.status();
+  // The widest angle between a landmark's rays differs from landmark to landmark (0.4 rad leaves
+  // 6 of these 10): a bound between the smallest and the largest leaves some of them out.
+  options.min_new_landmark_parallax_rad = 0.4;
+  absl::StatusOr<PassageUpdate> strict = ComputePassageUpdate(passage, options, empty);
+  ASSERT_TRUE(strict.ok()) << strict.status();
+  EXPECT_LT(strict->summary.landmarks_created, normal->summary.landmarks_created);
+  EXPECT_GT(strict->summary.landmarks_created, 0);
+  EXPECT_GT(strict->summary.detections_dropped, normal->summary.detections_dropped);
+  options.min_new_landmark_parallax_rad = 1.49;  // no pair of rays of a forward camera spans this
+  EXPECT_EQ(ComputePassageUpdate(passage, options, empty).status().code(), absl::StatusCode::kInvalidArgument);
+  options.min_new_landmark_parallax_rad = -0.1;
+  EXPECT_NE(options.Validate().message().find("min_new_landmark_parallax_rad"), std::string::npos);
+}
+
 TEST(ComputePassageUpdate, PassageWithoutUsableDetectionsIsRejectedWithoutADelta) {
   const Scenario scenario = MakeScenario(4);
   Passage passage = scenario.MakePassage(0);
