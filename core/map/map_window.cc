@@ -3,12 +3,19 @@
 #include <algorithm>
 #include <unordered_set>
 
+#include <Eigen/CholmodSupport>
 #include <Eigen/Eigenvalues>
 
 #include "absl/strings/str_cat.h"
 #include "core/map/selected_inverse.h"
 
 namespace crowdmap {
+
+class MapWindow::Factor : public Eigen::CholmodSupernodalLLT<Eigen::SparseMatrix<double>, Eigen::Lower> {
+ public:
+  explicit Factor(const Eigen::SparseMatrix<double>& a) { compute(a); }
+};
+
 namespace {
 
 using Triplets = std::vector<Eigen::Triplet<double>>;
@@ -80,6 +87,7 @@ absl::StatusOr<MapWindow> MapWindow::Build(const MapReaderInterface& map, const 
 
   // The window's information, with the landmarks outside held at their estimate.
   const int n = static_cast<int>(w.ids_.size());
+  if (n == 0) return w;
   Triplets triplets;
   Eigen::VectorXd rhs(2 * n);
   std::unordered_set<LandmarkId> edge;  // window landmarks linked to the outside
@@ -102,7 +110,7 @@ absl::StatusOr<MapWindow> MapWindow::Build(const MapReaderInterface& map, const 
   }
   Eigen::SparseMatrix<double> information(2 * n, 2 * n);
   information.setFromTriplets(triplets.begin(), triplets.end());
-  auto mean_llt = std::make_shared<Llt>(information);
+  auto mean_llt = std::make_shared<const Factor>(information);
   if (mean_llt->info() != Eigen::Success) {
     return absl::FailedPreconditionError(
         absl::StrCat("map information over ", n, " landmarks is not positive definite"));
@@ -111,7 +119,8 @@ absl::StatusOr<MapWindow> MapWindow::Build(const MapReaderInterface& map, const 
   if (!w.offsets_.allFinite()) return absl::InternalError("map estimate is not finite");
   w.closed_ = edge.empty();
   if (w.closed_) {
-    w.covariance_llt_ = std::move(mean_llt);
+    w.covariance_information_ = std::move(information);
+    w.covariance_factor_ = std::move(mean_llt);
     return w;
   }
 
@@ -149,8 +158,9 @@ absl::StatusOr<MapWindow> MapWindow::Build(const MapReaderInterface& map, const 
     }
   }
   information.setFromTriplets(triplets.begin(), triplets.end());
-  w.covariance_llt_ = std::make_shared<Llt>(information);
-  if (w.covariance_llt_->info() != Eigen::Success) {
+  w.covariance_factor_ = std::make_shared<const Factor>(information);
+  w.covariance_information_ = std::move(information);
+  if (w.covariance_factor_->info() != Eigen::Success) {
     return absl::FailedPreconditionError(
         absl::StrCat("map marginal information over ", n, " landmarks is not positive definite"));
   }
@@ -164,6 +174,7 @@ int MapWindow::index(LandmarkId id) const {
 
 absl::StatusOr<Eigen::MatrixXd> MapWindow::Covariance(const std::vector<LandmarkId>& ids) const {
   const int n = static_cast<int>(ids_.size()), m = static_cast<int>(ids.size());
+  if (m == 0) return Eigen::MatrixXd(0, 0);
   Eigen::MatrixXd unit = Eigen::MatrixXd::Zero(2 * n, 2 * m);
   std::vector<int> at(m);
   for (int k = 0; k < m; ++k) {
@@ -171,7 +182,7 @@ absl::StatusOr<Eigen::MatrixXd> MapWindow::Covariance(const std::vector<Landmark
     if (at[k] < 0) return absl::InvalidArgumentError(absl::StrCat("landmark ", ids[k], ": outside the window"));
     unit.block<2, 2>(2 * at[k], 2 * k).setIdentity();
   }
-  const Eigen::MatrixXd columns = covariance_llt_->solve(unit);
+  const Eigen::MatrixXd columns = covariance_factor_->solve(unit);
   Eigen::MatrixXd cov(2 * m, 2 * m);
   for (int k = 0; k < m; ++k) cov.middleRows<2>(2 * k) = columns.middleRows<2>(2 * at[k]);
   cov = 0.5 * (cov + cov.transpose());
@@ -180,7 +191,10 @@ absl::StatusOr<Eigen::MatrixXd> MapWindow::Covariance(const std::vector<Landmark
 }
 
 std::vector<Eigen::Matrix2d> MapWindow::Marginals() const {
-  const SelectedInverse inverse(*covariance_llt_);
+  if (ids_.empty()) return {};
+  // Takahashi's recursion runs on a simplicial factor (Build checked positive definiteness).
+  const Eigen::SimplicialLLT<Eigen::SparseMatrix<double>> llt(covariance_information_);
+  const SelectedInverse inverse(llt);
   std::vector<Eigen::Matrix2d> out(ids_.size());
   for (size_t i = 0; i < ids_.size(); ++i) {
     const int r = static_cast<int>(2 * i);

@@ -49,14 +49,17 @@ class MapWindow {
   std::vector<Eigen::Matrix2d> Marginals() const;
 
  private:
-  using Llt = Eigen::SimplicialLLT<Eigen::SparseMatrix<double>>;
+  // Supernodal (CHOLMOD) factorisation of a window's information; opaque here so that this header
+  // does not pull in CHOLMOD.
+  class Factor;
   MapWindow() = default;
 
   std::vector<LandmarkId> ids_;
   std::unordered_map<LandmarkId, int> index_;
   bool closed_ = true;
   Eigen::VectorXd offsets_;
-  std::shared_ptr<const Llt> covariance_llt_;  // of the (conservative) window information
+  Eigen::SparseMatrix<double> covariance_information_;  // the (conservative) window information
+  std::shared_ptr<const Factor> covariance_factor_;
 };
 
 // Joint covariance of `ids` in `map` (East/North at the anchors), through a MapWindow around them.
