@@ -16,7 +16,7 @@ namespace {
 const std::vector<std::string>& SettingNames() {
   static const std::vector<std::string> kNames = {
       "listen", "db", "strategy", "max-subgraph-dim", "window-hops", "warmup-passages", "relinearize-until-passages", "workers",
-      "worker-nice", "max-queue", "max-message-mb", "max-passage-mb", "log-level"};
+      "retain-passages", "worker-nice", "max-queue", "max-message-mb", "max-passage-mb", "log-level"};
   return kNames;
 }
 
@@ -85,6 +85,10 @@ Usage: mapd [--flag value | --flag=value]...
   --workers N                 worker threads (default 1). They claim and decode passages in
                               parallel, but map updates are applied one at a time in arrival
                               order, so the map is the same for any N.
+  --retain-passages N         the factors of the last N applied passages are kept apart, so that
+                              such a passage can be excluded (ExcludePassage); older ones are
+                              folded into the map's base, which keeps the storage bounded
+                              (default 256; at least the young map's joint solves; 0 = keep all)
   --worker-nice N             scheduling niceness of the worker threads, 0..19 (default 10): map
                               updates yield the CPU to requests, so reads stay fast under load
   --max-queue N               passages queued or processing before uploads get
@@ -158,6 +162,7 @@ absl::StatusOr<MapdConfig> ParseMapdConfig(const std::vector<std::string>& args,
       if (!v.ok()) return v.status();
       if (name == "max-subgraph-dim") o.worker.update.max_subgraph_dim = static_cast<int>(*v);
       if (name == "window-hops") o.worker.update.window_hops = static_cast<int>(*v);
+      if (name == "retain-passages") o.worker.retain_passages = static_cast<int>(*v);
       if (name == "warmup-passages") o.worker.update.warmup_passages = static_cast<int>(*v);
       if (name == "relinearize-until-passages") o.worker.update.relinearize_until_passages = static_cast<int>(*v);
       if (name == "workers") o.worker.workers = static_cast<int>(*v);

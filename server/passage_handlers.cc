@@ -134,6 +134,11 @@ grpc::Status MapService::ExcludePassage(grpc::ServerContext* ctx, const pb::Excl
         "passage ", record->id, " is ", PassageStateName(record->state), ": only an applied passage can be excluded")));
   }
   absl::StatusOr<PassageUpdateSummary> summary = context_->worker->Exclude(*record);
+  if (summary.status().code() == absl::StatusCode::kNotFound) {
+    return log.Done(absl::FailedPreconditionError(absl::StrCat(
+        "passage ", record->id, ": its factors were folded into the map's base (it is older than the last ",
+        "--retain-passages applied passages) and can no longer be taken out")));
+  }
   if (!summary.ok()) return log.Done(summary.status());
   absl::StatusOr<StoredPassage> now = context_->store->GetPassage(record->id);
   if (!now.ok()) return log.Done(now.status());

@@ -278,6 +278,52 @@ TEST_F(ServiceRpc, ExcludePassageGivesTheMapWithoutIt) {
   EXPECT_EQ(client_->GetMapInfo()->passages_applied(), 4);
 }
 
+TEST_F(ServiceRpc, PassagesBeyondTheRetentionAreFoldedIntoTheBase) {
+  MapServerOptions options = TestServerOptions(dir_.File("map.db"), true);
+  options.worker.update.warmup_passages = 0;  // no joint solve needs the passages back
+  options.worker.retain_passages = 2;
+  server_ = StartTestServer(options);
+  ASSERT_NE(server_, nullptr);
+  client_ = std::make_unique<MockVehicle>(server_->address());
+  for (int i = 0; i < 5; ++i) MustUpload(scenario_.MakePassage(i));
+  absl::StatusOr<pb::MapInfo> info = client_->WaitUntilIdle();
+  ASSERT_TRUE(info.ok()) << info.status();
+  ASSERT_EQ(info->passages_applied(), 5);
+  // cc-gsd: one factor per subgraph; only the last two passages keep theirs.
+  MapUpdateOptions update;
+  update.warmup_passages = 0;
+  int64_t last_two = 0;
+  for (int i = 3; i < 5; ++i) {
+    absl::StatusOr<pb::PassageStatus> status =
+        client_->GetPassage(scenario_.MakePassage(i).vehicle_id, scenario_.MakePassage(i).passage_id);
+    last_two += status->result().subgraphs();
+  }
+  EXPECT_EQ(info->factor_count(), last_two);
+  // Folding changes nothing in the map.
+  absl::StatusOr<MapState> served = client_->DownloadMap(MockVehicle::World());
+  ASSERT_TRUE(served.ok()) << served.status();
+  EXPECT_TRUE(MapsMatch(MapFromPassages(scenario_, 5, update), *served, 1e-6, 1e-9));
+  // A folded passage can no longer be excluded; a retained one can.
+  const Passage oldest = scenario_.MakePassage(0), newest = scenario_.MakePassage(4);
+  EXPECT_EQ(client_->client()->ExcludePassage(PassageKey{0, oldest.vehicle_id, oldest.passage_id}).status().code(),
+            absl::StatusCode::kFailedPrecondition);
+  EXPECT_TRUE(client_->client()->ExcludePassage(PassageKey{0, newest.vehicle_id, newest.passage_id}).ok());
+  // After a restart the worker knows which passages it retains.
+  server_.reset();
+  server_ = StartTestServer(options);
+  client_ = std::make_unique<MockVehicle>(server_->address());
+  MustUpload(scenario_.MakePassage(5));
+  info = client_->WaitUntilIdle();
+  ASSERT_TRUE(info.ok());
+  int64_t retained = 0;
+  for (int i : {3, 5}) {
+    retained += client_->GetPassage(scenario_.MakePassage(i).vehicle_id, scenario_.MakePassage(i).passage_id)
+                    ->result()
+                    .subgraphs();
+  }
+  EXPECT_EQ(info->factor_count(), retained) << "passage 4 excluded, 3 and 5 retained";
+}
+
 TEST_F(ServiceRpc, GetTileReturnsItsLandmarksAndVersion) {
   Start(true);
   MustUpload(scenario_.MakePassage(0));

@@ -17,7 +17,8 @@ absl::StatusOr<PassageUpdate> ComputePassageExclusion(const std::string& vehicle
   std::vector<int64_t> factor_ids;
   overlay.AppendPassageFactorIds(vehicle_id, passage_id, &factor_ids);
   if (factor_ids.empty()) {
-    return absl::NotFoundError(absl::StrCat("passage ", vehicle_id, "/", passage_id, ": has no factor in the map"));
+    return absl::NotFoundError(absl::StrCat("passage ", vehicle_id, "/", passage_id,
+                                            ": no factor of it in the map (or folded into the map's base)"));
   }
   std::set<LandmarkId> touched;
   for (int64_t id : factor_ids) {
@@ -28,11 +29,8 @@ absl::StatusOr<PassageUpdate> ComputePassageExclusion(const std::string& vehicle
 
   PassageUpdate out;
   std::vector<LandmarkId> seeds;
-  std::vector<int64_t> remaining;
   for (LandmarkId id : touched) {
-    remaining.clear();
-    overlay.AppendFactorIds(id, &remaining);
-    if (remaining.empty()) {
+    if (overlay.Information(id, id).factors == 0) {  // no factor, folded or kept, left on it
       overlay.RemoveLandmark(id);
     } else {
       seeds.push_back(id);

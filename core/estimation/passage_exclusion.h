@@ -11,10 +11,11 @@ namespace crowdmap {
 
 // The map change that takes back everything one passage brought: its factors are subtracted from
 // the map's information, the map is re-solved around the landmarks they were on, and landmarks
-// left without any factor are removed. The result is the map built without the passage, up to
+// left without any information are removed. The result is the map built without the passage, up to
 // the linearisation points of the other passages' factors (exact on linear problems). `map` is
-// only read. NotFound when the map holds no factor of the passage; FailedPrecondition when what
-// remains does not determine a landmark (nothing is changed then).
+// only read. NotFound when the map holds no factor of the passage (none, or all folded into the
+// base: MapDelta::folded_factors); FailedPrecondition when what remains does not determine a
+// landmark (nothing is changed then).
 absl::StatusOr<PassageUpdate> ComputePassageExclusion(const std::string& vehicle_id, const std::string& passage_id,
                                                       const MapUpdateOptions& options, const MapReaderInterface& map);
 

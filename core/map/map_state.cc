@@ -24,6 +24,23 @@ void AssembledInformation::Add(const MapFactor& factor, int sign) {
   }
 }
 
+void AssembledInformation::AddBlock(LandmarkId a, LandmarkId b, const Eigen::Matrix2d& value) {
+  InformationBlock& ab = rows_[a][b];
+  ab.value += value;
+  ++ab.factors;
+  vector_.try_emplace(a, Eigen::Vector2d::Zero());
+  if (a == b) return;
+  InformationBlock& ba = rows_[b][a];
+  ba.value += value.transpose();
+  ++ba.factors;
+  vector_.try_emplace(b, Eigen::Vector2d::Zero());
+}
+
+void AssembledInformation::AddVector(LandmarkId id, const Eigen::Vector2d& value) {
+  auto [it, inserted] = vector_.try_emplace(id, Eigen::Vector2d::Zero());
+  it->second += value;
+}
+
 InformationBlock AssembledInformation::Block(LandmarkId a, LandmarkId b) const {
   auto it = rows_.find(a);
   if (it == rows_.end()) return {};
@@ -101,26 +118,38 @@ void MapState::PutFactor(MapFactor factor) {
   factors_.emplace(id, std::move(factor));
 }
 
+void MapState::FoldFactor(int64_t id) {
+  auto it = factors_.find(id);
+  if (it == factors_.end()) return;
+  ForgetFactor(it->second);  // its information stays in information_
+  factors_.erase(it);
+}
+
+void MapState::ForgetFactor(const MapFactor& factor) {
+  for (LandmarkId landmark : factor.landmarks) {
+    std::vector<int64_t>& ids = factors_of_[landmark];
+    ids.erase(std::remove(ids.begin(), ids.end(), factor.id), ids.end());
+    if (ids.empty()) factors_of_.erase(landmark);
+  }
+  auto passage = factors_of_passage_.find({factor.vehicle_id, factor.passage_id});
+  if (passage != factors_of_passage_.end()) {
+    std::vector<int64_t>& ids = passage->second;
+    ids.erase(std::remove(ids.begin(), ids.end(), factor.id), ids.end());
+    if (ids.empty()) factors_of_passage_.erase(passage);
+  }
+}
+
 void MapState::RemoveFactor(int64_t id) {
   auto it = factors_.find(id);
   if (it == factors_.end()) return;
   information_.Add(it->second, -1);
-  auto passage = factors_of_passage_.find({it->second.vehicle_id, it->second.passage_id});
-  if (passage != factors_of_passage_.end()) {
-    std::vector<int64_t>& ids = passage->second;
-    ids.erase(std::remove(ids.begin(), ids.end(), id), ids.end());
-    if (ids.empty()) factors_of_passage_.erase(passage);
-  }
-  for (LandmarkId landmark : it->second.landmarks) {
-    std::vector<int64_t>& ids = factors_of_[landmark];
-    ids.erase(std::remove(ids.begin(), ids.end(), id), ids.end());
-    if (ids.empty()) factors_of_.erase(landmark);
-  }
+  ForgetFactor(it->second);
   factors_.erase(it);
 }
 
 void MapState::Apply(const MapDelta& delta) {
   for (int64_t id : delta.removed_factors) RemoveFactor(id);
+  for (int64_t id : delta.folded_factors) FoldFactor(id);
   for (const auto& [id, factor] : delta.added_factors) PutFactor(factor);
   for (const auto& [id, landmark] : delta.landmarks) PutLandmark(landmark);
   for (LandmarkId id : delta.removed_landmarks) RemoveLandmark(id);
@@ -166,16 +195,21 @@ void MapOverlay::AppendLinked(LandmarkId id, std::vector<LandmarkId>* out) const
 const MapFactor* MapOverlay::FindFactor(int64_t id) const {
   auto it = delta_.added_factors.find(id);
   if (it != delta_.added_factors.end()) return &it->second;
-  return removed_.count(id) ? nullptr : base_.FindFactor(id);
+  return Hidden(id) ? nullptr : base_.FindFactor(id);
+}
+
+bool MapOverlay::Hidden(int64_t id) const { return removed_.count(id) > 0 || folded_.count(id) > 0; }
+
+void MapOverlay::FoldFactor(int64_t id) {
+  if (base_.FindFactor(id) == nullptr || Hidden(id)) return;
+  folded_.insert(id);
+  delta_.folded_factors.push_back(id);
 }
 
 void MapOverlay::AppendFactorIds(LandmarkId id, std::vector<int64_t>* out) const {
   const size_t start = out->size();
   base_.AppendFactorIds(id, out);
-  if (!removed_.empty()) {
-    out->erase(std::remove_if(out->begin() + start, out->end(), [&](int64_t f) { return removed_.count(f) > 0; }),
-               out->end());
-  }
+  out->erase(std::remove_if(out->begin() + start, out->end(), [&](int64_t f) { return Hidden(f); }), out->end());
   auto it = added_of_.find(id);
   if (it != added_of_.end()) out->insert(out->end(), it->second.begin(), it->second.end());
 }
@@ -184,8 +218,7 @@ void MapOverlay::AppendPassageFactorIds(const std::string& vehicle_id, const std
                                         std::vector<int64_t>* out) const {
   const size_t start = out->size();
   base_.AppendPassageFactorIds(vehicle_id, passage_id, out);
-  out->erase(std::remove_if(out->begin() + start, out->end(), [&](int64_t f) { return removed_.count(f) > 0; }),
-             out->end());
+  out->erase(std::remove_if(out->begin() + start, out->end(), [&](int64_t f) { return Hidden(f); }), out->end());
   for (const auto& [id, factor] : delta_.added_factors) {
     if (factor.vehicle_id == vehicle_id && factor.passage_id == passage_id) out->push_back(id);
   }
@@ -223,7 +256,7 @@ void MapOverlay::RemoveFactor(int64_t id) {
     return;
   }
   const MapFactor* factor = base_.FindFactor(id);
-  if (factor == nullptr || !removed_.insert(id).second) return;
+  if (factor == nullptr || folded_.count(id) > 0 || !removed_.insert(id).second) return;
   change_.Add(*factor, -1);
   delta_.removed_factors.push_back(id);
 }

@@ -88,6 +88,9 @@ class AssembledInformation {
 
   // Adds (sign +1) or subtracts (sign -1) a factor.
   void Add(const MapFactor& factor, int sign);
+  // Adds one block (a, b) (and its transpose at (b, a) when a != b), counted as one more factor.
+  void AddBlock(LandmarkId a, LandmarkId b, const Eigen::Matrix2d& value);
+  void AddVector(LandmarkId id, const Eigen::Vector2d& value);
   // Block (a, b); zero with factors == 0 when absent.
   InformationBlock Block(LandmarkId a, LandmarkId b) const;
   Eigen::Vector2d Vector(LandmarkId id) const;
@@ -107,10 +110,15 @@ struct MapDelta {
   std::unordered_map<LandmarkId, Landmark> landmarks;  // full new records, created or changed
   std::map<int64_t, MapFactor> added_factors;          // by id
   std::vector<int64_t> removed_factors;                // ids of base factors removed
+  // Ids of factors folded into the map's base: their information stays, summed with the others';
+  // the factor itself, and with it the passage's provenance, is dropped (so it can no longer be
+  // excluded).
+  std::vector<int64_t> folded_factors;
   std::vector<LandmarkId> removed_landmarks;            // left without any factor
 
   bool empty() const {
-    return landmarks.empty() && added_factors.empty() && removed_factors.empty() && removed_landmarks.empty();
+    return landmarks.empty() && added_factors.empty() && removed_factors.empty() && removed_landmarks.empty() &&
+           folded_factors.empty();
   }
 };
 
@@ -139,6 +147,11 @@ class MapState : public MapReaderInterface {
   void PutLandmark(const Landmark& landmark);
   void PutFactor(MapFactor factor);
   void RemoveFactor(int64_t id);
+  // Drops factor `id`'s record but keeps its information in the map (see MapDelta::folded_factors).
+  void FoldFactor(int64_t id);
+  // Adds information folded earlier (loading a stored base): block (a, b) and its transpose.
+  void PutBaseBlock(LandmarkId a, LandmarkId b, const Eigen::Matrix2d& value) { information_.AddBlock(a, b, value); }
+  void PutBaseVector(LandmarkId id, const Eigen::Vector2d& value) { information_.AddVector(id, value); }
   void RemoveLandmark(LandmarkId id) { landmarks_.erase(id); }
   void set_version(int64_t v) { version_ = v; }
   void set_last_factor_id(int64_t id) { last_factor_id_ = std::max(last_factor_id_, id); }
@@ -147,6 +160,9 @@ class MapState : public MapReaderInterface {
   void Apply(const MapDelta& delta);
 
  private:
+  // Removes a factor's record from the indexes (not from information_).
+  void ForgetFactor(const MapFactor& factor);
+
   std::unordered_map<LandmarkId, Landmark> landmarks_;
   std::unordered_map<int64_t, MapFactor> factors_;
   std::unordered_map<LandmarkId, std::vector<int64_t>> factors_of_;
@@ -179,6 +195,8 @@ class MapOverlay : public MapReaderInterface {
   int64_t AddFactor(MapFactor factor);
   // Removes a factor of the base or one added here.
   void RemoveFactor(int64_t id);
+  // Folds a factor of the base into the map's base (MapDelta::folded_factors).
+  void FoldFactor(int64_t id);
   // Starts the next map version; returns it.
   int64_t BumpVersion() { return ++delta_.version; }
 
@@ -189,7 +207,11 @@ class MapOverlay : public MapReaderInterface {
   const MapReaderInterface& base_;
   MapDelta delta_;
   int64_t last_factor_id_ = 0;
+  // Whether a factor of the base was removed or folded here.
+  bool Hidden(int64_t id) const;
+
   std::unordered_set<int64_t> removed_;
+  std::unordered_set<int64_t> folded_;
   std::unordered_map<LandmarkId, std::vector<int64_t>> added_of_;
   AssembledInformation change_{/*difference=*/true};  // added factors minus removed ones
 };

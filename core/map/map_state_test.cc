@@ -111,6 +111,39 @@ TEST(MapState, ApplyWritesTheDeltaAndAdvancesTheVersion) {
   EXPECT_EQ(map.version(), 7) << "a version step without changes still advances the map";
 }
 
+TEST(MapState, FoldingDropsTheRecordAndKeepsTheInformation) {
+  MapState map;
+  map.PutFactor(MakeFactor(1, {1, 2}));
+  map.PutFactor(MakeFactor(2, {2, 3}, "q"));
+  const InformationBlock before = map.Information(1, 2);
+  const Eigen::Vector2d vector_before = map.InformationVector(2);
+  MapDelta delta;
+  delta.folded_factors = {1};
+  map.Apply(delta);
+  EXPECT_EQ(map.FindFactor(1), nullptr);
+  EXPECT_EQ(map.factor_count(), 1u);
+  std::vector<int64_t> of_p;
+  map.AppendPassageFactorIds("v", "p", &of_p);
+  EXPECT_TRUE(of_p.empty());
+  EXPECT_EQ(map.Information(1, 2).value, before.value);
+  EXPECT_EQ(map.Information(1, 2).factors, before.factors);
+  EXPECT_EQ(map.InformationVector(2), vector_before);
+  EXPECT_EQ(SortedLinked(map, 2), (std::vector<LandmarkId>{1, 3}));
+  // Loading a stored base gives the same sums.
+  MapState loaded;
+  loaded.PutFactor(MakeFactor(2, {2, 3}, "q"));
+  const MapFactor folded = MakeFactor(1, {1, 2});
+  loaded.PutBaseBlock(1, 1, folded.information.block<2, 2>(0, 0));
+  loaded.PutBaseBlock(1, 2, folded.information.block<2, 2>(0, 2));
+  loaded.PutBaseBlock(2, 2, folded.information.block<2, 2>(2, 2));
+  loaded.PutBaseVector(1, folded.information_vector.segment<2>(0));
+  loaded.PutBaseVector(2, folded.information_vector.segment<2>(2));
+  for (LandmarkId a : {1, 2, 3}) {
+    EXPECT_EQ(loaded.InformationVector(a), map.InformationVector(a)) << a;
+    for (LandmarkId b : {1, 2, 3}) EXPECT_EQ(loaded.Information(a, b).value, map.Information(a, b).value) << a << b;
+  }
+}
+
 class MapOverlayTest : public testing::Test {
  protected:
   MapOverlayTest() {
@@ -146,6 +179,13 @@ TEST_F(MapOverlayTest, AddsAndRemovesFactorsOverTheBaseAndLeavesItUntouched) {
   std::sort(of_4.begin(), of_4.end());
   EXPECT_EQ(of_4, (std::vector<int64_t>{2, 3}));
   EXPECT_EQ(SortedLinked(base_, 2), (std::vector<LandmarkId>{1, 4})) << "base untouched";
+
+  // A base factor folded here is hidden like a removed one, but its information stays.
+  MapOverlay folding(base_);
+  folding.FoldFactor(2);
+  EXPECT_EQ(folding.FindFactor(2), nullptr);
+  EXPECT_EQ(folding.Information(2, 4).value, base_.Information(2, 4).value);
+  EXPECT_EQ(folding.delta().folded_factors, (std::vector<int64_t>{2}));
 
   // An added factor removed again leaves nothing behind.
   overlay.RemoveFactor(3);

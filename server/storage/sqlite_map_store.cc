@@ -195,6 +195,9 @@ absl::Status SqliteMapStore::WriteMapDelta(SqliteConnection* db, const MapDelta&
     stmt->Bind(1, fid);
     if (auto s = stmt->Run(); !s.ok()) return s;
   }
+  for (int64_t fid : delta.folded_factors) {
+    if (auto s = FoldFactor(db, fid); !s.ok()) return s;
+  }
   int64_t last_factor_id = 0;
   for (const auto& [fid, factor] : delta.added_factors) {
     if (!factor.information.allFinite() || !factor.information_vector.allFinite()) {
@@ -226,6 +229,52 @@ absl::Status SqliteMapStore::WriteMapDelta(SqliteConnection* db, const MapDelta&
   if (auto s = set_version->Run(); !s.ok()) return s;
 
   return absl::OkStatus();
+}
+
+absl::Status SqliteMapStore::FoldFactor(SqliteConnection* db, int64_t id) {
+  absl::StatusOr<MapFactor> factor = absl::InternalError(absl::StrCat("factor ", id, " to fold is not stored"));
+  {
+    auto read = db->Prepare(
+        "SELECT vehicle_id, passage_id, landmark_ids, information, information_vector FROM factors WHERE id = ?1");
+    if (!read.ok()) return read.status();
+    read->Bind(1, id);
+    auto row = read->Step();
+    if (!row.ok()) return row.status();
+    if (*row) {
+      factor = DecodeFactor(id, read->Text(0), read->Text(1),
+                            EncodedFactor{read->Blob(2), read->Blob(3), read->Blob(4)});
+    }
+  }
+  if (!factor.ok()) return factor.status();
+  const std::vector<LandmarkId>& ids = factor->landmarks;
+  for (size_t i = 0; i < ids.size(); ++i) {
+    for (size_t j = 0; j < ids.size(); ++j) {
+      if (ids[i] > ids[j] || (ids[i] == ids[j] && i != j)) continue;
+      const Eigen::Matrix2d v = factor->information.block<2, 2>(2 * i, 2 * j);
+      auto block = db->Prepare(
+          "INSERT INTO base_blocks (a, b, ee, en, ne, nn) VALUES (?1, ?2, ?3, ?4, ?5, ?6) ON CONFLICT (a, b) DO "
+          "UPDATE SET ee = ee + excluded.ee, en = en + excluded.en, ne = ne + excluded.ne, nn = nn + excluded.nn");
+      if (!block.ok()) return block.status();
+      block->Bind(1, static_cast<int64_t>(ids[i]))
+          .Bind(2, static_cast<int64_t>(ids[j]))
+          .Bind(3, v(0, 0))
+          .Bind(4, v(0, 1))
+          .Bind(5, v(1, 0))
+          .Bind(6, v(1, 1));
+      if (auto s = block->Run(); !s.ok()) return s;
+    }
+    const Eigen::Vector2d e = factor->information_vector.segment<2>(2 * i);
+    auto vector = db->Prepare(
+        "INSERT INTO base_vectors (id, e, n) VALUES (?1, ?2, ?3) ON CONFLICT (id) DO UPDATE "
+        "SET e = e + excluded.e, n = n + excluded.n");
+    if (!vector.ok()) return vector.status();
+    vector->Bind(1, static_cast<int64_t>(ids[i])).Bind(2, e.x()).Bind(3, e.y());
+    if (auto s = vector->Run(); !s.ok()) return s;
+  }
+  auto erase = db->Prepare("DELETE FROM factors WHERE id = ?1");
+  if (!erase.ok()) return erase.status();
+  erase->Bind(1, id);
+  return erase->Run();
 }
 
 absl::Status SqliteMapStore::CommitPassageExcluded(int64_t id, const MapDelta& delta) {
@@ -310,6 +359,24 @@ absl::Status SqliteMapStore::ReadMap(SqliteConnection* db, MapState* map) {
         EncodedFactor{factors->Blob(3), factors->Blob(4), factors->Blob(5)});
     if (!factor.ok()) return factor.status();
     map->PutFactor(*std::move(factor));
+  }
+  auto blocks = db->Prepare("SELECT a, b, ee, en, ne, nn FROM base_blocks");
+  if (!blocks.ok()) return blocks.status();
+  while (true) {
+    auto row = blocks->Step();
+    if (!row.ok()) return row.status();
+    if (!*row) break;
+    Eigen::Matrix2d v;
+    v << blocks->Double(2), blocks->Double(3), blocks->Double(4), blocks->Double(5);
+    map->PutBaseBlock(blocks->Int(0), blocks->Int(1), v);
+  }
+  auto vectors = db->Prepare("SELECT id, e, n FROM base_vectors");
+  if (!vectors.ok()) return vectors.status();
+  while (true) {
+    auto row = vectors->Step();
+    if (!row.ok()) return row.status();
+    if (!*row) break;
+    map->PutBaseVector(vectors->Int(0), Eigen::Vector2d(vectors->Double(1), vectors->Double(2)));
   }
   auto last = db->Prepare("SELECT value FROM map_meta WHERE key = 'last_factor_id'");
   if (!last.ok()) return last.status();

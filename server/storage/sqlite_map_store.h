@@ -71,6 +71,8 @@ class SqliteMapStore : public MapStoreInterface {
   // In the writer's transaction: the stored version is delta.base_version; passage `id` is in `state`.
   static absl::Status CheckBaseVersion(SqliteConnection* db, const MapDelta& delta);
   static absl::Status CheckPassageState(SqliteConnection* db, int64_t id, PassageState state);
+  // Moves a stored factor into the base tables (in the writer's transaction).
+  static absl::Status FoldFactor(SqliteConnection* db, int64_t id);
   // Writes the delta's landmarks, removals and factors and its version (in the writer's transaction).
   static absl::Status WriteMapDelta(SqliteConnection* db, const MapDelta& delta);
   // Reads landmarks, factors and version (in the caller's transaction).

@@ -455,6 +455,44 @@ TEST(SqliteMapStore, ExclusionWritesItsDeltaAndMarksThePassageInOneTransaction) 
       << "already excluded";
 }
 
+TEST(SqliteMapStore, FoldedFactorsMoveIntoTheBaseAndTheMapStaysTheSame) {
+  TempDir dir;
+  const std::string path = dir.File("map.db");
+  auto store = OpenStore(path);
+  MapDelta first;
+  first.version = 1;
+  for (LandmarkId id : {1, 2, 3}) first.landmarks[id] = MakeLandmark(id, 48.7 + 1e-4 * id, 2.17, 1);
+  first.added_factors[1] = MakeFactor(1, {1, 2}, PairCovariance(Eigen::Matrix2d::Constant(0.01)));
+  first.added_factors[2] = MakeFactor(2, {3, 2}, PairCovariance(Eigen::Matrix2d::Constant(-0.02)));
+  ASSERT_TRUE(store->CommitPassageApplied(EnqueueAndClaim(store.get(), "a"), first, {}).ok());
+  MapState before;
+  ASSERT_TRUE(store->LoadMap(&before).ok());
+
+  MapDelta fold;
+  fold.base_version = 1;
+  fold.version = 2;
+  fold.folded_factors = {1, 2};
+  ASSERT_TRUE(store->CommitPassageApplied(EnqueueAndClaim(store.get(), "b"), fold, {}).ok());
+  EXPECT_EQ(SqlInt(path, "SELECT COUNT(*) FROM factors"), 0);
+  EXPECT_EQ(SqlInt(path, "SELECT COUNT(*) FROM base_blocks"), 5) << "(1,1) (1,2) (2,2) (2,3) (3,3)";
+  ExpectStatsEqualTableCounts(store.get(), path);
+  MapState after;
+  ASSERT_TRUE(store->LoadMap(&after).ok());
+  EXPECT_EQ(after.factor_count(), 0u);
+  for (LandmarkId a : {1, 2, 3}) {
+    EXPECT_LT((after.InformationVector(a) - before.InformationVector(a)).cwiseAbs().maxCoeff(), 1e-12) << a;
+    for (LandmarkId b : {1, 2, 3}) {
+      EXPECT_LT((after.Information(a, b).value - before.Information(a, b).value).cwiseAbs().maxCoeff(), 1e-12)
+          << a << "," << b;
+      EXPECT_EQ(after.Information(a, b).factors > 0, before.Information(a, b).factors > 0) << a << "," << b;
+    }
+  }
+  absl::StatusOr<Eigen::MatrixXd> cov_before = JointCovariance(before, {1, 2, 3});
+  absl::StatusOr<Eigen::MatrixXd> cov_after = JointCovariance(after, {1, 2, 3});
+  ASSERT_TRUE(cov_before.ok() && cov_after.ok());
+  EXPECT_LT((*cov_after - *cov_before).cwiseAbs().maxCoeff(), 1e-12);
+}
+
 TEST(SqliteMapStore, CommitAgainstStaleVersionChangesNothing) {
   TempDir dir;
   const std::string path = dir.File("map.db");

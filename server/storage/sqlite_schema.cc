@@ -250,6 +250,20 @@ const std::vector<Migration>& Migrations() {
         information_vector BLOB NOT NULL   -- 2k doubles
       ) STRICT;
       CREATE INDEX factors_by_passage ON factors (vehicle_id, passage_id);
+      -- The base: factors folded in after the retention window, summed. Information blocks (a, b),
+      -- a <= b, rows in a's offsets and columns in b's, row-major; the information vector per landmark.
+      CREATE TABLE base_blocks (
+        a INTEGER NOT NULL,
+        b INTEGER NOT NULL,
+        ee REAL NOT NULL, en REAL NOT NULL, ne REAL NOT NULL, nn REAL NOT NULL,
+        PRIMARY KEY (a, b),
+        CHECK (a <= b)
+      ) STRICT, WITHOUT ROWID;
+      CREATE TABLE base_vectors (
+        id INTEGER PRIMARY KEY,
+        e REAL NOT NULL,
+        n REAL NOT NULL
+      ) STRICT;
       INSERT INTO row_counts (name, n) VALUES ('factors', 0), ('passages_6', 0);
       CREATE TRIGGER count_factor_insert AFTER INSERT ON factors
         BEGIN UPDATE row_counts SET n = n + 1 WHERE name = 'factors'; END;
