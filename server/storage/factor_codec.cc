@@ -60,4 +60,19 @@ absl::StatusOr<MapFactor> DecodeFactor(int64_t id, std::string vehicle_id, std::
   return f;
 }
 
+absl::Status InsertFactorRow(SqliteConnection* db, const MapFactor& factor) {
+  const EncodedFactor encoded = EncodeFactor(factor);
+  auto stmt = db->Prepare(
+      "INSERT INTO factors (id, vehicle_id, passage_id, landmark_ids, information, information_vector) "
+      "VALUES (?1, ?2, ?3, ?4, ?5, ?6)");
+  if (!stmt.ok()) return stmt.status();
+  stmt->Bind(1, factor.id)
+      .Bind(2, std::string_view(factor.vehicle_id))
+      .Bind(3, std::string_view(factor.passage_id))
+      .BindBlob(4, encoded.landmark_ids)
+      .BindBlob(5, encoded.information)
+      .BindBlob(6, encoded.information_vector);
+  return stmt->Run();
+}
+
 }  // namespace crowdmap

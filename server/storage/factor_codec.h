@@ -5,6 +5,7 @@
 
 #include "absl/status/statusor.h"
 #include "core/map/map_state.h"
+#include "server/storage/sqlite_db.h"
 
 namespace crowdmap {
 
@@ -21,6 +22,9 @@ EncodedFactor EncodeFactor(const MapFactor& factor);
 // DataLoss when the sizes do not agree or a number is not finite.
 absl::StatusOr<MapFactor> DecodeFactor(int64_t id, std::string vehicle_id, std::string passage_id,
                                        const EncodedFactor& encoded);
+
+// Inserts the factor's row into the factors table (in the caller's write transaction).
+absl::Status InsertFactorRow(SqliteConnection* db, const MapFactor& factor);
 
 }  // namespace crowdmap
 

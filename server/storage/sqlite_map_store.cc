@@ -203,18 +203,8 @@ absl::Status SqliteMapStore::WriteMapDelta(SqliteConnection* db, const MapDelta&
     if (!factor.information.allFinite() || !factor.information_vector.allFinite()) {
       return absl::InternalError(absl::StrCat("factor ", fid, " has non-finite numbers"));
     }
-    const EncodedFactor encoded = EncodeFactor(factor);
-    auto stmt = db->Prepare(
-        "INSERT INTO factors (id, vehicle_id, passage_id, landmark_ids, information, information_vector) "
-        "VALUES (?1, ?2, ?3, ?4, ?5, ?6)");
-    if (!stmt.ok()) return stmt.status();
-    stmt->Bind(1, fid)
-        .Bind(2, std::string_view(factor.vehicle_id))
-        .Bind(3, std::string_view(factor.passage_id))
-        .BindBlob(4, encoded.landmark_ids)
-        .BindBlob(5, encoded.information)
-        .BindBlob(6, encoded.information_vector);
-    if (auto s = stmt->Run(); !s.ok()) return s;
+    if (factor.id != fid) return absl::InternalError(absl::StrCat("factor ", fid, " is filed under id ", factor.id));
+    if (auto s = InsertFactorRow(db, factor); !s.ok()) return s;
     last_factor_id = std::max(last_factor_id, fid);
   }
   if (last_factor_id > 0) {

@@ -86,18 +86,7 @@ absl::Status ConvertCrossCovariancesToFactors(SqliteConnection* db) {
     f.information = llt.solve(Eigen::MatrixXd::Identity(cov.rows(), cov.cols()));
     f.information = 0.5 * (f.information + f.information.transpose());
     f.information_vector = Eigen::VectorXd::Zero(cov.rows());
-    const EncodedFactor encoded = EncodeFactor(f);
-    auto insert = db->Prepare(
-        "INSERT INTO factors (id, vehicle_id, passage_id, landmark_ids, information, information_vector) "
-        "VALUES (?1, ?2, ?3, ?4, ?5, ?6)");
-    if (!insert.ok()) return insert.status();
-    insert->Bind(1, f.id)
-        .Bind(2, std::string_view(f.vehicle_id))
-        .Bind(3, std::string_view(f.passage_id))
-        .BindBlob(4, encoded.landmark_ids)
-        .BindBlob(5, encoded.information)
-        .BindBlob(6, encoded.information_vector);
-    if (auto s = insert->Run(); !s.ok()) return s;
+    if (auto s = InsertFactorRow(db, f); !s.ok()) return s;
   }
   auto last = db->Prepare("UPDATE map_meta SET value = ?1 WHERE key = 'last_factor_id'");
   if (!last.ok()) return last.status();
