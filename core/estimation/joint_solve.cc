@@ -1,0 +1,345 @@
+// The joint solve of a young map's passages (warm-up and re-solves): ComputeBatchUpdate.
+#include <algorithm>
+#include <map>
+#include <memory>
+#include <optional>
+#include <set>
+
+#include <ceres/ceres.h>
+#include <spdlog/spdlog.h>
+
+#include "absl/strings/str_cat.h"
+#include "absl/strings/str_format.h"
+#include "core/estimation/factors.h"
+#include "core/estimation/landmark_update.h"
+#include "core/estimation/map_updater.h"
+#include "core/estimation/subgraph_steps.h"
+#include "core/estimation/triangulation.h"
+
+namespace crowdmap {
+namespace {
+
+// The joint solve of ComputeBatchUpdate, started from `single`, the sequential update of the last
+// passage on `map`.
+absl::StatusOr<PassageUpdate> SolveJointly(const std::vector<Passage>& passages, const MapUpdateOptions& options,
+                                           const MapReaderInterface& map, const PassageUpdate& single) {
+  const auto start = std::chrono::steady_clock::now();
+  const int count = static_cast<int>(passages.size());
+  auto failed = [&](int p, const absl::Status& s) {
+    return absl::Status(s.code(), absl::StrCat("passage ", passages[p].passage_id, ": ", s.message()));
+  };
+
+  // Every graph in one frame, with its odometry + GNSS poses.
+  GraphOptions graph_options;
+  graph_options.detections_per_landmark = options.detections_per_landmark;
+  graph_options.frame_origin = LatLon{passages.front().gnss.front().lat_deg, passages.front().gnss.front().lon_deg};
+  graph_options.refine_initial_poses = false;  // done piece by piece, with the map
+  PassageUpdateSummary summary;
+  summary.subgraphs = 1;
+  summary.joint_passages = count;
+  std::vector<PassageGraph> graphs;
+  graphs.reserve(count);
+  for (int p = 0; p < count; ++p) {
+    absl::StatusOr<PassageGraph> graph = BuildPassageGraph(passages[p], graph_options);
+    if (!graph.ok()) return failed(p, graph.status());
+    summary.nodes += graph->node_count();
+    summary.detections_dropped += graph->detections_dropped;
+    graphs.push_back(*std::move(graph));
+  }
+  const LocalFrame& frame = graphs.front().frame;
+
+  // Starting point: `map` with the last passage applied on its own, the basin the sequential
+  // update finds (the intersection of all rays is no start when each passage's GNSS is metres
+  // off in its own way); landmarks it lacks start at the intersection of their rays.
+  MapOverlay guess(map);
+  for (const auto& [id, record] : single.delta.landmarks) guess.PutLandmark(record);
+  std::map<LandmarkId, RayIntersection> rays;
+  for (int p = 0; p < count; ++p) {
+    for (const CameraObservation& d : graphs[p].detections) {
+      rays[d.landmark_id].Add(CameraRay(graphs[p].initial_poses[d.node], passages[p].calibration, d.u_px));
+    }
+  }
+  std::map<LandmarkId, Eigen::Vector2d> initial;
+  for (const auto& [id, lines] : rays) {
+    if (const Landmark* known = guess.FindLandmark(id)) {
+      initial[id] = frame.ToLocal(known->position);
+    } else if (std::optional<Eigen::Vector2d> x = lines.Solve()) {
+      initial[id] = *x;
+    }
+  }
+  std::vector<std::vector<Pose2>> poses(count);
+  std::vector<SubgraphLandmarks> seen(count);  // per passage: its detections of initialised landmarks
+  for (int p = 0; p < count; ++p) {
+    const NodeRange all{0, graphs[p].node_count() - 1};
+    poses[p] = graphs[p].initial_poses;
+    std::map<LandmarkId, std::vector<const CameraObservation*>> by_landmark;
+    for (const CameraObservation& d : graphs[p].detections) {
+      if (initial.count(d.landmark_id)) {
+        by_landmark[d.landmark_id].push_back(&d);
+      } else {
+        ++summary.detections_dropped;
+      }
+    }
+    for (auto& [id, detections] : by_landmark) {
+      seen[p].ids.push_back(id);
+      seen[p].known.push_back(true);
+      seen[p].initial.push_back(initial[id]);
+      seen[p].detections.push_back(std::move(detections));
+    }
+    // The poses are localised against `map` piece by piece, exactly as the sequential update
+    // does, not against the guess: the guess holds landmarks this very passage placed, some of
+    // them tens of metres off (nearly parallel rays), and held fixed as anchors they can turn the
+    // poses of a sharp turn around.
+    for (const NodeRange& range : SubdivideGraph(graphs[p], options.max_subgraph_dim)) {
+      SubgraphLandmarks known = GroupDetections(graphs[p], range, map);
+      std::vector<Pose2> piece(poses[p].begin() + range.first, poses[p].begin() + range.last + 1);
+      InitializePoses(graphs[p], range, passages[p], options, &known, &piece);
+      std::copy(piece.begin(), piece.end(), poses[p].begin() + range.first);
+    }
+    summary.detections_dropped +=
+        InitializeLandmarks(poses[p], all, passages[p].calibration,
+                            options.edge_margin_sigmas * passages[p].noise.pixel_sigma_px,
+                            options.min_new_landmark_parallax_rad, &seen[p]);
+  }
+
+  // Landmarks with a usable detection, how many passages saw each, and when last.
+  std::map<LandmarkId, int> seen_by;
+  std::map<LandmarkId, int64_t> last_seen_ms;
+  for (int p = 0; p < count; ++p) {
+    for (LandmarkId id : seen[p].ids) {
+      ++seen_by[id];
+      last_seen_ms[id] = std::max(last_seen_ms[id], passages[p].start_time_unix_ms);
+    }
+  }
+  if (seen_by.empty()) return absl::InvalidArgumentError("detections: no landmark of the passages could be estimated");
+  std::vector<LandmarkId> ids;
+  for (const auto& [id, n] : seen_by) ids.push_back(id);
+  std::map<LandmarkId, Eigen::Vector2d> position;  // the landmarks' parameter blocks
+  for (LandmarkId id : ids) position[id] = initial[id];
+  std::map<LandmarkId, double*> block_of;
+  std::vector<double*> landmark_blocks;
+  for (auto& [id, x] : position) {
+    block_of[id] = x.data();
+    landmark_blocks.push_back(x.data());
+  }
+
+  // One problem; each passage's measurements carry their own weight (consistency test below).
+  ceres::Problem::Options problem_options;
+  problem_options.loss_function_ownership = ceres::DO_NOT_TAKE_OWNERSHIP;
+  ceres::Problem problem(problem_options);
+  std::vector<std::unique_ptr<ceres::LossFunctionWrapper>> weights;
+  std::vector<std::vector<ceres::ResidualBlockId>> blocks_of(count);
+  std::vector<double> landmark_dims_of(count, 0.0);  // the landmarks' dimensions, shared by detections
+  std::map<LandmarkId, int> detections_of;
+  for (int p = 0; p < count; ++p) {
+    for (size_t i = 0; i < seen[p].ids.size(); ++i) detections_of[seen[p].ids[i]] += seen[p].detections[i].size();
+  }
+  for (int p = 0; p < count; ++p) {
+    weights.push_back(std::make_unique<ceres::LossFunctionWrapper>(new ceres::TrivialLoss(), ceres::TAKE_OWNERSHIP));
+    std::vector<ceres::ResidualBlockId> before;
+    problem.GetResidualBlocks(&before);
+    AddPoseGraphFactors(graphs[p], 0, graphs[p].node_count() - 1, passages[p].calibration.gnss_lever_arm_m,
+                        weights[p].get(), &poses[p], &problem);
+    problem.GetResidualBlocks(&blocks_of[p]);
+    blocks_of[p].erase(blocks_of[p].begin(), blocks_of[p].begin() + before.size());
+    for (size_t i = 0; i < seen[p].ids.size(); ++i) {
+      const LandmarkId id = seen[p].ids[i];
+      for (const CameraObservation* d : seen[p].detections[i]) {
+        blocks_of[p].push_back(problem.AddResidualBlock(
+            CameraFactor::Create(d->u_px, passages[p].noise.pixel_sigma_px, passages[p].calibration), weights[p].get(),
+            poses[p][d->node].data(), block_of[id]));
+        ++summary.detections_used;
+      }
+      landmark_dims_of[p] += 2.0 * seen[p].detections[i].size() / detections_of[id];
+    }
+  }
+
+  const auto solve_start = std::chrono::steady_clock::now();
+  ceres::Solver::Summary solver_summary;
+  Solve(options, SolverOptions(options.max_solver_iterations), &problem, &solver_summary);
+  summary.solver_iterations += static_cast<int>(solver_summary.iterations.size());
+  if (!solver_summary.IsSolutionUsable()) {
+    return absl::InternalError(absl::StrCat("joint solve unusable: ", solver_summary.message));
+  }
+  // The consistency test of UpdateFromSubgraph, passage by passage: the chi-square of each
+  // passage's residuals against its share of the degrees of freedom.
+  if (options.inflation_test_sigmas > 0.0) {
+    bool inflated = false;
+    for (int p = 0; p < count; ++p) {
+      ceres::Problem::EvaluateOptions evaluate;
+      evaluate.residual_blocks = blocks_of[p];
+      double cost = 0.0;
+      std::vector<double> residuals;
+      if (!problem.Evaluate(evaluate, &cost, &residuals, nullptr, nullptr)) continue;
+      const double dof = static_cast<double>(residuals.size()) - 3.0 * poses[p].size() - landmark_dims_of[p];
+      const double chi2 = 2.0 * cost;
+      if (const double variance_factor = VarianceFactor(chi2, dof, options.inflation_test_sigmas);
+          variance_factor > 1.0) {
+        summary.max_variance_factor = std::max(summary.max_variance_factor, variance_factor);
+        Inflate(variance_factor, weights[p].get());
+        inflated = true;
+      }
+    }
+    if (inflated) {
+      Solve(options, SolverOptions(options.max_solver_iterations), &problem, &solver_summary);
+      summary.solver_iterations += static_cast<int>(solver_summary.iterations.size());
+      if (!solver_summary.IsSolutionUsable()) {
+        return absl::InternalError(absl::StrCat("joint solve unusable after inflation: ", solver_summary.message));
+      }
+    }
+  }
+  summary.solve_ms = MillisecondsSince(solve_start);
+  summary.final_cost = solver_summary.final_cost;
+  const int dof = problem.NumResiduals() - problem.NumParameters();
+  if (options.max_chi2_per_dof > 0.0 && dof > 0 && 2.0 * solver_summary.final_cost > options.max_chi2_per_dof * dof) {
+    return absl::FailedPreconditionError(
+        absl::StrFormat("solution inconsistent with the measurements: chi2=%.1f for %d degrees of freedom (limit %.1f "
+                        "per dof)",
+                        2.0 * solver_summary.final_cost, dof, options.max_chi2_per_dof));
+  }
+
+  // Each passage's own factor, at the solution: its poses are disjoint from the others', so the
+  // joint information is exactly the sum of these.
+  std::vector<LandmarkInformation> information(count);
+  std::vector<std::vector<double*>> blocks_seen(count);
+  for (int p = 0; p < count; ++p) {
+    for (LandmarkId id : seen[p].ids) blocks_seen[p].push_back(block_of[id]);
+    absl::StatusOr<LandmarkInformation> info = EliminateToLandmarks(&problem, blocks_of[p], blocks_seen[p]);
+    if (!info.ok()) return failed(p, info.status());
+    information[p] = *std::move(info);
+  }
+  absl::StatusOr<GraphLinearization> linearization = LinearizeSolution(&problem, landmark_blocks, options, &summary);
+  if (!linearization.ok()) return linearization.status();
+
+  // The result replaces the factors of the passages, at one new version of `map`; a passage's
+  // factor carries its share of the bias correction.
+  const auto covariance_start = std::chrono::steady_clock::now();
+  MapOverlay overlay(map);
+  std::vector<int64_t> factor_ids;
+  for (LandmarkId id : ids) {
+    if (map.FindLandmark(id) != nullptr) map.AppendFactorIds(id, &factor_ids);
+  }
+  std::set<std::pair<std::string, std::string>> batch;
+  for (const Passage& passage : passages) batch.emplace(passage.vehicle_id, passage.passage_id);
+  for (int64_t id : factor_ids) {
+    const MapFactor* f = overlay.FindFactor(id);
+    if (f != nullptr && batch.count({f->vehicle_id, f->passage_id})) overlay.RemoveFactor(id);
+  }
+  const bool correlated = options.strategy != UpdateStrategy::kDecorrelated;
+  if (correlated) {
+    // The passages' factors must sum to the joint solution: Lambda_p (x_c + c) - g_p does, with
+    // x_c the corrected solution and c = Lambda^-1 sum_p g_p (zero at an exact optimum; a solve
+    // stopped by its function tolerance leaves a small gradient in weakly determined directions).
+    std::map<LandmarkId, int> column;
+    for (LandmarkId id : ids) column.emplace(id, static_cast<int>(2 * column.size()));
+    const int n = static_cast<int>(2 * ids.size());
+    Eigen::MatrixXd total = Eigen::MatrixXd::Zero(n, n);
+    Eigen::VectorXd gradient = Eigen::VectorXd::Zero(n);
+    for (int p = 0; p < count; ++p) {
+      const int k = static_cast<int>(seen[p].ids.size());
+      for (int i = 0; i < k; ++i) {
+        const int ci = column[seen[p].ids[i]];
+        gradient.segment<2>(ci) += information[p].gradient.segment<2>(2 * i);
+        for (int j = 0; j < k; ++j) {
+          total.block<2, 2>(ci, column[seen[p].ids[j]]) += information[p].information.block<2, 2>(2 * i, 2 * j);
+        }
+      }
+    }
+    const Eigen::VectorXd correction = total.ldlt().solve(gradient);
+    for (int p = 0; p < count; ++p) {
+      const int k = static_cast<int>(seen[p].ids.size());
+      Eigen::VectorXd x(2 * k), c(2 * k);
+      for (int i = 0; i < k; ++i) {
+        x.segment<2>(2 * i) = position[seen[p].ids[i]];
+        c.segment<2>(2 * i) = correction.segment<2>(column[seen[p].ids[i]]);
+      }
+      MapFactor f;
+      f.vehicle_id = passages[p].vehicle_id;
+      f.passage_id = passages[p].passage_id;
+      f.landmarks = seen[p].ids;
+      f.information = information[p].information;
+      f.information_vector = information[p].information * (x + c) - information[p].gradient;
+      AddLocalFactor(frame, x, std::move(f), &overlay);
+    }
+  } else {
+    // dc: one factor per landmark from the joint marginals, attributed to the last passage.
+    const Eigen::MatrixXd& cov = linearization->landmark_covariance();
+    for (size_t i = 0; i < ids.size(); ++i) {
+      MapFactor f;
+      f.vehicle_id = passages.back().vehicle_id;
+      f.passage_id = passages.back().passage_id;
+      f.landmarks = {ids[i]};
+      f.information = cov.block<2, 2>(2 * i, 2 * i).inverse();
+      f.information_vector = f.information * position[ids[i]];
+      AddLocalFactor(frame, position[ids[i]], std::move(f), &overlay);
+    }
+  }
+  const int64_t version = overlay.BumpVersion();
+  auto touch = [&](Landmark* record) {
+    record->passages_seen = seen_by[record->id];
+    record->last_seen_unix_ms = last_seen_ms[record->id];
+  };
+  MapWindowOptions window;
+  window.hops = correlated ? options.window_hops : 1;
+  // The joint solve's marginals are the map's: no prior, every factor of the passages replaced.
+  MarginalRefresh refresh;
+  refresh.others = true;  // other landmarks' factors are replaced too, when the passages saw them
+  absl::StatusOr<int> conditioned = ResolveAround(ids, refresh, window, version, touch, &overlay);
+  if (!conditioned.ok()) return conditioned.status();
+  Yield(options);
+  summary.covariance_ms += MillisecondsSince(covariance_start);
+  MapDelta delta = overlay.TakeDelta();
+  for (const auto& [id, record] : delta.landmarks) {
+    if (seen_by.count(id)) ++(map.FindLandmark(id) != nullptr ? summary.landmarks_updated : summary.landmarks_created);
+  }
+  summary.map_version = delta.version;
+  summary.total_ms = MillisecondsSince(start);
+  return PassageUpdate{std::move(delta), summary};
+}
+
+// Why the joint solution `joint` must not be used, or "" if it may: a landmark of the sequential
+// update `single` that the joint solve moved out of the sequential estimate's confidence region.
+// Both estimate the same landmarks from nearly the same information, so they differ by far less
+// than that region, unless the joint solve converged to another minimum.
+std::string JointSolutionRejected(const PassageUpdate& single, const PassageUpdate& joint, double max_mahalanobis2) {
+  for (const auto& [id, sequential] : single.delta.landmarks) {
+    const auto it = joint.delta.landmarks.find(id);
+    if (it == joint.delta.landmarks.end()) continue;  // only conditioned by the sequential update
+    const Eigen::Vector2d offset = EastNorthOffset(sequential.position, it->second.position);
+    const Eigen::LDLT<Eigen::Matrix2d> cov(sequential.cov_en_m2);
+    if (cov.info() != Eigen::Success || !cov.isPositive()) continue;
+    const double mahalanobis2 = offset.dot(cov.solve(offset));
+    if (!(mahalanobis2 <= max_mahalanobis2)) {
+      return absl::StrFormat("landmark %d is %.2f m from the sequential estimate (Mahalanobis^2 %.1f > %.1f)", id,
+                             offset.norm(), mahalanobis2, max_mahalanobis2);
+    }
+  }
+  return "";
+}
+
+}  // namespace
+
+absl::StatusOr<PassageUpdate> ComputeBatchUpdate(const std::vector<Passage>& passages,
+                                                 const MapUpdateOptions& given_options, const MapReaderInterface& map) {
+  if (absl::Status s = given_options.Validate(); !s.ok()) return s;
+  // No border margin in the warm-up: the predictions it selects on come from a map that is still
+  // metres off, and which detections are used would depend on where the solve starts, so on the
+  // passages' order. The warm-up's few passages weigh little in a map of hundreds.
+  MapUpdateOptions options = given_options;
+  options.edge_margin_sigmas = 0.0;
+  if (passages.empty()) return absl::InvalidArgumentError("passages: a joint solve needs at least one passage");
+  if (passages.front().gnss.empty()) return absl::InvalidArgumentError("gnss: passage needs at least 2 GNSS fixes");
+  absl::StatusOr<PassageUpdate> single = ComputePassageUpdate(passages.back(), options, map);
+  if (!single.ok()) return single.status();
+  absl::StatusOr<PassageUpdate> joint = SolveJointly(passages, options, map, *single);
+  const std::string rejected = joint.ok() ? JointSolutionRejected(*single, *joint, options.max_joint_mahalanobis2)
+                                          : std::string(joint.status().message());
+  if (rejected.empty()) return joint;
+  // The sequential update is a valid map change on its own: the passage is not lost.
+  spdlog::warn("joint solve of {} passages not used, sequential update of passage {} instead: {}", passages.size(),
+               passages.back().passage_id, rejected);
+  single->summary.joint_rejected = true;
+  return single;
+}
+
+}  // namespace crowdmap

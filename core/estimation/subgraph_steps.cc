@@ -1,0 +1,196 @@
+#include "core/estimation/subgraph_steps.h"
+
+#include <algorithm>
+#include <cmath>
+#include <map>
+#include <optional>
+
+#include "core/estimation/factors.h"
+#include "core/estimation/triangulation.h"
+
+namespace crowdmap {
+namespace {
+
+// Calls options.yield_point after every solver iteration.
+class YieldEachIteration : public ceres::IterationCallback {
+ public:
+  explicit YieldEachIteration(const std::function<void()>& yield_point) : yield_point_(yield_point) {}
+  ceres::CallbackReturnType operator()(const ceres::IterationSummary&) override {
+    yield_point_();
+    return ceres::SOLVER_CONTINUE;
+  }
+
+ private:
+  const std::function<void()>& yield_point_;
+};
+
+// The widest angle between two of the unit `directions`.
+double WidestAngleRad(const std::vector<Eigen::Vector2d>& directions) {
+  double widest = 0.0;
+  for (size_t i = 0; i < directions.size(); ++i) {
+    for (size_t j = i + 1; j < directions.size(); ++j) {
+      const double cross = directions[i].x() * directions[j].y() - directions[i].y() * directions[j].x();
+      widest = std::max(widest, std::abs(std::atan2(cross, directions[i].dot(directions[j]))));
+    }
+  }
+  return widest;
+}
+
+}  // namespace
+
+void Yield(const MapUpdateOptions& options) {
+  if (options.yield_point) options.yield_point();
+}
+
+double MillisecondsSince(std::chrono::steady_clock::time_point start) {
+  return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
+}
+
+
+
+SubgraphLandmarks GroupDetections(const PassageGraph& graph, const NodeRange& range, const MapReaderInterface& map) {
+  std::map<LandmarkId, std::vector<const CameraObservation*>> by_landmark;
+  for (const CameraObservation& d : graph.detections) {
+    if (d.node >= range.first && d.node <= range.last) by_landmark[d.landmark_id].push_back(&d);
+  }
+  SubgraphLandmarks out;
+  for (auto& [id, detections] : by_landmark) {
+    const Landmark* known = map.FindLandmark(id);
+    out.ids.push_back(id);
+    out.known.push_back(known != nullptr);
+    out.initial.push_back(known ? graph.frame.ToLocal(known->position) : Eigen::Vector2d::Zero());
+    out.detections.push_back(std::move(detections));
+  }
+  return out;
+}
+
+ceres::Solver::Options SolverOptions(int max_iterations) {
+  ceres::Solver::Options options;
+  options.linear_solver_type = ceres::SPARSE_NORMAL_CHOLESKY;
+  options.max_num_iterations = max_iterations;
+  options.function_tolerance = 1e-10;
+  options.gradient_tolerance = 1e-12;
+  options.parameter_tolerance = 1e-10;
+  options.num_threads = 1;
+  options.logging_type = ceres::SILENT;
+  return options;
+}
+
+// ceres::Solve with options.yield_point called after each iteration and at the end.
+void Solve(const MapUpdateOptions& options, ceres::Solver::Options solver_options, ceres::Problem* problem,
+           ceres::Solver::Summary* summary) {
+  YieldEachIteration callback(options.yield_point);
+  if (options.yield_point) solver_options.callbacks.push_back(&callback);
+  ceres::Solve(solver_options, problem, summary);
+  Yield(options);
+}
+
+// Refines the subgraph's initial poses: odometry + GNSS + the bearings of the map landmarks held
+// fixed, if any. The pixel model alone cannot start from poses tens of metres off (with coloured
+// GNSS noise the GNSS-aligned guess often is), the bounded bearing residual can.
+void InitializePoses(const PassageGraph& graph, const NodeRange& range, const Passage& passage,
+                     const MapUpdateOptions& update_options, SubgraphLandmarks* landmarks, std::vector<Pose2>* poses) {
+  ceres::Problem problem;
+  AddPoseGraphFactors(graph, range.first, range.last, passage.calibration.gnss_lever_arm_m, nullptr, poses, &problem);
+  for (size_t i = 0; i < landmarks->ids.size(); ++i) {
+    if (!landmarks->known[i]) continue;
+    for (const CameraObservation* d : landmarks->detections[i]) {
+      problem.AddResidualBlock(BearingFactor::Create(d->u_px, passage.noise.pixel_sigma_px, passage.calibration),
+                               nullptr, (*poses)[d->node - range.first].data(), landmarks->initial[i].data());
+    }
+    problem.SetParameterBlockConstant(landmarks->initial[i].data());
+  }
+  // Only an initial guess: it must reach the basin of the full solve, not converge tightly. It
+  // gets the full solve's iteration budget: from a guess metres off it can take 20 or more
+  // iterations, and one stopped short of the basin leaves the full solve in a wrong minimum (which
+  // the consistency test then mistakes for a noisy passage and down-weights).
+  ceres::Solver::Options options = SolverOptions(update_options.max_solver_iterations);
+  options.function_tolerance = 1e-6;
+  options.parameter_tolerance = 1e-6;
+  ceres::Solver::Summary summary;
+  Solve(update_options, options, &problem, &summary);
+  // An unusable localisation leaves the poses as they were; the full solve still runs.
+}
+
+// Initial positions of the new landmarks (intersection of their rays) and the detections usable
+// at the initial guess: landmark in front of the camera and, for map landmarks and a positive
+// `edge_margin_px`, predicted at least that far inside the image. A detector reports only
+// detections inside the image, so one whose true pixel lies within a few sigma of the border has
+// its noise cut on one side and is biased inwards, the same way on every passage; the prediction
+// from the map does not depend on the detection, so leaving those out removes the bias without
+// adding one. Landmarks that cannot be initialised, new ones with fewer than two usable rays, are
+// left out. Returns the detections dropped.
+int InitializeLandmarks(const std::vector<Pose2>& poses, const NodeRange& range, const Calibration& calib,
+                        double edge_margin_px, double min_parallax_rad, SubgraphLandmarks* landmarks) {
+  SubgraphLandmarks kept;
+  int dropped = 0;
+  for (size_t i = 0; i < landmarks->ids.size(); ++i) {
+    const auto& detections = landmarks->detections[i];
+    Eigen::Vector2d initial = landmarks->initial[i];
+    if (!landmarks->known[i]) {
+      RayIntersection lines;
+      std::vector<Eigen::Vector2d> directions;
+      for (const CameraObservation* d : detections) {
+        const BearingRay ray = CameraRay(poses[d->node - range.first], calib, d->u_px);
+        lines.Add(ray);
+        directions.push_back(ray.direction);
+      }
+      std::optional<Eigen::Vector2d> p = lines.Solve();
+      if (!p || WidestAngleRad(directions) < min_parallax_rad) {
+        dropped += static_cast<int>(detections.size());
+        continue;
+      }
+      initial = *p;
+    }
+    std::vector<const CameraObservation*> usable;
+    for (const CameraObservation* d : detections) {
+      double u;
+      if (!ProjectLandmark(poses[d->node - range.first].data(), initial.data(), calib, &u)) continue;
+      const bool near_border = u < edge_margin_px || u > calib.image_width_px - edge_margin_px;
+      if (edge_margin_px > 0.0 && landmarks->known[i] && near_border) continue;
+      usable.push_back(d);
+    }
+    if (usable.empty() || (!landmarks->known[i] && usable.size() < 2)) {
+      dropped += static_cast<int>(detections.size());
+      continue;
+    }
+    dropped += static_cast<int>(detections.size() - usable.size());
+    kept.ids.push_back(landmarks->ids[i]);
+    kept.known.push_back(landmarks->known[i]);
+    kept.initial.push_back(initial);
+    kept.detections.push_back(std::move(usable));
+  }
+  *landmarks = std::move(kept);
+  return dropped;
+}
+
+// After a usable solve: the landmarks' marginal covariance at the solution and (if enabled) the
+// second-order bias correction of the solution, with their times added to `summary`.
+absl::StatusOr<GraphLinearization> LinearizeSolution(ceres::Problem* problem, const std::vector<double*>& landmark_blocks,
+                                                     const MapUpdateOptions& options, PassageUpdateSummary* summary) {
+  const auto covariance_start = std::chrono::steady_clock::now();
+  absl::StatusOr<GraphLinearization> linearization = GraphLinearization::Compute(problem, landmark_blocks);
+  if (!linearization.ok()) return linearization.status();
+  summary->covariance_ms += MillisecondsSince(covariance_start);
+  Yield(options);
+  if (options.bias_correction) {
+    BiasCorrectionStats bias;
+    if (absl::Status s = linearization->CorrectSecondOrderBias(problem, &bias); !s.ok()) return s;
+    summary->bias_correction_ms += bias.ms;
+    summary->max_bias_correction_m = std::max(summary->max_bias_correction_m, bias.max_landmark_shift_m);
+    Yield(options);
+  }
+  return linearization;
+}
+
+
+double VarianceFactor(double chi2, double dof, double test_sigmas) {
+  if (test_sigmas <= 0.0 || dof <= 0.0 || chi2 <= dof + test_sigmas * std::sqrt(2.0 * dof)) return 1.0;
+  return chi2 / dof;
+}
+
+void Inflate(double variance_factor, ceres::LossFunctionWrapper* weight) {
+  weight->Reset(new ceres::ScaledLoss(nullptr, 1.0 / variance_factor, ceres::TAKE_OWNERSHIP), ceres::TAKE_OWNERSHIP);
+}
+
+}  // namespace crowdmap
