@@ -1,0 +1,95 @@
+#ifndef CROWDMAP_CORE_ESTIMATION_MAP_UPDATE_OPTIONS_H_
+#define CROWDMAP_CORE_ESTIMATION_MAP_UPDATE_OPTIONS_H_
+
+// The settings of a map update (ComputePassageUpdate, ComputeBatchUpdate, MapUpdater), each with
+// its meaning, unit and default. Measured effects are in the README.
+
+#include <functional>
+#include <string_view>
+
+#include "absl/status/status.h"
+#include "absl/status/statusor.h"
+
+namespace crowdmap {
+
+// How the current map enters a passage's graph (thesis section 4.4.3).
+enum class UpdateStrategy {
+  kCorrelated,            // "cc": one joint prior on the graph's map landmarks, whole passage at once
+  kDecorrelated,          // "dc": one 2x2 prior per landmark; the map keeps no cross-covariances
+  kCorrelatedSubdivided,  // "cc-gsd": cc on subgraphs of bounded state dimension (default)
+};
+
+absl::StatusOr<UpdateStrategy> ParseUpdateStrategy(std::string_view name);
+const char* UpdateStrategyName(UpdateStrategy strategy);
+
+struct MapUpdateOptions {
+  UpdateStrategy strategy = UpdateStrategy::kCorrelatedSubdivided;
+  // Largest state dimension (3 per pose + 2 per landmark) of one subgraph with cc-gsd.
+  int max_subgraph_dim = 500;
+  // Detections used per landmark and passage: the last K (0 = all).
+  int detections_per_landmark = 5;
+  // Detections of map landmarks predicted less than this many pixel sigmas from the image border
+  // are not used: the detector reports only what falls inside the image, which biases those
+  // inwards (see InitializeLandmarks). Sequential updates only (not the warm-up's joint solve).
+  // 0 uses them all.
+  double edge_margin_sigmas = 3.0;
+  // A landmark new to the map is created only when the passage's rays to it span at least this
+  // angle (rad): with less its distance along the rays is undetermined (a landmark approached
+  // head-on at the end of a street), and a solve places it hundreds of metres off with a
+  // covariance that does not show it. 0 = any two rays that intersect.
+  double min_new_landmark_parallax_rad = 0.05;
+  // The map is re-estimated after each (sub)graph, and its covariance recovered for the prior,
+  // over the landmarks within this many links (shared factors) of the graph's landmarks; the
+  // rest of the map is held at its estimate, and the covariance is conservative (never smaller
+  // than the exact one). 0 = the whole connected part of the map: exact, with a cost that grows
+  // with it.
+  int window_hops = 0;
+  int max_solver_iterations = 100;
+  // Adaptive covariance inflation: when a (sub)graph solve's chi-square (2 x final cost) exceeds
+  // its degrees of freedom by more than this many standard deviations (sqrt(2 dof)), the data
+  // contradict the noise model (e.g. coloured GNSS errors); the passage's measurement covariances
+  // are then scaled by the variance factor chi2/dof and the solve is repeated, so the passage
+  // enters the map with an honest weight. 0 disables it.
+  double inflation_test_sigmas = 4.0;
+  // A solve whose chi2 per degree of freedom (after any inflation) exceeds this is refused rather
+  // than committed. 0 disables the check.
+  double max_chi2_per_dof = 0.0;
+  // Remove the second-order bias of each (sub)graph's MAP solution before it is committed (see
+  // CorrectSecondOrderBias): the MAP poses of one passage are decimetres off on average, the same
+  // way on every passage of a road, which would otherwise accumulate in the map.
+  bool bias_correction = true;
+  // Warm-up: the map's first this-many passages are solved jointly (re-solved from no map with
+  // each new one) instead of one at a time. A passage applied to a map still metres off enters it
+  // as a Gaussian taken at that poor estimate, so with sequential updates alone the order of a
+  // young map's first passages stays in the map (about 1-2 cm at 200 passages); the joint solve
+  // removes it. 0 disables it.
+  int warmup_passages = 8;
+  // Re-linearisation of a young map: after the warm-up, each time the map's passage count reaches
+  // twice the last joint solve's (16, 32, 64, ... with the default warm-up), the passage is applied
+  // by re-solving all the map's passages jointly, as long as the count is at most this. Every
+  // passage applied one at a time stays in the map as a Gaussian taken at the estimate of its day;
+  // the joint solve takes them all again at today's, so that what the first hundred or so
+  // passages left in the map no longer depends on their order or on which of them came first
+  // (without it, on 200 passages, up to 1 cm of mean error). The cost is one joint solve at each
+  // doubling, about 0.05 s per passage re-solved at 100 landmarks. 0 = off. Not with dc: its
+  // covariances ignore the correlations, so its map is too confident to take a re-solve (the
+  // guard below would refuse every one).
+  int relinearize_until_passages = 128;
+  // Guard of the warm-up: a joint solution that puts any landmark further than this (squared
+  // Mahalanobis distance) from the sequential update's estimate is not used; the sequential update
+  // is. With white noise the two differ by a squared distance below 5 (4.2 at most in the measured
+  // runs); a joint solve caught in a wrong minimum by far more. Under coloured GNSS noise, which
+  // the estimator does not model, they often differ by more, and the sequential update is used.
+  double max_joint_mahalanobis2 = 36.0;
+  // Called between the steps of an update (after every solver iteration and every stage of a
+  // subgraph's update: at most a few milliseconds apart, mostly well under one), on the thread
+  // computing it. A service gives its request threads the CPU there (see server/map_worker.cc).
+  // Empty: not called.
+  std::function<void()> yield_point;
+
+  absl::Status Validate() const;
+};
+
+}  // namespace crowdmap
+
+#endif  // CROWDMAP_CORE_ESTIMATION_MAP_UPDATE_OPTIONS_H_
