@@ -50,12 +50,6 @@ absl::Status MapWorkerOptions::Validate() const {
   if (workers < 1) return absl::InvalidArgumentError(absl::StrCat("workers: must be >= 1, got ", workers));
   if (max_attempts < 1) return absl::InvalidArgumentError(absl::StrCat("max_attempts: must be >= 1, got ", max_attempts));
   if (nice < 0 || nice > 19) return absl::InvalidArgumentError(absl::StrCat("worker-nice: must lie in [0, 19], got ", nice));
-  const int joint = JointSolvePassages(update) + 1;
-  if (retain_passages < 0 || (retain_passages > 0 && retain_passages < joint)) {
-    return absl::InvalidArgumentError(absl::StrCat("retain-passages: must be 0 (keep all) or at least ", joint,
-                                                   " (the young map's joint solves take that many again), got ",
-                                                   retain_passages));
-  }
   return update.Validate();
 }
 
@@ -98,21 +92,10 @@ absl::Status MapWorker::LoadMirror() {
       kept.push_back(*std::move(passage));
     }
   }
-  // The passages whose factors are kept, in the order their factors were made.
-  std::map<std::pair<std::string, std::string>, int64_t> first_factor;
-  map.ForEachFactor([&](const MapFactor& f) {
-    auto [it, inserted] = first_factor.try_emplace({f.vehicle_id, f.passage_id}, f.id);
-    if (!inserted) it->second = std::min(it->second, f.id);
-  });
-  std::vector<std::pair<int64_t, std::pair<std::string, std::string>>> by_id;
-  for (const auto& [key, id] : first_factor) by_id.emplace_back(id, key);
-  std::sort(by_id.begin(), by_id.end());
-  retained_.clear();
-  for (const auto& [id, key] : by_id) retained_.push_back(key);
   map_ = std::move(map);
   MapUpdateOptions update = options_.update;
   if (options_.yield) update.yield_point = [this] { Yield(); };
-  updater_ = std::make_unique<MapUpdater>(update, std::move(kept), applied_count);
+  updater_ = std::make_unique<MapUpdater>(update, std::move(kept), applied_count, &map_);
   return absl::OkStatus();
 }
 
@@ -208,7 +191,6 @@ void MapWorker::Apply(const ClaimedPassage& claimed, const Passage& passage) {
     std::string error;
     auto update = updater_->Compute(passage, map_);
     if (update.ok()) {
-      const size_t folded = FoldBeyondRetention(&update->delta);
       const PassageResult result = ResultFromSummary(update->summary, options_.update.strategy);
       Yield();
       const auto commit_start = std::chrono::steady_clock::now();
@@ -218,9 +200,6 @@ void MapWorker::Apply(const ClaimedPassage& claimed, const Passage& passage) {
       if (committed.ok()) {
         map_.Apply(update->delta);
         updater_->Applied(passage);
-        retained_.erase(retained_.begin(), retained_.begin() + folded);
-        const std::pair<std::string, std::string> key{passage.vehicle_id, passage.passage_id};
-        if (std::find(retained_.begin(), retained_.end(), key) == retained_.end()) retained_.push_back(key);
         Yield();
         notifier_->Publish(map_.version());
         spdlog::info(
@@ -258,16 +237,6 @@ void MapWorker::Apply(const ClaimedPassage& claimed, const Passage& passage) {
   }
 }
 
-size_t MapWorker::FoldBeyondRetention(MapDelta* delta) const {
-  if (options_.retain_passages == 0) return 0;
-  size_t folded = 0;
-  while (retained_.size() - folded + 1 > static_cast<size_t>(options_.retain_passages)) {
-    const auto& [vehicle_id, passage_id] = retained_[folded++];
-    map_.AppendPassageFactorIds(vehicle_id, passage_id, &delta->folded_factors);
-  }
-  return folded;
-}
-
 absl::StatusOr<PassageUpdateSummary> MapWorker::Exclude(const StoredPassage& record) {
   uint64_t ticket = 0;
   {
@@ -288,8 +257,6 @@ absl::StatusOr<PassageUpdateSummary> MapWorker::Exclude(const StoredPassage& rec
     } else {
       map_.Apply(exclusion->delta);
       updater_->Excluded(record.vehicle_id, record.passage_id);
-      const auto key = std::make_pair(record.vehicle_id, record.passage_id);
-      retained_.erase(std::remove(retained_.begin(), retained_.end(), key), retained_.end());
       notifier_->Publish(map_.version());
       spdlog::info("event=excluded passage={} vehicle={} id={} landmarks_updated={} landmarks_removed={} "
                    "landmarks_conditioned={} total_ms={:.1f} map_version={}",

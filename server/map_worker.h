@@ -5,9 +5,6 @@
 #include <chrono>
 #include <condition_variable>
 #include <cstdint>
-#include <deque>
-#include <string>
-#include <utility>
 #include <memory>
 #include <mutex>
 #include <thread>
@@ -40,12 +37,6 @@ struct MapWorkerOptions {
   // millisecond or so hands the core to waiting requests at once and costs a system call when none
   // waits. See server/README.md for the measurements.
   bool yield = true;
-  // The factors of the last this-many applied passages are kept (and can be excluded); those of
-  // older passages are folded into the map's base with the next commit (MapDelta::folded_factors),
-  // so that storage grows with the map, not with its history. At least the passages the young
-  // map's joint solves take again (JointSolvePassages + 1); 0 = keep every factor.
-  int retain_passages = 256;
-
   absl::Status Validate() const;
 };
 
@@ -95,11 +86,7 @@ class MapWorker {
   // Touched only by the thread whose ticket is being served:
   MapState map_;
   std::unique_ptr<MapUpdater> updater_;
-  // Applied passages whose factors are kept, oldest first (see MapWorkerOptions::retain_passages).
-  std::deque<std::pair<std::string, std::string>> retained_;
-  // Adds to `delta` the folding of the oldest retained passages beyond the retention with one
-  // more passage; returns how many.
-  size_t FoldBeyondRetention(MapDelta* delta) const;
+
 
   std::atomic<bool> stopping_{false};
   std::mutex wake_mu_;

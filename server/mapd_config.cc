@@ -162,7 +162,7 @@ absl::StatusOr<MapdConfig> ParseMapdConfig(const std::vector<std::string>& args,
       if (!v.ok()) return v.status();
       if (name == "max-subgraph-dim") o.worker.update.max_subgraph_dim = static_cast<int>(*v);
       if (name == "window-hops") o.worker.update.window_hops = static_cast<int>(*v);
-      if (name == "retain-passages") o.worker.retain_passages = static_cast<int>(*v);
+      if (name == "retain-passages") o.worker.update.retain_passages = static_cast<int>(*v);
       if (name == "warmup-passages") o.worker.update.warmup_passages = static_cast<int>(*v);
       if (name == "relinearize-until-passages") o.worker.update.relinearize_until_passages = static_cast<int>(*v);
       if (name == "workers") o.worker.workers = static_cast<int>(*v);

@@ -281,7 +281,7 @@ TEST_F(ServiceRpc, ExcludePassageGivesTheMapWithoutIt) {
 TEST_F(ServiceRpc, PassagesBeyondTheRetentionAreFoldedIntoTheBase) {
   MapServerOptions options = TestServerOptions(dir_.File("map.db"), true);
   options.worker.update.warmup_passages = 0;  // no joint solve needs the passages back
-  options.worker.retain_passages = 2;
+  options.worker.update.retain_passages = 2;
   server_ = StartTestServer(options);
   ASSERT_NE(server_, nullptr);
   client_ = std::make_unique<MockVehicle>(server_->address());

@@ -38,6 +38,12 @@ struct MapUpdateOptions {
   // head-on at the end of a street), and a solve places it hundreds of metres off with a
   // covariance that does not show it. 0 = any two rays that intersect.
   double min_new_landmark_parallax_rad = 0.05;
+  // MapUpdater keeps the factors of the map's last this-many passages apart (they can be
+  // excluded: ComputePassageExclusion) and folds those of older passages into the map's base with
+  // the next update (MapDelta::folded_factors), so that the map's size grows with the road, not
+  // with its history. At least the passages the young map's joint solves take again
+  // (JointSolvePassages + 1); 0 = keep every factor.
+  int retain_passages = 256;
   // The map is re-estimated after each (sub)graph, and its covariance recovered for the prior,
   // over the landmarks within this many links (shared factors) of the graph's landmarks; the
   // rest of the map is held at its estimate, and the covariance is conservative (never smaller

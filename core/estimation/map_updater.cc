@@ -158,6 +158,12 @@ absl::Status MapUpdateOptions::Validate() const {
     return absl::InvalidArgumentError(
         absl::StrCat("min_new_landmark_parallax_rad: must lie in [0, 1.5), got ", min_new_landmark_parallax_rad));
   }
+  const int joint = JointSolvePassages(*this) + 1;
+  if (retain_passages < 0 || (retain_passages > 0 && retain_passages < joint)) {
+    return absl::InvalidArgumentError(absl::StrCat("retain_passages: must be 0 (keep all) or at least ", joint,
+                                                   " (the young map's joint solves take that many again), got ",
+                                                   retain_passages));
+  }
   if (window_hops < 0) {
     return absl::InvalidArgumentError(absl::StrCat("window_hops: must be >= 0 (0 = whole map), got ", window_hops));
   }
@@ -257,20 +263,48 @@ int JointSolvePassages(const MapUpdateOptions& options) {
   return static_cast<int>(std::max<int64_t>(0, last - 1));  // it takes the passages before it
 }
 
-MapUpdater::MapUpdater(const MapUpdateOptions& options, std::vector<Passage> applied, int64_t applied_count)
+MapUpdater::MapUpdater(const MapUpdateOptions& options, std::vector<Passage> applied, int64_t applied_count,
+                       const MapState* map)
     : options_(options), kept_(std::move(applied)), applied_count_(std::max<int64_t>(applied_count, kept_.size())) {
   const size_t needed = JointSolvePassages(options_);
   if (kept_.size() > needed) kept_.resize(needed);
+  if (map == nullptr) return;
+  // The retained passages, in the order of their first factors.
+  std::map<PassageKey, int64_t> first_factor;
+  map->ForEachFactor([&](const MapFactor& f) {
+    auto [it, inserted] = first_factor.try_emplace({f.vehicle_id, f.passage_id}, f.id);
+    if (!inserted) it->second = std::min(it->second, f.id);
+  });
+  std::vector<std::pair<int64_t, PassageKey>> by_id;
+  for (const auto& [key, id] : first_factor) by_id.emplace_back(id, key);
+  std::sort(by_id.begin(), by_id.end());
+  for (const auto& [id, key] : by_id) retained_.push_back(key);
+}
+
+size_t MapUpdater::Leaving() const {
+  const size_t retain = static_cast<size_t>(options_.retain_passages);
+  return retain == 0 || retained_.size() < retain ? 0 : retained_.size() + 1 - retain;
 }
 
 absl::StatusOr<PassageUpdate> MapUpdater::Compute(const Passage& passage, const MapReaderInterface& map) const {
-  if (!joint_next()) return ComputePassageUpdate(passage, options_, map);
-  std::vector<Passage> batch = kept_;
-  batch.push_back(passage);
-  return ComputeBatchUpdate(batch, options_, map);
+  absl::StatusOr<PassageUpdate> update;
+  if (joint_next()) {
+    std::vector<Passage> batch = kept_;
+    batch.push_back(passage);
+    update = ComputeBatchUpdate(batch, options_, map);
+  } else {
+    update = ComputePassageUpdate(passage, options_, map);
+  }
+  if (!update.ok()) return update;
+  for (size_t i = 0; i < Leaving(); ++i) {
+    map.AppendPassageFactorIds(retained_[i].first, retained_[i].second, &update->delta.folded_factors);
+  }
+  return update;
 }
 
 void MapUpdater::Excluded(const std::string& vehicle_id, const std::string& passage_id) {
+  const PassageKey key{vehicle_id, passage_id};
+  retained_.erase(std::remove(retained_.begin(), retained_.end(), key), retained_.end());
   const auto it = std::find_if(kept_.begin(), kept_.end(), [&](const Passage& p) {
     return p.vehicle_id == vehicle_id && p.passage_id == passage_id;
   });
@@ -279,6 +313,9 @@ void MapUpdater::Excluded(const std::string& vehicle_id, const std::string& pass
 }
 
 void MapUpdater::Applied(const Passage& passage) {
+  retained_.erase(retained_.begin(), retained_.begin() + Leaving());
+  const PassageKey key{passage.vehicle_id, passage.passage_id};
+  if (std::find(retained_.begin(), retained_.end(), key) == retained_.end()) retained_.push_back(key);
   const int64_t kept = static_cast<int64_t>(kept_.size());
   if (kept == applied_count_ && kept < JointSolvePassages(options_)) kept_.push_back(passage);
   ++applied_count_;

@@ -1,9 +1,11 @@
 #ifndef CROWDMAP_CORE_ESTIMATION_MAP_UPDATER_H_
 #define CROWDMAP_CORE_ESTIMATION_MAP_UPDATER_H_
 
+#include <deque>
 #include <functional>
 #include <string>
 #include <string_view>
+#include <utility>
 #include <vector>
 
 #include "absl/status/status.h"
@@ -82,8 +84,10 @@ class MapUpdater {
  public:
   // `applied` are the passages the map has already taken, in order (enough of them to cover the
   // joint solves: the first JointSolvePassages(options), or all when fewer), `applied_count` how
-  // many there are in all.
-  explicit MapUpdater(const MapUpdateOptions& options, std::vector<Passage> applied = {}, int64_t applied_count = 0);
+  // many there are in all; `map`, when given, the map they made (whose retained passages are those
+  // with factors, oldest first).
+  explicit MapUpdater(const MapUpdateOptions& options, std::vector<Passage> applied = {}, int64_t applied_count = 0,
+                      const MapState* map = nullptr);
 
   const MapUpdateOptions& options() const { return options_; }
   bool warming_up() const { return applied_count_ < options_.warmup_passages; }
@@ -93,7 +97,8 @@ class MapUpdater {
     return IsJointSolvePassage(applied_count_ + 1, options_) && static_cast<int64_t>(kept_.size()) == applied_count_;
   }
 
-  // The map change `passage` brings to `map` (see ComputePassageUpdate for the errors).
+  // The map change `passage` brings to `map` (see ComputePassageUpdate for the errors), with the
+  // folding of the passages that leave the retention (MapUpdateOptions::retain_passages).
   absl::StatusOr<PassageUpdate> Compute(const Passage& passage, const MapReaderInterface& map) const;
   // Records that the delta Compute returned for `passage` was applied to the map.
   void Applied(const Passage& passage);
@@ -102,9 +107,14 @@ class MapUpdater {
   void Excluded(const std::string& vehicle_id, const std::string& passage_id);
 
  private:
+  using PassageKey = std::pair<std::string, std::string>;  // vehicle_id, passage_id
+  // How many of the oldest retained passages one more passage pushes out of the retention.
+  size_t Leaving() const;
+
   MapUpdateOptions options_;
   std::vector<Passage> kept_;  // the map's first passages, as many as its joint solves need
   int64_t applied_count_ = 0;
+  std::deque<PassageKey> retained_;  // passages whose factors are kept, oldest first
 };
 
 }  // namespace crowdmap

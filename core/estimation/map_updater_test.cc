@@ -168,6 +168,49 @@ TEST(ComputePassageUpdate, NewLandmarksNeedRaysSpanningTheMinimumParallax) {
   EXPECT_NE(options.Validate().message().find("min_new_landmark_parallax_rad"), std::string::npos);
 }
 
+TEST(MapUpdater, FoldsTheFactorsOfPassagesBeyondTheRetentionWithoutChangingTheMap) {
+  const Scenario scenario = MakeScenario(10);
+  MapUpdateOptions keep_all, retain;
+  keep_all.warmup_passages = retain.warmup_passages = 0;
+  keep_all.retain_passages = 0;
+  retain.retain_passages = 2;
+  MapState kept_map, folded_map;
+  MapUpdater keeping(keep_all), folding(retain);
+  for (int p = 0; p < 6; ++p) {
+    const Passage passage = scenario.MakePassage(p);
+    absl::StatusOr<PassageUpdate> a = keeping.Compute(passage, kept_map);
+    absl::StatusOr<PassageUpdate> b = folding.Compute(passage, folded_map);
+    ASSERT_TRUE(a.ok() && b.ok()) << a.status() << b.status();
+    EXPECT_TRUE(a->delta.folded_factors.empty());
+    EXPECT_EQ(b->delta.folded_factors.empty(), p < 2) << p;
+    kept_map.Apply(a->delta);
+    keeping.Applied(passage);
+    folded_map.Apply(b->delta);
+    folding.Applied(passage);
+  }
+  // Only the last two passages keep their factors; the estimate is the same to the last bit.
+  std::vector<int64_t> ids;
+  for (int p = 0; p < 6; ++p) {
+    ids.clear();
+    folded_map.AppendPassageFactorIds(scenario.MakePassage(p).vehicle_id, scenario.MakePassage(p).passage_id, &ids);
+    EXPECT_EQ(ids.empty(), p < 4) << p;
+  }
+  for (LandmarkId id : kept_map.LandmarkIds()) {
+    EXPECT_EQ(folded_map.FindLandmark(id)->position.lat_deg, kept_map.FindLandmark(id)->position.lat_deg);
+    EXPECT_EQ(folded_map.FindLandmark(id)->position.lon_deg, kept_map.FindLandmark(id)->position.lon_deg);
+  }
+  // A map loaded with its factors: the updater knows which passages it retains.
+  MapUpdater reloaded(retain, {}, 6, &folded_map);
+  absl::StatusOr<PassageUpdate> next = reloaded.Compute(scenario.MakePassage(6), folded_map);
+  ASSERT_TRUE(next.ok());
+  ids.clear();
+  folded_map.AppendPassageFactorIds(scenario.MakePassage(4).vehicle_id, scenario.MakePassage(4).passage_id, &ids);
+  EXPECT_EQ(next->delta.folded_factors, ids) << "passage 4, the oldest retained, is folded next";
+  retain.retain_passages = 1;
+  retain.warmup_passages = 8;  // its joint solves need the first 127 passages again
+  EXPECT_NE(retain.Validate().message().find("retain_passages"), std::string::npos);
+}
+
 TEST(ComputePassageUpdate, PassageWithoutUsableDetectionsIsRejectedWithoutADelta) {
   const Scenario scenario = MakeScenario(4);
   Passage passage = scenario.MakePassage(0);
