@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <unordered_set>
 
+#include <Eigen/Cholesky>
 #include <Eigen/CholmodSupport>
 #include <Eigen/Eigenvalues>
 
@@ -11,9 +12,31 @@
 
 namespace crowdmap {
 
-class MapWindow::Factor : public Eigen::CholmodSupernodalLLT<Eigen::SparseMatrix<double>, Eigen::Lower> {
+// Small windows (a loop's map) are factorised densely: CHOLMOD's symbolic analysis would cost
+// more than the factorisation.
+constexpr int kDenseWindowDims = 600;
+
+class MapWindow::Factor {
  public:
-  explicit Factor(const Eigen::SparseMatrix<double>& a) { compute(a); }
+  explicit Factor(const Eigen::SparseMatrix<double>& a) {
+    if (a.rows() <= kDenseWindowDims) {
+      dense_.compute(Eigen::MatrixXd(a));
+      ok_ = dense_.info() == Eigen::Success;
+    } else {
+      sparse_ = std::make_unique<Eigen::CholmodSupernodalLLT<Eigen::SparseMatrix<double>, Eigen::Lower>>(a);
+      ok_ = sparse_->info() == Eigen::Success;
+    }
+  }
+  Eigen::ComputationInfo info() const { return ok_ ? Eigen::Success : Eigen::NumericalIssue; }
+  template <typename Rhs>
+  Eigen::MatrixXd solve(const Rhs& b) const {
+    return sparse_ ? Eigen::MatrixXd(sparse_->solve(b)) : Eigen::MatrixXd(dense_.solve(b));
+  }
+
+ private:
+  Eigen::LLT<Eigen::MatrixXd> dense_;
+  std::unique_ptr<Eigen::CholmodSupernodalLLT<Eigen::SparseMatrix<double>, Eigen::Lower>> sparse_;
+  bool ok_ = false;
 };
 
 namespace {
@@ -115,7 +138,7 @@ absl::StatusOr<MapWindow> MapWindow::Build(const MapReaderInterface& map, const 
     return absl::FailedPreconditionError(
         absl::StrCat("map information over ", n, " landmarks is not positive definite"));
   }
-  w.offsets_ = mean_llt->solve(rhs);
+  w.offsets_ = mean_llt->solve(rhs).col(0);
   if (!w.offsets_.allFinite()) return absl::InternalError("map estimate is not finite");
   w.closed_ = edge.empty();
   if (w.closed_) {
