@@ -130,6 +130,7 @@ absl::StatusOr<LandmarkUpdateStats> LandmarkUpdate::Commit(const Eigen::MatrixXd
     return f;
   };
   if (options.correlated) {
+    // The inverse of cov_ss, so that prior + factor gives back exactly the stored marginals.
     Eigen::LLT<Eigen::MatrixXd> llt(Symmetrized(cov_ss));
     if (llt.info() != Eigen::Success) return absl::InternalError("graph landmark covariance is not positive definite");
     const Eigen::MatrixXd information = Symmetrized(llt.solve(Eigen::MatrixXd::Identity(2 * n, 2 * n)));
@@ -166,8 +167,9 @@ absl::StatusOr<LandmarkUpdateStats> LandmarkUpdate::Commit(const Eigen::MatrixXd
 
 void AddLocalFactor(const LocalFrame& frame, const Eigen::VectorXd& local, MapFactor factor, MapOverlay* map) {
   const int k = static_cast<int>(factor.landmarks.size());
-  // local = T (d - d') + x' around the solution, T the East/North-at-landmark to local map.
-  Eigen::MatrixXd t = Eigen::MatrixXd::Zero(2 * k, 2 * k);
+  // local = T (d - d') + x' around the solution, T block diagonal: each landmark's offset to the
+  // local frame.
+  std::vector<Eigen::Matrix2d> t(k);
   Eigen::VectorXd offsets(2 * k);
   for (int i = 0; i < k; ++i) {
     const LatLon position = frame.ToGeo(local.segment<2>(2 * i));
@@ -181,11 +183,17 @@ void AddLocalFactor(const LocalFrame& frame, const Eigen::VectorXd& local, MapFa
     }
     const LatLon anchor = known ? known->anchor : position;
     offsets.segment<2>(2 * i) = EastNorthOffset(anchor, position);
-    t.block<2, 2>(2 * i, 2 * i) = OffsetToLocal(frame, anchor, offsets.segment<2>(2 * i));
+    t[i] = OffsetToLocal(frame, anchor, offsets.segment<2>(2 * i));
   }
   const Eigen::VectorXd gradient = factor.information_vector - factor.information * local;
-  factor.information = Symmetrized(t.transpose() * factor.information * t);
-  factor.information_vector = t.transpose() * gradient + factor.information * offsets;
+  for (int i = 0; i < k; ++i) {
+    factor.information_vector.segment<2>(2 * i) = t[i].transpose() * gradient.segment<2>(2 * i);
+    for (int j = 0; j < k; ++j) {
+      factor.information.block<2, 2>(2 * i, 2 * j) = t[i].transpose() * factor.information.block<2, 2>(2 * i, 2 * j) * t[j];
+    }
+  }
+  factor.information = Symmetrized(factor.information);
+  factor.information_vector += factor.information * offsets;
   map->AddFactor(std::move(factor));
 }
 
