@@ -267,34 +267,36 @@ absl::Status SqliteMapStore::FoldFactor(SqliteConnection* db, int64_t id) {
   return erase->Run();
 }
 
-absl::Status SqliteMapStore::CommitPassageExcluded(int64_t id, const MapDelta& delta) {
+absl::Status SqliteMapStore::CommitMapChange(int64_t id, const MapDelta& delta, PassageState from, PassageState to,
+                                             const std::function<absl::Status(SqliteConnection*)>& also) {
   std::lock_guard<std::mutex> lock(writer_mu_);
   SqliteConnection* db = writer_.get();
   auto txn = SqliteWriteTransaction::Begin(db);
   if (!txn.ok()) return txn.status();
   if (auto s = CheckBaseVersion(db, delta); !s.ok()) return s;
-  if (auto s = CheckPassageState(db, id, PassageState::kApplied); !s.ok()) return s;
+  if (auto s = CheckPassageState(db, id, from); !s.ok()) return s;
   if (auto s = WriteMapDelta(db, delta); !s.ok()) return s;
-  auto mark = db->Prepare("UPDATE passages SET state = 6, finished_unix_ms = ?2 WHERE id = ?1");
+  auto mark = db->Prepare("UPDATE passages SET state = ?3, error = '', finished_unix_ms = ?2 WHERE id = ?1");
   if (!mark.ok()) return mark.status();
-  mark->Bind(1, id).Bind(2, NowUnixMs());
+  mark->Bind(1, id).Bind(2, NowUnixMs()).Bind(3, static_cast<int64_t>(to));
   if (auto s = mark->Run(); !s.ok()) return s;
+  if (also) {
+    if (auto s = also(db); !s.ok()) return s;
+  }
   return txn->Commit();
 }
 
-absl::Status SqliteMapStore::CommitPassageApplied(int64_t id, const MapDelta& delta, const PassageResult& result) {
-  std::lock_guard<std::mutex> lock(writer_mu_);
-  SqliteConnection* db = writer_.get();
-  auto txn = SqliteWriteTransaction::Begin(db);
-  if (!txn.ok()) return txn.status();
-  if (auto s = CheckBaseVersion(db, delta); !s.ok()) return s;
-  if (auto s = CheckPassageState(db, id, PassageState::kProcessing); !s.ok()) return s;
-  if (auto s = WriteMapDelta(db, delta); !s.ok()) return s;
+absl::Status SqliteMapStore::CommitPassageExcluded(int64_t id, const MapDelta& delta) {
+  return CommitMapChange(id, delta, PassageState::kApplied, PassageState::kExcluded, nullptr);
+}
 
-  auto mark = db->Prepare("UPDATE passages SET state = 3, error = '', finished_unix_ms = ?2 WHERE id = ?1");
-  if (!mark.ok()) return mark.status();
-  mark->Bind(1, id).Bind(2, NowUnixMs());
-  if (auto s = mark->Run(); !s.ok()) return s;
+absl::Status SqliteMapStore::CommitPassageApplied(int64_t id, const MapDelta& delta, const PassageResult& result) {
+  return CommitMapChange(id, delta, PassageState::kProcessing, PassageState::kApplied, [&](SqliteConnection* db) {
+    return WriteResult(db, id, result);
+  });
+}
+
+absl::Status SqliteMapStore::WriteResult(SqliteConnection* db, int64_t id, const PassageResult& result) {
   auto res = db->Prepare(
       "INSERT OR REPLACE INTO passage_results (id, nodes, subgraphs, landmarks_updated, landmarks_created, "
       "landmarks_conditioned, detections_used, detections_dropped, solver_iterations, final_cost, solve_ms, "
@@ -316,8 +318,7 @@ absl::Status SqliteMapStore::CommitPassageApplied(int64_t id, const MapDelta& de
       .Bind(13, result.total_ms)
       .Bind(14, result.map_version)
       .Bind(15, std::string_view(result.strategy));
-  if (auto s = res->Run(); !s.ok()) return s;
-  return txn->Commit();
+  return res->Run();
 }
 
 absl::Status SqliteMapStore::LoadMap(MapState* map) {

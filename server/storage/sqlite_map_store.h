@@ -71,6 +71,12 @@ class SqliteMapStore : public MapStoreInterface {
   // In the writer's transaction: the stored version is delta.base_version; passage `id` is in `state`.
   static absl::Status CheckBaseVersion(SqliteConnection* db, const MapDelta& delta);
   static absl::Status CheckPassageState(SqliteConnection* db, int64_t id, PassageState state);
+  // One write transaction: checks the base version and that passage `id` is `from`, writes the
+  // delta, sets the passage to `to`, runs `also` (may be empty), commits.
+  absl::Status CommitMapChange(int64_t id, const MapDelta& delta, PassageState from, PassageState to,
+                               const std::function<absl::Status(SqliteConnection*)>& also);
+  // The result of an applied passage (in the writer's transaction).
+  static absl::Status WriteResult(SqliteConnection* db, int64_t id, const PassageResult& result);
   // Moves a stored factor into the base tables (in the writer's transaction).
   static absl::Status FoldFactor(SqliteConnection* db, int64_t id);
   // Writes the delta's landmarks, removals and factors and its version (in the writer's transaction).
