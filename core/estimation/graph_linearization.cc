@@ -81,7 +81,8 @@ absl::StatusOr<GraphLinearization> GraphLinearization::Compute(ceres::Problem* p
   evaluate.residual_blocks = g.residuals_;
   evaluate.num_threads = 1;
   ceres::CRSMatrix crs;
-  if (!problem->Evaluate(evaluate, nullptr, nullptr, nullptr, &crs)) {
+  std::vector<double> residuals;
+  if (!problem->Evaluate(evaluate, nullptr, &residuals, nullptr, &crs)) {
     return absl::InternalError("graph linearization: the Jacobian could not be evaluated");
   }
   const Eigen::Map<const Eigen::SparseMatrix<double, Eigen::RowMajor>> jacobian(
@@ -102,6 +103,10 @@ absl::StatusOr<GraphLinearization> GraphLinearization::Compute(ceres::Problem* p
   } else {
     g.w_ = Eigen::MatrixXd::Zero(0, nl);
   }
+  // The gradient J^T r with the other blocks eliminated: zero at an exact optimum.
+  const Eigen::VectorXd gradient =
+      g.jt_ * Eigen::Map<const Eigen::VectorXd>(residuals.data(), static_cast<int>(residuals.size()));
+  g.landmark_gradient_ = gradient.tail(nl) - g.w_.transpose() * gradient.head(nx);
   g.s_llt_.compute(schur);
   if (g.s_llt_.info() != Eigen::Success) {
     return absl::InternalError("landmark covariance could not be computed (landmarks not observable)");

@@ -47,6 +47,9 @@ class GraphLinearization {
 
   // Marginal covariance of the landmarks, in the order given (2 x 2 blocks).
   const Eigen::MatrixXd& landmark_covariance() const { return sigma_ll_; }
+  // The cost's gradient in the landmarks with the other blocks eliminated, at the point it was
+  // computed at: zero at an exact optimum, the solver's shortfall otherwise.
+  const Eigen::VectorXd& landmark_gradient() const { return landmark_gradient_; }
 
   // Second-order bias correction of the solution (Box 1971): to order sigma^2 a nonlinear
   // least-squares (MAP) estimate is off its expectation by
@@ -77,6 +80,7 @@ class GraphLinearization {
   Eigen::MatrixXd w_;                             // A^-1 B
   Eigen::LLT<Eigen::MatrixXd> s_llt_;             // S = C - B^T A^-1 B
   Eigen::MatrixXd sigma_ll_;
+  Eigen::VectorXd landmark_gradient_;
   Eigen::MatrixXd w_sigma_;                       // A^-1 B Sigma_LL
 };
 

@@ -227,38 +227,18 @@ absl::StatusOr<PassageUpdate> SolveJointly(const std::vector<Passage>& passages,
   }
   const bool correlated = options.strategy != UpdateStrategy::kDecorrelated;
   if (correlated) {
-    // The passages' factors must sum to the joint solution: Lambda_p (x_c + c) - g_p does, with
-    // x_c the corrected solution and c = Lambda^-1 sum_p g_p (zero at an exact optimum; a solve
-    // stopped by its function tolerance leaves a small gradient in weakly determined directions).
-    std::map<LandmarkId, int> column;
-    for (LandmarkId id : ids) column.emplace(id, static_cast<int>(2 * column.size()));
-    const int n = static_cast<int>(2 * ids.size());
-    Eigen::MatrixXd total = Eigen::MatrixXd::Zero(n, n);
-    Eigen::VectorXd gradient = Eigen::VectorXd::Zero(n);
+    // At the corrected solution x_c = x* + b: Lambda_p x_c - g_p(x*) sums to Lambda x_c - g(x*),
+    // the joint solution less the solver's shortfall (zero at an exact optimum).
     for (int p = 0; p < count; ++p) {
       const int k = static_cast<int>(seen[p].ids.size());
-      for (int i = 0; i < k; ++i) {
-        const int ci = column[seen[p].ids[i]];
-        gradient.segment<2>(ci) += information[p].gradient.segment<2>(2 * i);
-        for (int j = 0; j < k; ++j) {
-          total.block<2, 2>(ci, column[seen[p].ids[j]]) += information[p].information.block<2, 2>(2 * i, 2 * j);
-        }
-      }
-    }
-    const Eigen::VectorXd correction = total.ldlt().solve(gradient);
-    for (int p = 0; p < count; ++p) {
-      const int k = static_cast<int>(seen[p].ids.size());
-      Eigen::VectorXd x(2 * k), c(2 * k);
-      for (int i = 0; i < k; ++i) {
-        x.segment<2>(2 * i) = position[seen[p].ids[i]];
-        c.segment<2>(2 * i) = correction.segment<2>(column[seen[p].ids[i]]);
-      }
+      Eigen::VectorXd x(2 * k);
+      for (int i = 0; i < k; ++i) x.segment<2>(2 * i) = position[seen[p].ids[i]];
       MapFactor f;
       f.vehicle_id = passages[p].vehicle_id;
       f.passage_id = passages[p].passage_id;
       f.landmarks = seen[p].ids;
       f.information = information[p].information;
-      f.information_vector = information[p].information * (x + c) - information[p].gradient;
+      f.information_vector = information[p].information * x - information[p].gradient;
       AddLocalFactor(frame, x, std::move(f), &overlay);
     }
   } else {

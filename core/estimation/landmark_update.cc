@@ -99,12 +99,13 @@ absl::Status LandmarkUpdate::AddMapPrior(bool correlated, const MapWindowOptions
 }
 
 absl::StatusOr<LandmarkUpdateStats> LandmarkUpdate::Commit(const Eigen::MatrixXd& cov_ss,
+                                                           const Eigen::VectorXd& gradient_ss,
                                                            const LandmarkUpdateOptions& options,
                                                            const std::function<void(Landmark*)>& touch) {
   LandmarkUpdateStats stats;
   const auto start = std::chrono::steady_clock::now();
   const int n = size();
-  if (cov_ss.rows() != 2 * n || cov_ss.cols() != 2 * n) {
+  if (cov_ss.rows() != 2 * n || cov_ss.cols() != 2 * n || gradient_ss.size() != 2 * n) {
     return absl::InvalidArgumentError("landmark covariance: wrong size for the graph's landmarks");
   }
   const int m = static_cast<int>(prior_index_.size());
@@ -136,14 +137,14 @@ absl::StatusOr<LandmarkUpdateStats> LandmarkUpdate::Commit(const Eigen::MatrixXd
     const Eigen::MatrixXd information = Symmetrized(llt.solve(Eigen::MatrixXd::Identity(2 * n, 2 * n)));
     MapFactor f = make_factor(ids_);
     f.information = Symmetrized(information - prior);
-    f.information_vector = information * x - prior_vector;
+    f.information_vector = information * x - prior_vector - gradient_ss;
     AddLocalFactor(frame_, x, std::move(f), map_);
   } else {
     for (int i = 0; i < n; ++i) {
       const Eigen::Matrix2d information = cov_ss.block<2, 2>(2 * i, 2 * i).inverse();
       MapFactor f = make_factor({ids_[i]});
       f.information = Symmetrized(information - prior.block<2, 2>(2 * i, 2 * i));
-      f.information_vector = information * positions_[i] - prior_vector.segment<2>(2 * i);
+      f.information_vector = information * positions_[i] - prior_vector.segment<2>(2 * i) - gradient_ss.segment<2>(2 * i);
       AddLocalFactor(frame_, positions_[i], std::move(f), map_);
     }
   }

@@ -39,7 +39,9 @@ struct LandmarkUpdateStats {
 //      covariance) Lambda' and its bias-corrected estimate x', the graph's own factor is what it
 //      adds to the prior P:
 //        information Lambda' - P,   information vector Lambda' x' - P mu_O,
-//      the information of its measurements once its poses are eliminated. It is added to the map
+//      the information of its measurements once its poses are eliminated (less the cost's
+//      remaining gradient g, so that the factor does not depend on how far the solver got:
+//      information vector Lambda' x' - P mu_O - g). It is added to the map
 //      (in the landmarks' anchor offsets) and the map is re-solved around S, which moves the
 //      correlated landmarks outside the graph as exact Gaussian conditioning would. DC keeps one
 //      factor per landmark from the 2x2 marginals, so its map holds no correlations.
@@ -58,11 +60,13 @@ class LandmarkUpdate {
   // information around them is not positive definite.
   absl::Status AddMapPrior(bool correlated, const MapWindowOptions& window, ceres::Problem* problem);
 
-  // After a usable solve: with the graph landmarks' estimate in their blocks and `cov_ss` their
-  // marginal covariance (GraphLinearization), adds the graph's factor to the map, re-solves it
-  // and writes every change at a new map version. `touch` is called on each record of the
-  // graph's landmarks before it is written (counts).
-  absl::StatusOr<LandmarkUpdateStats> Commit(const Eigen::MatrixXd& cov_ss, const LandmarkUpdateOptions& options,
+  // After a usable solve: with the graph landmarks' estimate in their blocks, `cov_ss` their
+  // marginal covariance and `gradient_ss` the cost's reduced gradient where it was taken
+  // (GraphLinearization), adds the graph's factor to the map, re-solves it and writes every change
+  // at a new map version. `touch` is called on each record of the graph's landmarks before it is
+  // written (counts).
+  absl::StatusOr<LandmarkUpdateStats> Commit(const Eigen::MatrixXd& cov_ss, const Eigen::VectorXd& gradient_ss,
+                                             const LandmarkUpdateOptions& options,
                                              const std::function<void(Landmark*)>& touch);
 
  private:

@@ -109,7 +109,8 @@ absl::Status UpdateFromSubgraph(const Passage& passage, const PassageGraph& grap
     record->passages_seen += 1;
     record->last_seen_unix_ms = std::max(record->last_seen_unix_ms, seen_ms);
   };
-  absl::StatusOr<LandmarkUpdateStats> stats = update.Commit(linearization->landmark_covariance(), update_options, touch);
+  absl::StatusOr<LandmarkUpdateStats> stats = update.Commit(
+      linearization->landmark_covariance(), linearization->landmark_gradient(), update_options, touch);
   if (!stats.ok()) return stats.status();
   Yield(options);
   summary->covariance_ms += stats->covariance_ms;

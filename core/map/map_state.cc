@@ -77,10 +77,6 @@ void MapState::AppendFactorIds(LandmarkId id, std::vector<int64_t>* out) const {
   if (it != factors_of_.end()) out->insert(out->end(), it->second.begin(), it->second.end());
 }
 
-void MapState::AppendLinked(LandmarkId id, std::vector<LandmarkId>* out) const {
-  information_.ForEachLinked(id, [&](LandmarkId b, const InformationBlock&) { out->push_back(b); });
-}
-
 void MapState::AppendPassageFactorIds(const std::string& vehicle_id, const std::string& passage_id,
                                       std::vector<int64_t>* out) const {
   auto it = factors_of_passage_.find({vehicle_id, passage_id});
@@ -181,15 +177,18 @@ Eigen::Vector2d MapOverlay::InformationVector(LandmarkId id) const {
   return base_.InformationVector(id) + change_.Vector(id);
 }
 
-void MapOverlay::AppendLinked(LandmarkId id, std::vector<LandmarkId>* out) const {
-  std::vector<LandmarkId> candidates;
-  base_.AppendLinked(id, &candidates);
-  change_.ForEachLinked(id, [&](LandmarkId b, const InformationBlock&) { candidates.push_back(b); });
-  std::sort(candidates.begin(), candidates.end());
-  candidates.erase(std::unique(candidates.begin(), candidates.end()), candidates.end());
-  for (LandmarkId b : candidates) {
-    if (Information(id, b).factors > 0) out->push_back(b);
-  }
+void MapOverlay::ForEachLink(LandmarkId id,
+                             const std::function<void(LandmarkId, const InformationBlock&)>& fn) const {
+  base_.ForEachLink(id, [&](LandmarkId b, const InformationBlock& base) {
+    InformationBlock block = base;
+    const InformationBlock change = change_.Block(id, b);
+    block.value += change.value;
+    block.factors += change.factors;
+    if (block.factors > 0) fn(b, block);
+  });
+  change_.ForEachLinked(id, [&](LandmarkId b, const InformationBlock& change) {
+    if (change.factors > 0 && base_.Information(id, b).factors == 0) fn(b, change);
+  });
 }
 
 const MapFactor* MapOverlay::FindFactor(int64_t id) const {

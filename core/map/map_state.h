@@ -66,8 +66,13 @@ class MapReaderInterface {
   // Block (a, b) of the information matrix; a == b is the landmark's own block.
   virtual InformationBlock Information(LandmarkId a, LandmarkId b) const = 0;
   virtual Eigen::Vector2d InformationVector(LandmarkId id) const = 0;
-  // Appends the other landmarks that share a factor with `id` (each once).
-  virtual void AppendLinked(LandmarkId id, std::vector<LandmarkId>* out) const = 0;
+  // Calls fn(b, block (id, b)) for every other landmark b that shares information with `id`.
+  virtual void ForEachLink(LandmarkId id,
+                           const std::function<void(LandmarkId, const InformationBlock&)>& fn) const = 0;
+  // Appends the other landmarks that share information with `id` (each once).
+  void AppendLinked(LandmarkId id, std::vector<LandmarkId>* out) const {
+    ForEachLink(id, [out](LandmarkId b, const InformationBlock&) { out->push_back(b); });
+  }
   virtual const MapFactor* FindFactor(int64_t id) const = 0;
   // Appends the ids of the factors on landmark `id`.
   virtual void AppendFactorIds(LandmarkId id, std::vector<int64_t>* out) const = 0;
@@ -128,7 +133,10 @@ class MapState : public MapReaderInterface {
   const Landmark* FindLandmark(LandmarkId id) const override;
   InformationBlock Information(LandmarkId a, LandmarkId b) const override { return information_.Block(a, b); }
   Eigen::Vector2d InformationVector(LandmarkId id) const override { return information_.Vector(id); }
-  void AppendLinked(LandmarkId id, std::vector<LandmarkId>* out) const override;
+  void ForEachLink(LandmarkId id,
+                   const std::function<void(LandmarkId, const InformationBlock&)>& fn) const override {
+    information_.ForEachLinked(id, fn);
+  }
   const MapFactor* FindFactor(int64_t id) const override;
   void AppendFactorIds(LandmarkId id, std::vector<int64_t>* out) const override;
   void AppendPassageFactorIds(const std::string& vehicle_id, const std::string& passage_id,
@@ -180,7 +188,8 @@ class MapOverlay : public MapReaderInterface {
   const Landmark* FindLandmark(LandmarkId id) const override;
   InformationBlock Information(LandmarkId a, LandmarkId b) const override;
   Eigen::Vector2d InformationVector(LandmarkId id) const override;
-  void AppendLinked(LandmarkId id, std::vector<LandmarkId>* out) const override;
+  void ForEachLink(LandmarkId id,
+                   const std::function<void(LandmarkId, const InformationBlock&)>& fn) const override;
   const MapFactor* FindFactor(int64_t id) const override;
   void AppendFactorIds(LandmarkId id, std::vector<int64_t>* out) const override;
   void AppendPassageFactorIds(const std::string& vehicle_id, const std::string& passage_id,

@@ -118,18 +118,15 @@ absl::StatusOr<MapWindow> MapWindow::Build(const MapReaderInterface& map, const 
     const LandmarkId a = w.ids_[i];
     rhs.segment<2>(2 * i) = map.InformationVector(a);
     AddBlock(2 * i, 2 * i, map.Information(a, a).value, &triplets);
-    linked.clear();
-    map.AppendLinked(a, &linked);
-    for (LandmarkId b : linked) {
-      const Eigen::Matrix2d block = map.Information(a, b).value;
+    map.ForEachLink(a, [&](LandmarkId b, const InformationBlock& block) {
       const int j = w.index(b);
       if (j >= 0) {
-        AddBlock(2 * i, 2 * j, block, &triplets);
+        AddBlock(2 * i, 2 * j, block.value, &triplets);
       } else {
-        rhs.segment<2>(2 * i) -= block * map.FindLandmark(b)->Offset();
+        rhs.segment<2>(2 * i) -= block.value * map.FindLandmark(b)->Offset();
         edge.insert(a);
       }
-    }
+    });
   }
   Eigen::SparseMatrix<double> information(2 * n, 2 * n);
   information.setFromTriplets(triplets.begin(), triplets.end());
