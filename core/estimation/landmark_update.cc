@@ -130,6 +130,12 @@ absl::StatusOr<LandmarkUpdateStats> LandmarkUpdate::Commit(const Eigen::MatrixXd
     f.landmarks = std::move(landmarks);
     return f;
   };
+  // The remaining gradient enters only while the step it implies (the next Gauss-Newton step,
+  // cov_ss g) stays within the posterior's own uncertainty (squared Mahalanobis length below 1),
+  // where the quadratic model of the cost can be trusted: it removes what a solve stopped short of
+  // its optimum leaves in the factor, and leaves alone a solve stopped far from one.
+  const Eigen::VectorXd gradient =
+      gradient_ss.dot(cov_ss * gradient_ss) < 1.0 ? gradient_ss : Eigen::VectorXd::Zero(2 * n);
   if (options.correlated) {
     // The inverse of cov_ss, so that prior + factor gives back exactly the stored marginals.
     Eigen::LLT<Eigen::MatrixXd> llt(Symmetrized(cov_ss));
@@ -137,14 +143,14 @@ absl::StatusOr<LandmarkUpdateStats> LandmarkUpdate::Commit(const Eigen::MatrixXd
     const Eigen::MatrixXd information = Symmetrized(llt.solve(Eigen::MatrixXd::Identity(2 * n, 2 * n)));
     MapFactor f = make_factor(ids_);
     f.information = Symmetrized(information - prior);
-    f.information_vector = information * x - prior_vector - gradient_ss;
+    f.information_vector = information * x - prior_vector - gradient;
     AddLocalFactor(frame_, x, std::move(f), map_);
   } else {
     for (int i = 0; i < n; ++i) {
       const Eigen::Matrix2d information = cov_ss.block<2, 2>(2 * i, 2 * i).inverse();
       MapFactor f = make_factor({ids_[i]});
       f.information = Symmetrized(information - prior.block<2, 2>(2 * i, 2 * i));
-      f.information_vector = information * positions_[i] - prior_vector.segment<2>(2 * i) - gradient_ss.segment<2>(2 * i);
+      f.information_vector = information * positions_[i] - prior_vector.segment<2>(2 * i) - gradient.segment<2>(2 * i);
       AddLocalFactor(frame_, positions_[i], std::move(f), map_);
     }
   }
