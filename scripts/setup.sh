@@ -9,7 +9,7 @@ cd "$(dirname "$0")/.."
 
 PACKAGES=(
   build-essential cmake ninja-build pkg-config git
-  libceres-dev libeigen3-dev libgoogle-glog-dev libgflags-dev
+  libceres-dev libsuitesparse-dev libeigen3-dev libgoogle-glog-dev libgflags-dev
   libgrpc++-dev libprotobuf-dev protobuf-compiler protobuf-compiler-grpc
   libsqlite3-dev sqlite3 libspdlog-dev libfmt-dev
   libgtest-dev libgmock-dev libbenchmark-dev
