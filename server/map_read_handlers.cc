@@ -114,6 +114,23 @@ grpc::Status MapService::WatchRegion(grpc::ServerContext* ctx, const pb::WatchRe
   return log.Done(absl::CancelledError("client cancelled"));
 }
 
+grpc::Status MapService::GetLandmark(grpc::ServerContext* ctx, const pb::GetLandmarkRequest* request,
+                                     pb::GetLandmarkResponse* response) {
+  RequestLog log("GetLandmark", ctx);
+  log.Add(absl::StrCat("id=", request->id()));
+  absl::StatusOr<LandmarkProvenance> provenance = context_->store->GetLandmarkProvenance(request->id());
+  if (!provenance.ok()) return log.Done(provenance.status());
+  LandmarkToProto(provenance->landmark, response->mutable_landmark());
+  for (const auto& [vehicle_id, passage_id] : provenance->passages) {
+    pb::PassageKey* key = response->add_passages();
+    key->set_vehicle_id(vehicle_id);
+    key->set_passage_id(passage_id);
+  }
+  response->set_map_version(provenance->map_version);
+  log.Add(absl::StrCat("passages=", provenance->passages.size()));
+  return log.Done(absl::OkStatus());
+}
+
 grpc::Status MapService::GetMapInfo(grpc::ServerContext* ctx, const pb::GetMapInfoRequest* request,
                                     pb::MapInfo* response) {
   RequestLog log("GetMapInfo", ctx);

@@ -87,6 +87,8 @@ class MapService final : public MapServiceBase {
                           pb::MapInfo* response) override;
   grpc::Status ExcludePassage(grpc::ServerContext* ctx, const pb::ExcludePassageRequest* request,
                               pb::ExcludePassageResponse* response) override;
+  grpc::Status GetLandmark(grpc::ServerContext* ctx, const pb::GetLandmarkRequest* request,
+                           pb::GetLandmarkResponse* response) override;
 
  private:
   // The record named by an id, or by vehicle_id and passage_id.

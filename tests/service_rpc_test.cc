@@ -219,6 +219,11 @@ TEST_F(ServiceRpc, ExcludePassageGivesTheMapWithoutIt) {
   for (int i = 0; i < 4; ++i) MustUpload(scenario_.MakePassage(i));
   ASSERT_TRUE(client_->WaitUntilIdle().ok());
   const Passage excluded = scenario_.MakePassage(2);
+  // Provenance: every passage saw landmark 1.
+  absl::StatusOr<pb::GetLandmarkResponse> before = client_->client()->GetLandmark(1);
+  ASSERT_TRUE(before.ok()) << before.status();
+  ASSERT_EQ(before->passages_size(), 4);
+  EXPECT_EQ(before->landmark().passages_seen(), 4);
   absl::StatusOr<pb::ExcludePassageResponse> r =
       client_->client()->ExcludePassage(PassageKey{0, excluded.vehicle_id, excluded.passage_id});
   ASSERT_TRUE(r.ok()) << r.status();
@@ -226,6 +231,12 @@ TEST_F(ServiceRpc, ExcludePassageGivesTheMapWithoutIt) {
   EXPECT_GT(r->landmarks_updated(), 0);
   EXPECT_EQ(client_->GetMapInfo()->map_version(), r->map_version());
   EXPECT_EQ(client_->GetMapInfo()->passages_applied(), 3);
+  absl::StatusOr<pb::GetLandmarkResponse> after = client_->client()->GetLandmark(1);
+  ASSERT_TRUE(after.ok()) << after.status();
+  EXPECT_EQ(after->passages_size(), 3);
+  for (const pb::PassageKey& key : after->passages()) EXPECT_NE(key.passage_id(), excluded.passage_id);
+  EXPECT_EQ(after->map_version(), r->map_version());
+  EXPECT_EQ(client_->client()->GetLandmark(9999).status().code(), absl::StatusCode::kNotFound);
 
   // The server computes what the core computes: the four passages applied in order, then the
   // exclusion.

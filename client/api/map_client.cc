@@ -110,6 +110,16 @@ absl::StatusOr<pb::PassageStatus> MapClient::GetPassage(int64_t id) {
   return status;
 }
 
+absl::StatusOr<pb::GetLandmarkResponse> MapClient::GetLandmark(int64_t id) {
+  grpc::ClientContext ctx;
+  SetDeadline(&ctx);
+  pb::GetLandmarkRequest request;
+  request.set_id(id);
+  pb::GetLandmarkResponse response;
+  if (absl::Status s = FromGrpcStatus(stub_->GetLandmark(&ctx, request, &response)); !s.ok()) return s;
+  return response;
+}
+
 absl::StatusOr<pb::ExcludePassageResponse> MapClient::ExcludePassage(const PassageKey& key) {
   grpc::ClientContext ctx;
   SetDeadline(&ctx);

@@ -61,6 +61,8 @@ class MapClient {
   // UploadPassage, or UploadPassageChunked above unary_upload_limit_bytes; retried as above.
   absl::StatusOr<pb::UploadPassageResponse> Upload(const pb::Passage& passage);
   absl::StatusOr<pb::PassageStatus> GetPassage(int64_t id);
+  // One landmark and the passages that shaped it.
+  absl::StatusOr<pb::GetLandmarkResponse> GetLandmark(int64_t id);
   // Takes an applied passage out of the map (administration).
   absl::StatusOr<pb::ExcludePassageResponse> ExcludePassage(const PassageKey& key);
   absl::StatusOr<pb::PassageStatus> GetPassage(const std::string& vehicle_id, const std::string& passage_id);

@@ -1,5 +1,6 @@
 #include "client/mapctl/mapctl.h"
 
+#include <cmath>
 #include <cstdlib>
 #include <fstream>
 #include <map>
@@ -32,6 +33,7 @@ Commands:
   status ID                      one passage: server id, or VEHICLE/PASSAGE_ID
   passages [--state S]           uploaded passages; S = queued | processing | applied | rejected | failed
                                  | excluded
+  landmark ID                    one landmark and the passages that shaped it
   exclude ID                     take an applied passage out of the map (server id, or
                                  VEHICLE/PASSAGE_ID): the map becomes what it would be without it
   info                           map version, landmark and queue counts, strategy
@@ -202,6 +204,29 @@ absl::Status Status(const Flags& flags, Context& ctx) {
   return absl::OkStatus();
 }
 
+absl::Status LandmarkCommand(const Flags& flags, Context& ctx) {
+  int64_t id = 0;
+  if (flags.positional().size() != 1 || !absl::SimpleAtoi(flags.positional()[0], &id)) {
+    return absl::InvalidArgumentError("landmark: give one landmark id (a number)");
+  }
+  absl::StatusOr<pb::GetLandmarkResponse> response = ctx.client->GetLandmark(id);
+  if (!response.ok()) return response.status();
+  if (ctx.json) {
+    *ctx.out << ToJson(*response);
+    return absl::OkStatus();
+  }
+  const pb::Landmark& l = response->landmark();
+  *ctx.out << absl::StrFormat(
+      "id:          %d\nposition:    %.8f, %.8f\nsigma:       %.3f m East, %.3f m North\nversion:     %d\n"
+      "seen by:     %d passages\n",
+      l.id(), l.lat_deg(), l.lon_deg(), std::sqrt(l.cov_en_m2().ee()), std::sqrt(l.cov_en_m2().nn()), l.version(),
+      l.passages_seen());
+  *ctx.out << absl::StrFormat("shaped by:   %d passages retained apart (older ones are folded into the map)\n",
+                              response->passages_size());
+  for (const pb::PassageKey& p : response->passages()) *ctx.out << "  " << p.vehicle_id() << "/" << p.passage_id() << "\n";
+  return absl::OkStatus();
+}
+
 absl::Status Exclude(const Flags& flags, Context& ctx) {
   absl::StatusOr<PassageKey> key = PassageArgument("exclude", flags);
   if (!key.ok()) return key.status();
@@ -361,6 +386,7 @@ const std::map<std::string, CommandSpec>& Commands() {
       {"upload", {&Upload, {}}},
       {"status", {&Status, {}}},
       {"exclude", {&Exclude, {}}},
+      {"landmark", {&LandmarkCommand, {}}},
       {"passages", {&Passages, {{"state", true}}}},
       {"info", {&Info, {}}},
       {"tile", {&Tile, {}}},

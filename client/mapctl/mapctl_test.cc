@@ -129,6 +129,10 @@ TEST_F(MapctlTest, ExcludeTakesAnAppliedPassageOutOfTheMap) {
   CliRun again = Mapctl({"exclude", "2"}, address_);
   EXPECT_TRUE(OneErrorLine(again)) << again.err;
   EXPECT_TRUE(absl::StrContains(again.err, "only an applied passage can be excluded")) << again.err;
+  CliRun landmark = Mapctl({"landmark", "1"}, address_);
+  ASSERT_EQ(landmark.code, 0) << landmark.err;
+  EXPECT_TRUE(absl::StrContains(landmark.out, "shaped by:   2 passages")) << landmark.out;
+  EXPECT_FALSE(absl::StrContains(landmark.out, second.passage_id)) << landmark.out;
   CliRun usage = Mapctl({"exclude"}, address_);
   EXPECT_TRUE(OneErrorLine(usage)) << usage.err;
 }

@@ -3,7 +3,7 @@
 #include <algorithm>
 #include <set>
 
-#include "server/storage/covariance_page.h"
+#include "server/storage/map_reads.h"
 
 namespace crowdmap {
 namespace {
@@ -64,6 +64,11 @@ void CachedMapStore::Publish(const MapDelta& delta) {
   map_.Apply(delta);
   std::lock_guard<std::mutex> publish(view_mu_);
   view_ = std::move(next);
+}
+
+absl::StatusOr<LandmarkProvenance> CachedMapStore::GetLandmarkProvenance(LandmarkId id) {
+  std::shared_lock<std::shared_mutex> lock(map_mu_);
+  return ProvenanceOf(map_, id);
 }
 
 std::shared_ptr<const CachedMapStore::View> CachedMapStore::ApplyToView(const MapDelta& delta) {

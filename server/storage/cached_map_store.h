@@ -50,6 +50,8 @@ class CachedMapStore : public MapStoreInterface {
   absl::StatusOr<int> RequeueProcessingPassages() override { return inner_->RequeueProcessingPassages(); }
   absl::Status LoadMap(MapState* map) override { return inner_->LoadMap(map); }
   absl::StatusOr<MapStats> GetStats() override { return inner_->GetStats(); }
+  // From the in-memory map.
+  absl::StatusOr<LandmarkProvenance> GetLandmarkProvenance(LandmarkId id) override;
 
   // Commits through the inner store, then publishes the new copy.
   absl::Status CommitPassageApplied(int64_t id, const MapDelta& delta, const PassageResult& result) override;

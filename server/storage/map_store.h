@@ -90,6 +90,15 @@ struct LandmarkPage {
   bool more = false;  // further landmarks match after the last one returned
 };
 
+// One landmark and the passages that shaped it: those whose factors the map still keeps apart
+// (passages older than the retention were folded into the base and are counted by
+// landmark.passages_seen only). Passages in the order their factors were made.
+struct LandmarkProvenance {
+  Landmark landmark;
+  std::vector<std::pair<std::string, std::string>> passages;  // vehicle_id, passage_id
+  int64_t map_version = 0;
+};
+
 struct MapStats {
   int64_t map_version = 0;
   int64_t landmark_count = 0;
@@ -144,6 +153,8 @@ class MapStoreInterface {
   // Landmarks inside `box` whose version is greater than `since_version`.
   virtual absl::StatusOr<LandmarkPage> ChangedLandmarks(const BoundingBox& box, int64_t since_version) = 0;
   virtual absl::StatusOr<MapStats> GetStats() = 0;
+  // Landmark `id` and the passages that shaped it. NotFound when it is not mapped.
+  virtual absl::StatusOr<LandmarkProvenance> GetLandmarkProvenance(LandmarkId id) = 0;
 };
 
 struct SqliteMapStoreOptions {

@@ -10,7 +10,7 @@
 #include <Eigen/LU>
 
 #include "absl/strings/str_cat.h"
-#include "server/storage/covariance_page.h"
+#include "server/storage/map_reads.h"
 #include "server/storage/factor_codec.h"
 #include "server/storage/sqlite_schema.h"
 
@@ -435,6 +435,17 @@ absl::StatusOr<LandmarkPage> SqliteMapStore::ChangedLandmarks(const BoundingBox&
         stmt.Bind(5, since_version);
       },
       0, /*include_cross=*/false);
+}
+
+absl::StatusOr<LandmarkProvenance> SqliteMapStore::GetLandmarkProvenance(LandmarkId id) {
+  // Without a map in memory (CachedMapStore has one) the whole map is read in one snapshot.
+  auto db = AcquireReader();
+  if (!db.ok()) return db.status();
+  auto snapshot = SqliteReadTransaction::Begin(db->get());
+  if (!snapshot.ok()) return snapshot.status();
+  MapState map;
+  if (auto s = ReadMap(db->get(), &map); !s.ok()) return s;
+  return ProvenanceOf(map, id);
 }
 
 absl::StatusOr<MapStats> SqliteMapStore::GetStats() {

@@ -39,6 +39,7 @@ class SqliteMapStore : public MapStoreInterface {
   absl::StatusOr<LandmarkPage> GetTile(const TileId& tile, bool include_cross) override;
   absl::StatusOr<LandmarkPage> ChangedLandmarks(const BoundingBox& box, int64_t since_version) override;
   absl::StatusOr<MapStats> GetStats() override;
+  absl::StatusOr<LandmarkProvenance> GetLandmarkProvenance(LandmarkId id) override;
 
  private:
   // A pooled reader connection, returned to the pool when the lease ends.

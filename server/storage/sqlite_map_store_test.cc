@@ -576,6 +576,16 @@ TEST_P(SqliteMapStoreReads, QueryRegionReturnsExactlyTheLandmarksInsideTheBox) {
   }
 }
 
+TEST_P(SqliteMapStoreReads, ProvenanceListsThePassagesOfTheLandmarksFactors) {
+  auto provenance = store_->GetLandmarkProvenance(100);
+  ASSERT_TRUE(provenance.ok()) << provenance.status();
+  EXPECT_EQ(provenance->landmark.id, 100);
+  EXPECT_EQ(provenance->map_version, 3);
+  ASSERT_EQ(provenance->passages.size(), 1u);
+  EXPECT_EQ(provenance->passages[0], (std::pair<std::string, std::string>{"v", "p1"}));
+  EXPECT_EQ(store_->GetLandmarkProvenance(99).status().code(), absl::StatusCode::kNotFound);
+}
+
 TEST_P(SqliteMapStoreReads, QueryRegionPagesInIdOrder) {
   BoundingBox box{48.0, 2.0, 49.0, 3.0};
   std::vector<LandmarkId> ids;

@@ -1,5 +1,5 @@
-#ifndef CROWDMAP_SERVER_STORAGE_COVARIANCE_PAGE_H_
-#define CROWDMAP_SERVER_STORAGE_COVARIANCE_PAGE_H_
+#ifndef CROWDMAP_SERVER_STORAGE_MAP_READS_H_
+#define CROWDMAP_SERVER_STORAGE_MAP_READS_H_
 
 #include "absl/status/status.h"
 #include "core/map/map_state.h"
@@ -12,6 +12,9 @@ namespace crowdmap {
 // landmarks' covariances, so that what is returned is one consistent matrix.
 absl::Status AppendCrossCovariances(const MapReaderInterface& map, int window_hops, LandmarkPage* page);
 
+// Landmark `id` of `map` and the passages whose factors it is in. NotFound when it is not mapped.
+absl::StatusOr<LandmarkProvenance> ProvenanceOf(const MapReaderInterface& map, LandmarkId id);
+
 }  // namespace crowdmap
 
-#endif  // CROWDMAP_SERVER_STORAGE_COVARIANCE_PAGE_H_
+#endif  // CROWDMAP_SERVER_STORAGE_MAP_READS_H_

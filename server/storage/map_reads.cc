@@ -1,5 +1,8 @@
-#include "server/storage/covariance_page.h"
+#include "server/storage/map_reads.h"
 
+#include <algorithm>
+
+#include "absl/strings/str_cat.h"
 #include "core/map/map_window.h"
 
 namespace crowdmap {
@@ -25,6 +28,24 @@ absl::Status AppendCrossCovariances(const MapReaderInterface& map, int window_ho
     }
   }
   return absl::OkStatus();
+}
+
+absl::StatusOr<LandmarkProvenance> ProvenanceOf(const MapReaderInterface& map, LandmarkId id) {
+  const Landmark* landmark = map.FindLandmark(id);
+  if (landmark == nullptr) return absl::NotFoundError(absl::StrCat("landmark ", id, ": not in the map"));
+  LandmarkProvenance out;
+  out.landmark = *landmark;
+  out.map_version = map.version();
+  std::vector<int64_t> factor_ids;
+  map.AppendFactorIds(id, &factor_ids);
+  std::sort(factor_ids.begin(), factor_ids.end());
+  for (int64_t f : factor_ids) {
+    const MapFactor* factor = map.FindFactor(f);
+    if (factor == nullptr) continue;
+    const std::pair<std::string, std::string> key{factor->vehicle_id, factor->passage_id};
+    if (std::find(out.passages.begin(), out.passages.end(), key) == out.passages.end()) out.passages.push_back(key);
+  }
+  return out;
 }
 
 }  // namespace crowdmap
