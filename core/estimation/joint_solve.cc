@@ -266,6 +266,7 @@ absl::StatusOr<PassageUpdate> SolveJointly(const std::vector<Passage>& passages,
   refresh.others = true;  // other landmarks' factors are replaced too, when the passages saw them
   absl::StatusOr<int> conditioned = ResolveAround(ids, refresh, window, version, touch, &overlay);
   if (!conditioned.ok()) return conditioned.status();
+  summary.landmarks_conditioned = *conditioned;
   Yield(options);
   summary.covariance_ms += MillisecondsSince(covariance_start);
   MapDelta delta = overlay.TakeDelta();
