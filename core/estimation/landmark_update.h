@@ -2,6 +2,7 @@
 #define CROWDMAP_CORE_ESTIMATION_LANDMARK_UPDATE_H_
 
 #include <functional>
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -75,15 +76,25 @@ class LandmarkUpdate {
   std::vector<LandmarkId> ids_;
   std::vector<bool> in_map_;
   std::vector<Eigen::Vector2d> positions_;
+  // After the factor is added: the exact posterior of the graph's landmarks from the prior's
+  // window, and every other window landmark moved by conditioning on their change. Needs a closed
+  // window (the whole connected map), where conditioning is exact. Returns how many landmarks
+  // outside the graph were written.
+  absl::StatusOr<int> ConditionWindow(const MapFactor& factor, int64_t version,
+                                      const std::function<void(Landmark*)>& touch);
+
   std::vector<int> prior_index_;    // indices (into ids_) of the map landmarks O
   Eigen::VectorXd prior_mean_;      // mu_O, local frame
   Eigen::MatrixXd prior_information_;  // P on O, local frame
+  // The CC prior's window and its covariance columns for O (anchor offsets), kept for Commit.
+  std::optional<MapWindow> prior_window_;
+  Eigen::MatrixXd prior_columns_;
 };
 
 // Adds `factor` (whose information is over the graph's local-frame positions `local`, stacked as
 // the factor's landmarks) to the map in the landmarks' anchor offsets, creating the records of new
-// landmarks at their position in `local`. Exposed for the joint solve.
-void AddLocalFactor(const LocalFrame& frame, const Eigen::VectorXd& local, MapFactor factor, MapOverlay* map);
+// landmarks at their position in `local`. Returns the factor's id. Exposed for the joint solve.
+int64_t AddLocalFactor(const LocalFrame& frame, const Eigen::VectorXd& local, MapFactor factor, MapOverlay* map);
 
 // How ResolveAround refreshes the stored marginal covariances.
 struct MarginalRefresh {

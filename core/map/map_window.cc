@@ -192,22 +192,27 @@ int MapWindow::index(LandmarkId id) const {
   return it == index_.end() ? -1 : it->second;
 }
 
-absl::StatusOr<Eigen::MatrixXd> MapWindow::Covariance(const std::vector<LandmarkId>& ids) const {
+absl::StatusOr<Eigen::MatrixXd> MapWindow::CovarianceColumns(const std::vector<LandmarkId>& ids) const {
   const int n = static_cast<int>(ids_.size()), m = static_cast<int>(ids.size());
-  if (m == 0) return Eigen::MatrixXd(0, 0);
+  if (m == 0) return Eigen::MatrixXd(2 * n, 0);
   Eigen::MatrixXd unit = Eigen::MatrixXd::Zero(2 * n, 2 * m);
-  std::vector<int> at(m);
   for (int k = 0; k < m; ++k) {
-    at[k] = index(ids[k]);
-    if (at[k] < 0) return absl::InvalidArgumentError(absl::StrCat("landmark ", ids[k], ": outside the window"));
-    unit.block<2, 2>(2 * at[k], 2 * k).setIdentity();
+    const int at = index(ids[k]);
+    if (at < 0) return absl::InvalidArgumentError(absl::StrCat("landmark ", ids[k], ": outside the window"));
+    unit.block<2, 2>(2 * at, 2 * k).setIdentity();
   }
-  const Eigen::MatrixXd columns = covariance_factor_->solve(unit);
+  Eigen::MatrixXd columns = covariance_factor_->solve(unit);
+  if (!columns.allFinite()) return absl::InternalError("map covariance is not finite");
+  return columns;
+}
+
+absl::StatusOr<Eigen::MatrixXd> MapWindow::Covariance(const std::vector<LandmarkId>& ids) const {
+  absl::StatusOr<Eigen::MatrixXd> columns = CovarianceColumns(ids);
+  if (!columns.ok()) return columns.status();
+  const int m = static_cast<int>(ids.size());
   Eigen::MatrixXd cov(2 * m, 2 * m);
-  for (int k = 0; k < m; ++k) cov.middleRows<2>(2 * k) = columns.middleRows<2>(2 * at[k]);
-  cov = 0.5 * (cov + cov.transpose());
-  if (!cov.allFinite()) return absl::InternalError("map covariance is not finite");
-  return cov;
+  for (int k = 0; k < m; ++k) cov.middleRows<2>(2 * k) = columns->middleRows<2>(2 * index(ids[k]));
+  return Eigen::MatrixXd(0.5 * (cov + cov.transpose()));
 }
 
 std::vector<Eigen::Matrix2d> MapWindow::Marginals() const {

@@ -45,6 +45,9 @@ class MapWindow {
   const Eigen::VectorXd& offsets() const { return offsets_; }
   // Joint covariance of `ids` (all in the window), East/North at their anchors.
   absl::StatusOr<Eigen::MatrixXd> Covariance(const std::vector<LandmarkId>& ids) const;
+  // Their columns of the window's covariance: 2 rows per window landmark (landmarks() order), 2
+  // columns per landmark of `ids`.
+  absl::StatusOr<Eigen::MatrixXd> CovarianceColumns(const std::vector<LandmarkId>& ids) const;
   // 2x2 marginal covariance of every window landmark, in landmarks() order.
   std::vector<Eigen::Matrix2d> Marginals() const;
 
