@@ -99,7 +99,7 @@ absl::StatusOr<PassageUpdate> SolveJointly(const std::vector<Passage>& passages,
     summary.detections_dropped +=
         InitializeLandmarks(poses[p], all, passages[p].calibration,
                             options.edge_margin_sigmas * passages[p].noise.pixel_sigma_px,
-                            options.min_new_landmark_parallax_rad, &seen[p]);
+                            options.min_new_landmark_parallax_rad, /*min_new_detections=*/2, &seen[p]);
   }
 
   // Landmarks with a usable detection, how many passages saw each, and when last.

@@ -56,6 +56,7 @@ absl::Status LandmarkUpdate::AddMapPrior(bool correlated, const MapWindowOptions
   const int m = static_cast<int>(prior_index_.size());
   prior_mean_.resize(2 * m);
   prior_information_.setZero(2 * m, 2 * m);
+  prior_marginals_.assign(m, Eigen::Matrix2d::Identity());
   if (m == 0) return absl::OkStatus();
   std::vector<Eigen::Matrix2d> to_local(m);
   for (int k = 0; k < m; ++k) {
@@ -66,6 +67,7 @@ absl::Status LandmarkUpdate::AddMapPrior(bool correlated, const MapWindowOptions
   if (!correlated) {
     for (int k = 0; k < m; ++k) {
       const Eigen::Matrix2d cov = to_local[k] * map_->FindLandmark(prior_ids[k])->cov_en_m2 * to_local[k].transpose();
+      prior_marginals_[k] = cov;
       Eigen::LLT<Eigen::Matrix2d> llt(cov);
       if (llt.info() != Eigen::Success) {
         return absl::FailedPreconditionError(absl::StrCat("landmark ", prior_ids[k],
@@ -88,6 +90,7 @@ absl::Status LandmarkUpdate::AddMapPrior(bool correlated, const MapWindowOptions
       cov.block<2, 2>(2 * k, 2 * l) = to_local[k] * columns->block<2, 2>(2 * k, 2 * l) * to_local[l].transpose();
     }
   }
+  for (int k = 0; k < m; ++k) prior_marginals_[k] = cov.block<2, 2>(2 * k, 2 * k);
   prior_window_ = std::move(*map_window);
   prior_columns_ = std::move(*columns);
   Eigen::LLT<Eigen::MatrixXd> llt(Symmetrized(cov));
@@ -101,6 +104,14 @@ absl::Status LandmarkUpdate::AddMapPrior(bool correlated, const MapWindowOptions
   for (int i : prior_index_) blocks.push_back(block(i));
   problem->AddResidualBlock(new LandmarkPriorFactor(prior_mean_, sqrt_info), nullptr, blocks);
   return absl::OkStatus();
+}
+
+double LandmarkUpdate::PriorShiftMahalanobis2(int i) const {
+  const auto it = std::find(prior_index_.begin(), prior_index_.end(), i);
+  if (it == prior_index_.end()) return 0.0;
+  const int k = static_cast<int>(it - prior_index_.begin());
+  const Eigen::Vector2d shift = positions_[i] - prior_mean_.segment<2>(2 * k);
+  return shift.dot(prior_marginals_[k].ldlt().solve(shift));
 }
 
 absl::StatusOr<LandmarkUpdateStats> LandmarkUpdate::Commit(const Eigen::MatrixXd& cov_ss,

@@ -56,10 +56,16 @@ class LandmarkUpdate {
   bool in_map(int i) const { return in_map_[i]; }
   // Parameter block of landmark i (local frame, metres); map landmarks start at their map position.
   double* block(int i) { return positions_[i].data(); }
+  const Eigen::Vector2d& position(int i) const { return positions_[i]; }
 
   // Adds the map prior for the landmarks already in the map. FailedPrecondition when the map's
   // information around them is not positive definite.
   absl::Status AddMapPrior(bool correlated, const MapWindowOptions& window, ceres::Problem* problem);
+
+  // For a map landmark after the solve: the squared Mahalanobis length of its move from the prior
+  // mean, in the prior's marginal covariance (0 for a new landmark). The move of an honest update
+  // has covariance prior - posterior, smaller than the prior, so this is a conservative test.
+  double PriorShiftMahalanobis2(int i) const;
 
   // After a usable solve: with the graph landmarks' estimate in their blocks, `cov_ss` their
   // marginal covariance and `gradient_ss` the cost's reduced gradient where it was taken
@@ -86,6 +92,7 @@ class LandmarkUpdate {
   std::vector<int> prior_index_;    // indices (into ids_) of the map landmarks O
   Eigen::VectorXd prior_mean_;      // mu_O, local frame
   Eigen::MatrixXd prior_information_;  // P on O, local frame
+  std::vector<Eigen::Matrix2d> prior_marginals_;  // the 2x2 marginals of P's inverse
   // The CC prior's window and its covariance columns for O (anchor offsets), kept for Commit.
   std::optional<MapWindow> prior_window_;
   Eigen::MatrixXd prior_columns_;

@@ -38,6 +38,17 @@ struct MapUpdateOptions {
   // head-on at the end of a street), and a solve places it hundreds of metres off with a
   // covariance that does not show it. 0 = any two rays that intersect.
   double min_new_landmark_parallax_rad = 0.05;
+  // ...and only from at least this many usable detections: two rays always intersect, so nothing
+  // in a passage checks a landmark it saw twice.
+  int min_new_landmark_detections = 3;
+  // After the solve, a new landmark enters the map only if it lies within this distance (m) of
+  // every camera that detected it (a detector of poles and signs sees a few tens of metres; a
+  // landmark placed further is one the rays do not pin down)...
+  double max_new_landmark_range_m = 150.0;
+  // ...and if its own rays, with the passage's poses held, fix its position to this standard
+  // deviation (m) in every direction. Otherwise its detections are set aside for the passage and
+  // the subgraph is solved again without them; a later passage with better geometry creates it.
+  double max_new_landmark_ray_sigma_m = 3.0;
   // MapUpdater keeps the factors of the map's last this-many passages apart (they can be
   // excluded: ComputePassageExclusion) and folds those of older passages into the map's base with
   // the next update (MapDelta::folded_factors), so that the map's size grows with the road, not
@@ -51,6 +62,11 @@ struct MapUpdateOptions {
   // with it.
   int window_hops = 0;
   int max_solver_iterations = 100;
+  // A map landmark that a subgraph's solve moves further than this from its map estimate (squared
+  // Mahalanobis distance in the map's marginal covariance; an honest update moves it by much less,
+  // since its move has covariance prior - posterior) is one the passage and the map disagree
+  // about: its detections are set aside and the subgraph solved again without them. 0 = off.
+  double max_landmark_shift_mahalanobis2 = 25.0;
   // Adaptive covariance inflation: when a (sub)graph solve's chi-square (2 x final cost) exceeds
   // its degrees of freedom by more than this many standard deviations (sqrt(2 dof)), the data
   // contradict the noise model (e.g. coloured GNSS errors); the passage's measurement covariances

@@ -30,22 +30,58 @@ struct PassageProgress {
   std::unordered_set<LandmarkId> created;
   std::unordered_set<LandmarkId> updated;
   std::unordered_set<LandmarkId> conditioned;
+  // Landmarks whose detections are set aside for the rest of the passage (LandmarksToSetAside).
+  std::unordered_set<LandmarkId> held_back;
 };
 
-// Builds, solves and commits one subgraph. No map change if it sees no landmark.
-absl::Status UpdateFromSubgraph(const Passage& passage, const PassageGraph& graph, const NodeRange& range,
-                                const MapUpdateOptions& options, MapOverlay* map, PassageProgress* progress,
-                                PassageUpdateSummary* summary) {
+// The landmarks whose detections a solve shows to be unfit for the map, which the subgraph is
+// solved again without: new landmarks that its rays leave poorly determined (see
+// WellDeterminedNewLandmark), and map landmarks it moves further from their map estimate than the
+// map's own uncertainty allows (options.max_landmark_shift_mahalanobis2: the passage and the map
+// disagree about them, a wrong association or a wrong map; either way the passage's
+// detections of them are not trusted).
+std::vector<LandmarkId> LandmarksToSetAside(const LandmarkUpdate& update, const SubgraphLandmarks& landmarks,
+                                            const std::vector<Pose2>& poses, const NodeRange& range,
+                                            const Passage& passage, const MapUpdateOptions& options,
+                                            PassageUpdateSummary* summary) {
+  std::vector<LandmarkId> unfit;
+  for (int i = 0; i < update.size(); ++i) {
+    if (update.in_map(i)) {
+      if (options.max_landmark_shift_mahalanobis2 > 0.0 &&
+          update.PriorShiftMahalanobis2(i) > options.max_landmark_shift_mahalanobis2) {
+        unfit.push_back(update.id(i));
+        ++summary->landmarks_disagreeing;
+      }
+      continue;
+    }
+    const RayGeometry geometry = NewLandmarkGeometry(poses, range.first, landmarks.detections[i], update.position(i),
+                                                     passage.calibration, passage.noise.pixel_sigma_px);
+    if (!WellDeterminedNewLandmark(geometry, options)) {
+      unfit.push_back(update.id(i));
+      ++summary->landmarks_held_back;
+    }
+  }
+  return unfit;
+}
+
+// Builds, solves and commits one subgraph. No map change if it sees no landmark. When the solve
+// leaves new landmarks poorly determined, commits nothing and returns them (the caller sets them
+// aside and calls again).
+absl::StatusOr<std::vector<LandmarkId>> UpdateFromSubgraph(const Passage& passage, const PassageGraph& graph,
+                                                           const NodeRange& range, const MapUpdateOptions& options,
+                                                           MapOverlay* map, PassageProgress* progress,
+                                                           PassageUpdateSummary* summary) {
   const Calibration& calib = passage.calibration;
   SubgraphLandmarks landmarks = GroupDetections(graph, range, *map);
-  if (landmarks.ids.empty()) return absl::OkStatus();
+  summary->detections_dropped += SetAside(progress->held_back, &landmarks);
+  if (landmarks.ids.empty()) return std::vector<LandmarkId>{};
   std::vector<Pose2> poses(graph.initial_poses.begin() + range.first, graph.initial_poses.begin() + range.last + 1);
   const auto solve_start = std::chrono::steady_clock::now();
   InitializePoses(graph, range, passage, options, &landmarks, &poses);
   summary->detections_dropped +=
       InitializeLandmarks(poses, range, calib, options.edge_margin_sigmas * passage.noise.pixel_sigma_px,
-                          options.min_new_landmark_parallax_rad, &landmarks);
-  if (landmarks.ids.empty()) return absl::OkStatus();
+                          options.min_new_landmark_parallax_rad, options.min_new_landmark_detections, &landmarks);
+  if (landmarks.ids.empty()) return std::vector<LandmarkId>{};
 
   LandmarkUpdate update(graph.frame, map, landmarks.ids);
   // Weight of the passage's measurements: 1 until the consistency test asks for inflation.
@@ -98,6 +134,11 @@ absl::Status UpdateFromSubgraph(const Passage& passage, const PassageGraph& grap
         chi2, dof, options.max_chi2_per_dof));
   }
 
+  if (std::vector<LandmarkId> unfit = LandmarksToSetAside(update, landmarks, poses, range, passage, options, summary);
+      !unfit.empty()) {
+    return unfit;
+  }
+
   std::vector<double*> landmark_blocks;
   for (int i = 0; i < update.size(); ++i) landmark_blocks.push_back(update.block(i));
   absl::StatusOr<GraphLinearization> linearization = LinearizeSolution(&problem, landmark_blocks, options, summary);
@@ -122,7 +163,7 @@ absl::Status UpdateFromSubgraph(const Passage& passage, const PassageGraph& grap
     }
   }
   summary->landmarks_conditioned += stats->conditioned;
-  return absl::OkStatus();
+  return std::vector<LandmarkId>{};
 }
 
 }  // namespace
@@ -158,6 +199,22 @@ absl::Status MapUpdateOptions::Validate() const {
   if (!(min_new_landmark_parallax_rad >= 0.0 && min_new_landmark_parallax_rad < 1.5)) {
     return absl::InvalidArgumentError(
         absl::StrCat("min_new_landmark_parallax_rad: must lie in [0, 1.5), got ", min_new_landmark_parallax_rad));
+  }
+  if (!(max_new_landmark_range_m > 0.0)) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("max_new_landmark_range_m: must be > 0, got ", max_new_landmark_range_m));
+  }
+  if (min_new_landmark_detections < 2) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("min_new_landmark_detections: must be >= 2 (two rays fix a point), got ", min_new_landmark_detections));
+  }
+  if (!(max_landmark_shift_mahalanobis2 >= 0.0)) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("max_landmark_shift_mahalanobis2: must be >= 0 (0 = off), got ", max_landmark_shift_mahalanobis2));
+  }
+  if (!(max_new_landmark_ray_sigma_m > 0.0)) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("max_new_landmark_ray_sigma_m: must be > 0, got ", max_new_landmark_ray_sigma_m));
   }
   const int joint = JointSolvePassages(*this) + 1;
   if (retain_passages < 0 || (retain_passages > 0 && retain_passages < joint)) {
@@ -197,10 +254,10 @@ absl::Status MapUpdateOptions::Validate() const {
 
 std::string PassageUpdateSummary::Brief() const {
   return absl::StrFormat(
-      "nodes=%d subgraphs=%d updated=%d created=%d conditioned=%d detections=%d dropped=%d iterations=%d "
+      "nodes=%d subgraphs=%d updated=%d created=%d held_back=%d disagreeing=%d conditioned=%d detections=%d dropped=%d iterations=%d "
       "variance_factor=%.2f solve_ms=%.2f covariance_ms=%.2f bias_correction_ms=%.2f bias_correction_m=%.3f "
       "total_ms=%.2f version=%d joint_passages=%d joint_rejected=%d",
-      nodes, subgraphs, landmarks_updated, landmarks_created, landmarks_conditioned, detections_used,
+      nodes, subgraphs, landmarks_updated, landmarks_created, landmarks_held_back, landmarks_disagreeing, landmarks_conditioned, detections_used,
       detections_dropped, solver_iterations, max_variance_factor, solve_ms, covariance_ms, bias_correction_ms,
       max_bias_correction_m, total_ms, map_version, joint_passages, joint_rejected ? 1 : 0);
 }
@@ -226,9 +283,24 @@ absl::StatusOr<PassageUpdate> ComputePassageUpdate(const Passage& passage, const
   MapOverlay overlay(map);
   PassageProgress progress;
   for (const NodeRange& range : ranges) {
-    if (absl::Status s = UpdateFromSubgraph(passage, *graph, range, options, &overlay, &progress, &summary); !s.ok()) {
-      return absl::Status(s.code(), absl::StrCat("passage ", passage.passage_id, " nodes ", range.first, "-",
-                                                 range.last, ": ", s.message()));
+    // Each round sets aside at least one more new landmark, so this ends.
+    for (;;) {
+      PassageUpdateSummary attempt = summary;
+      absl::StatusOr<std::vector<LandmarkId>> weak =
+          UpdateFromSubgraph(passage, *graph, range, options, &overlay, &progress, &attempt);
+      if (!weak.ok()) {
+        return absl::Status(weak.status().code(), absl::StrCat("passage ", passage.passage_id, " nodes ", range.first,
+                                                               "-", range.last, ": ", weak.status().message()));
+      }
+      if (weak->empty()) {
+        summary = attempt;
+        break;
+      }
+      summary.solver_iterations = attempt.solver_iterations;
+      summary.solve_ms = attempt.solve_ms;
+      summary.landmarks_held_back = attempt.landmarks_held_back;
+      summary.landmarks_disagreeing = attempt.landmarks_disagreeing;
+      progress.held_back.insert(weak->begin(), weak->end());
     }
   }
   if (progress.counted.empty()) {

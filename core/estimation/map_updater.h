@@ -24,6 +24,8 @@ struct PassageUpdateSummary {
   int landmarks_created = 0;      // new to the map
   int landmarks_conditioned = 0;  // outside the passage, moved through their correlation
   int landmarks_removed = 0;      // left without information (by an exclusion)
+  int landmarks_held_back = 0;    // new, but not pinned down by the passage's rays: not created
+  int landmarks_disagreeing = 0;  // map landmarks the passage would move beyond the map's uncertainty: not used
   int detections_used = 0;
   int detections_dropped = 0;     // e.g. behind the camera at the initial guess
   int solver_iterations = 0;

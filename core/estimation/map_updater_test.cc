@@ -5,6 +5,7 @@
 #include <gtest/gtest.h>
 
 #include "core/map/map_window.h"
+#include "core/sim/city_scenario.h"
 #include "core/sim/metrics.h"
 #include "core/sim/scenario.h"
 
@@ -469,6 +470,105 @@ TEST(MapUpdater, RestoredFromTheAppliedPassagesItContinuesExactlyAsBefore) {
   // re-solving without them.
   EXPECT_FALSE(MapUpdater(options, {}, 3).joint_next());
   EXPECT_TRUE(MapUpdater(MapUpdateOptions()).warming_up()) << "on by default";
+}
+
+}  // namespace
+}  // namespace crowdmap
+
+namespace crowdmap {
+namespace {
+
+struct CityMapErrors {
+  double max_m = 0.0;
+  double max_mahalanobis = 0.0;  // of the error, in the landmark's marginal covariance
+  double mean_nees_per_dof = 0.0;  // marginal, mean over the mapped landmarks
+  int held_back = 0;
+  int disagreeing = 0;
+};
+
+// Applies the first `passages` city passages one at a time to an empty map; errors against the
+// truth.
+CityMapErrors ApplyCityPassages(const CityScenarioOptions& city, int passages, const MapUpdateOptions& options) {
+  absl::StatusOr<CityScenario> scenario = CityScenario::Create(city);
+  EXPECT_TRUE(scenario.ok()) << scenario.status();
+  MapState map;
+  CityMapErrors out;
+  for (int i = 0; i < passages; ++i) {
+    absl::StatusOr<PassageUpdate> update = ComputePassageUpdate(scenario->MakePassage(i), options, map);
+    EXPECT_TRUE(update.ok()) << i << ": " << update.status();
+    if (!update.ok()) continue;
+    out.held_back += update->summary.landmarks_held_back;
+    out.disagreeing += update->summary.landmarks_disagreeing;
+    map.Apply(update->delta);
+  }
+  map.ForEachLandmark([&](const Landmark& l) {
+    const Eigen::Vector2d truth = scenario->landmarks()[l.id - 1].position_m;
+    const Eigen::Vector2d error = scenario->frame().ToLocal(l.position) - truth;
+    const double mahalanobis2 = error.dot(l.cov_en_m2.ldlt().solve(error));
+    out.max_m = std::max(out.max_m, error.norm());
+    out.max_mahalanobis = std::max(out.max_mahalanobis, std::sqrt(mahalanobis2));
+    out.mean_nees_per_dof += 0.5 * mahalanobis2 / map.landmark_count();
+  });
+  return out;
+}
+
+TEST(ComputePassageUpdate, ShortCityDrivesLeaveNoLandmarkFarOff) {
+  // Pieces of 600 m: landmarks approached head-on at a turn, seen by two or three frames, which
+  // once were created tens to thousands of metres off and then dragged their neighbours along.
+  CityScenarioOptions city;
+  city.route_length_m = 600.0;
+  MapUpdateOptions options;
+  options.warmup_passages = 0;
+  options.relinearize_until_passages = 0;
+  const CityMapErrors errors = ApplyCityPassages(city, 20, options);
+  EXPECT_GT(errors.held_back, 0) << "the scenario has weak new landmarks";
+  // Measured: at most 12.8 m, 4.9 sigma, NEES/dof 1.19; without the creation and disagreement
+  // rules 43 km, 105 sigma, NEES/dof 25.
+  EXPECT_LT(errors.max_m, 50.0);
+  EXPECT_LT(errors.max_mahalanobis, 8.0);
+  EXPECT_LT(errors.mean_nees_per_dof, 1.5);
+}
+
+}  // namespace
+}  // namespace crowdmap
+
+namespace crowdmap {
+namespace {
+
+// The map after `passages` loop passages through a MapUpdater (its defaults: warm-up and
+// re-solves), with passage `bad` (if >= 0) reporting landmark `from`'s detections as `to`'s.
+MapState LoopMapWithMislabelledPassage(int passages, int bad, LandmarkId from, LandmarkId to) {
+  const Scenario scenario = MakeScenario(25);
+  MapUpdater updater(MapUpdateOptions(), {}, 0);
+  MapState map;
+  for (int i = 0; i < passages; ++i) {
+    Passage passage = scenario.MakePassage(i);
+    if (i == bad) {
+      for (Detection& d : passage.detections) {
+        if (d.landmark_id == from) d.landmark_id = to;
+      }
+    }
+    absl::StatusOr<PassageUpdate> update = updater.Compute(passage, map);
+    EXPECT_TRUE(update.ok()) << i << ": " << update.status();
+    if (!update.ok()) continue;
+    map.Apply(update->delta);
+    updater.Applied(passage);
+  }
+  return map;
+}
+
+TEST(MapUpdater, AMislabelledPassageDoesNotMoveTheLandmarkItNamesWrongly) {
+  constexpr LandmarkId kFrom = 5, kTo = 6;
+  for (int bad : {3, 15, 39}) {
+    const MapState clean = LoopMapWithMislabelledPassage(bad + 1, -1, kFrom, kTo);
+    const MapState map = LoopMapWithMislabelledPassage(bad + 1, bad, kFrom, kTo);
+    const Landmark& a = *clean.FindLandmark(kTo);
+    const Landmark& b = *map.FindLandmark(kTo);
+    const Eigen::Vector2d difference = EastNorthOffset(a.position, b.position);
+    const double sigmas = std::sqrt(difference.dot(a.cov_en_m2.ldlt().solve(difference)));
+    // Measured: 0.18, 0.32 and 0.28 sigma (the solve's consistency test down-weights the passage).
+    EXPECT_LT(sigmas, 3.0) << "mislabelled passage " << bad << ": " << difference.norm() << " m";
+  }
 }
 
 }  // namespace

@@ -2,8 +2,11 @@
 
 #include <algorithm>
 #include <cmath>
+#include <limits>
 #include <map>
 #include <optional>
+
+#include <Eigen/Eigenvalues>
 
 #include "core/estimation/factors.h"
 #include "core/estimation/triangulation.h"
@@ -64,6 +67,24 @@ SubgraphLandmarks GroupDetections(const PassageGraph& graph, const NodeRange& ra
   return out;
 }
 
+int SetAside(const std::unordered_set<LandmarkId>& set_aside, SubgraphLandmarks* landmarks) {
+  if (set_aside.empty()) return 0;
+  SubgraphLandmarks kept;
+  int removed = 0;
+  for (size_t i = 0; i < landmarks->ids.size(); ++i) {
+    if (set_aside.count(landmarks->ids[i])) {
+      removed += static_cast<int>(landmarks->detections[i].size());
+      continue;
+    }
+    kept.ids.push_back(landmarks->ids[i]);
+    kept.known.push_back(landmarks->known[i]);
+    kept.initial.push_back(landmarks->initial[i]);
+    kept.detections.push_back(std::move(landmarks->detections[i]));
+  }
+  *landmarks = std::move(kept);
+  return removed;
+}
+
 ceres::Solver::Options SolverOptions(int max_iterations) {
   ceres::Solver::Options options;
   options.linear_solver_type = ceres::SPARSE_NORMAL_CHOLESKY;
@@ -118,10 +139,11 @@ void InitializePoses(const PassageGraph& graph, const NodeRange& range, const Pa
 // detections inside the image, so one whose true pixel lies within a few sigma of the border has
 // its noise cut on one side and is biased inwards, the same way on every passage; the prediction
 // from the map does not depend on the detection, so leaving those out removes the bias without
-// adding one. Landmarks that cannot be initialised, new ones with fewer than two usable rays, are
-// left out. Returns the detections dropped.
+// adding one. Landmarks that cannot be initialised, new ones with fewer than `min_new_detections` usable rays,
+// are left out. Returns the detections dropped.
 int InitializeLandmarks(const std::vector<Pose2>& poses, const NodeRange& range, const Calibration& calib,
-                        double edge_margin_px, double min_parallax_rad, SubgraphLandmarks* landmarks) {
+                        double edge_margin_px, double min_parallax_rad, int min_new_detections,
+                        SubgraphLandmarks* landmarks) {
   SubgraphLandmarks kept;
   int dropped = 0;
   for (size_t i = 0; i < landmarks->ids.size(); ++i) {
@@ -150,7 +172,7 @@ int InitializeLandmarks(const std::vector<Pose2>& poses, const NodeRange& range,
       if (edge_margin_px > 0.0 && landmarks->known[i] && near_border) continue;
       usable.push_back(d);
     }
-    if (usable.empty() || (!landmarks->known[i] && usable.size() < 2)) {
+    if (usable.empty() || (!landmarks->known[i] && static_cast<int>(usable.size()) < min_new_detections)) {
       dropped += static_cast<int>(detections.size());
       continue;
     }
@@ -162,6 +184,35 @@ int InitializeLandmarks(const std::vector<Pose2>& poses, const NodeRange& range,
   }
   *landmarks = std::move(kept);
   return dropped;
+}
+
+RayGeometry NewLandmarkGeometry(const std::vector<Pose2>& poses, int first_node,
+                                const std::vector<const CameraObservation*>& detections,
+                                const Eigen::Vector2d& position, const Calibration& calib, double pixel_sigma_px) {
+  using Jet = ceres::Jet<double, 2>;
+  RayGeometry geometry;
+  Eigen::Matrix2d information = Eigen::Matrix2d::Zero();
+  const Jet landmark[2] = {Jet(position.x(), 0), Jet(position.y(), 1)};
+  for (const CameraObservation* d : detections) {
+    const Pose2& pose = poses[d->node - first_node];
+    const Jet pose_jet[3] = {Jet(pose[0]), Jet(pose[1]), Jet(pose[2])};
+    geometry.max_range_m = std::max(geometry.max_range_m, (position - pose.head<2>()).norm());
+    Jet u;
+    if (!ProjectLandmark(pose_jet, landmark, calib, &u)) {
+      geometry.sigma_m = std::numeric_limits<double>::infinity();  // behind a camera that saw it
+      return geometry;
+    }
+    information += u.v * u.v.transpose() / (pixel_sigma_px * pixel_sigma_px);
+  }
+  const Eigen::SelfAdjointEigenSolver<Eigen::Matrix2d> eig(information);
+  const double smallest = eig.eigenvalues()(0);
+  geometry.sigma_m = smallest > 0.0 ? 1.0 / std::sqrt(smallest) : std::numeric_limits<double>::infinity();
+  return geometry;
+}
+
+bool WellDeterminedNewLandmark(const RayGeometry& geometry, const MapUpdateOptions& options) {
+  return geometry.max_range_m <= options.max_new_landmark_range_m &&
+         geometry.sigma_m <= options.max_new_landmark_ray_sigma_m;
 }
 
 // After a usable solve: the landmarks' marginal covariance at the solution and (if enabled) the

@@ -5,6 +5,7 @@
 // share: grouping a subgraph's detections, the initial guess, the solve, the linearisation.
 
 #include <chrono>
+#include <unordered_set>
 #include <vector>
 
 #include <ceres/ceres.h>
@@ -35,6 +36,9 @@ struct SubgraphLandmarks {
 // their map position.
 SubgraphLandmarks GroupDetections(const PassageGraph& graph, const NodeRange& range, const MapReaderInterface& map);
 
+// Removes the landmarks in `set_aside` with their detections; returns the detections removed.
+int SetAside(const std::unordered_set<LandmarkId>& set_aside, SubgraphLandmarks* landmarks);
+
 ceres::Solver::Options SolverOptions(int max_iterations);
 
 // ceres::Solve with options.yield_point called after each iteration and at the end.
@@ -48,7 +52,23 @@ void InitializePoses(const PassageGraph& graph, const NodeRange& range, const Pa
 // Initial positions of the new landmarks and the usable detections (see subgraph_steps.cc);
 // returns the detections dropped.
 int InitializeLandmarks(const std::vector<Pose2>& poses, const NodeRange& range, const Calibration& calib,
-                        double edge_margin_px, double min_parallax_rad, SubgraphLandmarks* landmarks);
+                        double edge_margin_px, double min_parallax_rad, int min_new_detections,
+                        SubgraphLandmarks* landmarks);
+
+// How well a passage's rays determine a landmark's position, with the poses held where they are:
+// the largest standard deviation (m) of the position from its detections alone, and its largest
+// distance from the cameras. A landmark whose rays barely cross is free along them: a solve can
+// place it far off, and its linearised covariance does not describe that.
+struct RayGeometry {
+  double sigma_m = 0.0;
+  double max_range_m = 0.0;
+};
+RayGeometry NewLandmarkGeometry(const std::vector<Pose2>& poses, int first_node,
+                                const std::vector<const CameraObservation*>& detections,
+                                const Eigen::Vector2d& position, const Calibration& calib, double pixel_sigma_px);
+
+// Whether a new landmark may enter the map with this geometry (the options' creation rule).
+bool WellDeterminedNewLandmark(const RayGeometry& geometry, const MapUpdateOptions& options);
 
 // After a usable solve: the landmarks' marginal covariance and (if enabled) the second-order bias
 // correction of the solution, with their times added to `summary`.
