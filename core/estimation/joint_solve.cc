@@ -275,6 +275,7 @@ absl::StatusOr<PassageUpdate> SolveJointly(const std::vector<Passage>& passages,
   }
   summary.map_version = delta.version;
   summary.total_ms = MillisecondsSince(start);
+  if (absl::Status s = CheckDeltaInvariants(delta); !s.ok()) return s;
   return PassageUpdate{std::move(delta), summary};
 }
 

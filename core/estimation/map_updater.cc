@@ -310,7 +310,9 @@ absl::StatusOr<PassageUpdate> ComputePassageUpdate(const Passage& passage, const
   summary.landmarks_created = static_cast<int>(progress.created.size());
   summary.map_version = overlay.version();
   summary.total_ms = MillisecondsSince(start);
-  return PassageUpdate{overlay.TakeDelta(), summary};
+  MapDelta delta = overlay.TakeDelta();
+  if (absl::Status s = CheckDeltaInvariants(delta); !s.ok()) return s;
+  return PassageUpdate{std::move(delta), summary};
 }
 
 namespace {

@@ -487,8 +487,9 @@ struct CityMapErrors {
 };
 
 // Applies the first `passages` city passages one at a time to an empty map; errors against the
-// truth.
-CityMapErrors ApplyCityPassages(const CityScenarioOptions& city, int passages, const MapUpdateOptions& options) {
+// truth. `after_each` sees the map after every passage.
+CityMapErrors ApplyCityPassages(const CityScenarioOptions& city, int passages, const MapUpdateOptions& options,
+                                const std::function<void(const MapState&)>& after_each = nullptr) {
   absl::StatusOr<CityScenario> scenario = CityScenario::Create(city);
   EXPECT_TRUE(scenario.ok()) << scenario.status();
   MapState map;
@@ -500,6 +501,7 @@ CityMapErrors ApplyCityPassages(const CityScenarioOptions& city, int passages, c
     out.held_back += update->summary.landmarks_held_back;
     out.disagreeing += update->summary.landmarks_disagreeing;
     map.Apply(update->delta);
+    if (after_each) after_each(map);
   }
   map.ForEachLandmark([&](const Landmark& l) {
     const Eigen::Vector2d truth = scenario->landmarks()[l.id - 1].position_m;
@@ -510,6 +512,28 @@ CityMapErrors ApplyCityPassages(const CityScenarioOptions& city, int passages, c
     out.mean_nees_per_dof += 0.5 * mahalanobis2 / map.landmark_count();
   });
   return out;
+}
+
+TEST(ComputePassageUpdate, EveryCommittedMapHasPositiveDefiniteInformationAndItsStoredEstimate) {
+  CityScenarioOptions city;
+  city.route_length_m = 600.0;
+  MapUpdateOptions options;
+  options.warmup_passages = 0;
+  options.relinearize_until_passages = 0;
+  int checked = 0;
+  ApplyCityPassages(city, 8, options, [&](const MapState& map) {
+    // The whole map in one window: its factorisation fails unless the information is positive
+    // definite.
+    absl::StatusOr<MapWindow> window = MapWindow::Build(map, map.LandmarkIds(), MapWindowOptions());
+    ASSERT_TRUE(window.ok()) << "after passage " << checked << ": " << window.status();
+    ASSERT_TRUE(window->offsets().allFinite());
+    for (size_t i = 0; i < window->landmarks().size(); ++i) {
+      const Landmark& l = *map.FindLandmark(window->landmarks()[i]);
+      EXPECT_LT((window->offsets().segment<2>(2 * i) - l.Offset()).norm(), 1e-5) << l.id;
+    }
+    ++checked;
+  });
+  EXPECT_EQ(checked, 8);
 }
 
 TEST(ComputePassageUpdate, ShortCityDrivesLeaveNoLandmarkFarOff) {

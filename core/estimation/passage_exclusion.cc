@@ -51,6 +51,7 @@ absl::StatusOr<PassageUpdate> ComputePassageExclusion(const std::string& vehicle
   out.summary.landmarks_removed = static_cast<int>(touched.size() - seeds.size());
   out.summary.map_version = version;
   out.delta = overlay.TakeDelta();
+  if (absl::Status s = CheckDeltaInvariants(out.delta); !s.ok()) return s;
   out.summary.total_ms =
       std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
   return out;

@@ -1,6 +1,12 @@
 #include "core/map/map_state.h"
 
 #include <algorithm>
+#include <cmath>
+
+#include <Eigen/Cholesky>
+#include <Eigen/Eigenvalues>
+
+#include "absl/strings/str_cat.h"
 
 namespace crowdmap {
 
@@ -258,6 +264,43 @@ void MapOverlay::RemoveFactor(int64_t id) {
   if (factor == nullptr || folded_.count(id) > 0 || !removed_.insert(id).second) return;
   change_.Add(*factor, -1);
   delta_.removed_factors.push_back(id);
+}
+
+absl::Status CheckDeltaInvariants(const MapDelta& delta) {
+  for (const auto& [id, l] : delta.landmarks) {
+    const auto on_globe = [](const LatLon& p) {
+      return std::isfinite(p.lat_deg) && std::isfinite(p.lon_deg) && std::abs(p.lat_deg) <= 90.0 &&
+             std::abs(p.lon_deg) <= 180.0;
+    };
+    if (!on_globe(l.position) || !on_globe(l.anchor)) {
+      return absl::InternalError(absl::StrCat("map invariant: landmark ", id, ": position not finite or off the globe"));
+    }
+    const Eigen::Matrix2d& c = l.cov_en_m2;
+    if (!c.allFinite() || std::abs(c(0, 1) - c(1, 0)) > 1e-9 * c.cwiseAbs().maxCoeff() ||
+        Eigen::LLT<Eigen::Matrix2d>(c).info() != Eigen::Success) {
+      return absl::InternalError(
+          absl::StrCat("map invariant: landmark ", id, ": covariance not finite, symmetric and positive definite"));
+    }
+  }
+  for (const auto& [id, f] : delta.added_factors) {
+    const Eigen::Index n = 2 * static_cast<Eigen::Index>(f.landmarks.size());
+    if (f.information.rows() != n || f.information.cols() != n || f.information_vector.size() != n) {
+      return absl::InternalError(absl::StrCat("map invariant: factor ", id, ": information of the wrong size"));
+    }
+    if (!f.information.allFinite() || !f.information_vector.allFinite()) {
+      return absl::InternalError(absl::StrCat("map invariant: factor ", id, ": information not finite"));
+    }
+    const double scale = std::max(1.0, f.information.cwiseAbs().maxCoeff());
+    if ((f.information - f.information.transpose()).cwiseAbs().maxCoeff() > 1e-9 * scale) {
+      return absl::InternalError(absl::StrCat("map invariant: factor ", id, ": information not symmetric"));
+    }
+    if (n > 0 && Eigen::SelfAdjointEigenSolver<Eigen::MatrixXd>(f.information, Eigen::EigenvaluesOnly)
+                         .eigenvalues()(0) < -1e-9 * scale) {
+      return absl::InternalError(
+          absl::StrCat("map invariant: factor ", id, ": information not positive semi-definite"));
+    }
+  }
+  return absl::OkStatus();
 }
 
 }  // namespace crowdmap

@@ -11,6 +11,8 @@
 
 #include <Eigen/Core>
 
+#include "absl/status/status.h"
+
 #include "core/geo/local_frame.h"
 #include "core/model/passage.h"
 
@@ -126,6 +128,13 @@ struct MapDelta {
            folded_factors.empty();
   }
 };
+
+// The invariants every committed change keeps: each landmark record it writes has a finite
+// position on the globe and a finite, symmetric, positive-definite covariance; each factor it adds
+// has finite, symmetric, positive semi-definite information of the right size and a finite
+// information vector. Internal error naming the landmark or factor otherwise: the change must be
+// refused, the map left as it was.
+absl::Status CheckDeltaInvariants(const MapDelta& delta);
 
 // In-memory map: the estimation core's map type, mirrored by the persistent store.
 class MapState : public MapReaderInterface {

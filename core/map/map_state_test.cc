@@ -214,3 +214,56 @@ TEST_F(MapOverlayTest, TakeDeltaHoldsExactlyTheWritesUntilApplied) {
 
 }  // namespace
 }  // namespace crowdmap
+
+namespace crowdmap {
+namespace {
+
+MapDelta OneLandmarkOneFactor() {
+  MapDelta delta;
+  Landmark l;
+  l.id = 7;
+  l.anchor = l.position = LatLon{45.0, 4.0};
+  l.cov_en_m2 << 2.0, 0.5, 0.5, 1.0;
+  delta.landmarks[7] = l;
+  MapFactor f;
+  f.id = 3;
+  f.landmarks = {7};
+  f.information = Eigen::Matrix2d::Identity();
+  f.information_vector = Eigen::Vector2d(1.0, 2.0);
+  delta.added_factors[3] = f;
+  return delta;
+}
+
+TEST(CheckDeltaInvariants, AcceptsAFiniteConsistentChange) { EXPECT_TRUE(CheckDeltaInvariants(OneLandmarkOneFactor()).ok()); }
+
+TEST(CheckDeltaInvariants, RefusesEachViolationNamingWhatBrokeIt) {
+  const auto refused = [](const MapDelta& delta, const std::string& what) {
+    const absl::Status s = CheckDeltaInvariants(delta);
+    EXPECT_EQ(s.code(), absl::StatusCode::kInternal) << what;
+    EXPECT_NE(s.message().find(what), std::string::npos) << s.message();
+  };
+  MapDelta d = OneLandmarkOneFactor();
+  d.landmarks[7].position.lat_deg = std::nan("");
+  refused(d, "landmark 7: position");
+  d = OneLandmarkOneFactor();
+  d.landmarks[7].position.lat_deg = 91.0;
+  refused(d, "landmark 7: position");
+  d = OneLandmarkOneFactor();
+  d.landmarks[7].cov_en_m2 << 1.0, 2.0, 2.0, 1.0;  // indefinite
+  refused(d, "landmark 7: covariance");
+  d = OneLandmarkOneFactor();
+  d.landmarks[7].cov_en_m2(0, 1) = 0.7;  // not symmetric
+  refused(d, "landmark 7: covariance");
+  d = OneLandmarkOneFactor();
+  d.added_factors[3].information(1, 1) = -1.0;
+  refused(d, "factor 3: information not positive semi-definite");
+  d = OneLandmarkOneFactor();
+  d.added_factors[3].information_vector(0) = std::numeric_limits<double>::infinity();
+  refused(d, "factor 3: information not finite");
+  d = OneLandmarkOneFactor();
+  d.added_factors[3].information = Eigen::Matrix3d::Identity();
+  refused(d, "factor 3: information of the wrong size");
+}
+
+}  // namespace
+}  // namespace crowdmap
