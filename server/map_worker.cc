@@ -197,7 +197,7 @@ void MapWorker::Apply(const ClaimedPassage& claimed, const Passage& passage) {
           std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - commit_start).count();
       if (committed.ok()) {
         map_.Apply(update->delta);
-        updater_->Applied(passage);
+        updater_->Applied(passage, update->delta);
         Yield();
         notifier_->Publish(map_.version());
         spdlog::info(

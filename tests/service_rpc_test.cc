@@ -247,7 +247,7 @@ TEST_F(ServiceRpc, ExcludePassageGivesTheMapWithoutIt) {
     absl::StatusOr<PassageUpdate> u = updater.Compute(p, reference);
     ASSERT_TRUE(u.ok()) << u.status();
     reference.Apply(u->delta);
-    updater.Applied(p);
+    updater.Applied(p, u->delta);
   }
   absl::StatusOr<PassageUpdate> exclusion =
       ComputePassageExclusion(excluded.vehicle_id, excluded.passage_id, MapUpdateOptions(), reference);

@@ -3,9 +3,11 @@
 #include <algorithm>
 #include <chrono>
 #include <cmath>
+#include <map>
 #include <filesystem>
 #include <fstream>
 
+#include <Eigen/Cholesky>
 #include <spdlog/spdlog.h>
 
 #include "absl/strings/str_cat.h"
@@ -51,10 +53,10 @@ absl::Status CityExperimentOptions::Validate() const {
 
 std::string CityExperimentResult::Brief() const {
   return absl::StrFormat(
-      "layout_landmarks=%d landmarks_mapped=%d passages=%d failed=%d mean_error_m=%.4f median_error_m=%.4f "
-      "p95_error_m=%.4f p50_ms=%.1f p95_ms=%.1f",
-      layout_landmarks, errors.size(), passages, failed_passages, mean_error_m, median_error_m, p95_error_m, p50_ms,
-      p95_ms);
+      "layout_landmarks=%d landmarks_mapped=%d passages=%d failed=%d relinearized=%d mean_error_m=%.4f "
+      "median_error_m=%.4f p95_error_m=%.4f nees_per_dof=%.3f p50_ms=%.1f p95_ms=%.1f",
+      layout_landmarks, errors.size(), passages, failed_passages, relinearized_passages, mean_error_m, median_error_m,
+      p95_error_m, nees_per_dof, p50_ms, p95_ms);
 }
 
 std::vector<CityLandmarkError> CityMapErrors(const MapState& map, const CityScenario& city) {
@@ -72,6 +74,8 @@ std::vector<CityLandmarkError> CityMapErrors(const MapState& map, const CityScen
     const Eigen::Matrix2d cov = j * lm.cov_en_m2 * j.transpose();
     e.sigma_east_m = std::sqrt(std::max(0.0, cov(0, 0)));
     e.sigma_north_m = std::sqrt(std::max(0.0, cov(1, 1)));
+    const Eigen::Vector2d error = e.estimate_m - e.truth_m;
+    e.mahalanobis2 = error.dot(cov.ldlt().solve(error));
     errors.push_back(e);
   });
   std::sort(errors.begin(), errors.end(), [](const auto& a, const auto& b) { return a.id < b.id; });
@@ -91,13 +95,21 @@ absl::StatusOr<CityExperimentResult> RunCityExperiment(const CityExperimentOptio
 
   MapState map;
   MapUpdater updater(options.update);
+  std::map<MapUpdater::PassageKey, int> index_of;
+  const auto passage_of = [&](const MapUpdater::PassageKey& key) -> absl::StatusOr<Passage> {
+    const auto it = index_of.find(key);
+    if (it == index_of.end()) return absl::NotFoundError("passage not applied");
+    return city->MakePassage(it->second);
+  };
   for (int i = 0; i < options.passages; ++i) {
     const Passage passage = city->MakePassage(i);
     const auto start = std::chrono::steady_clock::now();
     absl::StatusOr<PassageUpdate> update = updater.Compute(passage, map);
     if (update.ok()) {
       map.Apply(update->delta);
-      updater.Applied(passage);
+      updater.Applied(passage, update->delta);
+      index_of[{passage.vehicle_id, passage.passage_id}] = i;
+      result.relinearized_passages += RelinearizeStaleInMemory(passage_of, &updater, &map);
     } else {
       ++result.failed_passages;
       spdlog::warn("passage={} rejected: {}", passage.passage_id, update.status().ToString());
@@ -122,6 +134,7 @@ absl::StatusOr<CityExperimentResult> RunCityExperiment(const CityExperimentOptio
   result.mean_error_m = Mean(errors_m);
   result.median_error_m = Quantile(errors_m, 0.5);
   result.p95_error_m = Quantile(errors_m, 0.95);
+  for (const CityLandmarkError& e : result.errors) result.nees_per_dof += 0.5 * e.mahalanobis2 / result.errors.size();
   result.p50_ms = Quantile(result.passage_ms, 0.5);
   result.p95_ms = Quantile(result.passage_ms, 0.95);
   return result;
@@ -154,6 +167,9 @@ absl::Status WriteCityOutputs(const CityExperimentOptions& options, const CityEx
        << absl::StrFormat("  \"strategy\": \"%s\",\n", UpdateStrategyName(options.update.strategy))
        << absl::StrFormat("  \"passages\": %d,\n", result.passages)
        << absl::StrFormat("  \"passages_failed\": %d,\n", result.failed_passages)
+       << absl::StrFormat("  \"passages_relinearized\": %d,\n", result.relinearized_passages)
+       << absl::StrFormat("  \"relinearize_sigmas\": %g,\n", options.update.relinearize_sigmas)
+       << "  \"nees_per_dof\": " << JsonNumber(result.nees_per_dof) << ",\n"
        << absl::StrFormat("  \"landmarks_in_layout\": %d,\n", result.layout_landmarks)
        << absl::StrFormat("  \"landmarks_mapped\": %d,\n", result.errors.size())
        << "  \"layout_s\": " << JsonNumber(result.layout_s) << ",\n"

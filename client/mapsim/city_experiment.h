@@ -30,6 +30,7 @@ struct CityLandmarkError {
   Eigen::Vector2d estimate_m = Eigen::Vector2d::Zero();
   double sigma_east_m = 0.0;
   double sigma_north_m = 0.0;
+  double mahalanobis2 = 0.0;  // of the error, in the landmark's marginal covariance
   double error_m() const { return (estimate_m - truth_m).norm(); }
 };
 
@@ -49,11 +50,13 @@ struct CityExperimentResult {
   double layout_s = 0.0;  // time to build the layout
   int passages = 0;
   int failed_passages = 0;  // refused by the estimator (the map is unchanged by them)
+  int relinearized_passages = 0;  // re-linearisations applied (MapUpdateOptions::relinearize_sigmas)
   std::vector<double> passage_ms;         // wall time of each passage: simulation excluded
   std::vector<CityLandmarkError> errors;  // the final map's landmarks, by id
   double mean_error_m = 0.0;
   double median_error_m = 0.0;
   double p95_error_m = 0.0;
+  double nees_per_dof = 0.0;  // marginal NEES per degree of freedom, mean over the mapped landmarks
   double p50_ms = 0.0;
   double p95_ms = 0.0;
 

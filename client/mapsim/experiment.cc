@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <chrono>
+#include <map>
 #include <cmath>
 #include <filesystem>
 #include <fstream>
@@ -105,6 +106,12 @@ absl::StatusOr<ExperimentResult> RunExperiment(const ExperimentOptions& options,
   if (!triangulation) update.strategy = *ParseUpdateStrategy(options.strategy);
   TriangulationMapper triangulation_mapper;
   MapUpdater updater(update);
+  std::map<MapUpdater::PassageKey, int> index_of;
+  const auto passage_of = [&](const MapUpdater::PassageKey& key) -> absl::StatusOr<Passage> {
+    const auto it = index_of.find(key);
+    if (it == index_of.end()) return absl::NotFoundError("passage not applied");
+    return scenario->MakePassage(it->second);
+  };
 
   ExperimentResult result;
   std::vector<double> times;
@@ -123,7 +130,9 @@ absl::StatusOr<ExperimentResult> RunExperiment(const ExperimentOptions& options,
       absl::StatusOr<PassageUpdate> u = updater.Compute(passage, result.final_map);
       if (u.ok()) {
         result.final_map.Apply(u->delta);
-        updater.Applied(passage);
+        updater.Applied(passage, u->delta);
+        index_of[{passage.vehicle_id, passage.passage_id}] = options.order.empty() ? i : options.order[i];
+        result.relinearized_passages += RelinearizeStaleInMemory(passage_of, &updater, &result.final_map);
         record.subgraphs = u->summary.subgraphs;
         if (u->summary.max_variance_factor > 1.0) ++result.inflated_passages;
         if (u->summary.joint_rejected) ++result.joint_rejected_passages;
@@ -207,6 +216,8 @@ absl::Status WriteExperimentOutputs(const ExperimentOptions& options, const Expe
        << absl::StrFormat("  \"landmarks\": %d,\n", options.scenario.landmarks)
        << absl::StrFormat("  \"passages\": %d,\n", options.passages)
        << absl::StrFormat("  \"failed_passages\": %d,\n", result.failed_passages)
+       << absl::StrFormat("  \"relinearized_passages\": %d,\n", result.relinearized_passages)
+       << absl::StrFormat("  \"relinearize_sigmas\": %g,\n", options.update.relinearize_sigmas)
        << absl::StrFormat("  \"inflated_passages\": %d,\n", result.inflated_passages)
        << absl::StrFormat("  \"max_subgraph_dim\": %d,\n", options.update.max_subgraph_dim)
        << absl::StrFormat("  \"detections_per_landmark\": %d,\n", options.update.detections_per_landmark)

@@ -46,6 +46,7 @@ struct ExperimentResult {
   double nees_per_dof_sd_if_consistent = 0.0;
   double median_passage_ms = 0.0;
   int failed_passages = 0;          // passages the estimator rejected (the map is unchanged by them)
+  int relinearized_passages = 0;    // re-linearisations applied (MapUpdateOptions::relinearize_sigmas)
   int inflated_passages = 0;        // passages whose measurement covariances the consistency test inflated
   int joint_rejected_passages = 0;  // warm-up passages applied sequentially: the joint solve was not usable
 };

@@ -51,6 +51,10 @@ experiment flags:
   --max-subgraph-dim D        cc-gsd state-dimension bound per subgraph (default 500)
   --detections-per-landmark K last K >= 2 detections per landmark and passage, 0 = all (default 5)
   --window-hops H             re-estimate the map within H links of each graph (0 = whole map, exact)
+  --relinearize-sigmas X      after each passage, take again (at today's estimate) the retained
+                              passage whose landmarks moved furthest since its factors were
+                              taken, if more than X of their current sigmas (default 0 = off)
+  --relinearizations-per-passage K  at most K such re-linearisations per passage (default 1)
   --warmup-passages B         the map's first B passages are solved jointly, re-solved with
                               each one (default 8; 0 = off)
   --relinearize-until-passages R  after the warm-up, re-solve all the map's passages jointly each
@@ -89,8 +93,8 @@ city flags:
   --steering-noise-scale X, --speed-noise-scale X, --gnss-noise-scale X, --pixel-noise-scale X
                               as for experiment
   --strategy S                cc | dc | cc-gsd (default cc-gsd)
-  --window-hops H, --warmup-passages B, --relinearize-until-passages R
-                              as for experiment
+  --window-hops H, --warmup-passages B, --relinearize-until-passages R, --relinearize-sigmas X,
+  --relinearizations-per-passage K  as for experiment
   --progress-every P          progress line on stderr every P passages (default 10)
   --out DIR                   output folder (default out/city): summary.json, landmarks.csv
   --export-passages DIR2      also write passages 0..P-1 as files for `mapctl upload`
@@ -178,12 +182,25 @@ absl::Status ScaleNoise(const Flags& flags, ScenarioOptions* scenario) {
   return ScaleNoise(flags, &scenario->noise_model, &scenario->gnss_sigma_m);
 }
 
+// --relinearize-sigmas and --relinearizations-per-passage (experiment and city).
+absl::Status ParseLocalRelinearization(const Flags& flags, MapUpdateOptions* update) {
+  absl::StatusOr<double> sigmas = flags.GetDouble("relinearize-sigmas", update->relinearize_sigmas);
+  if (!sigmas.ok()) return sigmas.status();
+  absl::StatusOr<long long> per_passage =
+      flags.GetInt("relinearizations-per-passage", update->relinearizations_per_passage);
+  if (!per_passage.ok()) return per_passage.status();
+  update->relinearize_sigmas = *sigmas;
+  update->relinearizations_per_passage = static_cast<int>(*per_passage);
+  return absl::OkStatus();
+}
+
 absl::Status RunExperimentCommand(const std::vector<std::string>& args) {
   absl::StatusOr<Flags> flags = Flags::Parse(args, {{"landmarks", true}, {"passages", true}, {"strategy", true},
                                                     {"noise", true}, {"seed", true}, {"out", true},
                                                     {"max-subgraph-dim", true}, {"detections-per-landmark", true},
                                                     {"window-hops", true}, {"warmup-passages", true},
                                                     {"relinearize-until-passages", true}, {"max-chi2-per-dof", true},
+                                                    {"relinearize-sigmas", true}, {"relinearizations-per-passage", true},
                                                     {"inflation-test-sigmas", true}, {"edge-margin-sigmas", true},
                                                     {"shuffle-window", true}, {"shuffle-from", true}, {"shuffle-seed", true},
                                                     {"order-file", true}, {"steering-noise-scale", true},
@@ -227,6 +244,7 @@ absl::Status RunExperimentCommand(const std::vector<std::string>& args) {
   options.update.inflation_test_sigmas = *inflation;
   options.update.edge_margin_sigmas = *edge_margin;
   options.update.bias_correction = !flags->Has("no-bias-correction");
+  if (absl::Status s = ParseLocalRelinearization(*flags, &options.update); !s.ok()) return s;
   if (*shuffle_window < 0) return absl::InvalidArgumentError("shuffle-window: must be >= 0");
   if (*shuffle_from < 0) return absl::InvalidArgumentError("shuffle-from: must be >= 0");
   if (flags->Has("order-file")) {
@@ -271,6 +289,7 @@ absl::Status RunCityCommand(const std::vector<std::string>& args) {
              {"vehicle-yaw-bias-sigma-rad", true}, {"rate-variation", true}, {"no-occlusion", false},
              {"strategy", true}, {"window-hops", true}, {"warmup-passages", true},
              {"relinearize-until-passages", true}, {"progress-every", true}, {"out", true},
+             {"relinearize-sigmas", true}, {"relinearizations-per-passage", true},
              {"export-passages", true}, {"export-format", true}, {"steering-noise-scale", true},
              {"speed-noise-scale", true}, {"gnss-noise-scale", true}, {"pixel-noise-scale", true}, {"quiet", false}});
   if (!flags.ok()) return flags.status();
@@ -316,6 +335,7 @@ absl::Status RunCityCommand(const std::vector<std::string>& args) {
   options.progress_every_passages = static_cast<int>(*every);
   options.update.strategy = *strategy;
   options.update.window_hops = static_cast<int>(*window_hops);
+  if (absl::Status s = ParseLocalRelinearization(*flags, &options.update); !s.ok()) return s;
   options.update.warmup_passages = static_cast<int>(*warmup);
   options.update.relinearize_until_passages = static_cast<int>(*relinearize);
   if (absl::Status s = options.Validate(); !s.ok()) return s;

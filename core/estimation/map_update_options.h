@@ -103,6 +103,14 @@ struct MapUpdateOptions {
   // runs); a joint solve caught in a wrong minimum by far more. Under coloured GNSS noise, which
   // the estimator does not model, they often differ by more, and the sequential update is used.
   double max_joint_mahalanobis2 = 36.0;
+  // Local re-linearisation (MapUpdater::RelinearizeStale): after each passage, the retained
+  // passage whose landmarks have moved furthest since its factors were taken, measured in their
+  // current standard deviations, is taken again at today's estimate (ComputePassageRelinearization)
+  // when that move exceeds this many sigmas; up to relinearizations_per_passage of them. Unlike the
+  // warm-up and re-solves, which count the whole map's passages, this follows each street: one
+  // mapped for the first time on day 300 gets the same treatment as the first. 0 = off.
+  double relinearize_sigmas = 0.0;
+  int relinearizations_per_passage = 1;
   // Called between the steps of an update (after every solver iteration and every stage of a
   // subgraph's update: at most a few milliseconds apart, mostly well under one), on the thread
   // computing it. A service gives its request threads the CPU there (see server/map_worker.cc).

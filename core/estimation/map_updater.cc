@@ -18,6 +18,7 @@
 #include "core/estimation/graph_builder.h"
 #include "core/estimation/graph_linearization.h"
 #include "core/estimation/landmark_update.h"
+#include "core/estimation/passage_exclusion.h"
 #include "core/estimation/subdivision.h"
 #include "core/estimation/subgraph_steps.h"
 
@@ -235,6 +236,13 @@ absl::Status MapUpdateOptions::Validate() const {
   if (!(edge_margin_sigmas >= 0.0)) {
     return absl::InvalidArgumentError(absl::StrCat("edge_margin_sigmas: must be >= 0 (0 = off), got ", edge_margin_sigmas));
   }
+  if (!(relinearize_sigmas >= 0.0)) {
+    return absl::InvalidArgumentError(absl::StrCat("relinearize_sigmas: must be >= 0 (0 = off), got ", relinearize_sigmas));
+  }
+  if (relinearizations_per_passage < 0) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("relinearizations_per_passage: must be >= 0, got ", relinearizations_per_passage));
+  }
   if (!(max_joint_mahalanobis2 > 0.0)) {
     return absl::InvalidArgumentError(
         absl::StrCat("max_joint_mahalanobis2: must be > 0, got ", max_joint_mahalanobis2));
@@ -262,10 +270,11 @@ std::string PassageUpdateSummary::Brief() const {
       max_bias_correction_m, total_ms, map_version, joint_passages, joint_rejected ? 1 : 0);
 }
 
-absl::StatusOr<PassageUpdate> ComputePassageUpdate(const Passage& passage, const MapUpdateOptions& options,
-                                                   const MapReaderInterface& map) {
-  if (absl::Status s = options.Validate(); !s.ok()) return s;
-  const auto start = std::chrono::steady_clock::now();
+namespace {
+
+// ComputePassageUpdate's work, written into `overlay`; fills `summary` but its total time.
+absl::Status ApplyPassage(const Passage& passage, const MapUpdateOptions& options, MapOverlay* overlay,
+                          PassageUpdateSummary* summary) {
   GraphOptions graph_options;
   graph_options.detections_per_landmark = options.detections_per_landmark;
   graph_options.refine_initial_poses = false;  // done per subgraph, with the map
@@ -273,46 +282,76 @@ absl::StatusOr<PassageUpdate> ComputePassageUpdate(const Passage& passage, const
   if (!graph.ok()) return graph.status();
   Yield(options);
 
-  PassageUpdateSummary summary;
-  summary.nodes = graph->node_count();
-  summary.detections_dropped = graph->detections_dropped;
+  summary->nodes = graph->node_count();
+  summary->detections_dropped = graph->detections_dropped;
   const int max_dim = options.strategy == UpdateStrategy::kCorrelatedSubdivided ? options.max_subgraph_dim : 0;
   const std::vector<NodeRange> ranges = SubdivideGraph(*graph, max_dim);
-  summary.subgraphs = static_cast<int>(ranges.size());
+  summary->subgraphs = static_cast<int>(ranges.size());
 
-  MapOverlay overlay(map);
   PassageProgress progress;
   for (const NodeRange& range : ranges) {
-    // Each round sets aside at least one more new landmark, so this ends.
+    // Each round sets aside at least one more landmark, so this ends.
     for (;;) {
-      PassageUpdateSummary attempt = summary;
-      absl::StatusOr<std::vector<LandmarkId>> weak =
-          UpdateFromSubgraph(passage, *graph, range, options, &overlay, &progress, &attempt);
-      if (!weak.ok()) {
-        return absl::Status(weak.status().code(), absl::StrCat("passage ", passage.passage_id, " nodes ", range.first,
-                                                               "-", range.last, ": ", weak.status().message()));
+      PassageUpdateSummary attempt = *summary;
+      absl::StatusOr<std::vector<LandmarkId>> unfit =
+          UpdateFromSubgraph(passage, *graph, range, options, overlay, &progress, &attempt);
+      if (!unfit.ok()) {
+        return absl::Status(unfit.status().code(), absl::StrCat("passage ", passage.passage_id, " nodes ", range.first,
+                                                                "-", range.last, ": ", unfit.status().message()));
       }
-      if (weak->empty()) {
-        summary = attempt;
+      if (unfit->empty()) {
+        *summary = attempt;
         break;
       }
-      summary.solver_iterations = attempt.solver_iterations;
-      summary.solve_ms = attempt.solve_ms;
-      summary.landmarks_held_back = attempt.landmarks_held_back;
-      summary.landmarks_disagreeing = attempt.landmarks_disagreeing;
-      progress.held_back.insert(weak->begin(), weak->end());
+      summary->solver_iterations = attempt.solver_iterations;
+      summary->solve_ms = attempt.solve_ms;
+      summary->landmarks_held_back = attempt.landmarks_held_back;
+      summary->landmarks_disagreeing = attempt.landmarks_disagreeing;
+      progress.held_back.insert(unfit->begin(), unfit->end());
     }
   }
   if (progress.counted.empty()) {
     return absl::InvalidArgumentError("detections: no landmark of the passage could be estimated");
   }
-  summary.landmarks_updated = static_cast<int>(progress.updated.size());
-  summary.landmarks_created = static_cast<int>(progress.created.size());
-  summary.map_version = overlay.version();
-  summary.total_ms = MillisecondsSince(start);
-  MapDelta delta = overlay.TakeDelta();
+  summary->landmarks_updated = static_cast<int>(progress.updated.size());
+  summary->landmarks_created = static_cast<int>(progress.created.size());
+  summary->map_version = overlay->version();
+  return absl::OkStatus();
+}
+
+// The delta in `overlay`, once it keeps the map's invariants.
+absl::StatusOr<PassageUpdate> TakeUpdate(MapOverlay* overlay, PassageUpdateSummary summary,
+                                         std::chrono::steady_clock::time_point start) {
+  MapDelta delta = overlay->TakeDelta();
   if (absl::Status s = CheckDeltaInvariants(delta); !s.ok()) return s;
+  summary.total_ms = MillisecondsSince(start);
   return PassageUpdate{std::move(delta), summary};
+}
+
+}  // namespace
+
+absl::StatusOr<PassageUpdate> ComputePassageUpdate(const Passage& passage, const MapUpdateOptions& options,
+                                                   const MapReaderInterface& map) {
+  if (absl::Status s = options.Validate(); !s.ok()) return s;
+  const auto start = std::chrono::steady_clock::now();
+  MapOverlay overlay(map);
+  PassageUpdateSummary summary;
+  if (absl::Status s = ApplyPassage(passage, options, &overlay, &summary); !s.ok()) return s;
+  return TakeUpdate(&overlay, summary, start);
+}
+
+absl::StatusOr<PassageUpdate> ComputePassageRelinearization(const Passage& passage, const MapUpdateOptions& options,
+                                                            const MapReaderInterface& map) {
+  if (absl::Status s = options.Validate(); !s.ok()) return s;
+  const auto start = std::chrono::steady_clock::now();
+  MapOverlay overlay(map);
+  PassageUpdateSummary exclusion;
+  if (absl::Status s = ExcludePassage(passage.vehicle_id, passage.passage_id, options, &overlay, &exclusion); !s.ok()) {
+    return s;
+  }
+  PassageUpdateSummary summary;
+  if (absl::Status s = ApplyPassage(passage, options, &overlay, &summary); !s.ok()) return s;
+  return TakeUpdate(&overlay, summary, start);
 }
 
 namespace {
@@ -379,6 +418,7 @@ absl::StatusOr<PassageUpdate> MapUpdater::Compute(const Passage& passage, const 
 
 void MapUpdater::Excluded(const std::string& vehicle_id, const std::string& passage_id) {
   const PassageKey key{vehicle_id, passage_id};
+  linearized_at_.erase(key);
   retained_.erase(std::remove(retained_.begin(), retained_.end(), key), retained_.end());
   const auto it = std::find_if(kept_.begin(), kept_.end(), [&](const Passage& p) {
     return p.vehicle_id == vehicle_id && p.passage_id == passage_id;
@@ -387,13 +427,83 @@ void MapUpdater::Excluded(const std::string& vehicle_id, const std::string& pass
   applied_count_ = std::max<int64_t>(0, applied_count_ - 1);
 }
 
-void MapUpdater::Applied(const Passage& passage) {
-  retained_.erase(retained_.begin(), retained_.begin() + Leaving());
+void MapUpdater::Applied(const Passage& passage, const MapDelta& delta) {
+  const size_t leaving = Leaving();
+  for (size_t i = 0; i < leaving; ++i) linearized_at_.erase(retained_[i]);
+  retained_.erase(retained_.begin(), retained_.begin() + leaving);
+  RecordLinearization(delta);
   const PassageKey key{passage.vehicle_id, passage.passage_id};
   if (std::find(retained_.begin(), retained_.end(), key) == retained_.end()) retained_.push_back(key);
   const int64_t kept = static_cast<int64_t>(kept_.size());
   if (kept == applied_count_ && kept < JointSolvePassages(options_)) kept_.push_back(passage);
   ++applied_count_;
+}
+
+void MapUpdater::RecordLinearization(const MapDelta& delta) {
+  std::map<PassageKey, std::vector<std::pair<LandmarkId, LatLon>>> taken;
+  for (const auto& [id, factor] : delta.added_factors) {
+    auto& landmarks = taken[{factor.vehicle_id, factor.passage_id}];
+    for (LandmarkId l : factor.landmarks) {
+      const auto it = delta.landmarks.find(l);
+      if (it != delta.landmarks.end()) landmarks.emplace_back(l, it->second.position);
+    }
+  }
+  for (auto& [key, landmarks] : taken) linearized_at_[key] = std::move(landmarks);
+}
+
+std::optional<MapUpdater::PassageKey> MapUpdater::StalestPassage(const MapReaderInterface& map) const {
+  if (options_.relinearize_sigmas <= 0.0) return std::nullopt;
+  std::optional<PassageKey> stalest;
+  double largest = options_.relinearize_sigmas * options_.relinearize_sigmas;
+  for (const auto& [key, landmarks] : linearized_at_) {
+    for (const auto& [id, then] : landmarks) {
+      const Landmark* now = map.FindLandmark(id);
+      if (now == nullptr) continue;
+      const Eigen::Vector2d moved = EastNorthOffset(then, now->position);
+      const double mahalanobis2 = moved.dot(now->cov_en_m2.ldlt().solve(moved));
+      if (mahalanobis2 > largest) {
+        largest = mahalanobis2;
+        stalest = key;
+      }
+    }
+  }
+  return stalest;
+}
+
+int MapUpdater::RelinearizeStale(const MapReaderInterface& map,
+                                 const std::function<absl::StatusOr<Passage>(const PassageKey&)>& passage_of,
+                                 const std::function<absl::Status(const PassageKey&, const PassageUpdate&)>& apply,
+                                 const std::function<void(const PassageKey&, const absl::Status&)>& on_error) {
+  int applied = 0;
+  for (int round = 0; round < options_.relinearizations_per_passage; ++round) {
+    const std::optional<PassageKey> key = StalestPassage(map);
+    if (!key) break;
+    absl::StatusOr<Passage> passage = passage_of(*key);
+    absl::StatusOr<PassageUpdate> update =
+        passage.ok() ? ComputePassageRelinearization(*passage, options_, map) : passage.status();
+    absl::Status status = update.ok() ? apply(*key, *update) : update.status();
+    if (!status.ok()) {
+      linearized_at_.erase(*key);  // not tried again until it is applied anew
+      if (on_error) on_error(*key, status);
+      continue;
+    }
+    RecordLinearization(update->delta);
+    ++applied;
+  }
+  return applied;
+}
+
+int RelinearizeStaleInMemory(const std::function<absl::StatusOr<Passage>(const MapUpdater::PassageKey&)>& passage_of,
+                             MapUpdater* updater, MapState* map) {
+  return updater->RelinearizeStale(
+      *map, passage_of,
+      [map](const MapUpdater::PassageKey&, const PassageUpdate& update) {
+        map->Apply(update.delta);
+        return absl::OkStatus();
+      },
+      [](const MapUpdater::PassageKey& key, const absl::Status& status) {
+        spdlog::warn("passage={} vehicle={} relinearization failed: {}", key.second, key.first, status.ToString());
+      });
 }
 
 }  // namespace crowdmap

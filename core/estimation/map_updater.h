@@ -3,6 +3,8 @@
 
 #include <deque>
 #include <functional>
+#include <map>
+#include <optional>
 #include <string>
 #include <string_view>
 #include <utility>
@@ -57,6 +59,14 @@ struct PassageUpdate {
 absl::StatusOr<PassageUpdate> ComputePassageUpdate(const Passage& passage, const MapUpdateOptions& options,
                                                    const MapReaderInterface& map);
 
+// Takes the passage's contribution to `map` again at the map's current estimate: its factors are
+// removed (ComputePassageExclusion) and it is applied anew (ComputePassageUpdate) against the map
+// without it, in one change. Every factor is a Gaussian taken at the estimate of its day; when the
+// map has since moved by a sizeable part of its uncertainty (a young street), taking it again at
+// today's removes what the old linearisation point left in the map. Errors as for the two steps.
+absl::StatusOr<PassageUpdate> ComputePassageRelinearization(const Passage& passage, const MapUpdateOptions& options,
+                                                            const MapReaderInterface& map);
+
 // Solves `passages` jointly, from no map: one factor graph of all their poses and the landmarks
 // they saw (no subdivision, no map prior), with the same consistency test per passage, bias
 // correction and covariance recovery as the sequential update. Meant for a map that holds only
@@ -102,14 +112,30 @@ class MapUpdater {
   // The map change `passage` brings to `map` (see ComputePassageUpdate for the errors), with the
   // folding of the passages that leave the retention (MapUpdateOptions::retain_passages).
   absl::StatusOr<PassageUpdate> Compute(const Passage& passage, const MapReaderInterface& map) const;
+  using PassageKey = std::pair<std::string, std::string>;  // vehicle_id, passage_id
+
   // Records that the delta Compute returned for `passage` was applied to the map.
-  void Applied(const Passage& passage);
+  void Applied(const Passage& passage, const MapDelta& delta);
+  // The retained passage whose factors were taken furthest from the map's current estimate: the
+  // largest move of one of its landmarks since, in that landmark's current standard deviations
+  // (Mahalanobis distance). None when no passage's move exceeds options.relinearize_sigmas (or it
+  // is 0). Passages applied before this updater was made count as taken at the estimate it found.
+  std::optional<PassageKey> StalestPassage(const MapReaderInterface& map) const;
+  // Re-linearises up to options.relinearizations_per_passage of the stalest passages, one at a
+  // time: `passage_of` returns a retained passage's data, `apply` commits a change to the map the
+  // updater reads (and fails if it could not). Returns how many were applied; a passage whose
+  // re-linearisation fails is skipped (reported through `on_error`), never retried in a loop.
+  int RelinearizeStale(const MapReaderInterface& map,
+                       const std::function<absl::StatusOr<Passage>(const PassageKey&)>& passage_of,
+                       const std::function<absl::Status(const PassageKey&, const PassageUpdate&)>& apply,
+                       const std::function<void(const PassageKey&, const absl::Status&)>& on_error);
   // Records that an applied passage was taken out of the map (ComputePassageExclusion): later
   // joint solves leave it out.
   void Excluded(const std::string& vehicle_id, const std::string& passage_id);
 
  private:
-  using PassageKey = std::pair<std::string, std::string>;  // vehicle_id, passage_id
+  // Records where the factors of each passage in `delta` were taken: its landmarks' positions.
+  void RecordLinearization(const MapDelta& delta);
   // How many of the oldest retained passages one more passage pushes out of the retention.
   size_t Leaving() const;
 
@@ -117,7 +143,14 @@ class MapUpdater {
   std::vector<Passage> kept_;  // the map's first passages, as many as its joint solves need
   int64_t applied_count_ = 0;
   std::deque<PassageKey> retained_;  // passages whose factors are kept, oldest first
+  // For retained passages: their landmarks and where they were when the factors were taken.
+  std::map<PassageKey, std::vector<std::pair<LandmarkId, LatLon>>> linearized_at_;
 };
+
+// MapUpdater::RelinearizeStale for a map held in memory (experiments and tests): changes are
+// applied to `map` directly; failures are logged.
+int RelinearizeStaleInMemory(const std::function<absl::StatusOr<Passage>(const MapUpdater::PassageKey&)>& passage_of,
+                             MapUpdater* updater, MapState* map);
 
 }  // namespace crowdmap
 

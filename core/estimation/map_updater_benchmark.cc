@@ -23,7 +23,7 @@ void BM_ApplyPassage(benchmark::State& state) {
     absl::StatusOr<PassageUpdate> u = updater.Compute(passage, map);
     if (!u.ok()) continue;
     map.Apply(u->delta);
-    updater.Applied(passage);
+    updater.Applied(passage, u->delta);
   }
   std::vector<Passage> passages;
   for (int i = 0; i < 20; ++i) passages.push_back(scenario.MakePassage(kMaturePassages + i));

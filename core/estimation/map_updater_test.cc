@@ -185,9 +185,9 @@ TEST(MapUpdater, FoldsTheFactorsOfPassagesBeyondTheRetentionWithoutChangingTheMa
     EXPECT_TRUE(a->delta.folded_factors.empty());
     EXPECT_EQ(b->delta.folded_factors.empty(), p < 2) << p;
     kept_map.Apply(a->delta);
-    keeping.Applied(passage);
+    keeping.Applied(passage, a->delta);
     folded_map.Apply(b->delta);
-    folding.Applied(passage);
+    folding.Applied(passage, b->delta);
   }
   // Only the last two passages keep their factors; the estimate is the same to the last bit.
   std::vector<int64_t> ids;
@@ -241,7 +241,7 @@ MapState ApplyInOrder(const Scenario& scenario, const std::vector<int>& order, c
     EXPECT_TRUE(update.ok()) << update.status();
     if (!update.ok()) continue;
     map.Apply(update->delta);
-    updater.Applied(passage);
+    updater.Applied(passage, update->delta);
     if (summaries != nullptr) summaries->push_back(update->summary);
   }
   return map;
@@ -449,8 +449,9 @@ TEST(MapUpdater, RestoredFromTheAppliedPassagesItContinuesExactlyAsBefore) {
   std::vector<Passage> applied;
   for (int i = 0; i < 3; ++i) {
     applied.push_back(scenario.MakePassage(i));
-    map.Apply(original.Compute(applied.back(), map)->delta);
-    original.Applied(applied.back());
+    const MapDelta delta = original.Compute(applied.back(), map)->delta;
+    map.Apply(delta);
+    original.Applied(applied.back(), delta);
   }
   const MapUpdater restored(options, applied, 3);
   EXPECT_FALSE(restored.warming_up());
@@ -576,7 +577,7 @@ MapState LoopMapWithMislabelledPassage(int passages, int bad, LandmarkId from, L
     EXPECT_TRUE(update.ok()) << i << ": " << update.status();
     if (!update.ok()) continue;
     map.Apply(update->delta);
-    updater.Applied(passage);
+    updater.Applied(passage, update->delta);
   }
   return map;
 }
@@ -593,6 +594,67 @@ TEST(MapUpdater, AMislabelledPassageDoesNotMoveTheLandmarkItNamesWrongly) {
     // Measured: 0.18, 0.32 and 0.28 sigma (the solve's consistency test down-weights the passage).
     EXPECT_LT(sigmas, 3.0) << "mislabelled passage " << bad << ": " << difference.norm() << " m";
   }
+}
+
+}  // namespace
+}  // namespace crowdmap
+
+namespace crowdmap {
+namespace {
+
+TEST(ComputePassageRelinearization, TakenAtTheEstimateItWasTakenAtItChangesTheMapOnlyBySolverTolerance) {
+  const Scenario scenario = MakeScenario(25);
+  MapUpdateOptions options;
+  options.warmup_passages = 0;
+  options.relinearize_until_passages = 0;
+  MapState map;
+  for (int i = 0; i < 4; ++i) map.Apply(ComputePassageUpdate(scenario.MakePassage(i), options, map)->delta);
+  const Passage last = scenario.MakePassage(3);
+  absl::StatusOr<PassageUpdate> again = ComputePassageRelinearization(last, options, map);
+  ASSERT_TRUE(again.ok()) << again.status();
+  MapState relinearized = map;
+  relinearized.Apply(again->delta);
+  EXPECT_EQ(relinearized.landmark_count(), map.landmark_count());
+  double largest_m = 0.0;
+  map.ForEachLandmark([&](const Landmark& l) {
+    largest_m = std::max(largest_m, EastNorthOffset(l.position, relinearized.FindLandmark(l.id)->position).norm());
+  });
+  EXPECT_LT(largest_m, 1e-8);  // measured: 9e-11 m
+  std::vector<int64_t> factors;
+  relinearized.AppendPassageFactorIds(last.vehicle_id, last.passage_id, &factors);
+  EXPECT_FALSE(factors.empty());
+  for (int64_t id : factors) EXPECT_GT(id, map.last_factor_id()) << "the passage's factors are new ones";
+}
+
+TEST(MapUpdater, RelinearizesTheStalestPassageOnceTheMapHasMovedAwayFromIt) {
+  const Scenario scenario = MakeScenario(10);
+  MapUpdateOptions options;
+  options.warmup_passages = 0;
+  options.relinearize_until_passages = 0;
+  options.relinearize_sigmas = 0.5;
+  MapUpdater updater(options);
+  MapState map;
+  std::vector<Passage> applied;
+  int relinearized = 0;
+  const auto passage_of = [&](const MapUpdater::PassageKey& key) -> absl::StatusOr<Passage> {
+    for (const Passage& p : applied) {
+      if (p.vehicle_id == key.first && p.passage_id == key.second) return p;
+    }
+    return absl::NotFoundError("not applied");
+  };
+  for (int i = 0; i < 4; ++i) {
+    applied.push_back(scenario.MakePassage(i));
+    absl::StatusOr<PassageUpdate> update = updater.Compute(applied.back(), map);
+    ASSERT_TRUE(update.ok()) << update.status();
+    map.Apply(update->delta);
+    updater.Applied(applied.back(), update->delta);
+    if (i == 0) EXPECT_FALSE(updater.StalestPassage(map).has_value()) << "nothing moved since the first passage";
+    relinearized += RelinearizeStaleInMemory(passage_of, &updater, &map);
+  }
+  // The first passages' landmarks move by about a sigma with each of the next ones.
+  EXPECT_GT(relinearized, 0);
+  options.relinearize_sigmas = 0.0;
+  EXPECT_FALSE(MapUpdater(options).StalestPassage(map).has_value());
 }
 
 }  // namespace

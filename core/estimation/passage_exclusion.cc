@@ -2,18 +2,20 @@
 
 #include <algorithm>
 #include <chrono>
+#include <cmath>
 #include <set>
 
+#include <Eigen/Eigenvalues>
+
 #include "absl/strings/str_cat.h"
+#include "absl/strings/str_format.h"
 #include "core/estimation/landmark_update.h"
 
 namespace crowdmap {
 
-absl::StatusOr<PassageUpdate> ComputePassageExclusion(const std::string& vehicle_id, const std::string& passage_id,
-                                                      const MapUpdateOptions& options, const MapReaderInterface& map) {
-  if (absl::Status s = options.Validate(); !s.ok()) return s;
-  const auto start = std::chrono::steady_clock::now();
-  MapOverlay overlay(map);
+absl::Status ExcludePassage(const std::string& vehicle_id, const std::string& passage_id,
+                            const MapUpdateOptions& options, MapOverlay* map, PassageUpdateSummary* summary) {
+  MapOverlay& overlay = *map;
   std::vector<int64_t> factor_ids;
   overlay.AppendPassageFactorIds(vehicle_id, passage_id, &factor_ids);
   if (factor_ids.empty()) {
@@ -27,14 +29,26 @@ absl::StatusOr<PassageUpdate> ComputePassageExclusion(const std::string& vehicle
   }
   for (int64_t id : factor_ids) overlay.RemoveFactor(id);
 
-  PassageUpdate out;
   std::vector<LandmarkId> seeds;
+  const double min_information = 1.0 / (options.max_new_landmark_ray_sigma_m * options.max_new_landmark_ray_sigma_m);
   for (LandmarkId id : touched) {
-    if (overlay.Information(id, id).factors == 0) {  // no factor, folded or kept, left on it
+    const InformationBlock own = overlay.Information(id, id);
+    if (own.factors == 0) {  // no factor, folded or kept, left on it
       overlay.RemoveLandmark(id);
-    } else {
-      seeds.push_back(id);
+      continue;
     }
+    // What is left must still fix the landmark as well as a new one has to be (even with every
+    // other landmark known: this is its conditional information); a ray or two from other
+    // passages would leave it free along them.
+    const double weakest = Eigen::SelfAdjointEigenSolver<Eigen::Matrix2d>(own.value).eigenvalues()(0);
+    if (!(weakest >= min_information)) {
+      return absl::FailedPreconditionError(absl::StrFormat(
+          "landmark %d would be left undetermined without passage %s/%s (sigma %.3g m along its weakest "
+          "direction, over %.3g m allowed)",
+          id, vehicle_id, passage_id, weakest > 0.0 ? 1.0 / std::sqrt(weakest) : INFINITY,
+          options.max_new_landmark_ray_sigma_m));
+    }
+    seeds.push_back(id);
   }
   const int64_t version = overlay.BumpVersion();
   MapWindowOptions window;
@@ -45,11 +59,21 @@ absl::StatusOr<PassageUpdate> ComputePassageExclusion(const std::string& vehicle
     refresh.others = true;  // information was removed: every marginal in the window grows
     absl::StatusOr<int> conditioned = ResolveAround(seeds, refresh, window, version, touch, &overlay);
     if (!conditioned.ok()) return conditioned.status();
-    out.summary.landmarks_conditioned = *conditioned;
+    summary->landmarks_conditioned += *conditioned;
   }
-  out.summary.landmarks_updated = static_cast<int>(seeds.size());
-  out.summary.landmarks_removed = static_cast<int>(touched.size() - seeds.size());
-  out.summary.map_version = version;
+  summary->landmarks_updated += static_cast<int>(seeds.size());
+  summary->landmarks_removed += static_cast<int>(touched.size() - seeds.size());
+  summary->map_version = version;
+  return absl::OkStatus();
+}
+
+absl::StatusOr<PassageUpdate> ComputePassageExclusion(const std::string& vehicle_id, const std::string& passage_id,
+                                                      const MapUpdateOptions& options, const MapReaderInterface& map) {
+  if (absl::Status s = options.Validate(); !s.ok()) return s;
+  const auto start = std::chrono::steady_clock::now();
+  MapOverlay overlay(map);
+  PassageUpdate out;
+  if (absl::Status s = ExcludePassage(vehicle_id, passage_id, options, &overlay, &out.summary); !s.ok()) return s;
   out.delta = overlay.TakeDelta();
   if (absl::Status s = CheckDeltaInvariants(out.delta); !s.ok()) return s;
   out.summary.total_ms =

@@ -19,6 +19,10 @@ namespace crowdmap {
 absl::StatusOr<PassageUpdate> ComputePassageExclusion(const std::string& vehicle_id, const std::string& passage_id,
                                                       const MapUpdateOptions& options, const MapReaderInterface& map);
 
+// The same, written into `map` (counts added to `summary`).
+absl::Status ExcludePassage(const std::string& vehicle_id, const std::string& passage_id,
+                            const MapUpdateOptions& options, MapOverlay* map, PassageUpdateSummary* summary);
+
 }  // namespace crowdmap
 
 #endif  // CROWDMAP_CORE_ESTIMATION_PASSAGE_EXCLUSION_H_

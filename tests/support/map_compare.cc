@@ -49,7 +49,7 @@ MapState MapFromPassages(const Scenario& scenario, int passages, const MapUpdate
     EXPECT_TRUE(update.ok()) << update.status();
     if (!update.ok()) continue;
     map.Apply(update->delta);
-    updater.Applied(passage);
+    updater.Applied(passage, update->delta);
   }
   return map;
 }
