@@ -95,6 +95,15 @@ city flags:
   --strategy S                cc | dc | cc-gsd (default cc-gsd)
   --window-hops H, --warmup-passages B, --relinearize-until-passages R, --relinearize-sigmas X,
   --relinearizations-per-passage K  as for experiment
+  --mislabel-rate X           faults: each detection reported under a neighbouring landmark's id
+                              with probability X (default 0)
+  --multipath-rate X          faults: a passage has a GNSS multipath burst (20-60 s of fixes 30-80 m
+                              off, declared as usual) with probability X
+  --overconfident-rate X      faults: a passage declares GNSS sigmas 5 times too small
+  --bad-calibration-rate X    faults: a passage declares a camera yaw 3 degrees off and a wheelbase
+                              15% off
+  --fault-seed S              draws of the faults (default 1); summary.json counts the faulty
+                              passages and splits the refused ones into faulty and clean
   --progress-every P          progress line on stderr every P passages (default 10)
   --out DIR                   output folder (default out/city): summary.json, landmarks.csv
   --export-passages DIR2      also write passages 0..P-1 as files for `mapctl upload`
@@ -194,6 +203,25 @@ absl::Status ParseLocalRelinearization(const Flags& flags, MapUpdateOptions* upd
   return absl::OkStatus();
 }
 
+// --mislabel-rate, --multipath-rate, --overconfident-rate, --bad-calibration-rate, --fault-seed.
+absl::Status ParseFaults(const Flags& flags, FaultOptions* faults) {
+  absl::StatusOr<double> mislabel = flags.GetDouble("mislabel-rate", faults->mislabel_rate),
+                         multipath = flags.GetDouble("multipath-rate", faults->multipath_rate),
+                         overconfident = flags.GetDouble("overconfident-rate", faults->overconfident_rate),
+                         bad_calibration = flags.GetDouble("bad-calibration-rate", faults->bad_calibration_rate);
+  absl::StatusOr<long long> seed = flags.GetInt("fault-seed", static_cast<long long>(faults->seed));
+  for (const absl::Status& s :
+       {mislabel.status(), multipath.status(), overconfident.status(), bad_calibration.status(), seed.status()}) {
+    if (!s.ok()) return s;
+  }
+  faults->mislabel_rate = *mislabel;
+  faults->multipath_rate = *multipath;
+  faults->overconfident_rate = *overconfident;
+  faults->bad_calibration_rate = *bad_calibration;
+  faults->seed = static_cast<uint64_t>(*seed);
+  return faults->Validate();
+}
+
 absl::Status RunExperimentCommand(const std::vector<std::string>& args) {
   absl::StatusOr<Flags> flags = Flags::Parse(args, {{"landmarks", true}, {"passages", true}, {"strategy", true},
                                                     {"noise", true}, {"seed", true}, {"out", true},
@@ -290,6 +318,8 @@ absl::Status RunCityCommand(const std::vector<std::string>& args) {
              {"strategy", true}, {"window-hops", true}, {"warmup-passages", true},
              {"relinearize-until-passages", true}, {"progress-every", true}, {"out", true},
              {"relinearize-sigmas", true}, {"relinearizations-per-passage", true},
+             {"mislabel-rate", true}, {"multipath-rate", true}, {"overconfident-rate", true},
+             {"bad-calibration-rate", true}, {"fault-seed", true},
              {"export-passages", true}, {"export-format", true}, {"steering-noise-scale", true},
              {"speed-noise-scale", true}, {"gnss-noise-scale", true}, {"pixel-noise-scale", true}, {"quiet", false}});
   if (!flags.ok()) return flags.status();
@@ -336,6 +366,7 @@ absl::Status RunCityCommand(const std::vector<std::string>& args) {
   options.update.strategy = *strategy;
   options.update.window_hops = static_cast<int>(*window_hops);
   if (absl::Status s = ParseLocalRelinearization(*flags, &options.update); !s.ok()) return s;
+  if (absl::Status s = ParseFaults(*flags, &options.faults); !s.ok()) return s;
   options.update.warmup_passages = static_cast<int>(*warmup);
   options.update.relinearize_until_passages = static_cast<int>(*relinearize);
   if (absl::Status s = options.Validate(); !s.ok()) return s;

@@ -67,6 +67,10 @@ struct MapUpdateOptions {
   // since its move has covariance prior - posterior) is one the passage and the map disagree
   // about: its detections are set aside and the subgraph solved again without them. 0 = off.
   double max_landmark_shift_mahalanobis2 = 25.0;
+  // A detection whose residual at a subgraph's solution exceeds this many pixel sigmas is an
+  // outlier (a neighbouring landmark reported under this one's id, a false detection): it is set
+  // aside and the subgraph solved again without it, before the consistency test. 0 = off.
+  double max_detection_residual_sigmas = 5.0;
   // Adaptive covariance inflation: when a (sub)graph solve's chi-square (2 x final cost) exceeds
   // its degrees of freedom by more than this many standard deviations (sqrt(2 dof)), the data
   // contradict the noise model (e.g. coloured GNSS errors); the passage's measurement covariances
