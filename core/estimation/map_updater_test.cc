@@ -480,6 +480,14 @@ TEST(MapUpdater, RestoredFromTheAppliedPassagesItContinuesExactlyAsBefore) {
 namespace crowdmap {
 namespace {
 
+// The defaults without the young map's joint solves: every passage is applied on its own.
+MapUpdateOptions SequentialUpdatesOnly() {
+  MapUpdateOptions options;
+  options.warmup_passages = 0;
+  options.relinearize_until_passages = 0;
+  return options;
+}
+
 struct CityMapErrors {
   double max_m = 0.0;
   double max_mahalanobis = 0.0;  // of the error, in the landmark's marginal covariance
@@ -524,9 +532,7 @@ CityMapErrors ApplyCityPassages(const CityScenarioOptions& city, int passages, c
 TEST(ComputePassageUpdate, EveryCommittedMapHasPositiveDefiniteInformationAndItsStoredEstimate) {
   CityScenarioOptions city;
   city.route_length_m = 600.0;
-  MapUpdateOptions options;
-  options.warmup_passages = 0;
-  options.relinearize_until_passages = 0;
+  MapUpdateOptions options = SequentialUpdatesOnly();
   int checked = 0;
   ApplyCityPassages(city, 8, options, [&](const MapState& map) {
     // The whole map in one window: its factorisation fails unless the information is positive
@@ -546,9 +552,7 @@ TEST(ComputePassageUpdate, EveryCommittedMapHasPositiveDefiniteInformationAndIts
 TEST(ComputePassageUpdate, DetectionsReportedUnderANeighboursIdAreSetAsideAsOutliers) {
   CityScenarioOptions city;
   city.route_length_m = 1000.0;
-  MapUpdateOptions options;
-  options.warmup_passages = 0;
-  options.relinearize_until_passages = 0;
+  MapUpdateOptions options = SequentialUpdatesOnly();
   const CityMapErrors clean = ApplyCityPassages(city, 12, options);
   EXPECT_EQ(clean.outliers, 0) << "no honest detection is 5 sigma off";
   FaultOptions faults;
@@ -566,9 +570,7 @@ TEST(ComputePassageUpdate, ShortCityDrivesLeaveNoLandmarkFarOff) {
   // once were created tens to thousands of metres off and then dragged their neighbours along.
   CityScenarioOptions city;
   city.route_length_m = 600.0;
-  MapUpdateOptions options;
-  options.warmup_passages = 0;
-  options.relinearize_until_passages = 0;
+  MapUpdateOptions options = SequentialUpdatesOnly();
   const CityMapErrors errors = ApplyCityPassages(city, 20, options);
   EXPECT_GT(errors.held_back, 0) << "the scenario has weak new landmarks";
   // Measured: at most 12.8 m, 4.9 sigma, NEES/dof 1.19; without the creation and disagreement
@@ -628,9 +630,7 @@ namespace {
 
 TEST(ComputePassageRelinearization, TakenAtTheEstimateItWasTakenAtItChangesTheMapOnlyBySolverTolerance) {
   const Scenario scenario = MakeScenario(25);
-  MapUpdateOptions options;
-  options.warmup_passages = 0;
-  options.relinearize_until_passages = 0;
+  MapUpdateOptions options = SequentialUpdatesOnly();
   MapState map;
   for (int i = 0; i < 4; ++i) map.Apply(ComputePassageUpdate(scenario.MakePassage(i), options, map)->delta);
   const Passage last = scenario.MakePassage(3);
@@ -652,9 +652,7 @@ TEST(ComputePassageRelinearization, TakenAtTheEstimateItWasTakenAtItChangesTheMa
 
 TEST(MapUpdater, RelinearizesTheStalestPassageOnceTheMapHasMovedAwayFromIt) {
   const Scenario scenario = MakeScenario(10);
-  MapUpdateOptions options;
-  options.warmup_passages = 0;
-  options.relinearize_until_passages = 0;
+  MapUpdateOptions options = SequentialUpdatesOnly();
   options.relinearize_sigmas = 0.5;
   MapUpdater updater(options);
   MapState map;
