@@ -139,6 +139,12 @@ bench flags (and --landmarks, --seed):
   --readers R                 concurrent QueryRegion / GetTile readers (default 8)
   --seconds S                 longest read phase (default 10); reads stop when the queue is
                               drained, so that every measured read competes with map updates
+  --city                      upload city passages (mapsim city's default grid) instead of the
+                              loop's; reads cover the whole city
+  --route-m M                 with --city: distance driven per passage (default 2000)
+  --upload-rate R             pace the uploads at R per second over all clients (default 0: as
+                              fast as acknowledgements come back); a paced run measures the
+                              acknowledgements while the worker commits map changes
 
 pose-bias flags (and --seed):
   --passages P                independent passages, each solved alone (default 1000)
@@ -478,7 +484,8 @@ absl::Status RunExportPassagesCommand(const std::vector<std::string>& args) {
 absl::Status RunBenchCommand(const std::vector<std::string>& args) {
   absl::StatusOr<Flags> flags = Flags::Parse(args, {{"server", true}, {"landmarks", true}, {"seed", true},
                                                     {"clients", true}, {"passages", true}, {"readers", true},
-                                                    {"seconds", true}});
+                                                    {"seconds", true}, {"city", false}, {"route-m", true},
+                                                    {"upload-rate", true}});
   if (!flags.ok()) return flags.status();
   absl::StatusOr<ScenarioOptions> scenario = ScenarioFromFlags(*flags);
   if (!scenario.ok()) return scenario.status();
@@ -486,10 +493,17 @@ absl::Status RunBenchCommand(const std::vector<std::string>& args) {
   absl::StatusOr<long long> clients = flags->GetInt("clients", options.clients),
                             passages = flags->GetInt("passages", options.passages),
                             readers = flags->GetInt("readers", options.readers);
-  absl::StatusOr<double> seconds = flags->GetDouble("seconds", options.read_seconds);
-  for (const absl::Status& s : {clients.status(), passages.status(), readers.status(), seconds.status()}) {
+  absl::StatusOr<double> seconds = flags->GetDouble("seconds", options.read_seconds),
+                         route_m = flags->GetDouble("route-m", options.city_scenario.route_length_m),
+                         upload_rate = flags->GetDouble("upload-rate", options.upload_rate_per_s);
+  for (const absl::Status& s : {clients.status(), passages.status(), readers.status(), seconds.status(),
+                                route_m.status(), upload_rate.status()}) {
     if (!s.ok()) return s;
   }
+  options.city = flags->Has("city");
+  options.city_scenario.seed = scenario->seed;
+  options.city_scenario.route_length_m = *route_m;
+  options.upload_rate_per_s = *upload_rate;
   options.server = flags->GetString("server", options.server);
   options.scenario = *scenario;
   options.clients = static_cast<int>(*clients);
@@ -499,11 +513,12 @@ absl::Status RunBenchCommand(const std::vector<std::string>& args) {
   absl::StatusOr<BenchResult> result = RunBench(options);
   if (!result.ok()) return result.status();
   std::cout << absl::StrFormat(
-      "durable uploads:  %.1f passages/s (%d clients, %d passages in %.2f s)\n"
+      "durable uploads:  %.1f passages/s (%d clients, %d passages in %.2f s), ack p50 %.2f ms  p99 %.2f ms  max %.2f ms\n"
       "applied:          %.1f passages/s (first upload to queue drained, %.2f s)\n"
       "QueryRegion:      p50 %.2f ms  p99 %.2f ms  (%d calls, %d landmarks, %d readers, %.1f s while the worker applied)\n"
       "GetTile:          p50 %.2f ms  p99 %.2f ms  (%d calls)\n",
-      result->uploads_per_s, options.clients, result->passages, result->upload_s, result->applied_per_s,
+      result->uploads_per_s, options.clients, result->passages, result->upload_s, result->ack.p50_ms,
+      result->ack.p99_ms, result->ack.max_ms, result->applied_per_s,
       result->apply_s, result->query_region.p50_ms, result->query_region.p99_ms, result->query_region.calls,
       result->landmarks_in_box, options.readers, result->read_s, result->get_tile.p50_ms, result->get_tile.p99_ms,
       result->get_tile.calls);
