@@ -65,7 +65,8 @@ experiment flags:
                               (default 3; 0 = use all)
   --inflation-test-sigmas K   inflate a passage's measurement covariances by chi2/dof when its chi2
                               exceeds dof by K sigma, 0 = never (default 4)
-  --max-chi2-per-dof X        refuse a solve whose chi2 exceeds X per degree of freedom, 0 = never
+  --max-chi2-per-dof X        refuse a passage when a solve leaves chi2 above X per degree of
+                              freedom before any inflation, 0 = never
                               (default 0)
   --shuffle-window W          apply the passages shuffled within consecutive groups of W, as W
                               concurrent vehicles would deliver them (default 0: in order)

@@ -155,6 +155,12 @@ absl::StatusOr<SetAsideRequest> UpdateFromSubgraph(const Passage& passage, const
   }
   const int dof = problem.NumResiduals() - problem.NumParameters();
   double chi2 = 2.0 * solver_summary.final_cost;
+  if (options.max_chi2_per_dof > 0.0 && dof > 0 && chi2 > options.max_chi2_per_dof * dof) {
+    return absl::FailedPreconditionError(absl::StrFormat(
+        "inconsistent: the solution leaves chi2=%.1f for %d degrees of freedom (%.2f per degree, limit %.2f): "
+        "the passage's measurements contradict their noise model or the map",
+        chi2, dof, chi2 / dof, options.max_chi2_per_dof));
+  }
   if (const double variance_factor = VarianceFactor(chi2, dof, options.inflation_test_sigmas); variance_factor > 1.0) {
     summary->max_variance_factor = std::max(summary->max_variance_factor, variance_factor);
     Inflate(variance_factor, &measurement_weight);
@@ -167,11 +173,6 @@ absl::StatusOr<SetAsideRequest> UpdateFromSubgraph(const Passage& passage, const
   }
   summary->solve_ms += MillisecondsSince(solve_start);
   summary->final_cost += solver_summary.final_cost;
-  if (options.max_chi2_per_dof > 0.0 && dof > 0 && chi2 > options.max_chi2_per_dof * dof) {
-    return absl::FailedPreconditionError(absl::StrFormat(
-        "solution inconsistent with the measurements: chi2=%.1f for %d degrees of freedom (limit %.1f per dof)",
-        chi2, dof, options.max_chi2_per_dof));
-  }
 
   if (std::vector<LandmarkId> unfit = LandmarksToSetAside(update, landmarks, poses, range, passage, options, summary);
       !unfit.empty()) {
