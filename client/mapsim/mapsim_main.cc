@@ -2,6 +2,7 @@
 // in-process; `reproduce` runs the thesis's result grids; `fleet`, `export-passages` and `bench`
 // drive a running mapd.
 #include <iostream>
+#include <numeric>
 #include <string>
 #include <vector>
 
@@ -31,6 +32,10 @@ Usage:
   mapsim city       [flags]   the same on a city: a street grid with buildings, a fleet driving
                               random partial routes
   mapsim reproduce  [flags]   run the thesis's table 5.2 and robustness grids
+  mapsim crlb       [flags]   the Cramer-Rao bound of the experiment's passages: the smallest mean
+                              landmark error any unbiased map can reach from them (--landmarks,
+                              --passages, --noise, --seed, --detections-per-landmark as for
+                              experiment); printed after 1, 10, 100, ... passages and the last
   mapsim pose-bias  [flags]   mean pose error of single-passage odometry + GNSS solves along the
                               route (the bias of the MAP estimate), before and after the
                               second-order bias correction
@@ -77,6 +82,8 @@ experiment flags:
   --steering-noise-scale X, --speed-noise-scale X, --gnss-noise-scale X, --pixel-noise-scale X
                               scale a sensor's noise, drawn and modelled alike (default 1)
   --no-bias-correction        skip the second-order bias correction of each solution
+  --no-crlb                   skip the Cramer-Rao bound of the same passages (summary.json:
+                              crlb_mean_dist_err_m, error_over_crlb)
   --quiet                     no progress line
 
 city flags:
@@ -241,7 +248,7 @@ absl::Status RunExperimentCommand(const std::vector<std::string>& args) {
                                                     {"order-file", true}, {"steering-noise-scale", true},
                                                     {"speed-noise-scale", true}, {"gnss-noise-scale", true},
                                                     {"pixel-noise-scale", true}, {"no-bias-correction", false},
-                                                    {"quiet", false}});
+                                                    {"no-crlb", false}, {"quiet", false}});
   if (!flags.ok()) return flags.status();
   ExperimentOptions options;
   absl::StatusOr<long long> landmarks = flags->GetInt("landmarks", 25), passages = flags->GetInt("passages", 100),
@@ -279,6 +286,7 @@ absl::Status RunExperimentCommand(const std::vector<std::string>& args) {
   options.update.inflation_test_sigmas = *inflation;
   options.update.edge_margin_sigmas = *edge_margin;
   options.update.bias_correction = !flags->Has("no-bias-correction");
+  options.crlb = !flags->Has("no-crlb");
   if (absl::Status s = ParseLocalRelinearization(*flags, &options.update); !s.ok()) return s;
   if (*shuffle_window < 0) return absl::InvalidArgumentError("shuffle-window: must be >= 0");
   if (*shuffle_from < 0) return absl::InvalidArgumentError("shuffle-from: must be >= 0");
@@ -413,7 +421,6 @@ absl::Status RunCityCommand(const std::vector<std::string>& args) {
   return absl::OkStatus();
 }
 
-#if CROWDMAP_MAPSIM_SERVICE
 absl::StatusOr<ScenarioOptions> ScenarioFromFlags(const Flags& flags) {
   ScenarioOptions scenario;
   absl::StatusOr<long long> landmarks = flags.GetInt("landmarks", 25), seed = flags.GetInt("seed", 1);
@@ -427,6 +434,7 @@ absl::StatusOr<ScenarioOptions> ScenarioFromFlags(const Flags& flags) {
   return scenario;
 }
 
+#if CROWDMAP_MAPSIM_SERVICE
 absl::Status RunFleetCommand(const std::vector<std::string>& args) {
   absl::StatusOr<Flags> flags = Flags::Parse(args, {{"server", true}, {"landmarks", true}, {"passages", true},
                                                     {"noise", true}, {"seed", true}, {"vehicles", true},
@@ -528,6 +536,33 @@ absl::Status RunBenchCommand(const std::vector<std::string>& args) {
 }
 
 #endif  // CROWDMAP_MAPSIM_SERVICE
+
+absl::Status RunCrlbCommand(const std::vector<std::string>& args) {
+  absl::StatusOr<Flags> flags = Flags::Parse(args, {{"landmarks", true}, {"passages", true}, {"noise", true},
+                                                    {"seed", true}, {"detections-per-landmark", true}});
+  if (!flags.ok()) return flags.status();
+  absl::StatusOr<ScenarioOptions> options = ScenarioFromFlags(*flags);
+  if (!options.ok()) return options.status();
+  absl::StatusOr<long long> passages = flags->GetInt("passages", 100),
+                            per_landmark = flags->GetInt("detections-per-landmark", 5);
+  if (!passages.ok()) return passages.status();
+  if (!per_landmark.ok()) return per_landmark.status();
+  if (*passages < 1) return absl::InvalidArgumentError("passages: must be >= 1");
+  absl::StatusOr<Scenario> scenario = Scenario::Create(*options);
+  if (!scenario.ok()) return scenario.status();
+  std::vector<int> indices(*passages);
+  std::iota(indices.begin(), indices.end(), 0);
+  GraphOptions graph;
+  graph.detections_per_landmark = static_cast<int>(*per_landmark);
+  int next_report = 1;
+  absl::StatusOr<double> bound =
+      LoopCramerRaoMeanError(*scenario, indices, graph, [&](int done, double mean_error_m) {
+        if (done != next_report && done != *passages) return;
+        if (done == next_report) next_report *= 10;
+        std::cout << absl::StrFormat("passages=%d crlb_mean_dist_err_m=%.4f\n", done, mean_error_m);
+      });
+  return bound.status();
+}
 
 absl::Status RunPoseBiasCommand(const std::vector<std::string>& args) {
   absl::StatusOr<Flags> flags =
@@ -671,6 +706,8 @@ int main(int argc, char** argv) {
     status = crowdmap::RunCityCommand(args);
   } else if (command == "reproduce") {
     status = crowdmap::RunReproduceCommand(args);
+  } else if (command == "crlb") {
+    status = crowdmap::RunCrlbCommand(args);
   } else if (command == "pose-bias") {
     status = crowdmap::RunPoseBiasCommand(args);
   } else if (command == "passage-consistency") {
