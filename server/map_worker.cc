@@ -6,6 +6,7 @@
 #include <unistd.h>
 
 #include <chrono>
+#include <thread>
 
 #include <spdlog/spdlog.h>
 
@@ -182,9 +183,20 @@ void MapWorker::Process(ClaimedPassage claimed, uint64_t ticket) {
   turn_cv_.notify_all();
 }
 
+namespace {
+
+// A storage error that says nothing about the passage (a full disk, an I/O error, a busy
+// database): its commit is retried after a pause, and no attempt is counted.
+bool IsTransientStorageError(const absl::Status& s) {
+  return s.code() == absl::StatusCode::kResourceExhausted || s.code() == absl::StatusCode::kUnavailable;
+}
+
+}  // namespace
+
 void MapWorker::Apply(const ClaimedPassage& claimed, const Passage& passage) {
   const StoredPassage& record = claimed.record;
   int attempts = record.attempts;
+  std::chrono::milliseconds pause(500);
   while (true) {
     std::string error;
     auto update = updater_->Compute(passage, map_);
@@ -210,6 +222,15 @@ void MapWorker::Apply(const ClaimedPassage& claimed, const Passage& passage) {
         return;
       }
       error = absl::StrCat("commit: ", committed.ToString());
+      if (IsTransientStorageError(committed) && !stopping_) {
+        spdlog::warn("event=commit_deferred passage={} vehicle={} id={} retry_in_ms={} error=\"{}\"", record.passage_id,
+                     record.vehicle_id, record.id, pause.count(), committed.ToString());
+        for (auto waited = std::chrono::milliseconds(0); waited < pause && !stopping_; waited += std::chrono::milliseconds(100)) {
+          std::this_thread::sleep_for(std::chrono::milliseconds(100));
+        }
+        pause = std::min<std::chrono::milliseconds>(2 * pause, std::chrono::seconds(30));
+        continue;  // the same passage again, no attempt counted
+      }
       if (committed.code() == absl::StatusCode::kFailedPrecondition) {
         // The mirror disagrees with the store: reload it before the next attempt.
         if (absl::Status s = LoadMirror(); !s.ok()) spdlog::error("event=reload_failed error=\"{}\"", s.ToString());

@@ -18,6 +18,10 @@ absl::Status SqliteError(sqlite3* db, int rc, std::string_view what) {
     case SQLITE_CORRUPT:
     case SQLITE_NOTADB:
       return absl::DataLossError(message);
+    case SQLITE_FULL:
+      return absl::ResourceExhaustedError(absl::StrCat(message, " (no space left for the database; retry later)"));
+    case SQLITE_IOERR:
+      return absl::UnavailableError(message);
     default:
       return absl::InternalError(message);
   }

@@ -124,6 +124,19 @@ TEST(SqliteConnection, OnProgressIsCalledDuringALongStatementUntilRemoved) {
   EXPECT_EQ(SqlInt(dir.File("progress.db"), "SELECT COUNT(*) FROM t"), 20000);
 }
 
+TEST(SqliteConnection, AFullDatabaseAnswersResourceExhaustedWithAMessage) {
+  // max_page_count caps this connection's database as a full disk would.
+  TempDir dir;
+  auto db = SqliteConnection::Open(dir.File("full.db"), 1000, /*read_only=*/false);
+  ASSERT_TRUE(db.ok()) << db.status();
+  ASSERT_TRUE((*db)->Exec("CREATE TABLE t (x BLOB)").ok());
+  ASSERT_TRUE((*db)->PragmaInt("max_page_count = 16").ok());
+  absl::Status s;
+  for (int i = 0; i < 100 && s.ok(); ++i) s = (*db)->Exec("INSERT INTO t VALUES (zeroblob(4000))");
+  EXPECT_EQ(s.code(), absl::StatusCode::kResourceExhausted) << s;
+  EXPECT_NE(s.message().find("no space left"), std::string::npos) << s;
+}
+
 TEST(SqliteMapStore, RefusesNegativeWriteYieldSteps) {
   TempDir dir;
   SqliteMapStoreOptions options;
