@@ -48,6 +48,9 @@ absl::StatusOr<Passage> DecodeStoredPassage(const std::string& payload) {
 absl::Status MapWorkerOptions::Validate() const {
   if (workers < 1) return absl::InvalidArgumentError(absl::StrCat("workers: must be >= 1, got ", workers));
   if (max_attempts < 1) return absl::InvalidArgumentError(absl::StrCat("max_attempts: must be >= 1, got ", max_attempts));
+  if (max_interruptions < 1) {
+    return absl::InvalidArgumentError(absl::StrCat("max_interruptions: must be >= 1, got ", max_interruptions));
+  }
   if (nice < 0 || nice > 19) return absl::InvalidArgumentError(absl::StrCat("worker-nice: must lie in [0, 19], got ", nice));
   return update.Validate();
 }
@@ -171,6 +174,11 @@ void MapWorker::Process(ClaimedPassage claimed, uint64_t ticket) {
     Finish(record, PassageState::kQueued, "");  // not started: back to the queue, in order
   } else if (!passage.ok()) {
     Finish(record, PassageState::kRejected, std::string(passage.status().message()));
+  } else if (record.interruptions >= options_.max_interruptions) {
+    Finish(record, PassageState::kFailed,
+           absl::StrCat("interrupted ", record.interruptions,
+                        " times while being applied (the server stopped or crashed each time); last error: ",
+                        record.error.empty() ? "none" : record.error));
   } else if (record.attempts > options_.max_attempts) {
     Finish(record, PassageState::kFailed,
            absl::StrCat("gave up after ", record.attempts - 1, " attempts; last: ", record.error));

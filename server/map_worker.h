@@ -25,6 +25,9 @@ struct MapWorkerOptions {
   int workers = 1;
   // Attempts (including start-ups interrupted while processing) before a passage is failed.
   int max_attempts = 3;
+  // A passage interrupted this many times while being applied (restarts, crashes) is marked failed,
+  // so that one that crashes the server cannot keep it from serving.
+  int max_interruptions = 10;
   std::chrono::milliseconds idle_poll{200};
   // Scheduling niceness of the worker threads (Linux, 0..19). Applying passages is background
   // work: a positive value lets request handling preempt the solver, so reads stay fast while the

@@ -1,4 +1,5 @@
 // Stopping the server and starting it on the same file keeps the map, its versions and the queue.
+#include "server/storage/sqlite_map_store.h"
 #include "server/testing/temp_dir.h"
 #include "tests/support/map_compare.h"
 #include "tests/support/mock_vehicle.h"
@@ -84,6 +85,54 @@ TEST(ServiceRestart, MapVersionsAndQueueSurviveARestart) {
     auto map = client.DownloadMap(MockVehicle::World());
     ASSERT_TRUE(map.ok());
     EXPECT_TRUE(MapsMatch(MapFromPassages(scenario, 5, WarmUp()), *map, 1e-6, 1e-9));
+  }
+}
+
+}  // namespace
+}  // namespace crowdmap
+
+namespace crowdmap {
+namespace {
+
+// Passages left processing by a stop: the start-up requeue does not count the interrupted
+// attempt, but a passage interrupted max_interruptions times is failed so that it cannot keep a
+// crashing server from serving.
+TEST(ServiceRestart, InterruptedAttemptsDoNotCountButEndlessInterruptionsFail) {
+  TempDir dir;
+  const std::string db = dir.File("map.db");
+  const Scenario scenario = ShortScenario();
+  const Passage passage = scenario.MakePassage(0);
+  {
+    // Uploaded with no worker, then claimed as a worker would before a crash.
+    auto server = StartTestServer(TestServerOptions(db, /*start_worker=*/false));
+    MockVehicle client(server->address());
+    ASSERT_TRUE(client.Upload(passage).ok());
+    server->Shutdown();
+  }
+  for (int interruption = 1; interruption <= 2; ++interruption) {
+    {
+      auto store = CreateSqliteMapStore(db);
+      ASSERT_TRUE(store.ok()) << store.status();
+      auto claimed = (*store)->ClaimNextPassage();
+      ASSERT_TRUE(claimed.ok() && claimed->has_value());
+    }
+    MapServerOptions options = TestServerOptions(db, /*start_worker=*/interruption == 2);
+    options.worker.max_interruptions = 2;
+    auto server = StartTestServer(options);
+    MockVehicle client(server->address());
+    if (interruption == 1) {
+      absl::StatusOr<pb::PassageStatus> status = client.GetPassage(passage.vehicle_id, passage.passage_id);
+      ASSERT_TRUE(status.ok());
+      EXPECT_EQ(status->state(), pb::PASSAGE_STATE_QUEUED);
+      EXPECT_EQ(status->attempts(), 0) << "the interrupted attempt does not count";
+    } else {
+      ASSERT_TRUE(client.WaitUntilIdle().ok());
+      absl::StatusOr<pb::PassageStatus> status = client.GetPassage(passage.vehicle_id, passage.passage_id);
+      ASSERT_TRUE(status.ok());
+      EXPECT_EQ(status->state(), pb::PASSAGE_STATE_FAILED);
+      EXPECT_NE(status->error().find("interrupted 2 times"), std::string::npos) << status->error();
+    }
+    server->Shutdown();
   }
 }
 

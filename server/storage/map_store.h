@@ -54,7 +54,8 @@ struct StoredPassage {
   std::string vehicle_id;
   std::string passage_id;
   PassageState state = PassageState::kQueued;
-  int attempts = 0;
+  int attempts = 0;       // times the worker started applying it, less those a restart interrupted
+  int interruptions = 0;  // times a restart or crash interrupted it (RequeueProcessingPassages)
   std::string error;
   int64_t received_unix_ms = 0;
   int64_t finished_unix_ms = 0;
@@ -155,7 +156,8 @@ class MapStoreInterface {
   // NotFound for an unknown id. Returns the updated record.
   virtual absl::StatusOr<StoredPassage> MovePassage(int64_t id, const std::vector<PassageState>& from,
                                                     PassageState to) = 0;
-  // Start-up recovery: every processing passage goes back to queued. Returns how many.
+  // Start-up recovery: every processing passage goes back to queued, its interrupted attempt
+  // uncounted and counted as an interruption instead. Returns how many.
   virtual absl::StatusOr<int> RequeueProcessingPassages() = 0;
 
   // Loads the whole map (landmarks, factors, version) into `map`.

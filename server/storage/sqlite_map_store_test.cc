@@ -278,10 +278,14 @@ TEST(SqliteMapStore, ProcessingPassagesReturnToQueueOnRequeue) {
   }
   auto store = OpenStore(path);
   EXPECT_EQ(store->FindPassage("v", "1")->state, PassageState::kProcessing);
+  EXPECT_EQ(store->FindPassage("v", "1")->attempts, 1);
   auto requeued = store->RequeueProcessingPassages();
   ASSERT_TRUE(requeued.ok());
   EXPECT_EQ(*requeued, 1);
-  EXPECT_EQ(store->FindPassage("v", "1")->state, PassageState::kQueued);
+  absl::StatusOr<StoredPassage> after = store->FindPassage("v", "1");
+  EXPECT_EQ(after->state, PassageState::kQueued);
+  EXPECT_EQ(after->attempts, 0) << "the interrupted attempt does not count";
+  EXPECT_EQ(after->interruptions, 1);
 }
 
 TEST(SqliteMapStore, CommitWritesMapVersionAndResultTogether) {

@@ -12,7 +12,7 @@ constexpr char kPassageColumns[] =
     "SELECT p.id, p.vehicle_id, p.passage_id, p.state, p.attempts, p.error, p.received_unix_ms, "
     "p.finished_unix_ms, p.size_bytes, r.nodes, r.subgraphs, r.landmarks_updated, r.landmarks_created, "
     "r.landmarks_conditioned, r.detections_used, r.detections_dropped, r.solver_iterations, r.final_cost, "
-    "r.solve_ms, r.covariance_ms, r.total_ms, r.map_version, r.strategy "
+    "r.solve_ms, r.covariance_ms, r.total_ms, r.map_version, r.strategy, p.interruptions "
     "FROM passages p LEFT JOIN passage_results r ON r.id = p.id ";
 
 StoredPassage PassageFromRow(const SqliteStatement& s) {
@@ -26,6 +26,7 @@ StoredPassage PassageFromRow(const SqliteStatement& s) {
   p.received_unix_ms = s.Int(6);
   p.finished_unix_ms = s.Int(7);
   p.size_bytes = s.Int(8);
+  p.interruptions = static_cast<int>(s.Int(23));
   if (!s.IsNull(9)) {
     PassageResult r;
     r.nodes = static_cast<int>(s.Int(9));
@@ -299,7 +300,12 @@ absl::StatusOr<int> SqliteMapStore::RequeueProcessingPassages() {
   SqliteConnection* db = writer_.get();
   auto txn = SqliteWriteTransaction::Begin(db);
   if (!txn.ok()) return txn.status();
-  if (auto s = db->Exec("UPDATE passages SET state = 1 WHERE state = 2"); !s.ok()) return s;
+  // The interrupted attempt is not counted: it says nothing about the passage.
+  if (auto s = db->Exec("UPDATE passages SET state = 1, attempts = MAX(attempts - 1, 0), interruptions = interruptions + 1 "
+                        "WHERE state = 2");
+      !s.ok()) {
+    return s;
+  }
   const int changed = db->Changes();
   if (auto s = txn->Commit(); !s.ok()) return s;
   return changed;

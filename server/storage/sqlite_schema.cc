@@ -260,9 +260,11 @@ const std::vector<Migration>& Migrations() {
         BEGIN UPDATE row_counts SET n = n - 1 WHERE name = 'factors'; END;
       )sql",
        ConvertCrossCovariancesToFactors},
-      // 3 -> 4: passages can be quarantined (7) and discarded (8).
+      // 3 -> 4: passages can be quarantined (7) and discarded (8); a passage counts the times it
+      // was interrupted (a restart or crash while it was applied) apart from its attempts.
       {R"sql(
       INSERT INTO row_counts (name, n) VALUES ('passages_7', 0), ('passages_8', 0);
+      ALTER TABLE passages ADD COLUMN interruptions INTEGER NOT NULL DEFAULT 0;
       )sql", nullptr},
   };
   return kMigrations;
