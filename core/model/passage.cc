@@ -39,12 +39,77 @@ absl::Status CheckTime(const char* list, size_t i, double t, double previous, bo
   return absl::OkStatus();
 }
 
-absl::Status ValidateCalibration(const Calibration& c) {
-  if (auto s = CheckPositive("calibration.wheelbase_m", c.wheelbase_m); !s.ok()) return s;
-  for (int k = 0; k < 2; ++k) {
-    if (auto s = CheckFinite("calibration.gnss_lever_arm_m", c.gnss_lever_arm_m[k]); !s.ok()) return s;
-    if (auto s = CheckFinite("calibration.camera_position_m", c.camera_position_m[k]); !s.ok()) return s;
+// `v` within [lo, hi] (physical bounds no road vehicle or sensor leaves).
+absl::Status CheckRange(const std::string& field, double v, double lo, double hi, const char* unit) {
+  if (!std::isfinite(v) || v < lo || v > hi) {
+    return Invalid(field, absl::StrCat("must lie in [", lo, ", ", hi, "] ", unit, ", got ", v));
   }
+  return absl::OkStatus();
+}
+
+// Identifiers: 1 to kMaxIdLength printable ASCII characters (they appear in logs and file names).
+constexpr size_t kMaxIdLength = 128;
+
+absl::Status CheckId(const char* field, const std::string& id) {
+  if (id.empty()) return Invalid(field, "must not be empty");
+  if (id.size() > kMaxIdLength) {
+    return Invalid(field, absl::StrCat("must be at most ", kMaxIdLength, " characters, got ", id.size()));
+  }
+  for (unsigned char c : id) {
+    if (c < 0x21 || c > 0x7e) {
+      return Invalid(field, absl::StrCat("must be printable ASCII without spaces; character ", static_cast<int>(c),
+                                         " is not"));
+    }
+  }
+  return absl::OkStatus();
+}
+
+// Physical bounds of the rules below.
+constexpr double kMaxSpeedMps = 100.0;         // 360 km/h
+constexpr double kMaxReverseSpeedMps = 15.0;
+constexpr double kMaxSteeringRad = 1.0;        // about 57 degrees at the wheel
+constexpr double kMaxAbsLatitudeDeg = 85.0;    // the map's East/North frames degenerate at the poles
+constexpr double kMaxMountOffsetM = 20.0;      // lever arm and camera position from the rear axle
+
+// Measurement times may run past the last odometry sample by this much (rates differ).
+constexpr double kTimeSlackS = 1.0;
+
+// Two consecutive fixes no further apart than the vehicle can drive in between, plus five sigmas
+// of each and 50 m: a jump across the globe, or a fix from another passage, is not a GNSS error.
+absl::Status CheckGnssStep(const GnssFix& a, const GnssFix& b, size_t i) {
+  constexpr double kEarthRadiusM = 6371000.0;
+  constexpr double kDeg = M_PI / 180.0;
+  double dlon = b.lon_deg - a.lon_deg;
+  dlon -= 360.0 * std::round(dlon / 360.0);  // across the antimeridian the short way
+  const double east = dlon * kDeg * std::cos(0.5 * (a.lat_deg + b.lat_deg) * kDeg) * kEarthRadiusM;
+  const double north = (b.lat_deg - a.lat_deg) * kDeg * kEarthRadiusM;
+  const double sigmas = std::sqrt(a.cov_en_m2.trace()) + std::sqrt(b.cov_en_m2.trace());
+  const double limit = kMaxSpeedMps * (b.t_s - a.t_s) + 5.0 * sigmas + 50.0;
+  const double distance = std::hypot(east, north);
+  if (distance > limit) {
+    return Invalid(absl::StrCat("gnss[", i, "]"),
+                   absl::StrCat("fix ", distance, " m from the previous one after ", b.t_s - a.t_s,
+                                " s: more than driving at ", kMaxSpeedMps, " m/s and five sigmas allow (", limit, " m)"));
+  }
+  return absl::OkStatus();
+}
+
+absl::Status ValidateCalibration(const Calibration& c) {
+  if (auto s = CheckRange("calibration.wheelbase_m", c.wheelbase_m, 0.5, 20.0, "m"); !s.ok()) return s;
+  for (int k = 0; k < 2; ++k) {
+    if (auto s = CheckRange("calibration.gnss_lever_arm_m", c.gnss_lever_arm_m[k], -kMaxMountOffsetM, kMaxMountOffsetM, "m");
+        !s.ok()) {
+      return s;
+    }
+    if (auto s = CheckRange("calibration.camera_position_m", c.camera_position_m[k], -kMaxMountOffsetM,
+                            kMaxMountOffsetM, "m");
+        !s.ok()) {
+      return s;
+    }
+  }
+  if (auto s = CheckRange("calibration.camera_yaw_rad", c.camera_yaw_rad, -M_PI, M_PI, "rad"); !s.ok()) return s;
+  if (auto s = CheckRange("calibration.fx_px", c.fx_px, 10.0, 1e5, "px"); !s.ok()) return s;
+  if (auto s = CheckRange("calibration.image_width_px", c.image_width_px, 16.0, 1e5, "px"); !s.ok()) return s;
   if (auto s = CheckFinite("calibration.camera_yaw_rad", c.camera_yaw_rad); !s.ok()) return s;
   if (auto s = CheckPositive("calibration.fx_px", c.fx_px); !s.ok()) return s;
   if (auto s = CheckPositive("calibration.image_width_px", c.image_width_px); !s.ok()) return s;
@@ -63,8 +128,8 @@ absl::Status ValidateNoise(const NoiseModel& n) {
 }  // namespace
 
 absl::Status ValidatePassage(const Passage& p) {
-  if (p.vehicle_id.empty()) return Invalid("vehicle_id", "must not be empty");
-  if (p.passage_id.empty()) return Invalid("passage_id", "must not be empty");
+  if (auto s = CheckId("vehicle_id", p.vehicle_id); !s.ok()) return s;
+  if (auto s = CheckId("passage_id", p.passage_id); !s.ok()) return s;
   if (p.odometry.empty()) return Invalid("odometry", "passage has no odometry samples");
   if (p.gnss.size() < 2) return Invalid("gnss", "passage needs at least 2 GNSS fixes");
   if (p.detections.empty()) return Invalid("detections", "passage has no detections");
@@ -74,18 +139,23 @@ absl::Status ValidatePassage(const Passage& p) {
   for (size_t i = 0; i < p.odometry.size(); ++i) {
     const OdometrySample& o = p.odometry[i];
     if (auto s = CheckTime("odometry", i, o.t_s, i ? p.odometry[i - 1].t_s : 0.0, true); !s.ok()) return s;
-    if (auto s = CheckFinite(Field("odometry", i, "speed_mps"), o.speed_mps); !s.ok()) return s;
-    if (auto s = CheckFinite(Field("odometry", i, "steering_rad"), o.steering_rad); !s.ok()) return s;
-    if (std::abs(o.steering_rad) >= M_PI / 2) {
-      return Invalid(Field("odometry", i, "steering_rad"),
-                     absl::StrCat("must lie in (-pi/2, pi/2), got ", o.steering_rad));
+    if (auto s = CheckRange(Field("odometry", i, "speed_mps"), o.speed_mps, -kMaxReverseSpeedMps, kMaxSpeedMps, "m/s");
+        !s.ok()) {
+      return s;
+    }
+    if (auto s = CheckRange(Field("odometry", i, "steering_rad"), o.steering_rad, -kMaxSteeringRad, kMaxSteeringRad,
+                            "rad");
+        !s.ok()) {
+      return s;
     }
   }
   for (size_t i = 0; i < p.gnss.size(); ++i) {
     const GnssFix& g = p.gnss[i];
     if (auto s = CheckTime("gnss", i, g.t_s, i ? p.gnss[i - 1].t_s : 0.0, true); !s.ok()) return s;
-    if (!std::isfinite(g.lat_deg) || g.lat_deg < -90.0 || g.lat_deg > 90.0) {
-      return Invalid(Field("gnss", i, "lat_deg"), absl::StrCat("latitude ", g.lat_deg, " outside [-90, 90]"));
+    if (!std::isfinite(g.lat_deg) || std::abs(g.lat_deg) > kMaxAbsLatitudeDeg) {
+      return Invalid(Field("gnss", i, "lat_deg"),
+                     absl::StrCat("latitude ", g.lat_deg, " outside [-", kMaxAbsLatitudeDeg, ", ", kMaxAbsLatitudeDeg,
+                                  "] (no road the map can hold)"));
     }
     if (!std::isfinite(g.lon_deg) || g.lon_deg < -180.0 || g.lon_deg > 180.0) {
       return Invalid(Field("gnss", i, "lon_deg"),
@@ -96,10 +166,24 @@ absl::Status ValidatePassage(const Passage& p) {
         c(0, 0) <= 0.0 || c(1, 1) <= 0.0 || c.determinant() <= 0.0) {
       return Invalid(Field("gnss", i, "cov_en_m2"), "must be a finite, symmetric, positive-definite 2x2 matrix");
     }
+    if (g.lat_deg == 0.0 && g.lon_deg == 0.0) {
+      return Invalid(absl::StrCat("gnss[", i, "]"), "(0, 0) is what a receiver without a fix reports; leave such fixes out");
+    }
+    if (i > 0) {
+      if (auto s = CheckGnssStep(p.gnss[i - 1], g, i); !s.ok()) return s;
+    }
   }
+  const double odometry_end_s = p.odometry.back().t_s;
   for (size_t i = 0; i < p.detections.size(); ++i) {
     const Detection& d = p.detections[i];
     if (auto s = CheckTime("detections", i, d.t_s, i ? p.detections[i - 1].t_s : 0.0, false); !s.ok()) return s;
+    if (d.t_s > odometry_end_s + kTimeSlackS) {
+      return Invalid(Field("detections", i, "t_s"),
+                     absl::StrCat("detection at ", d.t_s, " s after the odometry ends (", odometry_end_s, " s)"));
+    }
+    if (d.landmark_id < 1) {
+      return Invalid(Field("detections", i, "landmark_id"), absl::StrCat("must be 1 or more, got ", d.landmark_id));
+    }
     if (!std::isfinite(d.u_px) || d.u_px < 0.0 || d.u_px > p.calibration.image_width_px) {
       return Invalid(Field("detections", i, "u_px"),
                      absl::StrCat("pixel ", d.u_px, " outside the image [0, ", p.calibration.image_width_px, "]"));

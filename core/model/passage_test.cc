@@ -7,6 +7,7 @@
 
 #include <gtest/gtest.h>
 
+#include "core/sim/city_scenario.h"
 #include "core/sim/scenario.h"
 
 namespace crowdmap {
@@ -93,12 +94,59 @@ std::vector<BadInput> BadInputs() {
       {"noise.steering_sigma_rad", [](Passage* p) { p->noise.steering_sigma_rad = -0.044; }},
       {"noise.pixel_sigma_px", [](Passage* p) { p->noise.pixel_sigma_px = -5.0; }},
       {"noise.pixel_sigma_px", [](Passage* p) { p->noise.pixel_sigma_px = 0.0; }},
+      // Physically impossible inputs (each once applied to a real map; see the trust rules).
+      {"gnss[0].lat_deg", [](Passage* p) { for (GnssFix& f : p->gnss) f.lat_deg = -90.0; }},
+      {"gnss[1]", [](Passage* p) { p->gnss[1].lat_deg = p->gnss[0].lat_deg + 1.0; }},  // 111 km jump
+      {"gnss[1]", [](Passage* p) { p->gnss[1].lon_deg += 180.0 - (p->gnss[1].lon_deg > 0 ? 360.0 : 0.0); }},
+      {"gnss[1]", [](Passage* p) { p->gnss[1].lat_deg = 0.0; p->gnss[1].lon_deg = 0.0; }},
+      {"calibration.gnss_lever_arm_m", [](Passage* p) { p->calibration.gnss_lever_arm_m.x() = 1e11; }},
+      {"calibration.camera_position_m", [](Passage* p) { p->calibration.camera_position_m.y() = -50.0; }},
+      {"calibration.wheelbase_m", [](Passage* p) { p->calibration.wheelbase_m = 1e15; }},
+      {"calibration.fx_px", [](Passage* p) { p->calibration.fx_px = 1e9; }},
+      {"calibration.camera_yaw_rad", [](Passage* p) { p->calibration.camera_yaw_rad = 7.0; }},
+      {"odometry[0].steering_rad", [](Passage* p) { for (OdometrySample& o : p->odometry) o.steering_rad = 1.57; }},
+      {"odometry[2].speed_mps", [](Passage* p) { p->odometry[2].speed_mps = 400.0; }},
+      {"odometry[2].speed_mps", [](Passage* p) { p->odometry[2].speed_mps = -40.0; }},
+      {"detections[1].landmark_id", [](Passage* p) { p->detections[1].landmark_id = -3; }},
+      {"detections[1].landmark_id", [](Passage* p) { p->detections[1].landmark_id = 0; }},
+      {"detections[2].t_s", [](Passage* p) { p->detections[2].t_s = p->odometry.back().t_s + 60.0; }},
+      {"vehicle_id", [](Passage* p) { p->vehicle_id = "v\nerror event=disk_full"; }},
+      {"vehicle_id", [](Passage* p) { p->vehicle_id = std::string(200, 'v'); }},
+      {"passage_id", [](Passage* p) { p->passage_id = "with space"; }},
   };
 }
 
 TEST(ValidatePassage, AcceptsASimulatedPassage) {
   const absl::Status s = ValidatePassage(SimulatedPassage());
   EXPECT_TRUE(s.ok()) << s;
+}
+
+TEST(ValidatePassage, AcceptsEverySimulatedPassageOfVariedFleets) {
+  // The bounds must never refuse honest data: loop passages under every noise configuration and
+  // city passages of short and long routes, varied sensor rates and per-vehicle camera errors.
+  int checked = 0;
+  for (NoiseConfig noise : {NoiseConfig::kWhite, NoiseConfig::kGnssAr1, NoiseConfig::kYawBias, NoiseConfig::kGnssAr1YawBias}) {
+    ScenarioOptions options;
+    options.landmarks = 25;
+    options.noise = noise;
+    absl::StatusOr<Scenario> loop = Scenario::Create(options);
+    ASSERT_TRUE(loop.ok());
+    for (int i = 0; i < 25; ++i, ++checked) EXPECT_TRUE(ValidatePassage(loop->MakePassage(i)).ok()) << i;
+  }
+  for (double route_m : {300.0, 1500.0}) {
+    CityScenarioOptions city;
+    city.route_length_m = route_m;
+    city.rate_variation = 0.2;
+    city.vehicle_yaw_bias_sigma_rad = 0.01;
+    city.noise = NoiseConfig::kGnssAr1;
+    absl::StatusOr<CityScenario> scenario = CityScenario::Create(city);
+    ASSERT_TRUE(scenario.ok());
+    for (int i = 0; i < 40; ++i, ++checked) {
+      const absl::Status s = ValidatePassage(scenario->MakePassage(i));
+      EXPECT_TRUE(s.ok()) << route_m << " m, passage " << i << ": " << s;
+    }
+  }
+  EXPECT_EQ(checked, 180);
 }
 
 TEST(ValidatePassage, AcceptsAMinimalHandMadePassageWithSimultaneousDetections) {
