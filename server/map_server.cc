@@ -1,12 +1,16 @@
 #include "server/map_server.h"
 
+#include <fcntl.h>
 #include <malloc.h>
+#include <sys/file.h>
+#include <unistd.h>
 
 #include <filesystem>
 
 #include <grpcpp/ext/proto_server_reflection_plugin.h>
 #include <grpcpp/health_check_service_interface.h>
 #include <grpcpp/security/server_credentials.h>
+#include <grpc/impl/codegen/grpc_types.h>
 #include <grpcpp/server_builder.h>
 #include <spdlog/spdlog.h>
 
@@ -37,6 +41,20 @@ constexpr int kWriteYieldVmSteps = 4000;
 
 }  // namespace
 
+// An exclusive lock on `<db>.lock`, held as long as the returned descriptor is open: a second mapd
+// on the same database would apply passages beside the first.
+absl::StatusOr<int> LockDatabase(const std::string& db_path) {
+  const std::string path = db_path + ".lock";
+  const int fd = ::open(path.c_str(), O_RDWR | O_CREAT | O_CLOEXEC, 0644);
+  if (fd < 0) return absl::FailedPreconditionError(absl::StrCat("db: cannot open the lock file ", path));
+  if (::flock(fd, LOCK_EX | LOCK_NB) != 0) {
+    ::close(fd);
+    return absl::FailedPreconditionError(
+        absl::StrCat("db: ", db_path, " is in use by another mapd (", path, " is locked); stop it first"));
+  }
+  return fd;
+}
+
 void TuneProcessForServing() {
   mallopt(M_TRIM_THRESHOLD, 256 << 20);
   mallopt(M_MMAP_THRESHOLD, 32 << 20);
@@ -52,6 +70,9 @@ absl::StatusOr<std::unique_ptr<MapServer>> MapServer::Start(const MapServerOptio
   std::error_code ec;
   if (!db_dir.empty()) std::filesystem::create_directories(db_dir, ec);
   if (ec) return absl::FailedPreconditionError(absl::StrCat("db: cannot create ", db_dir.string(), ": ", ec.message()));
+  absl::StatusOr<int> lock = LockDatabase(options.db_path);
+  if (!lock.ok()) return lock.status();
+  server->lock_.fd = *lock;
   SqliteMapStoreOptions store_options;
   if (options.worker.yield) store_options.write_yield_vm_steps = kWriteYieldVmSteps;
   store_options.covariance_window_hops = options.worker.update.window_hops;
@@ -79,17 +100,23 @@ absl::StatusOr<std::unique_ptr<MapServer>> MapServer::Start(const MapServerOptio
   grpc::reflection::InitProtoReflectionServerBuilderPlugin();
   grpc::ServerBuilder builder;
   builder.AddListeningPort(options.listen, grpc::InsecureServerCredentials(), &server->port_);
+  // A second server on the same port must fail, not share it (clients would see two maps).
+  builder.AddChannelArgument(GRPC_ARG_ALLOW_REUSEPORT, 0);
   builder.SetMaxReceiveMessageSize(options.max_message_mb << 20);
   builder.RegisterService(server->service_.get());
   server->server_ = builder.BuildAndStart();
   if (server->server_ == nullptr || server->port_ == 0) {
-    return absl::UnavailableError(absl::StrCat("listen: cannot bind ", options.listen));
+    return absl::UnavailableError(absl::StrCat("listen: cannot bind ", options.listen, " (in use by another process?)"));
   }
   server->server_->GetHealthCheckService()->SetServingStatus(true);
   if (options.start_worker) server->worker_->Start();
   spdlog::info("event=started listen={} port={} db={} strategy={} workers={} max_queue={}", options.listen,
                server->port_, options.db_path, UpdateStrategyName(context.update.strategy), options.worker.workers, options.max_queue);
   return server;
+}
+
+MapServer::DatabaseLock::~DatabaseLock() {
+  if (fd >= 0) ::close(fd);
 }
 
 MapServer::~MapServer() { Shutdown(std::chrono::milliseconds(0)); }

@@ -59,6 +59,12 @@ class MapServer {
  private:
   MapServer() = default;
 
+  // The database's exclusive lock (LockDatabase), released last: first of the members.
+  struct DatabaseLock {
+    int fd = -1;
+    ~DatabaseLock();
+  };
+  DatabaseLock lock_;
   MapServerOptions options_;
   std::unique_ptr<MapStoreInterface> store_;
   VersionNotifier notifier_;

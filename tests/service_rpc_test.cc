@@ -509,6 +509,26 @@ absl::StatusOr<int> HealthStatus(const std::shared_ptr<grpc::Channel>& channel) 
   return static_cast<int>(bytes[1]);
 }
 
+TEST_F(ServiceRpc, ASecondServerOnTheSameDatabaseOrPortRefusesToStart) {
+  Start(true);
+  // The same database: refused by its lock, with a message that says so.
+  MapServerOptions same_db = TestServerOptions(dir_.File("map.db"), true);
+  absl::StatusOr<std::unique_ptr<MapServer>> second = MapServer::Start(same_db);
+  ASSERT_FALSE(second.ok());
+  EXPECT_EQ(second.status().code(), absl::StatusCode::kFailedPrecondition);
+  EXPECT_NE(second.status().message().find("in use by another mapd"), std::string::npos) << second.status();
+  // The same port: refused (gRPC would otherwise share it, and clients would see two maps).
+  MapServerOptions same_port = TestServerOptions(dir_.File("other.db"), true);
+  same_port.listen = server_->address();
+  absl::StatusOr<std::unique_ptr<MapServer>> third = MapServer::Start(same_port);
+  ASSERT_FALSE(third.ok());
+  EXPECT_NE(third.status().message().find("cannot bind"), std::string::npos) << third.status();
+  // Once the first is stopped, its database can be opened again.
+  server_.reset();
+  absl::StatusOr<std::unique_ptr<MapServer>> after = MapServer::Start(same_db);
+  EXPECT_TRUE(after.ok()) << after.status();
+}
+
 TEST_F(ServiceRpc, HealthIsServingUntilShutdownThenUploadsAreRefused) {
   Start(false);
   auto health = HealthStatus(client_->channel());
