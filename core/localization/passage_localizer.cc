@@ -407,6 +407,11 @@ absl::StatusOr<PassageLocalization> LocalizePassage(const Passage& passage, cons
     p.pose_m.z() = NormalizeAngle(p.pose_m.z());
     p.position = graph->frame.ToGeo(poses[k].head<2>());
     p.cov = 0.5 * ((*covariances)[k] + (*covariances)[k].transpose());
+    Eigen::Matrix3d to_en = Eigen::Matrix3d::Identity();
+    to_en.topLeftCorner<2, 2>() = graph->frame.EnToLocal(p.position).inverse();
+    const Eigen::Vector2d forward = to_en.topLeftCorner<2, 2>() * Eigen::Vector2d(std::cos(p.pose_m.z()), std::sin(p.pose_m.z()));
+    p.heading_en_rad = std::atan2(forward.y(), forward.x());
+    p.cov_en = to_en * p.cov * to_en.transpose();
     out.poses.push_back(p);
   }
   out.solve_ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();

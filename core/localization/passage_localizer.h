@@ -55,6 +55,10 @@ struct LocalizedPose {
                               // (rad, from East, counter-clockwise)
   LatLon position;            // rear axle, WGS84
   Eigen::Matrix3d cov;        // (East m, North m, heading rad), passage frame
+  // The same at the pose: heading from East (counter-clockwise) and covariance in the East/North
+  // frame at the position (the passage frame's axes turn by up to 1e-3 rad over a few km).
+  double heading_en_rad = 0.0;
+  Eigen::Matrix3d cov_en;
 };
 
 struct RejectedDetection {
