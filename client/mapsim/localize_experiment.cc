@@ -13,6 +13,7 @@
 #include "core/estimation/factors.h"
 #include "core/estimation/map_updater.h"
 #include "core/map/map_state.h"
+#include "core/sim/metrics.h"
 #include "core/sim/sensor_simulation.h"
 
 namespace crowdmap {
@@ -143,6 +144,12 @@ absl::StatusOr<std::vector<LocalizeRow>> RunLocalizeExperiment(const LocalizeExp
       RunErrors without, with;
       LocalizeCell cell;
       cell.landmarks = landmarks;
+      cell.map_error_m = cell.map_nees_per_dof = kNaN;
+      if (own) {
+        const MapErrorMetrics metrics = EvaluateMap(*own, scenario->landmarks());
+        cell.map_error_m = metrics.mean_dist_err_m;
+        cell.map_nees_per_dof = metrics.nees_per_dof;
+      }
       for (int run = 0; run < options.runs; ++run) {
         const Passage passage = scenario->MakePassage(run);
         absl::StatusOr<LocalizationMap> map =
@@ -177,23 +184,33 @@ std::string LocalizeMarkdown(const LocalizeExperimentOptions& options, const std
   auto value = [](double v) { return std::isnan(v) ? std::string("-") : absl::StrFormat("%.2f", v); };
   std::string out = absl::StrFormat(
       "Mean pose distance error (m) over all poses of %d passages of %.0f s per cell (thesis: one passage), "
-      "thesis / ours; ratio = ours / thesis with the map; NEES = pose NEES/dof with the map.\n\n",
+      "thesis / ours; ratio = ours / thesis with the map; NEES = pose NEES/dof with the map; rejected = "
+      "detections rejected per passage.\n\n",
       options.runs, options.duration_s);
   std::string header = "| configuration |", rule = "|---|";
   for (int n : options.landmark_counts) {
-    header += absl::StrFormat(" N=%d without map | N=%d with map | ratio | NEES |", n, n);
-    rule += "---|---|---|---|";
+    header += absl::StrFormat(" N=%d without map | N=%d with map | ratio | NEES | rejected |", n, n);
+    rule += "---|---|---|---|---|";
   }
   out += header + "\n" + rule + "\n";
   for (const LocalizeRow& row : rows) {
     std::string line = "| " + row.config.name + " |";
     for (const LocalizeCell& cell : row.cells) {
-      line += absl::StrFormat(" %s / %.2f | %s / %.2f | %s | %.2f |", value(cell.thesis_without_m), cell.without_map_m,
-                              value(cell.thesis_with_m), cell.with_map_m,
-                              value(cell.with_map_m / cell.thesis_with_m), cell.with_map_nees_per_dof);
+      line += absl::StrFormat(" %s / %.2f | %s / %.2f | %s | %.2f | %.1f |", value(cell.thesis_without_m),
+                              cell.without_map_m, value(cell.thesis_with_m), cell.with_map_m,
+                              value(cell.with_map_m / cell.thesis_with_m), cell.with_map_nees_per_dof,
+                              static_cast<double>(cell.rejected_detections) / options.runs);
     }
     out += line + "\n";
   }
+  for (const LocalizeRow& row : rows) {
+    for (const LocalizeCell& cell : row.cells) {
+      if (std::isnan(cell.map_error_m)) continue;
+      out += absl::StrFormat("\n%s, N=%d: the map's mean landmark error %.2f m, landmark NEES/dof %.2f.", row.config.name,
+                             cell.landmarks, cell.map_error_m, cell.map_nees_per_dof);
+    }
+  }
+  out += "\n";
   return out;
 }
 

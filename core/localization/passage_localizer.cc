@@ -97,8 +97,11 @@ struct JointProblem {
   int parameters = 0;
 };
 
+// The gating rounds use each landmark's marginal prior (`joint_prior` false): they only need each
+// landmark's disagreement with its own map position, and a dense prior on hundreds of correlated
+// landmarks makes every Ceres iteration cost seconds. The final solve uses the joint prior.
 JointProblem BuildProblem(const PassageGraph& graph, const Passage& passage, const LocalPrior& prior,
-                          const std::vector<MappedDetection>& detections, double robust_scale,
+                          const std::vector<MappedDetection>& detections, double robust_scale, bool joint_prior,
                           std::vector<Pose2>* poses, std::vector<Eigen::Vector2d>* landmarks) {
   JointProblem jp;
   jp.problem = std::make_unique<ceres::Problem>();
@@ -113,7 +116,15 @@ JointProblem BuildProblem(const PassageGraph& graph, const Passage& passage, con
                              loss, (*poses)[d.observation->node].data(), (*landmarks)[d.landmark].data());
     seen[d.landmark] = true;
   }
+  std::vector<std::vector<int>> groups;
   for (const std::vector<int>& group : prior.groups) {
+    if (joint_prior) {
+      groups.push_back(group);
+    } else {
+      for (int k : group) groups.push_back({k});
+    }
+  }
+  for (const std::vector<int>& group : groups) {
     std::vector<int> members;
     for (int k : group) {
       if (seen[k]) members.push_back(k);
@@ -371,19 +382,22 @@ absl::StatusOr<PassageLocalization> LocalizePassage(const Passage& passage, cons
                             r, false});
   }
   // Round 0 is robust; later rounds solve the kept detections plainly, until the gates reject
-  // nothing more (or the rounds run out: then the last rejections are solved without).
+  // nothing more (or the rounds run out: then the last rejections are solved without). The last
+  // solve has the joint prior when the map's landmarks are correlated.
+  bool correlated = false;
+  for (const std::vector<int>& group : prior.groups) correlated |= group.size() > 1;
   JointProblem problem;
   ceres::Solver::Summary summary;
   bool solved_after_gating = false;
   for (int round = 0; round < options.max_gating_rounds && !solved_after_gating; ++round) {
     problem = BuildProblem(*graph, passage, prior, detections, round == 0 ? options.robust_loss_scale_sigmas : 0.0,
-                           &poses, &landmarks);
+                           /*joint_prior=*/false, &poses, &landmarks);
     if (absl::Status s = Solve(options, problem.problem.get(), &summary); !s.ok()) return s;
     const int rejected = Gate(*graph, passage, prior, poses, landmarks, options, &detections, &out.rejected);
     solved_after_gating = round > 0 && rejected == 0;
   }
-  if (!solved_after_gating) {
-    problem = BuildProblem(*graph, passage, prior, detections, 0.0, &poses, &landmarks);
+  if (!solved_after_gating || correlated) {
+    problem = BuildProblem(*graph, passage, prior, detections, 0.0, /*joint_prior=*/true, &poses, &landmarks);
     if (absl::Status s = Solve(options, problem.problem.get(), &summary); !s.ok()) return s;
   }
   absl::StatusOr<std::vector<Eigen::Matrix3d>> covariances = PoseCovariances(problem.problem.get(), &poses, &landmarks);
