@@ -355,6 +355,14 @@ absl::Status Watch(const Flags& flags, Context& ctx) {
   }, duration);
 }
 
+absl::Status WriteTextFile(const std::string& path, const std::string& text) {
+  std::ofstream file(path, std::ios::trunc);
+  file << text;
+  file.close();
+  if (!file) return absl::UnavailableError(absl::StrCat(path, ": write failed"));
+  return absl::OkStatus();
+}
+
 absl::Status Export(const Flags& flags, Context& ctx) {
   absl::StatusOr<pb::BoundingBox> box = ParseBbox(flags);
   if (!box.ok()) return box.status();
@@ -370,10 +378,7 @@ absl::Status Export(const Flags& flags, Context& ctx) {
     return absl::OkStatus();
   }
   const std::string path = flags.GetString("out", "");
-  std::ofstream file(path, std::ios::trunc);
-  file << text;
-  file.close();
-  if (!file) return absl::UnavailableError(absl::StrCat(path, ": write failed"));
+  if (absl::Status s = WriteTextFile(path, text); !s.ok()) return s;
   if (!ctx.json) *ctx.out << absl::StrFormat("wrote %d landmarks (map version %d) to %s\n", region->landmarks.size(), region->map_version, path);
   return absl::OkStatus();
 }
@@ -398,10 +403,7 @@ absl::Status Localize(const Flags& flags, Context& ctx) {
     return absl::OkStatus();
   }
   const std::string path = flags.GetString("out", "");
-  std::ofstream file(path, std::ios::trunc);
-  file << text;
-  file.close();
-  if (!file) return absl::UnavailableError(absl::StrCat(path, ": write failed"));
+  if (absl::Status s = WriteTextFile(path, text); !s.ok()) return s;
   *ctx.out << absl::StrFormat(
       "wrote %d poses to %s (map version %d, %d landmarks used, %d detections rejected, chi2 %.1f / %d dof)\n",
       response->poses_size(), path, response->map_version(), response->landmarks_used_size(),
