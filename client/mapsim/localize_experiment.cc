@@ -96,6 +96,7 @@ absl::Status LocalizeExperimentOptions::Validate() const {
     if (n < 1) return absl::InvalidArgumentError("landmarks: counts must be >= 1");
   }
   if (runs < 1) return absl::InvalidArgumentError("runs: must be >= 1");
+  if (gnss_fixes == 1 || gnss_fixes < 0) return absl::InvalidArgumentError("gnss_fixes: 0 or >= 2");
   if (!(duration_s > 10.0)) return absl::InvalidArgumentError("duration_s: must be > 10");
   for (int p : own_map_passages) {
     if (p < 1) return absl::InvalidArgumentError("own-map-passages: counts must be >= 1");
@@ -133,6 +134,10 @@ absl::StatusOr<std::vector<LocalizeRow>> RunLocalizeExperiment(const LocalizeExp
       so.seed = options.seed;
       so.duration_s = options.duration_s;
       so.repeat_route = true;
+      if (options.gnss_fixes > 0) {
+        so.gnss_rate_hz = (options.gnss_fixes - 1) / options.duration_s;
+        so.gnss_ar1_alpha = std::pow(so.gnss_ar1_alpha, 1.0 / so.gnss_rate_hz);
+      }
       absl::StatusOr<Scenario> scenario = Scenario::Create(so);
       if (!scenario.ok()) return scenario.status();
       std::optional<MapState> own;
@@ -183,10 +188,12 @@ absl::StatusOr<std::vector<LocalizeRow>> RunLocalizeExperiment(const LocalizeExp
 std::string LocalizeMarkdown(const LocalizeExperimentOptions& options, const std::vector<LocalizeRow>& rows) {
   auto value = [](double v) { return std::isnan(v) ? std::string("-") : absl::StrFormat("%.2f", v); };
   std::string out = absl::StrFormat(
-      "Mean pose distance error (m) over all poses of %d passages of %.0f s per cell (thesis: one passage), "
+      "Mean pose distance error (m) over all poses of %d passages of %.0f s (%s GNSS fixes) per cell (thesis: one "
+      "passage), "
       "thesis / ours; ratio = ours / thesis with the map; NEES = pose NEES/dof with the map; rejected = "
       "detections rejected per passage.\n\n",
-      options.runs, options.duration_s);
+      options.runs, options.duration_s,
+      options.gnss_fixes > 0 ? absl::StrCat(options.gnss_fixes) : absl::StrCat(static_cast<int>(options.duration_s) + 1));
   std::string header = "| configuration |", rule = "|---|";
   for (int n : options.landmark_counts) {
     header += absl::StrFormat(" N=%d without map | N=%d with map | ratio | NEES | rejected |", n, n);

@@ -142,6 +142,8 @@ localize flags:
   --landmarks LIST            landmark counts, comma-separated (default 44,500)
   --runs R                    passages (and generated maps) averaged per cell (default 10)
   --duration-s S              passage duration, s (default 340: 4 km at 12 m/s)
+  --gnss-fixes K              GNSS fixes per passage, as the thesis's 512 (rate and AR(1) coefficient
+                              per fix adjusted; 0 = the scenario's 1 Hz) (default 512)
   --own-map-passages LIST     also localise (ar1+yaw) against crowdmap's own map built from P
                               passages, for each P (comma-separated; default none)
   --seed S                    noise seed (default 1)
@@ -512,15 +514,17 @@ absl::StatusOr<std::vector<int>> ParseIntList(const std::string& flag, const std
 
 absl::Status RunLocalizeCommand(const std::vector<std::string>& args) {
   absl::StatusOr<Flags> flags =
-      Flags::Parse(args, {{"landmarks", true}, {"runs", true}, {"duration-s", true}, {"own-map-passages", true},
+      Flags::Parse(args, {{"landmarks", true}, {"runs", true}, {"duration-s", true}, {"own-map-passages", true}, {"gnss-fixes", true},
                           {"seed", true}, {"out", true}, {"quiet", false}});
   if (!flags.ok()) return flags.status();
   LocalizeExperimentOptions options;
   absl::StatusOr<std::vector<int>> landmarks = ParseIntList("landmarks", flags->GetString("landmarks", "44,500"));
   absl::StatusOr<std::vector<int>> own = ParseIntList("own-map-passages", flags->GetString("own-map-passages", ""));
-  absl::StatusOr<long long> runs = flags->GetInt("runs", options.runs), seed = flags->GetInt("seed", 1);
+  absl::StatusOr<long long> runs = flags->GetInt("runs", options.runs), seed = flags->GetInt("seed", 1),
+                            gnss_fixes = flags->GetInt("gnss-fixes", options.gnss_fixes);
   absl::StatusOr<double> duration = flags->GetDouble("duration-s", options.duration_s);
-  for (const absl::Status& s : {landmarks.status(), own.status(), runs.status(), seed.status(), duration.status()}) {
+  for (const absl::Status& s :
+       {landmarks.status(), own.status(), runs.status(), seed.status(), duration.status(), gnss_fixes.status()}) {
     if (!s.ok()) return s;
   }
   options.landmark_counts = *landmarks;
@@ -528,6 +532,7 @@ absl::Status RunLocalizeCommand(const std::vector<std::string>& args) {
   options.runs = static_cast<int>(*runs);
   options.seed = static_cast<uint64_t>(*seed);
   options.duration_s = *duration;
+  options.gnss_fixes = static_cast<int>(*gnss_fixes);
   const bool quiet = flags->Has("quiet");
   if (quiet) spdlog::set_level(spdlog::level::warn);
   absl::StatusOr<std::vector<LocalizeRow>> rows = RunLocalizeExperiment(options, [&](const std::string& what) {
