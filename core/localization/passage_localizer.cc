@@ -365,7 +365,8 @@ absl::StatusOr<PassageLocalization> LocalizePassage(const Passage& passage, cons
     problem = BuildProblem(*graph, passage, prior, detections, 0.0, /*joint_prior=*/true, &poses, &landmarks);
     if (absl::Status s = Solve(options, problem.problem.get(), &summary); !s.ok()) return s;
   }
-  absl::StatusOr<std::vector<Eigen::Matrix3d>> covariances = PoseCovariances(problem.problem.get(), &poses, &landmarks);
+  absl::StatusOr<std::vector<Eigen::Matrix3d>> covariances =
+      PoseCovariances(problem.problem.get(), &poses, &landmarks, correlated);
   if (!covariances.ok()) return covariances.status();
 
   out.chi2 = 2.0 * summary.final_cost;
