@@ -145,6 +145,8 @@ grpc::Status MapService::GetMapInfo(grpc::ServerContext* ctx, const pb::GetMapIn
   response->set_passages_applied(stats->passages_by_state[static_cast<int>(PassageState::kApplied)]);
   response->set_passages_rejected(stats->passages_by_state[static_cast<int>(PassageState::kRejected)]);
   response->set_passages_failed(stats->passages_by_state[static_cast<int>(PassageState::kFailed)]);
+  response->set_passages_quarantined(stats->passages_by_state[static_cast<int>(PassageState::kQuarantined)]);
+  response->set_passages_discarded(stats->passages_by_state[static_cast<int>(PassageState::kDiscarded)]);
   response->set_strategy(UpdateStrategyName(context_->update.strategy));
   response->set_warmup_passages(context_->update.warmup_passages);
   response->set_relinearize_until_passages(context_->update.relinearize_until_passages);

@@ -87,6 +87,8 @@ class MapService final : public MapServiceBase {
                           pb::MapInfo* response) override;
   grpc::Status ExcludePassage(grpc::ServerContext* ctx, const pb::ExcludePassageRequest* request,
                               pb::ExcludePassageResponse* response) override;
+  grpc::Status ResolvePassage(grpc::ServerContext* ctx, const pb::ResolvePassageRequest* request,
+                              pb::PassageStatus* response) override;
   grpc::Status GetLandmark(grpc::ServerContext* ctx, const pb::GetLandmarkRequest* request,
                            pb::GetLandmarkResponse* response) override;
   grpc::Status LocalizePassage(grpc::ServerContext* ctx, const pb::LocalizePassageRequest* request,

@@ -217,6 +217,11 @@ void MapWorker::Apply(const ClaimedPassage& claimed, const Passage& passage) {
     } else if (update.status().code() == absl::StatusCode::kInvalidArgument) {
       Finish(record, PassageState::kRejected, std::string(update.status().message()));
       return;
+    } else if (update.status().code() == absl::StatusCode::kFailedPrecondition) {
+      // The map's checks refused it (see ComputePassageUpdate): the same data would be refused
+      // again, so it waits for an operator (ResolvePassage) instead of being retried.
+      Finish(record, PassageState::kQuarantined, std::string(update.status().message()));
+      return;
     } else {
       error = update.status().ToString();
     }

@@ -16,7 +16,9 @@ namespace {
 const std::vector<std::string>& SettingNames() {
   static const std::vector<std::string> kNames = {
       "listen", "db", "strategy", "max-subgraph-dim", "window-hops", "warmup-passages", "relinearize-until-passages", "workers",
-      "retain-passages", "worker-nice", "max-queue", "max-message-mb", "max-passage-mb", "log-level"};
+      "retain-passages", "worker-nice", "max-queue", "max-message-mb", "max-passage-mb", "log-level",
+      "max-detection-residual-sigmas", "max-landmark-shift-sigmas", "max-new-landmark-ray-sigma-m",
+      "max-chi2-per-dof"};
   return kNames;
 }
 
@@ -61,6 +63,27 @@ absl::StatusOr<int64_t> ToInt(const std::string& name, const std::string& value)
   return v;
 }
 
+absl::StatusOr<double> ToDouble(const std::string& name, const std::string& value) {
+  double v = 0.0;
+  if (!absl::SimpleAtod(value, &v)) return absl::InvalidArgumentError(absl::StrCat("--", name, ": expected a number, got '", value, "'"));
+  return v;
+}
+
+// The settings of the map update's trust rules (MapUpdateOptions): true when `name` is one.
+absl::StatusOr<bool> SetTrustRule(const std::string& name, const std::string& value, MapUpdateOptions* update) {
+  if (name != "max-detection-residual-sigmas" && name != "max-landmark-shift-sigmas" &&
+      name != "max-new-landmark-ray-sigma-m" && name != "max-chi2-per-dof") {
+    return false;
+  }
+  absl::StatusOr<double> v = ToDouble(name, value);
+  if (!v.ok()) return v.status();
+  if (name == "max-detection-residual-sigmas") update->max_detection_residual_sigmas = *v;
+  if (name == "max-landmark-shift-sigmas") update->max_landmark_shift_mahalanobis2 = *v * *v;
+  if (name == "max-new-landmark-ray-sigma-m") update->max_new_landmark_ray_sigma_m = *v;
+  if (name == "max-chi2-per-dof") update->max_chi2_per_dof = *v;
+  return true;
+}
+
 }  // namespace
 
 std::string MapdUsage() {
@@ -96,6 +119,14 @@ Usage: mapd [--flag value | --flag=value]...
   --max-message-mb N          gRPC receive limit per message, MiB (default 4); larger passages
                               use UploadPassageChunked
   --max-passage-mb N          largest accepted passage, MiB (default 64)
+  --max-detection-residual-sigmas X  a detection whose residual at a subgraph's solution exceeds X
+                              pixel sigmas is set aside as an outlier (default 5; 0 = off)
+  --max-landmark-shift-sigmas X  a map landmark a subgraph's solve would move further than X of
+                              the map's sigmas is set aside for that passage (default 5; 0 = off)
+  --max-new-landmark-ray-sigma-m X  a new landmark is created only when its own rays fix it to X
+                              metres (default 3)
+  --max-chi2-per-dof X        refuse a passage when a subgraph's solve leaves chi2 above X per
+                              degree of freedom (default 0 = never; see README)
   --log-level LEVEL           trace | debug | info | warn | error | off (default info)
   --config PATH               settings file: "name = value" lines with the names above
   --help                      this text
@@ -157,6 +188,8 @@ absl::StatusOr<MapdConfig> ParseMapdConfig(const std::vector<std::string>& args,
       o.worker.update.strategy = *strategy;
     } else if (name == "log-level") {
       config.log_level = value;
+    } else if (absl::StatusOr<bool> rule = SetTrustRule(name, value, &o.worker.update); !rule.ok() || *rule) {
+      if (!rule.ok()) return rule.status();
     } else {
       auto v = ToInt(name, value);
       if (!v.ok()) return v.status();

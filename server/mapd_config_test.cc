@@ -78,3 +78,27 @@ TEST(MapdConfig, ReadsUpdateOptions) {
 
 }  // namespace
 }  // namespace crowdmap
+
+namespace crowdmap {
+namespace {
+
+TEST(MapdConfig, ReadsTheTrustRules) {
+  auto c = ParseMapdConfig({"--max-detection-residual-sigmas", "4", "--max-landmark-shift-sigmas=6",
+                            "--max-new-landmark-ray-sigma-m", "2.5"},
+                           FakeEnv({{"MAPD_MAX_CHI2_PER_DOF", "8"}}));
+  ASSERT_TRUE(c.ok()) << c.status();
+  const MapUpdateOptions& u = c->server.worker.update;
+  EXPECT_EQ(u.max_detection_residual_sigmas, 4.0);
+  EXPECT_EQ(u.max_landmark_shift_mahalanobis2, 36.0);
+  EXPECT_EQ(u.max_new_landmark_ray_sigma_m, 2.5);
+  EXPECT_EQ(u.max_chi2_per_dof, 8.0);
+  auto bad = ParseMapdConfig({"--max-detection-residual-sigmas", "many"}, FakeEnv({}));
+  ASSERT_FALSE(bad.ok());
+  EXPECT_NE(bad.status().message().find("max-detection-residual-sigmas"), std::string::npos) << bad.status();
+  auto negative = ParseMapdConfig({"--max-new-landmark-ray-sigma-m", "-1"}, FakeEnv({}));
+  ASSERT_FALSE(negative.ok());
+  EXPECT_NE(negative.status().message().find("max_new_landmark_ray_sigma_m"), std::string::npos) << negative.status();
+}
+
+}  // namespace
+}  // namespace crowdmap

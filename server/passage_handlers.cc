@@ -151,6 +151,31 @@ grpc::Status MapService::ExcludePassage(grpc::ServerContext* ctx, const pb::Excl
   return log.Done(absl::OkStatus());
 }
 
+grpc::Status MapService::ResolvePassage(grpc::ServerContext* ctx, const pb::ResolvePassageRequest* request,
+                                        pb::PassageStatus* response) {
+  RequestLog log("ResolvePassage", ctx);
+  const std::vector<PassageState> finished_badly = {PassageState::kFailed, PassageState::kQuarantined};
+  PassageState to;
+  switch (request->action()) {
+    case pb::ResolvePassageRequest::REQUEUE:
+      to = PassageState::kQueued;
+      break;
+    case pb::ResolvePassageRequest::DISCARD:
+      to = PassageState::kDiscarded;
+      break;
+    default:
+      return log.Done(absl::InvalidArgumentError("action: must be REQUEUE or DISCARD"));
+  }
+  absl::StatusOr<StoredPassage> record = FindRecord(request->id(), request->vehicle_id(), request->passage_id(), &log);
+  if (!record.ok()) return log.Done(record.status());
+  absl::StatusOr<StoredPassage> moved = context_->store->MovePassage(record->id, finished_badly, to);
+  if (!moved.ok()) return log.Done(moved.status());
+  if (to == PassageState::kQueued && context_->worker != nullptr) context_->worker->Wake();
+  StoredPassageToProto(*moved, response);
+  log.Add(absl::StrCat("state=", PassageStateName(moved->state)));
+  return log.Done(absl::OkStatus());
+}
+
 grpc::Status MapService::ListPassages(grpc::ServerContext* ctx, const pb::ListPassagesRequest* request,
                                       pb::ListPassagesResponse* response) {
   RequestLog log("ListPassages", ctx);

@@ -179,6 +179,8 @@ pb::PassageState PassageStateToProto(PassageState state) {
     case PassageState::kRejected: return pb::PASSAGE_STATE_REJECTED;
     case PassageState::kFailed: return pb::PASSAGE_STATE_FAILED;
     case PassageState::kExcluded: return pb::PASSAGE_STATE_EXCLUDED;
+    case PassageState::kQuarantined: return pb::PASSAGE_STATE_QUARANTINED;
+    case PassageState::kDiscarded: return pb::PASSAGE_STATE_DISCARDED;
   }
   return pb::PASSAGE_STATE_UNSPECIFIED;
 }
@@ -192,6 +194,8 @@ absl::StatusOr<std::optional<PassageState>> PassageStateFromProto(pb::PassageSta
     case pb::PASSAGE_STATE_REJECTED: return std::optional<PassageState>(PassageState::kRejected);
     case pb::PASSAGE_STATE_FAILED: return std::optional<PassageState>(PassageState::kFailed);
     case pb::PASSAGE_STATE_EXCLUDED: return std::optional<PassageState>(PassageState::kExcluded);
+    case pb::PASSAGE_STATE_QUARANTINED: return std::optional<PassageState>(PassageState::kQuarantined);
+    case pb::PASSAGE_STATE_DISCARDED: return std::optional<PassageState>(PassageState::kDiscarded);
     default: return Invalid("state", absl::StrCat("unknown passage state ", static_cast<int>(state)));
   }
 }

@@ -335,6 +335,50 @@ TEST_F(ServiceRpc, PassagesBeyondTheRetentionAreFoldedIntoTheBase) {
   EXPECT_EQ(info->factor_count(), retained) << "passage 4 excluded, 3 and 5 retained";
 }
 
+TEST_F(ServiceRpc, RefusedPassagesAreQuarantinedThenRequeuedOrDiscardedByAnOperator) {
+  MapServerOptions options = TestServerOptions(dir_.File("map.db"), true);
+  options.worker.update.max_chi2_per_dof = 1e-3;  // every honest solve leaves about 1: all refused
+  server_ = StartTestServer(options);
+  ASSERT_NE(server_, nullptr);
+  client_ = std::make_unique<MockVehicle>(server_->address());
+  const Passage passage = scenario_.MakePassage(0);
+  MustUpload(passage);
+  absl::StatusOr<pb::MapInfo> info = client_->WaitUntilIdle();
+  ASSERT_TRUE(info.ok()) << info.status();
+  EXPECT_EQ(info->passages_quarantined(), 1);
+  EXPECT_EQ(info->landmark_count(), 0) << "the map is unchanged";
+  absl::StatusOr<pb::PassageStatus> status = client_->GetPassage(passage.vehicle_id, passage.passage_id);
+  ASSERT_TRUE(status.ok());
+  EXPECT_EQ(status->state(), pb::PASSAGE_STATE_QUARANTINED);
+  EXPECT_NE(status->error().find("inconsistent"), std::string::npos) << status->error();
+
+  const PassageKey key{0, passage.vehicle_id, passage.passage_id};
+  absl::StatusOr<pb::PassageStatus> requeued = client_->client()->ResolvePassage(key, pb::ResolvePassageRequest::REQUEUE);
+  ASSERT_TRUE(requeued.ok()) << requeued.status();
+  EXPECT_EQ(requeued->state(), pb::PASSAGE_STATE_QUEUED);
+  EXPECT_EQ(requeued->attempts(), 0);
+  info = client_->WaitUntilIdle();
+  ASSERT_TRUE(info.ok());
+  EXPECT_EQ(info->passages_quarantined(), 1) << "the same checks refuse it again";
+
+  absl::StatusOr<pb::PassageStatus> discarded =
+      client_->client()->ResolvePassage(PassageKey{status->id(), "", ""}, pb::ResolvePassageRequest::DISCARD);
+  ASSERT_TRUE(discarded.ok()) << discarded.status();
+  EXPECT_EQ(discarded->state(), pb::PASSAGE_STATE_DISCARDED);
+  info = client_->client()->GetMapInfo();
+  ASSERT_TRUE(info.ok());
+  EXPECT_EQ(info->passages_quarantined(), 0);
+  EXPECT_EQ(info->passages_discarded(), 1);
+
+  EXPECT_EQ(client_->client()->ResolvePassage(key, pb::ResolvePassageRequest::REQUEUE).status().code(),
+            absl::StatusCode::kFailedPrecondition)
+      << "a discarded passage stays discarded";
+  EXPECT_EQ(client_->client()->ResolvePassage(key, pb::ResolvePassageRequest::ACTION_UNSPECIFIED).status().code(),
+            absl::StatusCode::kInvalidArgument);
+  EXPECT_EQ(client_->client()->ResolvePassage(PassageKey{999, "", ""}, pb::ResolvePassageRequest::DISCARD).status().code(),
+            absl::StatusCode::kNotFound);
+}
+
 TEST_F(ServiceRpc, GetTileReturnsItsLandmarksAndVersion) {
   Start(true);
   MustUpload(scenario_.MakePassage(0));

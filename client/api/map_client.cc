@@ -142,6 +142,20 @@ absl::StatusOr<pb::ExcludePassageResponse> MapClient::ExcludePassage(const Passa
   return response;
 }
 
+absl::StatusOr<pb::PassageStatus> MapClient::ResolvePassage(const PassageKey& key,
+                                                           pb::ResolvePassageRequest::Action action) {
+  grpc::ClientContext ctx;
+  SetDeadline(&ctx);
+  pb::ResolvePassageRequest request;
+  request.set_id(key.id);
+  request.set_vehicle_id(key.vehicle_id);
+  request.set_passage_id(key.passage_id);
+  request.set_action(action);
+  pb::PassageStatus response;
+  if (absl::Status s = FromGrpcStatus(stub_->ResolvePassage(&ctx, request, &response)); !s.ok()) return s;
+  return response;
+}
+
 absl::StatusOr<pb::PassageStatus> MapClient::GetPassage(const std::string& vehicle_id,
                                                        const std::string& passage_id) {
   grpc::ClientContext ctx;

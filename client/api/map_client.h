@@ -67,6 +67,8 @@ class MapClient {
   absl::StatusOr<pb::LocalizePassageResponse> LocalizePassage(const pb::Passage& passage);
   // Takes an applied passage out of the map (administration).
   absl::StatusOr<pb::ExcludePassageResponse> ExcludePassage(const PassageKey& key);
+  // An operator's decision on a failed or quarantined passage (ResolvePassage).
+  absl::StatusOr<pb::PassageStatus> ResolvePassage(const PassageKey& key, pb::ResolvePassageRequest::Action action);
   absl::StatusOr<pb::PassageStatus> GetPassage(const std::string& vehicle_id, const std::string& passage_id);
   // Every passage (all pages) in `state`; nullopt = all states.
   absl::StatusOr<std::vector<pb::PassageStatus>> ListPassages(std::optional<pb::PassageState> state);

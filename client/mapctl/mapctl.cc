@@ -33,10 +33,13 @@ Commands:
   upload FILE...                 upload passage files (protobuf JSON or binary mapservice.v1.Passage)
   status ID                      one passage: server id, or VEHICLE/PASSAGE_ID
   passages [--state S]           uploaded passages; S = queued | processing | applied | rejected | failed
-                                 | excluded
+                                 | excluded | quarantined | discarded
   landmark ID                    one landmark and the passages that shaped it
   exclude ID                     take an applied passage out of the map (server id, or
                                  VEHICLE/PASSAGE_ID): the map becomes what it would be without it
+  requeue ID                     put a failed or quarantined passage back in the queue (its
+                                 attempts cleared; the map's checks apply again)
+  discard ID                     mark a failed or quarantined passage discarded: never applied
   info                           map version, landmark and queue counts, strategy
   tile Z X Y                     landmarks of one z16 tile
   region --bbox MINLON,MINLAT,MAXLON,MAXLAT
@@ -84,17 +87,21 @@ std::string StateName(pb::PassageState state) {
     case pb::PASSAGE_STATE_REJECTED: return "rejected";
     case pb::PASSAGE_STATE_FAILED: return "failed";
     case pb::PASSAGE_STATE_EXCLUDED: return "excluded";
+    case pb::PASSAGE_STATE_QUARANTINED: return "quarantined";
+    case pb::PASSAGE_STATE_DISCARDED: return "discarded";
     default: return "unspecified";
   }
 }
 
 absl::StatusOr<pb::PassageState> ParseState(const std::string& name) {
   for (pb::PassageState s : {pb::PASSAGE_STATE_QUEUED, pb::PASSAGE_STATE_PROCESSING, pb::PASSAGE_STATE_APPLIED,
-                             pb::PASSAGE_STATE_REJECTED, pb::PASSAGE_STATE_FAILED, pb::PASSAGE_STATE_EXCLUDED}) {
+                             pb::PASSAGE_STATE_REJECTED, pb::PASSAGE_STATE_FAILED, pb::PASSAGE_STATE_EXCLUDED,
+                             pb::PASSAGE_STATE_QUARANTINED, pb::PASSAGE_STATE_DISCARDED}) {
     if (StateName(s) == name) return s;
   }
-  return absl::InvalidArgumentError(
-      absl::StrCat("--state: '", name, "' is not queued, processing, applied, rejected or failed"));
+  return absl::InvalidArgumentError(absl::StrCat(
+      "--state: '", name,
+      "' is not queued, processing, applied, rejected, failed, excluded, quarantined or discarded"));
 }
 
 std::string FormatTime(int64_t unix_ms) {
@@ -248,6 +255,29 @@ absl::Status Exclude(const Flags& flags, Context& ctx) {
   return absl::OkStatus();
 }
 
+// requeue ID / discard ID: an operator's decision on a failed or quarantined passage.
+absl::Status Resolve(const char* command, pb::ResolvePassageRequest::Action action, const Flags& flags, Context& ctx) {
+  absl::StatusOr<PassageKey> key = PassageArgument(command, flags);
+  if (!key.ok()) return key.status();
+  absl::StatusOr<pb::PassageStatus> status = ctx.client->ResolvePassage(*key, action);
+  if (!status.ok()) return status.status();
+  if (ctx.json) {
+    *ctx.out << ToJson(*status);
+    return absl::OkStatus();
+  }
+  *ctx.out << absl::StrFormat("passage %d (%s/%s) is now %s\n", status->id(), status->vehicle_id(), status->passage_id(),
+                              StateName(status->state()));
+  return absl::OkStatus();
+}
+
+absl::Status Requeue(const Flags& flags, Context& ctx) {
+  return Resolve("requeue", pb::ResolvePassageRequest::REQUEUE, flags, ctx);
+}
+
+absl::Status Discard(const Flags& flags, Context& ctx) {
+  return Resolve("discard", pb::ResolvePassageRequest::DISCARD, flags, ctx);
+}
+
 absl::Status Passages(const Flags& flags, Context& ctx) {
   std::optional<pb::PassageState> state;
   if (flags.Has("state")) {
@@ -281,11 +311,13 @@ absl::Status Info(const Flags& flags, Context& ctx) {
       "map version:       %d\nlandmarks:         %d\nfactors:           %d\nstrategy:          %s "
       "(warm-up %d passages, re-solved at each doubling up to %d, subgraph dim %d, "
       "window %d links%s)\n"
-      "queue depth:       %d\npassages:          queued=%d processing=%d applied=%d rejected=%d failed=%d\n",
+      "queue depth:       %d\npassages:          queued=%d processing=%d applied=%d rejected=%d failed=%d "
+      "quarantined=%d discarded=%d\n",
       info->map_version(), info->landmark_count(), info->factor_count(), info->strategy(),
       info->warmup_passages(), info->relinearize_until_passages(), info->max_subgraph_dim(),
       info->window_hops(), info->window_hops() == 0 ? ": whole map" : "", info->queue_depth(), info->passages_queued(), info->passages_processing(),
-      info->passages_applied(), info->passages_rejected(), info->passages_failed());
+      info->passages_applied(), info->passages_rejected(), info->passages_failed(), info->passages_quarantined(),
+      info->passages_discarded());
   return absl::OkStatus();
 }
 
@@ -423,6 +455,8 @@ const std::map<std::string, CommandSpec>& Commands() {
       {"upload", {&Upload, {}}},
       {"status", {&Status, {}}},
       {"exclude", {&Exclude, {}}},
+      {"requeue", {&Requeue, {}}},
+      {"discard", {&Discard, {}}},
       {"landmark", {&LandmarkCommand, {}}},
       {"passages", {&Passages, {{"state", true}}}},
       {"info", {&Info, {}}},

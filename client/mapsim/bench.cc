@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <atomic>
+#include <chrono>
 #include <limits>
 #include <mutex>
 #include <thread>
@@ -28,12 +29,13 @@ LatencyStats Stats(std::vector<double> ms) {
   auto at = [&](double q) { return ms[std::min(ms.size() - 1, static_cast<size_t>(q * (ms.size() - 1) + 0.5))]; };
   s.p50_ms = at(0.50);
   s.p99_ms = at(0.99);
+  s.max_ms = ms.back();
   return s;
 }
 
-pb::BoundingBox RouteBox(const Scenario& scenario) {
+pb::BoundingBox RouteBox(const std::vector<TruthLandmark>& landmarks) {
   double min_lat = std::numeric_limits<double>::infinity(), min_lon = min_lat, max_lat = -min_lat, max_lon = -min_lat;
-  for (const TruthLandmark& l : scenario.landmarks()) {
+  for (const TruthLandmark& l : landmarks) {
     min_lat = std::min(min_lat, l.position.lat_deg);
     max_lat = std::max(max_lat, l.position.lat_deg);
     min_lon = std::min(min_lon, l.position.lon_deg);
@@ -63,20 +65,46 @@ absl::Status BenchOptions::Validate() const {
     return absl::InvalidArgumentError("need clients >= 1, readers >= 0, passages >= 1");
   }
   if (!(read_seconds > 0)) return absl::InvalidArgumentError("read_seconds: must be > 0");
+  if (!(upload_rate_per_s >= 0)) return absl::InvalidArgumentError("upload_rate_per_s: must be >= 0 (0 = unpaced)");
+  if (city) {
+    if (absl::Status s = city_scenario.Validate(); !s.ok()) return s;
+  }
   return absl::OkStatus();
 }
 
 std::string BenchResult::Brief() const {
   return absl::StrFormat(
-      "passages=%d uploads_per_s=%.1f applied_per_s=%.1f read_s=%.2f query_region_p50_ms=%.2f query_region_p99_ms=%.2f "
+      "passages=%d uploads_per_s=%.1f ack_p50_ms=%.2f ack_p99_ms=%.2f ack_max_ms=%.2f applied_per_s=%.1f read_s=%.2f query_region_p50_ms=%.2f query_region_p99_ms=%.2f "
       "query_region_calls=%d get_tile_p50_ms=%.2f get_tile_p99_ms=%.2f get_tile_calls=%d landmarks_in_box=%d",
-      passages, uploads_per_s, applied_per_s, read_s, query_region.p50_ms, query_region.p99_ms, query_region.calls,
+      passages, uploads_per_s, ack.p50_ms, ack.p99_ms, ack.max_ms, applied_per_s, read_s, query_region.p50_ms, query_region.p99_ms, query_region.calls,
       get_tile.p50_ms, get_tile.p99_ms, get_tile.calls, landmarks_in_box);
+}
+
+// The benchmark's passages and the landmarks they see: the loop's or the city's.
+struct BenchScenario {
+  std::vector<Passage> passages;
+  std::vector<TruthLandmark> landmarks;
+};
+
+absl::StatusOr<BenchScenario> MakeBenchScenario(const BenchOptions& options) {
+  BenchScenario out;
+  if (options.city) {
+    absl::StatusOr<CityScenario> city = CityScenario::Create(options.city_scenario);
+    if (!city.ok()) return city.status();
+    for (int i = 0; i < options.passages; ++i) out.passages.push_back(city->MakePassage(i));
+    out.landmarks = city->landmarks();
+    return out;
+  }
+  absl::StatusOr<Scenario> loop = Scenario::Create(options.scenario);
+  if (!loop.ok()) return loop.status();
+  for (int i = 0; i < options.passages; ++i) out.passages.push_back(loop->MakePassage(i));
+  out.landmarks = loop->landmarks();
+  return out;
 }
 
 absl::StatusOr<BenchResult> RunBench(const BenchOptions& options) {
   if (absl::Status s = options.Validate(); !s.ok()) return s;
-  absl::StatusOr<Scenario> scenario = Scenario::Create(options.scenario);
+  absl::StatusOr<BenchScenario> scenario = MakeBenchScenario(options);
   if (!scenario.ok()) return scenario.status();
   absl::StatusOr<std::unique_ptr<MapClient>> control = Connect(options.server);
   if (!control.ok()) return control.status();
@@ -88,27 +116,40 @@ absl::StatusOr<BenchResult> RunBench(const BenchOptions& options) {
   const std::string tag = absl::StrCat("bench-", absl::ToUnixMillis(absl::Now()));
   std::vector<pb::Passage> wire(options.passages);
   for (int i = 0; i < options.passages; ++i) {
-    PassageToProto(scenario->MakePassage(i), &wire[i]);
+    PassageToProto(scenario->passages[i], &wire[i]);
     wire[i].set_passage_id(absl::StrCat(tag, "-", i));
   }
+  scenario->passages.clear();
 
   BenchResult result;
   result.passages = options.passages;
   std::atomic<int> next{0};
   std::mutex mu;
   absl::Status error;
+  std::vector<double> ack_ms;
   const Clock::time_point t0 = Clock::now();
   std::vector<std::thread> uploaders;
   for (int k = 0; k < options.clients; ++k) {
     uploaders.emplace_back([&] {
       absl::StatusOr<std::unique_ptr<MapClient>> client = Connect(options.server);
+      std::vector<double> mine;
       for (int i = next++; client.ok() && i < options.passages; i = next++) {
+        if (options.upload_rate_per_s > 0.0) {
+          std::this_thread::sleep_until(t0 + std::chrono::microseconds(
+                                                 static_cast<int64_t>(1e6 * i / options.upload_rate_per_s)));
+        }
+        const Clock::time_point sent = Clock::now();
         absl::StatusOr<pb::UploadPassageResponse> r = (*client)->Upload(wire[i]);
         if (!r.ok()) {
           std::lock_guard<std::mutex> lock(mu);
           if (error.ok()) error = r.status();
           return;
         }
+        mine.push_back(Ms(sent, Clock::now()));
+      }
+      {
+        std::lock_guard<std::mutex> lock(mu);
+        ack_ms.insert(ack_ms.end(), mine.begin(), mine.end());
       }
       if (!client.ok()) {
         std::lock_guard<std::mutex> lock(mu);
@@ -121,10 +162,11 @@ absl::StatusOr<BenchResult> RunBench(const BenchOptions& options) {
   if (!error.ok()) return error;
   result.upload_s = Ms(t0, t_uploaded) / 1000.0;
   result.uploads_per_s = options.passages / result.upload_s;
+  result.ack = Stats(ack_ms);
 
-  const pb::BoundingBox box = RouteBox(*scenario);
+  const pb::BoundingBox box = RouteBox(scenario->landmarks);
   std::vector<TileId> tiles;
-  for (const TruthLandmark& l : scenario->landmarks()) tiles.push_back(TileContaining(l.position));
+  for (const TruthLandmark& l : scenario->landmarks) tiles.push_back(TileContaining(l.position));
   std::vector<double> region_ms, tile_ms;
   std::atomic<bool> stop{false};
   std::vector<std::thread> readers;

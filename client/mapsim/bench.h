@@ -4,6 +4,7 @@
 #include <string>
 
 #include "absl/status/statusor.h"
+#include "core/sim/city_scenario.h"
 #include "core/sim/scenario.h"
 
 namespace crowdmap {
@@ -16,6 +17,13 @@ namespace crowdmap {
 struct BenchOptions {
   std::string server = "127.0.0.1:50051";
   ScenarioOptions scenario;
+  // City passages (CityScenario) instead of the loop's; the read box is then the whole city.
+  bool city = false;
+  CityScenarioOptions city_scenario;
+  // Uploads per second over all clients, 0 = as fast as acknowledgements come back. A paced run
+  // spreads the uploads over the worker's commits, so that acknowledgements are measured while
+  // the map is being updated.
+  double upload_rate_per_s = 0.0;
   int clients = 8;
   int passages = 400;
   int readers = 8;
@@ -28,12 +36,14 @@ struct LatencyStats {
   int64_t calls = 0;
   double p50_ms = 0.0;
   double p99_ms = 0.0;
+  double max_ms = 0.0;
 };
 
 struct BenchResult {
   int passages = 0;
   double upload_s = 0.0;
   double uploads_per_s = 0.0;  // durable acknowledgements per second, K concurrent clients
+  LatencyStats ack;            // one upload's acknowledgement
   double apply_s = 0.0;        // first upload to the queue drained
   double applied_per_s = 0.0;  // passages finished by the worker per second over apply_s
   double read_s = 0.0;         // length of the read phase

@@ -48,15 +48,18 @@ absl::Status CityExperimentOptions::Validate() const {
         absl::StrCat("progress_every_passages: must be >= 1, got ", progress_every_passages));
   }
   if (absl::Status s = city.Validate(); !s.ok()) return s;
+  if (absl::Status s = faults.Validate(); !s.ok()) return s;
   return update.Validate();
 }
 
 std::string CityExperimentResult::Brief() const {
   return absl::StrFormat(
-      "layout_landmarks=%d landmarks_mapped=%d passages=%d failed=%d relinearized=%d mean_error_m=%.4f "
-      "median_error_m=%.4f p95_error_m=%.4f nees_per_dof=%.3f p50_ms=%.1f p95_ms=%.1f",
-      layout_landmarks, errors.size(), passages, failed_passages, relinearized_passages, mean_error_m, median_error_m,
-      p95_error_m, nees_per_dof, p50_ms, p95_ms);
+      "layout_landmarks=%d landmarks_mapped=%d passages=%d failed=%d (faulty %d, clean %d) faulty=%d "
+      "relinearized=%d inflated=%d held_back=%d disagreeing=%d mean_error_m=%.4f median_error_m=%.4f "
+      "p95_error_m=%.4f nees_per_dof=%.3f p50_ms=%.1f p95_ms=%.1f",
+      layout_landmarks, errors.size(), passages, failed_passages, failed_faulty_passages, failed_clean_passages,
+      faulty_passages, relinearized_passages, inflated_passages, landmarks_held_back, landmarks_disagreeing,
+      mean_error_m, median_error_m, p95_error_m, nees_per_dof, p50_ms, p95_ms);
 }
 
 std::vector<CityLandmarkError> CityMapErrors(const MapState& map, const CityScenario& city) {
@@ -96,22 +99,38 @@ absl::StatusOr<CityExperimentResult> RunCityExperiment(const CityExperimentOptio
   MapState map;
   MapUpdater updater(options.update);
   std::map<MapUpdater::PassageKey, int> index_of;
+  const auto make_passage = [&](int index, InjectedFaults* faults) {
+    Passage passage = city->MakePassage(index);
+    const InjectedFaults injected = InjectFaults(options.faults, index, city->frame(), &passage);
+    if (faults != nullptr) *faults = injected;
+    return passage;
+  };
   const auto passage_of = [&](const MapUpdater::PassageKey& key) -> absl::StatusOr<Passage> {
     const auto it = index_of.find(key);
     if (it == index_of.end()) return absl::NotFoundError("passage not applied");
-    return city->MakePassage(it->second);
+    return make_passage(it->second, nullptr);
   };
   for (int i = 0; i < options.passages; ++i) {
-    const Passage passage = city->MakePassage(i);
+    InjectedFaults faults;
+    const Passage passage = make_passage(i, &faults);
+    result.faulty_passages += faults.any() ? 1 : 0;
+    result.mislabelled_detections += faults.mislabelled_detections;
+    result.multipath_passages += faults.multipath ? 1 : 0;
+    result.overconfident_passages += faults.overconfident ? 1 : 0;
+    result.bad_calibration_passages += faults.bad_calibration ? 1 : 0;
     const auto start = std::chrono::steady_clock::now();
     absl::StatusOr<PassageUpdate> update = updater.Compute(passage, map);
     if (update.ok()) {
       map.Apply(update->delta);
       updater.Applied(passage, update->delta);
       index_of[{passage.vehicle_id, passage.passage_id}] = i;
+      result.landmarks_held_back += update->summary.landmarks_held_back;
+      result.landmarks_disagreeing += update->summary.landmarks_disagreeing;
+      result.inflated_passages += update->summary.max_variance_factor > 1.0 ? 1 : 0;
       result.relinearized_passages += RelinearizeStaleInMemory(passage_of, &updater, &map);
     } else {
       ++result.failed_passages;
+      ++(faults.any() ? result.failed_faulty_passages : result.failed_clean_passages);
       spdlog::warn("passage={} rejected: {}", passage.passage_id, update.status().ToString());
     }
     result.passage_ms.push_back(std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count());
@@ -168,6 +187,19 @@ absl::Status WriteCityOutputs(const CityExperimentOptions& options, const CityEx
        << absl::StrFormat("  \"passages\": %d,\n", result.passages)
        << absl::StrFormat("  \"passages_failed\": %d,\n", result.failed_passages)
        << absl::StrFormat("  \"passages_relinearized\": %d,\n", result.relinearized_passages)
+       << absl::StrFormat("  \"passages_inflated\": %d,\n", result.inflated_passages)
+       << absl::StrFormat("  \"landmarks_held_back\": %d,\n", result.landmarks_held_back)
+       << absl::StrFormat("  \"landmarks_disagreeing\": %d,\n", result.landmarks_disagreeing)
+       << absl::StrFormat("  \"faults\": {\"seed\": %d, \"mislabel_rate\": %g, \"multipath_rate\": %g, "
+                          "\"overconfident_rate\": %g, \"bad_calibration_rate\": %g,\n", options.faults.seed,
+                          options.faults.mislabel_rate, options.faults.multipath_rate, options.faults.overconfident_rate,
+                          options.faults.bad_calibration_rate)
+       << absl::StrFormat("    \"faulty_passages\": %d, \"mislabelled_detections\": %d, \"multipath_passages\": %d, "
+                          "\"overconfident_passages\": %d, \"bad_calibration_passages\": %d,\n",
+                          result.faulty_passages, result.mislabelled_detections, result.multipath_passages,
+                          result.overconfident_passages, result.bad_calibration_passages)
+       << absl::StrFormat("    \"failed_faulty_passages\": %d, \"failed_clean_passages\": %d},\n",
+                          result.failed_faulty_passages, result.failed_clean_passages)
        << absl::StrFormat("  \"relinearize_sigmas\": %g,\n", options.update.relinearize_sigmas)
        << "  \"nees_per_dof\": " << JsonNumber(result.nees_per_dof) << ",\n"
        << absl::StrFormat("  \"landmarks_in_layout\": %d,\n", result.layout_landmarks)

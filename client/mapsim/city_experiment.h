@@ -10,6 +10,7 @@
 #include "absl/status/statusor.h"
 #include "core/estimation/map_updater.h"
 #include "core/sim/city_scenario.h"
+#include "core/sim/faults.h"
 
 namespace crowdmap {
 
@@ -18,6 +19,7 @@ struct CityExperimentOptions {
   CityScenarioOptions city;
   int passages = 200;
   MapUpdateOptions update;
+  FaultOptions faults;               // injected into the passages (none by default)
   int progress_every_passages = 10;  // progress callback period
 
   absl::Status Validate() const;
@@ -51,6 +53,17 @@ struct CityExperimentResult {
   int passages = 0;
   int failed_passages = 0;  // refused by the estimator (the map is unchanged by them)
   int relinearized_passages = 0;  // re-linearisations applied (MapUpdateOptions::relinearize_sigmas)
+  // Injected faults (FaultOptions) and what the estimator made of them.
+  int faulty_passages = 0;       // with at least one fault
+  int failed_faulty_passages = 0;
+  int failed_clean_passages = 0;  // refused although nothing was injected: false refusals
+  int mislabelled_detections = 0;
+  int multipath_passages = 0;
+  int overconfident_passages = 0;
+  int bad_calibration_passages = 0;
+  int landmarks_held_back = 0;   // summed over the passages (PassageUpdateSummary)
+  int landmarks_disagreeing = 0;
+  int inflated_passages = 0;     // whose consistency test scaled their covariances
   std::vector<double> passage_ms;         // wall time of each passage: simulation excluded
   std::vector<CityLandmarkError> errors;  // the final map's landmarks, by id
   double mean_error_m = 0.0;

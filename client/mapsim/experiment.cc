@@ -2,8 +2,9 @@
 
 #include <algorithm>
 #include <chrono>
-#include <map>
 #include <cmath>
+#include <map>
+#include <optional>
 #include <filesystem>
 #include <fstream>
 #include <numeric>
@@ -14,6 +15,7 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
 #include "client/mapsim/svg_plot.h"
+#include "core/estimation/cramer_rao.h"
 #include "core/estimation/triangulation.h"
 
 namespace crowdmap {
@@ -96,6 +98,37 @@ absl::StatusOr<std::vector<int>> ReadOrderFile(const std::string& path) {
   return order;
 }
 
+absl::StatusOr<double> LoopCramerRaoMeanError(const Scenario& scenario, const std::vector<int>& indices,
+                                              const GraphOptions& graph, const std::function<void(int, double)>& progress) {
+  GraphOptions options = graph;
+  options.frame_origin = scenario.options().origin;
+  const auto true_pose = [&](double t) { return scenario.TruePoseAt(t); };
+  const auto true_landmark = [&](LandmarkId id) -> std::optional<Eigen::Vector2d> {
+    if (id < 1 || id > static_cast<LandmarkId>(scenario.landmarks().size())) return std::nullopt;
+    return scenario.landmarks()[id - 1].position_m;
+  };
+  CramerRaoBound bound;
+  const auto mean_error = [&]() -> absl::StatusOr<double> {
+    absl::StatusOr<std::map<LandmarkId, Eigen::Matrix2d>> cov = bound.Covariances();
+    if (!cov.ok()) return cov.status();
+    double sum = 0.0;
+    for (const auto& [id, c] : *cov) sum += ExpectedDistance(c);
+    return cov->empty() ? 0.0 : sum / cov->size();
+  };
+  for (size_t k = 0; k < indices.size(); ++k) {
+    absl::StatusOr<PassageFisherInformation> info =
+        PassageLandmarkInformation(scenario.MakePassage(indices[k]), options, true_pose, true_landmark);
+    if (!info.ok()) return info.status();
+    bound.Add(*info);
+    if (progress) {
+      absl::StatusOr<double> now = mean_error();
+      if (!now.ok()) return now.status();
+      progress(static_cast<int>(k) + 1, *now);
+    }
+  }
+  return mean_error();
+}
+
 absl::StatusOr<ExperimentResult> RunExperiment(const ExperimentOptions& options, const ExperimentProgress& progress) {
   if (absl::Status s = options.Validate(); !s.ok()) return s;
   absl::StatusOr<Scenario> scenario = Scenario::Create(options.scenario);
@@ -160,6 +193,15 @@ absl::StatusOr<ExperimentResult> RunExperiment(const ExperimentOptions& options,
   result.final_mean_dist_err_m = result.records.back().metrics.mean_dist_err_m;
   result.nees_per_dof_sd_if_consistent = NeesPerDofSdIfConsistent(result.final_map, scenario->landmarks());
   result.median_passage_ms = Median(times);
+  if (options.crlb) {
+    std::vector<int> indices(options.passages);
+    for (int i = 0; i < options.passages; ++i) indices[i] = options.order.empty() ? i : options.order[i];
+    GraphOptions graph;
+    graph.detections_per_landmark = update.detections_per_landmark;
+    absl::StatusOr<double> bound = LoopCramerRaoMeanError(*scenario, indices, graph);
+    if (!bound.ok()) return bound.status();
+    result.crlb_mean_dist_err_m = *bound;
+  }
   return result;
 }
 
@@ -229,6 +271,8 @@ absl::Status WriteExperimentOutputs(const ExperimentOptions& options, const Expe
        << "  \"final_nees_per_dof\": " << JsonNumber(result.final_nees_per_dof) << ",\n"
        << "  \"final_joint_nees_per_dof\": " << JsonNumber(result.final_joint_nees_per_dof) << ",\n"
        << "  \"nees_per_dof_sd_if_consistent\": " << JsonNumber(result.nees_per_dof_sd_if_consistent) << ",\n"
+       << "  \"crlb_mean_dist_err_m\": " << JsonNumber(result.crlb_mean_dist_err_m) << ",\n"
+       << "  \"error_over_crlb\": " << JsonNumber(result.final_mean_dist_err_m / result.crlb_mean_dist_err_m) << ",\n"
        << "  \"median_passage_ms\": " << JsonNumber(result.median_passage_ms);
   for (const auto& [key, value] : extra_summary) json << ",\n  \"" << key << "\": " << JsonNumber(value);
   json << "\n}\n";

@@ -2,10 +2,12 @@
 #define CROWDMAP_CLIENT_MAPSIM_EXPERIMENT_H_
 
 #include <functional>
+#include <limits>
 #include <string>
 #include <vector>
 
 #include "absl/status/statusor.h"
+#include "core/estimation/graph_builder.h"
 #include "core/estimation/map_updater.h"
 #include "core/map/map_state.h"
 #include "core/sim/metrics.h"
@@ -23,6 +25,8 @@ struct ExperimentOptions {
   // Scenario passage indices in the order they are applied (a permutation of 0..passages-1,
   // e.g. the order in which a server received them); empty = 0, 1, ..., passages-1.
   std::vector<int> order;
+  // Compute the Cramer-Rao bound of the same passages (LoopCramerRaoMeanError) for summary.json.
+  bool crlb = true;
 
   absl::Status Validate() const;
 };
@@ -49,6 +53,9 @@ struct ExperimentResult {
   int relinearized_passages = 0;    // re-linearisations applied (MapUpdateOptions::relinearize_sigmas)
   int inflated_passages = 0;        // passages whose measurement covariances the consistency test inflated
   int joint_rejected_passages = 0;  // warm-up passages applied sequentially: the joint solve was not usable
+  // The Cramer-Rao bound on the mean distance error after the last passage (NaN when not computed
+  // or not defined), with white noise the floor of final_mean_dist_err_m.
+  double crlb_mean_dist_err_m = std::numeric_limits<double>::quiet_NaN();
 };
 
 // Called after each passage with the record; used for progress output.
@@ -57,6 +64,13 @@ using ExperimentProgress = std::function<void(const PassageRecord&)>;
 // 0..passages-1 with the passages from `from` on shuffled within consecutive groups of `window`
 // (as concurrent vehicles would reorder them); deterministic for a given seed. window <= 1 keeps
 // the order.
+// The Cramer-Rao bound on the mean distance error of the map built from `scenario`'s passages
+// `indices` (mean over the landmarks seen of the bound's expected distance; see cramer_rao.h), and
+// `progress` called with the bound after each passage's information is added, if given.
+absl::StatusOr<double> LoopCramerRaoMeanError(const Scenario& scenario, const std::vector<int>& indices,
+                                              const GraphOptions& graph,
+                                              const std::function<void(int, double)>& progress = nullptr);
+
 std::vector<int> ShuffledOrder(int passages, int window, int from, uint64_t seed);
 
 // An order file holds one scenario passage index per line (e.g. the arrival order of a

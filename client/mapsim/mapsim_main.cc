@@ -4,6 +4,7 @@
 #include <filesystem>
 #include <fstream>
 #include <iostream>
+#include <numeric>
 #include <string>
 #include <vector>
 
@@ -38,6 +39,10 @@ Usage:
   mapsim reproduce  [flags]   run the thesis's table 5.2 and robustness grids
   mapsim localize   [flags]   thesis Table 5.5: one ~4 km passage localised without and with the
                               map (the thesis's map model, then crowdmap's own maps)
+  mapsim crlb       [flags]   the Cramer-Rao bound of the experiment's passages: the smallest mean
+                              landmark error any unbiased map can reach from them (--landmarks,
+                              --passages, --noise, --seed, --detections-per-landmark as for
+                              experiment); printed after 1, 10, 100, ... passages and the last
   mapsim pose-bias  [flags]   mean pose error of single-passage odometry + GNSS solves along the
                               route (the bias of the MAP estimate), before and after the
                               second-order bias correction
@@ -72,7 +77,8 @@ experiment flags:
                               (default 3; 0 = use all)
   --inflation-test-sigmas K   inflate a passage's measurement covariances by chi2/dof when its chi2
                               exceeds dof by K sigma, 0 = never (default 4)
-  --max-chi2-per-dof X        refuse a solve whose chi2 exceeds X per degree of freedom, 0 = never
+  --max-chi2-per-dof X        refuse a passage when a solve leaves chi2 above X per degree of
+                              freedom before any inflation, 0 = never
                               (default 0)
   --shuffle-window W          apply the passages shuffled within consecutive groups of W, as W
                               concurrent vehicles would deliver them (default 0: in order)
@@ -83,6 +89,8 @@ experiment flags:
   --steering-noise-scale X, --speed-noise-scale X, --gnss-noise-scale X, --pixel-noise-scale X
                               scale a sensor's noise, drawn and modelled alike (default 1)
   --no-bias-correction        skip the second-order bias correction of each solution
+  --no-crlb                   skip the Cramer-Rao bound of the same passages (summary.json:
+                              crlb_mean_dist_err_m, error_over_crlb)
   --quiet                     no progress line
 
 city flags:
@@ -102,6 +110,15 @@ city flags:
   --strategy S                cc | dc | cc-gsd (default cc-gsd)
   --window-hops H, --warmup-passages B, --relinearize-until-passages R, --relinearize-sigmas X,
   --relinearizations-per-passage K  as for experiment
+  --mislabel-rate X           faults: each detection reported under a neighbouring landmark's id
+                              with probability X (default 0)
+  --multipath-rate X          faults: a passage has a GNSS multipath burst (20-60 s of fixes 30-80 m
+                              off, declared as usual) with probability X
+  --overconfident-rate X      faults: a passage declares GNSS sigmas 5 times too small
+  --bad-calibration-rate X    faults: a passage declares a camera yaw 3 degrees off and a wheelbase
+                              15% off
+  --fault-seed S              draws of the faults (default 1); summary.json counts the faulty
+                              passages and splits the refused ones into faulty and clean
   --progress-every P          progress line on stderr every P passages (default 10)
   --out DIR                   output folder (default out/city): summary.json, landmarks.csv
   --export-passages DIR2      also write passages 0..P-1 as files for `mapctl upload`
@@ -137,6 +154,12 @@ bench flags (and --landmarks, --seed):
   --readers R                 concurrent QueryRegion / GetTile readers (default 8)
   --seconds S                 longest read phase (default 10); reads stop when the queue is
                               drained, so that every measured read competes with map updates
+  --city                      upload city passages (mapsim city's default grid) instead of the
+                              loop's; reads cover the whole city
+  --route-m M                 with --city: distance driven per passage (default 2000)
+  --upload-rate R             pace the uploads at R per second over all clients (default 0: as
+                              fast as acknowledgements come back); a paced run measures the
+                              acknowledgements while the worker commits map changes
 
 localize flags:
   --landmarks LIST            landmark counts, comma-separated (default 44,500)
@@ -212,6 +235,25 @@ absl::Status ParseLocalRelinearization(const Flags& flags, MapUpdateOptions* upd
   return absl::OkStatus();
 }
 
+// --mislabel-rate, --multipath-rate, --overconfident-rate, --bad-calibration-rate, --fault-seed.
+absl::Status ParseFaults(const Flags& flags, FaultOptions* faults) {
+  absl::StatusOr<double> mislabel = flags.GetDouble("mislabel-rate", faults->mislabel_rate),
+                         multipath = flags.GetDouble("multipath-rate", faults->multipath_rate),
+                         overconfident = flags.GetDouble("overconfident-rate", faults->overconfident_rate),
+                         bad_calibration = flags.GetDouble("bad-calibration-rate", faults->bad_calibration_rate);
+  absl::StatusOr<long long> seed = flags.GetInt("fault-seed", static_cast<long long>(faults->seed));
+  for (const absl::Status& s :
+       {mislabel.status(), multipath.status(), overconfident.status(), bad_calibration.status(), seed.status()}) {
+    if (!s.ok()) return s;
+  }
+  faults->mislabel_rate = *mislabel;
+  faults->multipath_rate = *multipath;
+  faults->overconfident_rate = *overconfident;
+  faults->bad_calibration_rate = *bad_calibration;
+  faults->seed = static_cast<uint64_t>(*seed);
+  return faults->Validate();
+}
+
 absl::Status RunExperimentCommand(const std::vector<std::string>& args) {
   absl::StatusOr<Flags> flags = Flags::Parse(args, {{"landmarks", true}, {"passages", true}, {"strategy", true},
                                                     {"noise", true}, {"seed", true}, {"out", true},
@@ -224,7 +266,7 @@ absl::Status RunExperimentCommand(const std::vector<std::string>& args) {
                                                     {"order-file", true}, {"steering-noise-scale", true},
                                                     {"speed-noise-scale", true}, {"gnss-noise-scale", true},
                                                     {"pixel-noise-scale", true}, {"no-bias-correction", false},
-                                                    {"quiet", false}});
+                                                    {"no-crlb", false}, {"quiet", false}});
   if (!flags.ok()) return flags.status();
   ExperimentOptions options;
   absl::StatusOr<long long> landmarks = flags->GetInt("landmarks", 25), passages = flags->GetInt("passages", 100),
@@ -262,6 +304,7 @@ absl::Status RunExperimentCommand(const std::vector<std::string>& args) {
   options.update.inflation_test_sigmas = *inflation;
   options.update.edge_margin_sigmas = *edge_margin;
   options.update.bias_correction = !flags->Has("no-bias-correction");
+  options.crlb = !flags->Has("no-crlb");
   if (absl::Status s = ParseLocalRelinearization(*flags, &options.update); !s.ok()) return s;
   if (*shuffle_window < 0) return absl::InvalidArgumentError("shuffle-window: must be >= 0");
   if (*shuffle_from < 0) return absl::InvalidArgumentError("shuffle-from: must be >= 0");
@@ -308,6 +351,8 @@ absl::Status RunCityCommand(const std::vector<std::string>& args) {
              {"strategy", true}, {"window-hops", true}, {"warmup-passages", true},
              {"relinearize-until-passages", true}, {"progress-every", true}, {"out", true},
              {"relinearize-sigmas", true}, {"relinearizations-per-passage", true},
+             {"mislabel-rate", true}, {"multipath-rate", true}, {"overconfident-rate", true},
+             {"bad-calibration-rate", true}, {"fault-seed", true},
              {"export-passages", true}, {"export-format", true}, {"steering-noise-scale", true},
              {"speed-noise-scale", true}, {"gnss-noise-scale", true}, {"pixel-noise-scale", true}, {"quiet", false}});
   if (!flags.ok()) return flags.status();
@@ -354,6 +399,7 @@ absl::Status RunCityCommand(const std::vector<std::string>& args) {
   options.update.strategy = *strategy;
   options.update.window_hops = static_cast<int>(*window_hops);
   if (absl::Status s = ParseLocalRelinearization(*flags, &options.update); !s.ok()) return s;
+  if (absl::Status s = ParseFaults(*flags, &options.faults); !s.ok()) return s;
   options.update.warmup_passages = static_cast<int>(*warmup);
   options.update.relinearize_until_passages = static_cast<int>(*relinearize);
   if (absl::Status s = options.Validate(); !s.ok()) return s;
@@ -393,7 +439,6 @@ absl::Status RunCityCommand(const std::vector<std::string>& args) {
   return absl::OkStatus();
 }
 
-#if CROWDMAP_MAPSIM_SERVICE
 absl::StatusOr<ScenarioOptions> ScenarioFromFlags(const Flags& flags) {
   ScenarioOptions scenario;
   absl::StatusOr<long long> landmarks = flags.GetInt("landmarks", 25), seed = flags.GetInt("seed", 1);
@@ -407,6 +452,7 @@ absl::StatusOr<ScenarioOptions> ScenarioFromFlags(const Flags& flags) {
   return scenario;
 }
 
+#if CROWDMAP_MAPSIM_SERVICE
 absl::Status RunFleetCommand(const std::vector<std::string>& args) {
   absl::StatusOr<Flags> flags = Flags::Parse(args, {{"server", true}, {"landmarks", true}, {"passages", true},
                                                     {"noise", true}, {"seed", true}, {"vehicles", true},
@@ -465,7 +511,8 @@ absl::Status RunExportPassagesCommand(const std::vector<std::string>& args) {
 absl::Status RunBenchCommand(const std::vector<std::string>& args) {
   absl::StatusOr<Flags> flags = Flags::Parse(args, {{"server", true}, {"landmarks", true}, {"seed", true},
                                                     {"clients", true}, {"passages", true}, {"readers", true},
-                                                    {"seconds", true}});
+                                                    {"seconds", true}, {"city", false}, {"route-m", true},
+                                                    {"upload-rate", true}});
   if (!flags.ok()) return flags.status();
   absl::StatusOr<ScenarioOptions> scenario = ScenarioFromFlags(*flags);
   if (!scenario.ok()) return scenario.status();
@@ -473,10 +520,17 @@ absl::Status RunBenchCommand(const std::vector<std::string>& args) {
   absl::StatusOr<long long> clients = flags->GetInt("clients", options.clients),
                             passages = flags->GetInt("passages", options.passages),
                             readers = flags->GetInt("readers", options.readers);
-  absl::StatusOr<double> seconds = flags->GetDouble("seconds", options.read_seconds);
-  for (const absl::Status& s : {clients.status(), passages.status(), readers.status(), seconds.status()}) {
+  absl::StatusOr<double> seconds = flags->GetDouble("seconds", options.read_seconds),
+                         route_m = flags->GetDouble("route-m", options.city_scenario.route_length_m),
+                         upload_rate = flags->GetDouble("upload-rate", options.upload_rate_per_s);
+  for (const absl::Status& s : {clients.status(), passages.status(), readers.status(), seconds.status(),
+                                route_m.status(), upload_rate.status()}) {
     if (!s.ok()) return s;
   }
+  options.city = flags->Has("city");
+  options.city_scenario.seed = scenario->seed;
+  options.city_scenario.route_length_m = *route_m;
+  options.upload_rate_per_s = *upload_rate;
   options.server = flags->GetString("server", options.server);
   options.scenario = *scenario;
   options.clients = static_cast<int>(*clients);
@@ -486,11 +540,12 @@ absl::Status RunBenchCommand(const std::vector<std::string>& args) {
   absl::StatusOr<BenchResult> result = RunBench(options);
   if (!result.ok()) return result.status();
   std::cout << absl::StrFormat(
-      "durable uploads:  %.1f passages/s (%d clients, %d passages in %.2f s)\n"
+      "durable uploads:  %.1f passages/s (%d clients, %d passages in %.2f s), ack p50 %.2f ms  p99 %.2f ms  max %.2f ms\n"
       "applied:          %.1f passages/s (first upload to queue drained, %.2f s)\n"
       "QueryRegion:      p50 %.2f ms  p99 %.2f ms  (%d calls, %d landmarks, %d readers, %.1f s while the worker applied)\n"
       "GetTile:          p50 %.2f ms  p99 %.2f ms  (%d calls)\n",
-      result->uploads_per_s, options.clients, result->passages, result->upload_s, result->applied_per_s,
+      result->uploads_per_s, options.clients, result->passages, result->upload_s, result->ack.p50_ms,
+      result->ack.p99_ms, result->ack.max_ms, result->applied_per_s,
       result->apply_s, result->query_region.p50_ms, result->query_region.p99_ms, result->query_region.calls,
       result->landmarks_in_box, options.readers, result->read_s, result->get_tile.p50_ms, result->get_tile.p99_ms,
       result->get_tile.calls);
@@ -549,6 +604,33 @@ absl::Status RunLocalizeCommand(const std::vector<std::string>& args) {
   file << table;
   if (!file) return absl::InternalError(absl::StrCat("out: cannot write ", out));
   return absl::OkStatus();
+}
+
+absl::Status RunCrlbCommand(const std::vector<std::string>& args) {
+  absl::StatusOr<Flags> flags = Flags::Parse(args, {{"landmarks", true}, {"passages", true}, {"noise", true},
+                                                    {"seed", true}, {"detections-per-landmark", true}});
+  if (!flags.ok()) return flags.status();
+  absl::StatusOr<ScenarioOptions> options = ScenarioFromFlags(*flags);
+  if (!options.ok()) return options.status();
+  absl::StatusOr<long long> passages = flags->GetInt("passages", 100),
+                            per_landmark = flags->GetInt("detections-per-landmark", 5);
+  if (!passages.ok()) return passages.status();
+  if (!per_landmark.ok()) return per_landmark.status();
+  if (*passages < 1) return absl::InvalidArgumentError("passages: must be >= 1");
+  absl::StatusOr<Scenario> scenario = Scenario::Create(*options);
+  if (!scenario.ok()) return scenario.status();
+  std::vector<int> indices(*passages);
+  std::iota(indices.begin(), indices.end(), 0);
+  GraphOptions graph;
+  graph.detections_per_landmark = static_cast<int>(*per_landmark);
+  int next_report = 1;
+  absl::StatusOr<double> bound =
+      LoopCramerRaoMeanError(*scenario, indices, graph, [&](int done, double mean_error_m) {
+        if (done != next_report && done != *passages) return;
+        if (done == next_report) next_report *= 10;
+        std::cout << absl::StrFormat("passages=%d crlb_mean_dist_err_m=%.4f\n", done, mean_error_m);
+      });
+  return bound.status();
 }
 
 absl::Status RunPoseBiasCommand(const std::vector<std::string>& args) {
@@ -695,6 +777,8 @@ int main(int argc, char** argv) {
     status = crowdmap::RunReproduceCommand(args);
   } else if (command == "localize") {
     status = crowdmap::RunLocalizeCommand(args);
+  } else if (command == "crlb") {
+    status = crowdmap::RunCrlbCommand(args);
   } else if (command == "pose-bias") {
     status = crowdmap::RunPoseBiasCommand(args);
   } else if (command == "passage-consistency") {

@@ -33,7 +33,38 @@ struct PassageProgress {
   std::unordered_set<LandmarkId> conditioned;
   // Landmarks whose detections are set aside for the rest of the passage (LandmarksToSetAside).
   std::unordered_set<LandmarkId> held_back;
+  // Detections set aside as outliers (OutlierDetections), by node and landmark.
+  std::set<DetectionKey> outliers;
 };
+
+// What a solve shows must be left out before anything is committed: the subgraph is solved again
+// without it.
+struct SetAsideRequest {
+  std::vector<LandmarkId> landmarks;
+  std::vector<DetectionKey> detections;
+  bool empty() const { return landmarks.empty() && detections.empty(); }
+};
+
+// One camera residual of a subgraph's problem, for the outlier test.
+struct CameraResidual {
+  ceres::ResidualBlockId id;
+  DetectionKey key;
+};
+
+// The detections whose residual at the solution exceeds options.max_detection_residual_sigmas
+// pixel sigmas: a detection of another landmark reported under this one's id, or a false one. A
+// Gaussian pixel error goes beyond 5 sigma once in two million.
+std::vector<DetectionKey> OutlierDetections(ceres::Problem* problem, const std::vector<CameraResidual>& residuals,
+                                            const MapUpdateOptions& options) {
+  std::vector<DetectionKey> out;
+  if (options.max_detection_residual_sigmas <= 0.0) return out;
+  for (const CameraResidual& r : residuals) {
+    double cost = 0.0, residual = 0.0;
+    const bool evaluated = problem->EvaluateResidualBlock(r.id, /*apply_loss_function=*/false, &cost, &residual, nullptr);
+    if (!evaluated || std::abs(residual) > options.max_detection_residual_sigmas) out.push_back(r.key);
+  }
+  return out;
+}
 
 // The landmarks whose detections a solve shows to be unfit for the map, which the subgraph is
 // solved again without: new landmarks that its rays leave poorly determined (see
@@ -66,23 +97,23 @@ std::vector<LandmarkId> LandmarksToSetAside(const LandmarkUpdate& update, const 
 }
 
 // Builds, solves and commits one subgraph. No map change if it sees no landmark. When the solve
-// leaves new landmarks poorly determined, commits nothing and returns them (the caller sets them
-// aside and calls again).
-absl::StatusOr<std::vector<LandmarkId>> UpdateFromSubgraph(const Passage& passage, const PassageGraph& graph,
-                                                           const NodeRange& range, const MapUpdateOptions& options,
-                                                           MapOverlay* map, PassageProgress* progress,
-                                                           PassageUpdateSummary* summary) {
+// shows outlier detections or landmarks unfit for the map, commits nothing and returns them (the
+// caller sets them aside and calls again).
+absl::StatusOr<SetAsideRequest> UpdateFromSubgraph(const Passage& passage, const PassageGraph& graph,
+                                                   const NodeRange& range, const MapUpdateOptions& options,
+                                                   MapOverlay* map, PassageProgress* progress,
+                                                   PassageUpdateSummary* summary) {
   const Calibration& calib = passage.calibration;
   SubgraphLandmarks landmarks = GroupDetections(graph, range, *map);
-  summary->detections_dropped += SetAside(progress->held_back, &landmarks);
-  if (landmarks.ids.empty()) return std::vector<LandmarkId>{};
+  summary->detections_dropped += SetAside(progress->held_back, progress->outliers, &landmarks);
+  if (landmarks.ids.empty()) return SetAsideRequest{};
   std::vector<Pose2> poses(graph.initial_poses.begin() + range.first, graph.initial_poses.begin() + range.last + 1);
   const auto solve_start = std::chrono::steady_clock::now();
   InitializePoses(graph, range, passage, options, &landmarks, &poses);
   summary->detections_dropped +=
       InitializeLandmarks(poses, range, calib, options.edge_margin_sigmas * passage.noise.pixel_sigma_px,
                           options.min_new_landmark_parallax_rad, options.min_new_landmark_detections, &landmarks);
-  if (landmarks.ids.empty()) return std::vector<LandmarkId>{};
+  if (landmarks.ids.empty()) return SetAsideRequest{};
 
   LandmarkUpdate update(graph.frame, map, landmarks.ids);
   // Weight of the passage's measurements: 1 until the consistency test asks for inflation.
@@ -92,12 +123,15 @@ absl::StatusOr<std::vector<LandmarkId>> UpdateFromSubgraph(const Passage& passag
   ceres::Problem problem(problem_options);
   // The measurement weight scales every measurement residual; the map prior is never weighted.
   AddPoseGraphFactors(graph, range.first, range.last, calib.gnss_lever_arm_m, &measurement_weight, &poses, &problem);
+  std::vector<CameraResidual> camera_residuals;
   for (int i = 0; i < update.size(); ++i) {
     if (!update.in_map(i)) Eigen::Map<Eigen::Vector2d>(update.block(i)) = landmarks.initial[i];
     problem.AddParameterBlock(update.block(i), 2);
     for (const CameraObservation* d : landmarks.detections[i]) {
-      problem.AddResidualBlock(CameraFactor::Create(d->u_px, passage.noise.pixel_sigma_px, calib),
-                               &measurement_weight, poses[d->node - range.first].data(), update.block(i));
+      const ceres::ResidualBlockId id =
+          problem.AddResidualBlock(CameraFactor::Create(d->u_px, passage.noise.pixel_sigma_px, calib),
+                                   &measurement_weight, poses[d->node - range.first].data(), update.block(i));
+      camera_residuals.push_back({id, {d->node, d->landmark_id}});
       ++summary->detections_used;
     }
   }
@@ -115,8 +149,18 @@ absl::StatusOr<std::vector<LandmarkId>> UpdateFromSubgraph(const Passage& passag
   if (!solver_summary.IsSolutionUsable()) {
     return absl::InternalError(absl::StrCat("solver result unusable: ", solver_summary.message));
   }
+  if (std::vector<DetectionKey> outliers = OutlierDetections(&problem, camera_residuals, options); !outliers.empty()) {
+    summary->detections_outliers += static_cast<int>(outliers.size());
+    return SetAsideRequest{{}, std::move(outliers)};
+  }
   const int dof = problem.NumResiduals() - problem.NumParameters();
   double chi2 = 2.0 * solver_summary.final_cost;
+  if (options.max_chi2_per_dof > 0.0 && dof > 0 && chi2 > options.max_chi2_per_dof * dof) {
+    return absl::FailedPreconditionError(absl::StrFormat(
+        "inconsistent: the solution leaves chi2=%.1f for %d degrees of freedom (%.2f per degree, limit %.2f): "
+        "the passage's measurements contradict their noise model or the map",
+        chi2, dof, chi2 / dof, options.max_chi2_per_dof));
+  }
   if (const double variance_factor = VarianceFactor(chi2, dof, options.inflation_test_sigmas); variance_factor > 1.0) {
     summary->max_variance_factor = std::max(summary->max_variance_factor, variance_factor);
     Inflate(variance_factor, &measurement_weight);
@@ -129,15 +173,10 @@ absl::StatusOr<std::vector<LandmarkId>> UpdateFromSubgraph(const Passage& passag
   }
   summary->solve_ms += MillisecondsSince(solve_start);
   summary->final_cost += solver_summary.final_cost;
-  if (options.max_chi2_per_dof > 0.0 && dof > 0 && chi2 > options.max_chi2_per_dof * dof) {
-    return absl::FailedPreconditionError(absl::StrFormat(
-        "solution inconsistent with the measurements: chi2=%.1f for %d degrees of freedom (limit %.1f per dof)",
-        chi2, dof, options.max_chi2_per_dof));
-  }
 
   if (std::vector<LandmarkId> unfit = LandmarksToSetAside(update, landmarks, poses, range, passage, options, summary);
       !unfit.empty()) {
-    return unfit;
+    return SetAsideRequest{std::move(unfit), {}};
   }
 
   std::vector<double*> landmark_blocks;
@@ -164,7 +203,7 @@ absl::StatusOr<std::vector<LandmarkId>> UpdateFromSubgraph(const Passage& passag
     }
   }
   summary->landmarks_conditioned += stats->conditioned;
-  return std::vector<LandmarkId>{};
+  return SetAsideRequest{};
 }
 
 }  // namespace
@@ -200,6 +239,10 @@ absl::Status MapUpdateOptions::Validate() const {
   if (!(min_new_landmark_parallax_rad >= 0.0 && min_new_landmark_parallax_rad < 1.5)) {
     return absl::InvalidArgumentError(
         absl::StrCat("min_new_landmark_parallax_rad: must lie in [0, 1.5), got ", min_new_landmark_parallax_rad));
+  }
+  if (!(max_detection_residual_sigmas >= 0.0)) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("max_detection_residual_sigmas: must be >= 0 (0 = off), got ", max_detection_residual_sigmas));
   }
   if (!(max_new_landmark_range_m > 0.0)) {
     return absl::InvalidArgumentError(
@@ -262,11 +305,12 @@ absl::Status MapUpdateOptions::Validate() const {
 
 std::string PassageUpdateSummary::Brief() const {
   return absl::StrFormat(
-      "nodes=%d subgraphs=%d updated=%d created=%d held_back=%d disagreeing=%d conditioned=%d detections=%d dropped=%d iterations=%d "
+      "nodes=%d subgraphs=%d updated=%d created=%d held_back=%d disagreeing=%d conditioned=%d detections=%d dropped=%d "
+      "outliers=%d iterations=%d "
       "variance_factor=%.2f solve_ms=%.2f covariance_ms=%.2f bias_correction_ms=%.2f bias_correction_m=%.3f "
       "total_ms=%.2f version=%d joint_passages=%d joint_rejected=%d",
       nodes, subgraphs, landmarks_updated, landmarks_created, landmarks_held_back, landmarks_disagreeing, landmarks_conditioned, detections_used,
-      detections_dropped, solver_iterations, max_variance_factor, solve_ms, covariance_ms, bias_correction_ms,
+      detections_dropped, detections_outliers, solver_iterations, max_variance_factor, solve_ms, covariance_ms, bias_correction_ms,
       max_bias_correction_m, total_ms, map_version, joint_passages, joint_rejected ? 1 : 0);
 }
 
@@ -290,10 +334,10 @@ absl::Status ApplyPassage(const Passage& passage, const MapUpdateOptions& option
 
   PassageProgress progress;
   for (const NodeRange& range : ranges) {
-    // Each round sets aside at least one more landmark, so this ends.
+    // Each round sets aside at least one more landmark or detection, so this ends.
     for (;;) {
       PassageUpdateSummary attempt = *summary;
-      absl::StatusOr<std::vector<LandmarkId>> unfit =
+      absl::StatusOr<SetAsideRequest> unfit =
           UpdateFromSubgraph(passage, *graph, range, options, overlay, &progress, &attempt);
       if (!unfit.ok()) {
         return absl::Status(unfit.status().code(), absl::StrCat("passage ", passage.passage_id, " nodes ", range.first,
@@ -307,7 +351,9 @@ absl::Status ApplyPassage(const Passage& passage, const MapUpdateOptions& option
       summary->solve_ms = attempt.solve_ms;
       summary->landmarks_held_back = attempt.landmarks_held_back;
       summary->landmarks_disagreeing = attempt.landmarks_disagreeing;
-      progress.held_back.insert(unfit->begin(), unfit->end());
+      summary->detections_outliers = attempt.detections_outliers;
+      progress.held_back.insert(unfit->landmarks.begin(), unfit->landmarks.end());
+      progress.outliers.insert(unfit->detections.begin(), unfit->detections.end());
     }
   }
   if (progress.counted.empty()) {

@@ -30,6 +30,7 @@ struct PassageUpdateSummary {
   int landmarks_disagreeing = 0;  // map landmarks the passage would move beyond the map's uncertainty: not used
   int detections_used = 0;
   int detections_dropped = 0;     // e.g. behind the camera at the initial guess
+  int detections_outliers = 0;    // residual beyond options.max_detection_residual_sigmas: not used
   int solver_iterations = 0;
   double final_cost = 0.0;
   double max_variance_factor = 1.0;  // largest inflation applied to a subgraph (1 = none)

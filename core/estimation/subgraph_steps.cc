@@ -67,19 +67,24 @@ SubgraphLandmarks GroupDetections(const PassageGraph& graph, const NodeRange& ra
   return out;
 }
 
-int SetAside(const std::unordered_set<LandmarkId>& set_aside, SubgraphLandmarks* landmarks) {
-  if (set_aside.empty()) return 0;
+int SetAside(const std::unordered_set<LandmarkId>& landmarks_aside, const std::set<DetectionKey>& detections_aside,
+             SubgraphLandmarks* landmarks) {
+  if (landmarks_aside.empty() && detections_aside.empty()) return 0;
   SubgraphLandmarks kept;
   int removed = 0;
   for (size_t i = 0; i < landmarks->ids.size(); ++i) {
-    if (set_aside.count(landmarks->ids[i])) {
-      removed += static_cast<int>(landmarks->detections[i].size());
-      continue;
+    std::vector<const CameraObservation*> detections;
+    if (!landmarks_aside.count(landmarks->ids[i])) {
+      for (const CameraObservation* d : landmarks->detections[i]) {
+        if (!detections_aside.count({d->node, d->landmark_id})) detections.push_back(d);
+      }
     }
+    removed += static_cast<int>(landmarks->detections[i].size() - detections.size());
+    if (detections.empty()) continue;
     kept.ids.push_back(landmarks->ids[i]);
     kept.known.push_back(landmarks->known[i]);
     kept.initial.push_back(landmarks->initial[i]);
-    kept.detections.push_back(std::move(landmarks->detections[i]));
+    kept.detections.push_back(std::move(detections));
   }
   *landmarks = std::move(kept);
   return removed;

@@ -5,7 +5,9 @@
 // share: grouping a subgraph's detections, the initial guess, the solve, the linearisation.
 
 #include <chrono>
+#include <set>
 #include <unordered_set>
+#include <utility>
 #include <vector>
 
 #include <ceres/ceres.h>
@@ -36,8 +38,13 @@ struct SubgraphLandmarks {
 // their map position.
 SubgraphLandmarks GroupDetections(const PassageGraph& graph, const NodeRange& range, const MapReaderInterface& map);
 
-// Removes the landmarks in `set_aside` with their detections; returns the detections removed.
-int SetAside(const std::unordered_set<LandmarkId>& set_aside, SubgraphLandmarks* landmarks);
+// A detection: its node and landmark.
+using DetectionKey = std::pair<int, LandmarkId>;
+
+// Removes the landmarks in `landmarks_aside` with their detections, and the detections in
+// `detections_aside`; returns the detections removed.
+int SetAside(const std::unordered_set<LandmarkId>& landmarks_aside, const std::set<DetectionKey>& detections_aside,
+             SubgraphLandmarks* landmarks);
 
 ceres::Solver::Options SolverOptions(int max_iterations);
 

@@ -44,6 +44,10 @@ class CachedMapStore : public MapStoreInterface {
   absl::Status FinishPassageWithoutChange(int64_t id, PassageState state, const std::string& reason) override {
     return inner_->FinishPassageWithoutChange(id, state, reason);
   }
+  absl::StatusOr<StoredPassage> MovePassage(int64_t id, const std::vector<PassageState>& from,
+                                            PassageState to) override {
+    return inner_->MovePassage(id, from, to);
+  }
   absl::StatusOr<int> RecordFailedAttempt(int64_t id, const std::string& reason) override {
     return inner_->RecordFailedAttempt(id, reason);
   }

@@ -13,7 +13,17 @@
 
 namespace crowdmap {
 
-enum class PassageState { kQueued = 1, kProcessing = 2, kApplied = 3, kRejected = 4, kFailed = 5, kExcluded = 6 };
+enum class PassageState {
+  kQueued = 1,
+  kProcessing = 2,
+  kApplied = 3,
+  kRejected = 4,
+  kFailed = 5,
+  kExcluded = 6,
+  kQuarantined = 7,  // refused by the map's checks (the estimator's FailedPrecondition); map unchanged
+  kDiscarded = 8,    // an operator discarded it (ResolvePassage); never applied
+};
+constexpr int kPassageStateCount = 9;  // 0 (none) and 1..8
 
 const char* PassageStateName(PassageState state);
 
@@ -103,7 +113,7 @@ struct MapStats {
   int64_t map_version = 0;
   int64_t landmark_count = 0;
   int64_t factor_count = 0;
-  int64_t passages_by_state[7] = {0, 0, 0, 0, 0, 0, 0};  // indexed by PassageState
+  int64_t passages_by_state[kPassageStateCount] = {};  // indexed by PassageState
   int64_t queue_depth() const { return passages_by_state[1] + passages_by_state[2]; }
 };
 
@@ -140,6 +150,11 @@ class MapStoreInterface {
   // Records a failed attempt of a processing passage that stays processing (retried in place):
   // attempts + 1 and the reason. Returns the new attempt count.
   virtual absl::StatusOr<int> RecordFailedAttempt(int64_t id, const std::string& reason) = 0;
+  // An operator's decision on a finished passage: moves it from one of `from` to `to` (queued:
+  // with its attempts and error cleared). FailedPrecondition when it is in none of `from`;
+  // NotFound for an unknown id. Returns the updated record.
+  virtual absl::StatusOr<StoredPassage> MovePassage(int64_t id, const std::vector<PassageState>& from,
+                                                    PassageState to) = 0;
   // Start-up recovery: every processing passage goes back to queued. Returns how many.
   virtual absl::StatusOr<int> RequeueProcessingPassages() = 0;
 

@@ -471,7 +471,7 @@ absl::StatusOr<MapStats> SqliteMapStore::GetStats() {
     } else if (name == "factors") {
       stats.factor_count = n;
     }
-    for (int state = 1; state <= 6; ++state) {
+    for (int state = 1; state < kPassageStateCount; ++state) {
       if (name == absl::StrCat("passages_", state)) stats.passages_by_state[state] = n;
     }
   }

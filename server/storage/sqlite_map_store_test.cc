@@ -225,6 +225,36 @@ TEST(SqliteMapStore, ClaimTakesOldestQueuedAndCountsAttempts) {
   EXPECT_FALSE(none->has_value());
 }
 
+TEST(SqliteMapStore, AnOperatorRequeuesOrDiscardsOnlyFailedAndQuarantinedPassages) {
+  TempDir dir;
+  auto store = OpenStore(dir.File("map.db"));
+  const int64_t id = EnqueueAndClaim(store.get(), "1");
+  const std::vector<PassageState> badly = {PassageState::kFailed, PassageState::kQuarantined};
+  EXPECT_EQ(store->MovePassage(id, badly, PassageState::kQueued).status().code(), absl::StatusCode::kFailedPrecondition)
+      << "processing";
+  ASSERT_TRUE(store->FinishPassageWithoutChange(id, PassageState::kQuarantined, "inconsistent: chi2").ok());
+  EXPECT_EQ(store->GetStats()->passages_by_state[static_cast<int>(PassageState::kQuarantined)], 1);
+  absl::StatusOr<StoredPassage> requeued = store->MovePassage(id, badly, PassageState::kQueued);
+  ASSERT_TRUE(requeued.ok()) << requeued.status();
+  EXPECT_EQ(requeued->state, PassageState::kQueued);
+  EXPECT_EQ(requeued->attempts, 0);
+  EXPECT_EQ(requeued->error, "");
+  auto claimed = store->ClaimNextPassage();
+  ASSERT_TRUE(claimed.ok() && claimed->has_value());
+  EXPECT_EQ((*claimed)->record.attempts, 1);
+  ASSERT_TRUE(store->FinishPassageWithoutChange(id, PassageState::kFailed, "solver unusable").ok());
+  absl::StatusOr<StoredPassage> discarded = store->MovePassage(id, badly, PassageState::kDiscarded);
+  ASSERT_TRUE(discarded.ok()) << discarded.status();
+  EXPECT_EQ(discarded->state, PassageState::kDiscarded);
+  EXPECT_EQ(discarded->error, "solver unusable") << "the last reason stays on record";
+  auto stats = store->GetStats();
+  EXPECT_EQ(stats->passages_by_state[static_cast<int>(PassageState::kDiscarded)], 1);
+  EXPECT_EQ(stats->passages_by_state[static_cast<int>(PassageState::kQuarantined)], 0);
+  EXPECT_EQ(stats->passages_by_state[static_cast<int>(PassageState::kFailed)], 0);
+  EXPECT_EQ(store->MovePassage(id, badly, PassageState::kQueued).status().code(), absl::StatusCode::kFailedPrecondition);
+  EXPECT_EQ(store->MovePassage(999, badly, PassageState::kQueued).status().code(), absl::StatusCode::kNotFound);
+}
+
 TEST(SqliteMapStore, ProcessingPassagesReturnToQueueOnRequeue) {
   TempDir dir;
   const std::string path = dir.File("map.db");
@@ -383,7 +413,7 @@ class SchemaTwoDatabase : public ::testing::Test {
 TEST_F(SchemaTwoDatabase, MigrationTurnsTheDenseCovarianceIntoTheSameGaussian) {
   auto store = OpenStore(path_);
   ASSERT_NE(store, nullptr);
-  EXPECT_EQ(SqlInt(path_, "PRAGMA user_version"), 3);
+  EXPECT_EQ(SqlInt(path_, "PRAGMA user_version"), LatestSchemaVersion());
   EXPECT_EQ(SqlInt(path_, "SELECT COUNT(*) FROM sqlite_master WHERE name = 'cross_covariances'"), 0);
   ExpectStatsEqualTableCounts(store.get(), path_);
   EXPECT_EQ(store->GetStats()->factor_count, 2) << "one factor per correlated group";

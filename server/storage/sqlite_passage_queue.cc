@@ -1,4 +1,6 @@
 // The durable passage queue of the SQLite map store.
+#include <algorithm>
+
 #include "absl/strings/str_cat.h"
 #include "absl/time/clock.h"
 #include "server/storage/sqlite_map_store.h"
@@ -72,6 +74,8 @@ const char* PassageStateName(PassageState state) {
     case PassageState::kRejected: return "rejected";
     case PassageState::kFailed: return "failed";
     case PassageState::kExcluded: return "excluded";
+    case PassageState::kQuarantined: return "quarantined";
+    case PassageState::kDiscarded: return "discarded";
   }
   return "unknown";
 }
@@ -232,7 +236,7 @@ absl::StatusOr<std::optional<ClaimedPassage>> SqliteMapStore::ClaimNextPassage()
 
 absl::Status SqliteMapStore::FinishPassageWithoutChange(int64_t id, PassageState state, const std::string& reason) {
   if (state == PassageState::kApplied || state == PassageState::kProcessing) {
-    return absl::InvalidArgumentError("FinishPassageWithoutChange: state must be queued, rejected or failed");
+    return absl::InvalidArgumentError("FinishPassageWithoutChange: state must not be applied or processing");
   }
   std::lock_guard<std::mutex> lock(writer_mu_);
   SqliteConnection* db = writer_.get();
@@ -262,6 +266,32 @@ absl::StatusOr<int> SqliteMapStore::RecordFailedAttempt(int64_t id, const std::s
   if (!record.ok()) return record.status();
   if (auto s = txn->Commit(); !s.ok()) return s;
   return (*record)->attempts;
+}
+
+absl::StatusOr<StoredPassage> SqliteMapStore::MovePassage(int64_t id, const std::vector<PassageState>& from,
+                                                          PassageState to) {
+  std::lock_guard<std::mutex> lock(writer_mu_);
+  SqliteConnection* db = writer_.get();
+  auto txn = SqliteWriteTransaction::Begin(db);
+  if (!txn.ok()) return txn.status();
+  auto record = ReadPassage(db, id);
+  if (!record.ok()) return record.status();
+  if (!*record) return absl::NotFoundError(absl::StrCat("passage id ", id, ": no such passage"));
+  if (std::find(from.begin(), from.end(), (*record)->state) == from.end()) {
+    return absl::FailedPreconditionError(
+        absl::StrCat("passage ", id, " is ", PassageStateName((*record)->state), ": not in a state this applies to"));
+  }
+  const bool queued = to == PassageState::kQueued;
+  auto update = db->Prepare(
+      "UPDATE passages SET state = ?2, attempts = CASE WHEN ?3 THEN 0 ELSE attempts END, "
+      "error = CASE WHEN ?3 THEN '' ELSE error END, finished_unix_ms = CASE WHEN ?3 THEN 0 ELSE ?4 END WHERE id = ?1");
+  if (!update.ok()) return update.status();
+  update->Bind(1, id).Bind(2, static_cast<int64_t>(to)).Bind(3, static_cast<int64_t>(queued)).Bind(4, NowUnixMs());
+  if (auto s = update->Run(); !s.ok()) return s;
+  auto moved = ReadPassage(db, id);
+  if (!moved.ok()) return moved.status();
+  if (auto s = txn->Commit(); !s.ok()) return s;
+  return **moved;
 }
 
 absl::StatusOr<int> SqliteMapStore::RequeueProcessingPassages() {

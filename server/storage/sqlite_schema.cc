@@ -260,6 +260,10 @@ const std::vector<Migration>& Migrations() {
         BEGIN UPDATE row_counts SET n = n - 1 WHERE name = 'factors'; END;
       )sql",
        ConvertCrossCovariancesToFactors},
+      // 3 -> 4: passages can be quarantined (7) and discarded (8).
+      {R"sql(
+      INSERT INTO row_counts (name, n) VALUES ('passages_7', 0), ('passages_8', 0);
+      )sql", nullptr},
   };
   return kMigrations;
 }
