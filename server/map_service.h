@@ -91,6 +91,8 @@ class MapService final : public MapServiceBase {
                               pb::PassageStatus* response) override;
   grpc::Status GetLandmark(grpc::ServerContext* ctx, const pb::GetLandmarkRequest* request,
                            pb::GetLandmarkResponse* response) override;
+  grpc::Status LocalizePassage(grpc::ServerContext* ctx, const pb::LocalizePassageRequest* request,
+                               pb::LocalizePassageResponse* response) override;
 
  private:
   // The record named by an id, or by vehicle_id and passage_id.

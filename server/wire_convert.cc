@@ -243,4 +243,31 @@ absl::StatusOr<BoundingBox> BoundingBoxFromProto(const pb::BoundingBox& wire, co
   return BoundingBox{v[0], v[1], v[2], v[3]};
 }
 
+void PassageLocalizationToProto(const PassageLocalization& localization, pb::LocalizePassageResponse* wire) {
+  for (const LocalizedPose& p : localization.poses) {
+    pb::LocalizedPose* out = wire->add_poses();
+    out->set_t_s(p.t_s);
+    out->set_lat_deg(p.position.lat_deg);
+    out->set_lon_deg(p.position.lon_deg);
+    out->set_heading_rad(p.heading_en_rad);
+    for (int r = 0; r < 3; ++r) {
+      for (int c = 0; c < 3; ++c) out->add_covariance(p.cov_en(r, c));
+    }
+  }
+  for (LandmarkId id : localization.landmarks_used) wire->add_landmarks_used(id);
+  for (const RejectedDetection& r : localization.rejected) {
+    pb::RejectedDetection* out = wire->add_rejected();
+    out->set_t_s(r.t_s);
+    out->set_landmark_id(r.landmark_id);
+    out->set_u_px(r.u_px);
+    out->set_whitened_residual(std::isfinite(r.whitened_residual) ? r.whitened_residual : 0.0);
+    out->set_whole_landmark(r.whole_landmark);
+  }
+  wire->set_detections_used(localization.detections_used);
+  wire->set_detections_unmapped(localization.detections_unmapped);
+  wire->set_chi2(localization.chi2);
+  wire->set_dof(localization.dof);
+  wire->set_map_version(localization.map_version);
+}
+
 }  // namespace crowdmap

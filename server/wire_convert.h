@@ -6,9 +6,11 @@
 #include <cstddef>
 
 #include "absl/status/statusor.h"
+#include "core/localization/passage_localizer.h"
 #include "core/map/map_state.h"
 #include "core/model/passage.h"
 #include "mapservice/v1/map.pb.h"
+#include "mapservice/v1/map_service.pb.h"
 #include "mapservice/v1/passage.pb.h"
 #include "server/storage/map_store.h"
 
@@ -40,6 +42,9 @@ void StoredPassageToProto(const StoredPassage& record, pb::PassageStatus* wire);
 pb::PassageState PassageStateToProto(PassageState state);
 // nullopt for UNSPECIFIED; InvalidArgument for values outside the enum.
 absl::StatusOr<std::optional<PassageState>> PassageStateFromProto(pb::PassageState state);
+
+// Poses in WGS84 with heading and covariance at the pose, the landmarks used, the rejections.
+void PassageLocalizationToProto(const PassageLocalization& localization, pb::LocalizePassageResponse* wire);
 
 absl::StatusOr<BoundingBox> BoundingBoxFromProto(const pb::BoundingBox& wire, const char* field);
 

@@ -120,6 +120,16 @@ absl::StatusOr<pb::GetLandmarkResponse> MapClient::GetLandmark(int64_t id) {
   return response;
 }
 
+absl::StatusOr<pb::LocalizePassageResponse> MapClient::LocalizePassage(const pb::Passage& passage) {
+  grpc::ClientContext ctx;
+  SetDeadline(&ctx);
+  pb::LocalizePassageRequest request;
+  *request.mutable_passage() = passage;
+  pb::LocalizePassageResponse response;
+  if (absl::Status s = FromGrpcStatus(stub_->LocalizePassage(&ctx, request, &response)); !s.ok()) return s;
+  return response;
+}
+
 absl::StatusOr<pb::ExcludePassageResponse> MapClient::ExcludePassage(const PassageKey& key) {
   grpc::ClientContext ctx;
   SetDeadline(&ctx);

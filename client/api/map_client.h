@@ -63,6 +63,8 @@ class MapClient {
   absl::StatusOr<pb::PassageStatus> GetPassage(int64_t id);
   // One landmark and the passages that shaped it.
   absl::StatusOr<pb::GetLandmarkResponse> GetLandmark(int64_t id);
+  // Localises a passage against the map (read-only).
+  absl::StatusOr<pb::LocalizePassageResponse> LocalizePassage(const pb::Passage& passage);
   // Takes an applied passage out of the map (administration).
   absl::StatusOr<pb::ExcludePassageResponse> ExcludePassage(const PassageKey& key);
   // An operator's decision on a failed or quarantined passage (ResolvePassage).

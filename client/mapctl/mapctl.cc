@@ -17,6 +17,7 @@
 #include "absl/time/clock.h"
 #include "absl/time/time.h"
 #include "client/api/geojson.h"
+#include "client/api/localization_export.h"
 #include "client/api/map_client.h"
 #include "client/api/passage_files.h"
 #include "client/common/flags.h"
@@ -47,6 +48,9 @@ Commands:
                                  follow changes in a bounding box (until Ctrl-C, S seconds or N updates)
   export --bbox ... --format geojson [--ellipses] [--out FILE]
                                  RFC 7946 FeatureCollection of the landmarks (stdout unless --out)
+  localize FILE [--format csv|geojson] [--out FILE]
+                                 localise a passage file against the map (read-only): the pose at
+                                 every node with its covariance (CSV by default; stdout unless --out)
 
 Common flags:
   --server HOST:PORT             mapd address (default $MAPCTL_SERVER or 127.0.0.1:50051)
@@ -383,6 +387,14 @@ absl::Status Watch(const Flags& flags, Context& ctx) {
   }, duration);
 }
 
+absl::Status WriteTextFile(const std::string& path, const std::string& text) {
+  std::ofstream file(path, std::ios::trunc);
+  file << text;
+  file.close();
+  if (!file) return absl::UnavailableError(absl::StrCat(path, ": write failed"));
+  return absl::OkStatus();
+}
+
 absl::Status Export(const Flags& flags, Context& ctx) {
   absl::StatusOr<pb::BoundingBox> box = ParseBbox(flags);
   if (!box.ok()) return box.status();
@@ -398,11 +410,36 @@ absl::Status Export(const Flags& flags, Context& ctx) {
     return absl::OkStatus();
   }
   const std::string path = flags.GetString("out", "");
-  std::ofstream file(path, std::ios::trunc);
-  file << text;
-  file.close();
-  if (!file) return absl::UnavailableError(absl::StrCat(path, ": write failed"));
+  if (absl::Status s = WriteTextFile(path, text); !s.ok()) return s;
   if (!ctx.json) *ctx.out << absl::StrFormat("wrote %d landmarks (map version %d) to %s\n", region->landmarks.size(), region->map_version, path);
+  return absl::OkStatus();
+}
+
+absl::Status Localize(const Flags& flags, Context& ctx) {
+  if (flags.positional().size() != 1) return absl::InvalidArgumentError("localize: give one passage file");
+  const std::string format = flags.GetString("format", "csv");
+  if (format != "csv" && format != "geojson") {
+    return absl::InvalidArgumentError(absl::StrCat("--format: '", format, "' is not csv or geojson"));
+  }
+  absl::StatusOr<pb::Passage> passage = ReadPassageFile(flags.positional()[0]);
+  if (!passage.ok()) return passage.status();
+  absl::StatusOr<pb::LocalizePassageResponse> response = ctx.client->LocalizePassage(*passage);
+  if (!response.ok()) return response.status();
+  if (ctx.json) {
+    *ctx.out << ToJson(*response);
+    return absl::OkStatus();
+  }
+  const std::string text = format == "csv" ? LocalizationToCsv(*response) : LocalizationToGeoJson(*response);
+  if (!flags.Has("out")) {
+    *ctx.out << text;
+    return absl::OkStatus();
+  }
+  const std::string path = flags.GetString("out", "");
+  if (absl::Status s = WriteTextFile(path, text); !s.ok()) return s;
+  *ctx.out << absl::StrFormat(
+      "wrote %d poses to %s (map version %d, %d landmarks used, %d detections rejected, chi2 %.1f / %d dof)\n",
+      response->poses_size(), path, response->map_version(), response->landmarks_used_size(),
+      response->rejected_size(), response->chi2(), response->dof());
   return absl::OkStatus();
 }
 
@@ -427,6 +464,7 @@ const std::map<std::string, CommandSpec>& Commands() {
       {"region", {&Region, {{"bbox", true}}}},
       {"watch", {&Watch, {{"bbox", true}, {"since", true}, {"seconds", true}, {"updates", true}}}},
       {"export", {&Export, {{"bbox", true}, {"format", true}, {"ellipses", false}, {"out", true}}}},
+      {"localize", {&Localize, {{"format", true}, {"out", true}}}},
   };
   return *commands;
 }

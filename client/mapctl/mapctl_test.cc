@@ -231,5 +231,24 @@ TEST(Mapctl, UnreachableServerGivesOneLineAndNonZeroExit) {
   }
 }
 
+TEST_F(MapctlTest, LocalizeWritesCsvAndGeoJson) {
+  UploadAndApply(3);
+  const std::string file = dir_.File("json/passage-00001.json");
+  CliRun csv = Mapctl({"localize", file}, address_);
+  ASSERT_EQ(csv.code, 0) << csv.err;
+  EXPECT_TRUE(absl::StartsWith(csv.out, "t_s,lat_deg,lon_deg,heading_rad,cov_ee,")) << csv.out.substr(0, 80);
+  EXPECT_GT(Count(csv.out, "\n"), 40);
+  CliRun geo = Mapctl({"localize", file, "--format", "geojson", "--out", dir_.File("track.geojson")}, address_);
+  ASSERT_EQ(geo.code, 0) << geo.err;
+  EXPECT_TRUE(absl::StrContains(geo.out, "landmarks used")) << geo.out;
+  std::ifstream written(dir_.File("track.geojson"));
+  std::stringstream text;
+  text << written.rdbuf();
+  EXPECT_EQ(Count(text.str(), "\"LineString\""), 1);
+  EXPECT_GT(Count(text.str(), "\"Point\""), 40);
+  CliRun bad = Mapctl({"localize", file, "--format", "kml"}, address_);
+  EXPECT_NE(bad.code, 0);
+}
+
 }  // namespace
 }  // namespace crowdmap

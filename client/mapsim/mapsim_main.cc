@@ -1,6 +1,8 @@
 // mapsim: simulation front end. `experiment` runs simulated passages through the estimation core
 // in-process; `reproduce` runs the thesis's result grids; `fleet`, `export-passages` and `bench`
 // drive a running mapd.
+#include <filesystem>
+#include <fstream>
 #include <iostream>
 #include <numeric>
 #include <string>
@@ -10,10 +12,13 @@
 #include <spdlog/spdlog.h>
 
 #include "absl/strings/str_cat.h"
+#include "absl/strings/numbers.h"
 #include "absl/strings/str_format.h"
+#include "absl/strings/str_split.h"
 #include "client/common/flags.h"
 #include "client/mapsim/city_experiment.h"
 #include "client/mapsim/experiment.h"
+#include "client/mapsim/localize_experiment.h"
 #include "client/mapsim/passage_consistency.h"
 #include "client/mapsim/pose_bias.h"
 #include "client/mapsim/reproduce.h"
@@ -32,6 +37,8 @@ Usage:
   mapsim city       [flags]   the same on a city: a street grid with buildings, a fleet driving
                               random partial routes
   mapsim reproduce  [flags]   run the thesis's table 5.2 and robustness grids
+  mapsim localize   [flags]   thesis Table 5.5: one ~4 km passage localised without and with the
+                              map (the thesis's map model, then crowdmap's own maps)
   mapsim crlb       [flags]   the Cramer-Rao bound of the experiment's passages: the smallest mean
                               landmark error any unbiased map can reach from them (--landmarks,
                               --passages, --noise, --seed, --detections-per-landmark as for
@@ -153,6 +160,17 @@ bench flags (and --landmarks, --seed):
   --upload-rate R             pace the uploads at R per second over all clients (default 0: as
                               fast as acknowledgements come back); a paced run measures the
                               acknowledgements while the worker commits map changes
+
+localize flags:
+  --landmarks LIST            landmark counts, comma-separated (default 44,500)
+  --runs R                    passages (and generated maps) averaged per cell (default 10)
+  --duration-s S              passage duration, s (default 340: 4 km at 12 m/s)
+  --gnss-fixes K              GNSS fixes per passage, as the thesis's 512 (rate and AR(1) coefficient
+                              per fix adjusted; 0 = the scenario's 1 Hz) (default 512)
+  --own-map-passages LIST     also localise (ar1+yaw) against crowdmap's own map built from P
+                              passages, for each P (comma-separated; default none)
+  --seed S                    noise seed (default 1)
+  --out FILE                  markdown table (default out/localize.md)
 
 pose-bias flags (and --seed):
   --passages P                independent passages, each solved alone (default 1000)
@@ -537,6 +555,57 @@ absl::Status RunBenchCommand(const std::vector<std::string>& args) {
 
 #endif  // CROWDMAP_MAPSIM_SERVICE
 
+absl::StatusOr<std::vector<int>> ParseIntList(const std::string& flag, const std::string& text) {
+  std::vector<int> out;
+  for (absl::string_view part : absl::StrSplit(text, ',', absl::SkipEmpty())) {
+    int value = 0;
+    if (!absl::SimpleAtoi(part, &value)) {
+      return absl::InvalidArgumentError(absl::StrCat(flag, ": '", text, "' is not a comma-separated list of integers"));
+    }
+    out.push_back(value);
+  }
+  return out;
+}
+
+absl::Status RunLocalizeCommand(const std::vector<std::string>& args) {
+  absl::StatusOr<Flags> flags =
+      Flags::Parse(args, {{"landmarks", true}, {"runs", true}, {"duration-s", true}, {"own-map-passages", true}, {"gnss-fixes", true},
+                          {"seed", true}, {"out", true}, {"quiet", false}});
+  if (!flags.ok()) return flags.status();
+  LocalizeExperimentOptions options;
+  absl::StatusOr<std::vector<int>> landmarks = ParseIntList("landmarks", flags->GetString("landmarks", "44,500"));
+  absl::StatusOr<std::vector<int>> own = ParseIntList("own-map-passages", flags->GetString("own-map-passages", ""));
+  absl::StatusOr<long long> runs = flags->GetInt("runs", options.runs), seed = flags->GetInt("seed", 1),
+                            gnss_fixes = flags->GetInt("gnss-fixes", options.gnss_fixes);
+  absl::StatusOr<double> duration = flags->GetDouble("duration-s", options.duration_s);
+  for (const absl::Status& s :
+       {landmarks.status(), own.status(), runs.status(), seed.status(), duration.status(), gnss_fixes.status()}) {
+    if (!s.ok()) return s;
+  }
+  options.landmark_counts = *landmarks;
+  options.own_map_passages = *own;
+  options.runs = static_cast<int>(*runs);
+  options.seed = static_cast<uint64_t>(*seed);
+  options.duration_s = *duration;
+  options.gnss_fixes = static_cast<int>(*gnss_fixes);
+  const bool quiet = flags->Has("quiet");
+  if (quiet) spdlog::set_level(spdlog::level::warn);
+  absl::StatusOr<std::vector<LocalizeRow>> rows = RunLocalizeExperiment(options, [&](const std::string& what) {
+    if (!quiet) std::cerr << "\r" << what << "        " << std::flush;
+  });
+  if (!quiet) std::cerr << "\n";
+  if (!rows.ok()) return rows.status();
+  const std::string table = LocalizeMarkdown(options, *rows);
+  std::cout << table;
+  const std::string out = flags->GetString("out", "out/localize.md");
+  std::error_code ec;
+  std::filesystem::create_directories(std::filesystem::path(out).parent_path(), ec);
+  std::ofstream file(out);
+  file << table;
+  if (!file) return absl::InternalError(absl::StrCat("out: cannot write ", out));
+  return absl::OkStatus();
+}
+
 absl::Status RunCrlbCommand(const std::vector<std::string>& args) {
   absl::StatusOr<Flags> flags = Flags::Parse(args, {{"landmarks", true}, {"passages", true}, {"noise", true},
                                                     {"seed", true}, {"detections-per-landmark", true}});
@@ -706,6 +775,8 @@ int main(int argc, char** argv) {
     status = crowdmap::RunCityCommand(args);
   } else if (command == "reproduce") {
     status = crowdmap::RunReproduceCommand(args);
+  } else if (command == "localize") {
+    status = crowdmap::RunLocalizeCommand(args);
   } else if (command == "crlb") {
     status = crowdmap::RunCrlbCommand(args);
   } else if (command == "pose-bias") {

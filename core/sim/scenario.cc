@@ -24,8 +24,16 @@ constexpr CurvePiece kRoute[] = {
 constexpr double kTransitionS = 3.0;  // curvature ramps (clothoid-like) between pieces
 constexpr double kMeanSpeedMps = 12.0;
 
-double CurvatureAt(double t) {
-  // Piecewise-constant profile smoothed with a raised-cosine ramp centred on each boundary.
+double RouteProfileS() {
+  double total = 0.0;
+  for (const CurvePiece& piece : kRoute) total += piece.duration_s;
+  return total;
+}
+
+double CurvatureAt(double t, bool repeat) {
+  // Piecewise-constant profile smoothed with a raised-cosine ramp centred on each boundary. The
+  // profile starts and ends straight, so repeating it adds no jump.
+  if (repeat) t = std::fmod(t, RouteProfileS());
   double start = 0.0, value = kRoute[0].curvature_per_m;
   for (size_t i = 1; i < std::size(kRoute); ++i) {
     start += kRoute[i - 1].duration_s;
@@ -108,7 +116,7 @@ absl::StatusOr<Scenario> Scenario::Create(const ScenarioOptions& options) {
   for (int j = 0; j < steps; ++j) {
     const double t = j * dt;
     const double v = SpeedAt(t);
-    const double steering = std::asin(std::clamp(CurvatureAt(t) * wheelbase, -0.9, 0.9));
+    const double steering = std::asin(std::clamp(CurvatureAt(t, options.repeat_route) * wheelbase, -0.9, 0.9));
     sc.true_poses_.push_back(pose);
     sc.true_inputs_.push_back({t, v, steering});
     if (j > 0) arc[j] = arc[j - 1] + sc.true_inputs_[j - 1].speed_mps * dt;

@@ -31,6 +31,9 @@ struct ScenarioOptions {
   uint64_t seed = 1;               // passage noise; passage i draws from (seed, i) only
   LatLon origin{48.7128, 2.1700};  // WGS84 position of the route start
   double duration_s = 165.0;
+  // Beyond its 165 s the route's curvature profile starts again (a longer road-like route, e.g.
+  // the thesis's 4 km localisation loop); false: the route goes straight on after it.
+  bool repeat_route = false;
   double odometry_rate_hz = 25.0;
   double gnss_rate_hz = 1.0;
   double camera_rate_hz = 2.0;

@@ -1,0 +1,401 @@
+#include "core/localization/passage_localizer.h"
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <functional>
+#include <limits>
+#include <map>
+#include <memory>
+#include <unordered_map>
+
+#include <Eigen/Cholesky>
+#include <ceres/ceres.h>
+
+#include "absl/strings/str_cat.h"
+#include "absl/strings/str_format.h"
+#include "core/estimation/factors.h"
+#include "core/estimation/graph_builder.h"
+#include "core/localization/pose_covariance.h"
+#include "core/model/camera_model.h"
+
+namespace crowdmap {
+namespace {
+
+// One detection of a map landmark: its graph observation and the landmark's index in the map.
+struct MappedDetection {
+  const CameraObservation* observation;
+  int landmark;
+  bool active = true;
+};
+
+// The map landmarks in the passage frame: means, joint covariance, and the groups of landmarks
+// whose covariance is linked (one prior factor each).
+struct LocalPrior {
+  std::vector<Eigen::Vector2d> mean;
+  Eigen::MatrixXd cov;
+  std::vector<std::vector<int>> groups;
+};
+
+LocalPrior ToPassageFrame(const LocalizationMap& map, const LocalFrame& frame) {
+  const int n = static_cast<int>(map.ids.size());
+  LocalPrior prior;
+  std::vector<Eigen::Matrix2d> rotation(n);
+  for (int k = 0; k < n; ++k) {
+    prior.mean.push_back(frame.ToLocal(map.positions[k]));
+    rotation[k] = frame.EnToLocal(map.positions[k]);
+  }
+  prior.cov.resize(2 * n, 2 * n);
+  std::vector<int> parent(n);
+  for (int k = 0; k < n; ++k) parent[k] = k;
+  std::function<int(int)> root = [&](int k) { return parent[k] == k ? k : parent[k] = root(parent[k]); };
+  for (int k = 0; k < n; ++k) {
+    for (int l = 0; l < n; ++l) {
+      const Eigen::Matrix2d block = map.cov_en_m2.block<2, 2>(2 * k, 2 * l);
+      prior.cov.block<2, 2>(2 * k, 2 * l) = rotation[k] * block * rotation[l].transpose();
+      if (k != l && !block.isZero(0.0)) parent[root(k)] = root(l);
+    }
+  }
+  std::map<int, std::vector<int>> by_root;
+  for (int k = 0; k < n; ++k) by_root[root(k)].push_back(k);
+  for (auto& [r, members] : by_root) prior.groups.push_back(std::move(members));
+  return prior;
+}
+
+// Starting poses: the odometry + GNSS poses refined against the bearings of the map landmarks held
+// at their map positions (bounded residuals, robust loss): the pixel model cannot start from poses
+// tens of metres off, which coloured GNSS errors produce.
+void InitializePoses(const PassageGraph& graph, const Passage& passage, const LocalPrior& prior,
+                     const std::vector<MappedDetection>& detections, const PassageLocalizerOptions& options,
+                     std::vector<Pose2>* poses) {
+  ceres::Problem problem;
+  AddPoseGraphFactors(graph, 0, graph.node_count() - 1, passage.calibration.gnss_lever_arm_m, nullptr, poses, &problem);
+  std::vector<Eigen::Vector2d> landmarks = prior.mean;
+  for (const MappedDetection& d : detections) {
+    problem.AddResidualBlock(
+        BearingFactor::Create(d.observation->u_px, passage.noise.pixel_sigma_px, passage.calibration),
+        new ceres::CauchyLoss(options.robust_loss_scale_sigmas), (*poses)[d.observation->node].data(),
+        landmarks[d.landmark].data());
+    problem.SetParameterBlockConstant(landmarks[d.landmark].data());
+  }
+  ceres::Solver::Options solver;
+  solver.linear_solver_type = ceres::SPARSE_NORMAL_CHOLESKY;
+  solver.max_num_iterations = options.max_solver_iterations;
+  solver.function_tolerance = 1e-6;
+  solver.parameter_tolerance = 1e-6;
+  solver.num_threads = 1;
+  solver.logging_type = ceres::SILENT;
+  ceres::Solver::Summary summary;
+  ceres::Solve(solver, &problem, &summary);
+}
+
+// The joint problem: poses, the landmarks with their map prior, the active detections.
+struct JointProblem {
+  std::unique_ptr<ceres::Problem> problem;
+  int parameters = 0;
+};
+
+// The gating rounds use each landmark's marginal prior (`joint_prior` false): they only need each
+// landmark's disagreement with its own map position, and a dense prior on hundreds of correlated
+// landmarks makes every Ceres iteration cost seconds. The final solve uses the joint prior.
+JointProblem BuildProblem(const PassageGraph& graph, const Passage& passage, const LocalPrior& prior,
+                          const std::vector<MappedDetection>& detections, double robust_scale, bool joint_prior,
+                          std::vector<Pose2>* poses, std::vector<Eigen::Vector2d>* landmarks) {
+  JointProblem jp;
+  jp.problem = std::make_unique<ceres::Problem>();
+  ceres::Problem& problem = *jp.problem;
+  AddPoseGraphFactors(graph, 0, graph.node_count() - 1, passage.calibration.gnss_lever_arm_m, nullptr, poses, &problem);
+  jp.parameters = 3 * graph.node_count();
+  std::vector<bool> seen(landmarks->size(), false);
+  for (const MappedDetection& d : detections) {
+    if (!d.active) continue;
+    ceres::LossFunction* loss = robust_scale > 0.0 ? new ceres::CauchyLoss(robust_scale) : nullptr;
+    problem.AddResidualBlock(CameraFactor::Create(d.observation->u_px, passage.noise.pixel_sigma_px, passage.calibration),
+                             loss, (*poses)[d.observation->node].data(), (*landmarks)[d.landmark].data());
+    seen[d.landmark] = true;
+  }
+  std::vector<std::vector<int>> groups;
+  for (const std::vector<int>& group : prior.groups) {
+    if (joint_prior) {
+      groups.push_back(group);
+    } else {
+      for (int k : group) groups.push_back({k});
+    }
+  }
+  for (const std::vector<int>& group : groups) {
+    std::vector<int> members;
+    for (int k : group) {
+      if (seen[k]) members.push_back(k);
+    }
+    if (members.empty()) continue;
+    const int m = static_cast<int>(members.size());
+    Eigen::VectorXd mean(2 * m);
+    Eigen::MatrixXd cov(2 * m, 2 * m);
+    std::vector<double*> blocks;
+    for (int a = 0; a < m; ++a) {
+      mean.segment<2>(2 * a) = prior.mean[members[a]];
+      blocks.push_back((*landmarks)[members[a]].data());
+      for (int b = 0; b < m; ++b) cov.block<2, 2>(2 * a, 2 * b) = prior.cov.block<2, 2>(2 * members[a], 2 * members[b]);
+    }
+    // The marginal of the seen landmarks: the map's joint covariance restricted to them.
+    problem.AddResidualBlock(new LandmarkPriorFactor(mean, SqrtInformation(0.5 * (cov + cov.transpose()))), nullptr,
+                             blocks);
+    jp.parameters += 2 * m;
+  }
+  return jp;
+}
+
+absl::Status Solve(const PassageLocalizerOptions& options, ceres::Problem* problem, ceres::Solver::Summary* summary) {
+  ceres::Solver::Options solver;
+  solver.linear_solver_type = ceres::SPARSE_NORMAL_CHOLESKY;
+  solver.max_num_iterations = options.max_solver_iterations;
+  solver.function_tolerance = 1e-12;
+  solver.gradient_tolerance = 1e-12;
+  solver.parameter_tolerance = 1e-12;
+  solver.num_threads = 1;
+  solver.logging_type = ceres::SILENT;
+  ceres::Solve(solver, problem, summary);
+  if (!summary->IsSolutionUsable()) {
+    return absl::InternalError(absl::StrCat("localization solve failed: ", summary->message));
+  }
+  return absl::OkStatus();
+}
+
+double WhitenedPixelResidual(const MappedDetection& d, const std::vector<Pose2>& poses,
+                             const std::vector<Eigen::Vector2d>& landmarks, const Passage& passage) {
+  double u = 0.0;
+  if (!ProjectLandmark(poses[d.observation->node].data(), landmarks[d.landmark].data(), passage.calibration, &u)) {
+    return std::numeric_limits<double>::infinity();
+  }
+  return (u - d.observation->u_px) / passage.noise.pixel_sigma_px;
+}
+
+double Median(std::vector<double> v) {
+  if (v.empty()) return 0.0;
+  const size_t mid = v.size() / 2;
+  std::nth_element(v.begin(), v.begin() + mid, v.end());
+  return v[mid];
+}
+
+// Gates the active detections at the current estimate; returns how many it rejected. The gates
+// are scaled by the passage's own robust variance factor (never below 1): when every detection
+// disagrees a little with an over-confident map, or the camera's yaw is off, the gates must still
+// single out the detections that disagree much more than the others, not reject them all.
+int Gate(const PassageGraph& graph, const Passage& passage, const LocalPrior& prior, const std::vector<Pose2>& poses,
+         const std::vector<Eigen::Vector2d>& landmarks, const PassageLocalizerOptions& options,
+         std::vector<MappedDetection>* detections, std::vector<RejectedDetection>* rejected) {
+  std::vector<double> residual(detections->size(), 0.0), abs_residuals;
+  for (size_t i = 0; i < detections->size(); ++i) {
+    if (!(*detections)[i].active) continue;
+    residual[i] = WhitenedPixelResidual((*detections)[i], poses, landmarks, passage);
+    abs_residuals.push_back(std::abs(residual[i]));
+  }
+  const int before = static_cast<int>(rejected->size());
+  auto reject = [&](size_t i, bool whole_landmark) {
+    MappedDetection& d = (*detections)[i];
+    d.active = false;
+    rejected->push_back({graph.node_times_s[d.observation->node], d.observation->landmark_id, d.observation->u_px,
+                         residual[i], whole_landmark});
+  };
+  // The median absolute deviation of a unit normal is 0.6745.
+  const double detection_scale = std::max(1.0, Median(abs_residuals) / 0.6745);
+  for (size_t i = 0; i < detections->size(); ++i) {
+    if ((*detections)[i].active && !(std::abs(residual[i]) <= options.detection_gate_sigmas * detection_scale)) {
+      reject(i, false);
+    }
+  }
+  // Per landmark: its detections' chi-square plus its shift from the map (marginal).
+  const int n = static_cast<int>(landmarks.size());
+  std::vector<double> chi2(n, 0.0);
+  std::vector<int> count(n, 0);
+  for (size_t i = 0; i < detections->size(); ++i) {
+    const MappedDetection& d = (*detections)[i];
+    if (!d.active) continue;
+    chi2[d.landmark] += residual[i] * residual[i];
+    ++count[d.landmark];
+  }
+  std::vector<double> ratios;
+  for (int k = 0; k < n; ++k) {
+    if (count[k] == 0) continue;
+    const Eigen::Vector2d shift = landmarks[k] - prior.mean[k];
+    chi2[k] += shift.dot(prior.cov.block<2, 2>(2 * k, 2 * k).ldlt().solve(shift));
+    ratios.push_back(chi2[k] / ChiSquareUpperQuantile(count[k], 0.5));
+  }
+  const double landmark_scale = std::max(1.0, Median(ratios));
+  for (int k = 0; k < n; ++k) {
+    if (count[k] == 0 || chi2[k] <= landmark_scale * ChiSquareUpperQuantile(count[k], options.landmark_gate_probability)) {
+      continue;
+    }
+    for (size_t i = 0; i < detections->size(); ++i) {
+      if ((*detections)[i].active && (*detections)[i].landmark == k) reject(i, true);
+    }
+  }
+  return static_cast<int>(rejected->size()) - before;
+}
+
+}  // namespace
+
+absl::Status LocalizationMap::Validate() const {
+  const int n = static_cast<int>(ids.size());
+  if (static_cast<int>(positions.size()) != n) return absl::InvalidArgumentError("localization map: one position per id");
+  if (cov_en_m2.rows() != 2 * n || cov_en_m2.cols() != 2 * n) {
+    return absl::InvalidArgumentError(absl::StrCat("localization map: covariance must be ", 2 * n, " x ", 2 * n));
+  }
+  if (!cov_en_m2.allFinite()) return absl::InvalidArgumentError("localization map: covariance is not finite");
+  return absl::OkStatus();
+}
+
+absl::Status PassageLocalizerOptions::Validate() const {
+  if (!(robust_loss_scale_sigmas > 0.0)) return absl::InvalidArgumentError("robust_loss_scale_sigmas: must be > 0");
+  if (!(detection_gate_sigmas > 0.0)) return absl::InvalidArgumentError("detection_gate_sigmas: must be > 0");
+  if (!(landmark_gate_probability > 0.0 && landmark_gate_probability < 0.5)) {
+    return absl::InvalidArgumentError("landmark_gate_probability: must lie in (0, 0.5)");
+  }
+  if (max_gating_rounds < 1) return absl::InvalidArgumentError("max_gating_rounds: must be >= 1");
+  if (max_solver_iterations < 1) return absl::InvalidArgumentError("max_solver_iterations: must be >= 1");
+  return absl::OkStatus();
+}
+
+double ChiSquareUpperQuantile(double dof, double probability) {
+  // z with P(N(0,1) > z) = probability, by bisection on erfc.
+  double lo = -10.0, hi = 10.0;
+  for (int i = 0; i < 100; ++i) {
+    const double mid = 0.5 * (lo + hi);
+    (0.5 * std::erfc(mid / std::sqrt(2.0)) > probability ? lo : hi) = mid;
+  }
+  const double z = 0.5 * (lo + hi);
+  if (dof == 2.0) return -2.0 * std::log(probability);
+  if (dof == 1.0) {
+    // z' with P(|N(0,1)| > z') = probability.
+    lo = 0.0, hi = 10.0;
+    for (int i = 0; i < 100; ++i) {
+      const double mid = 0.5 * (lo + hi);
+      (std::erfc(mid / std::sqrt(2.0)) > probability ? lo : hi) = mid;
+    }
+    return lo * lo;
+  }
+  const double a = 2.0 / (9.0 * dof);
+  return dof * std::pow(std::max(0.0, 1.0 - a + z * std::sqrt(a)), 3);
+}
+
+std::string PassageLocalization::Brief() const {
+  return absl::StrFormat("poses=%d landmarks=%d detections=%d rejected=%d chi2=%.1f dof=%d map_version=%d solve_ms=%.1f",
+                         poses.size(), landmarks_used.size(), detections_used, rejected.size(), chi2, dof, map_version,
+                         solve_ms);
+}
+
+absl::StatusOr<LocalizationMap> ReadLocalizationMap(const MapReaderInterface& map, const Passage& passage,
+                                                    const MapWindowOptions& window) {
+  LocalizationMap out;
+  out.version = map.version();
+  std::vector<LandmarkId> detected;
+  for (const Detection& d : passage.detections) detected.push_back(d.landmark_id);
+  std::sort(detected.begin(), detected.end());
+  detected.erase(std::unique(detected.begin(), detected.end()), detected.end());
+  for (LandmarkId id : detected) {
+    const Landmark* lm = map.FindLandmark(id);
+    if (lm == nullptr) continue;
+    out.ids.push_back(id);
+    out.positions.push_back(lm->position);
+  }
+  if (out.ids.empty()) {
+    out.cov_en_m2.resize(0, 0);
+    return out;
+  }
+  absl::StatusOr<Eigen::MatrixXd> cov = JointCovariance(map, out.ids, window);
+  if (!cov.ok()) return cov.status();
+  out.cov_en_m2 = std::move(*cov);
+  return out;
+}
+
+absl::StatusOr<PassageLocalization> LocalizePassage(const Passage& passage, const LocalizationMap& map,
+                                                    const PassageLocalizerOptions& options) {
+  const auto start = std::chrono::steady_clock::now();
+  if (absl::Status s = options.Validate(); !s.ok()) return s;
+  if (absl::Status s = map.Validate(); !s.ok()) return s;
+  GraphOptions graph_options;
+  graph_options.detections_per_landmark = 0;
+  absl::StatusOr<PassageGraph> graph = BuildPassageGraph(passage, graph_options);
+  if (!graph.ok()) return graph.status();
+  const LocalPrior prior = ToPassageFrame(map, graph->frame);
+
+  PassageLocalization out;
+  out.frame = graph->frame;
+  out.map_version = map.version;
+  std::unordered_map<LandmarkId, int> index;
+  for (size_t k = 0; k < map.ids.size(); ++k) index[map.ids[k]] = static_cast<int>(k);
+  std::vector<MappedDetection> detections;
+  for (const CameraObservation& o : graph->detections) {
+    const auto it = index.find(o.landmark_id);
+    if (it == index.end()) {
+      ++out.detections_unmapped;
+    } else {
+      detections.push_back({&o, it->second});
+    }
+  }
+
+  std::vector<Pose2> poses = graph->initial_poses;
+  InitializePoses(*graph, passage, prior, detections, options, &poses);
+  std::vector<Eigen::Vector2d> landmarks = prior.mean;
+  // A detection whose map landmark is behind the camera at the localised initial guess cannot be
+  // evaluated (and does not fit): rejected before the first solve.
+  for (MappedDetection& d : detections) {
+    const double r = WhitenedPixelResidual(d, poses, landmarks, passage);
+    if (std::isfinite(r)) continue;
+    d.active = false;
+    out.rejected.push_back({graph->node_times_s[d.observation->node], d.observation->landmark_id, d.observation->u_px,
+                            r, false});
+  }
+  // Round 0 is robust; later rounds solve the kept detections plainly, until the gates reject
+  // nothing more (or the rounds run out: then the last rejections are solved without). The last
+  // solve has the joint prior when the map's landmarks are correlated.
+  bool correlated = false;
+  for (const std::vector<int>& group : prior.groups) correlated |= group.size() > 1;
+  JointProblem problem;
+  ceres::Solver::Summary summary;
+  bool solved_after_gating = false;
+  for (int round = 0; round < options.max_gating_rounds && !solved_after_gating; ++round) {
+    problem = BuildProblem(*graph, passage, prior, detections, round == 0 ? options.robust_loss_scale_sigmas : 0.0,
+                           /*joint_prior=*/false, &poses, &landmarks);
+    if (absl::Status s = Solve(options, problem.problem.get(), &summary); !s.ok()) return s;
+    const int rejected = Gate(*graph, passage, prior, poses, landmarks, options, &detections, &out.rejected);
+    solved_after_gating = round > 0 && rejected == 0;
+  }
+  if (!solved_after_gating || correlated) {
+    problem = BuildProblem(*graph, passage, prior, detections, 0.0, /*joint_prior=*/true, &poses, &landmarks);
+    if (absl::Status s = Solve(options, problem.problem.get(), &summary); !s.ok()) return s;
+  }
+  absl::StatusOr<std::vector<Eigen::Matrix3d>> covariances =
+      PoseCovariances(problem.problem.get(), &poses, &landmarks, correlated);
+  if (!covariances.ok()) return covariances.status();
+
+  out.chi2 = 2.0 * summary.final_cost;
+  out.dof = problem.problem->NumResiduals() - problem.parameters;
+  std::vector<bool> used(landmarks.size(), false);
+  for (const MappedDetection& d : detections) {
+    if (!d.active) continue;
+    ++out.detections_used;
+    used[d.landmark] = true;
+  }
+  for (size_t k = 0; k < used.size(); ++k) {
+    if (used[k]) out.landmarks_used.push_back(map.ids[k]);
+  }
+  for (int k = 0; k < graph->node_count(); ++k) {
+    LocalizedPose p;
+    p.t_s = graph->node_times_s[k];
+    p.pose_m = poses[k];
+    p.pose_m.z() = NormalizeAngle(p.pose_m.z());
+    p.position = graph->frame.ToGeo(poses[k].head<2>());
+    p.cov = 0.5 * ((*covariances)[k] + (*covariances)[k].transpose());
+    Eigen::Matrix3d to_en = Eigen::Matrix3d::Identity();
+    to_en.topLeftCorner<2, 2>() = graph->frame.EnToLocal(p.position).inverse();
+    const Eigen::Vector2d forward = to_en.topLeftCorner<2, 2>() * Eigen::Vector2d(std::cos(p.pose_m.z()), std::sin(p.pose_m.z()));
+    p.heading_en_rad = std::atan2(forward.y(), forward.x());
+    p.cov_en = to_en * p.cov * to_en.transpose();
+    out.poses.push_back(p);
+  }
+  out.solve_ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
+  return out;
+}
+
+}  // namespace crowdmap

@@ -1,0 +1,228 @@
+#include "core/localization/passage_localizer.h"
+
+#include <cmath>
+
+#include <gtest/gtest.h>
+
+#include "core/estimation/factors.h"
+#include "core/localization/pose_covariance.h"
+#include "core/sim/scenario.h"
+#include "core/sim/sensor_simulation.h"
+
+namespace crowdmap {
+namespace {
+
+Scenario MakeScenario(int landmarks, NoiseConfig noise = NoiseConfig::kWhite, uint64_t seed = 1) {
+  ScenarioOptions options;
+  options.landmarks = landmarks;
+  options.noise = noise;
+  options.seed = seed;
+  absl::StatusOr<Scenario> scenario = Scenario::Create(options);
+  EXPECT_TRUE(scenario.ok()) << scenario.status();
+  return *std::move(scenario);
+}
+
+// The passage's measurements without noise: true encoder inputs, GNSS fixes at the true antenna,
+// true pixels. The declared encoder noise is made small too: the preintegration lengthens each step
+// by exp(var / 2) to be unbiased under heading noise, which is a bias when there is none.
+Passage NoiseFree(const Scenario& scenario, Passage passage) {
+  const ScenarioOptions& o = scenario.options();
+  passage.noise.speed_sigma_mps = 1e-4;
+  passage.noise.steering_sigma_rad = 1e-6;
+  passage.odometry.clear();
+  for (const OdometrySample& s : scenario.true_inputs()) {
+    if (s.t_s <= o.duration_s + 1e-9) passage.odometry.push_back(s);
+  }
+  for (GnssFix& fix : passage.gnss) {
+    const Pose2 pose = scenario.TruePoseAt(fix.t_s);
+    const Eigen::Vector2d lever = o.calibration.gnss_lever_arm_m;
+    const Eigen::Vector2d antenna =
+        pose.head<2>() + Eigen::Rotation2Dd(pose.z()) * lever;
+    const LatLon p = scenario.frame().ToGeo(antenna);
+    fix.lat_deg = p.lat_deg;
+    fix.lon_deg = p.lon_deg;
+  }
+  for (Detection& d : passage.detections) {
+    const Pose2 pose = scenario.TruePoseAt(d.t_s);
+    EXPECT_TRUE(ProjectLandmark(pose.data(), scenario.landmarks()[d.landmark_id - 1].position_m.data(),
+                                o.calibration, &d.u_px));
+  }
+  return passage;
+}
+
+// A map of the scenario's landmarks with covariance cov = common^2 (1 1^T (x) I) + own^2 I (every
+// landmark shares one offset), its estimate drawn from that covariance (seeded), or the truth.
+LocalizationMap MakeMap(const Scenario& scenario, double common_sigma_m, double own_sigma_m, uint64_t seed,
+                        bool exact) {
+  NoiseSource noise(SplitMix64(seed));
+  const Eigen::Vector2d common(noise.Normal() * common_sigma_m, noise.Normal() * common_sigma_m);
+  LocalizationMap map;
+  const int n = static_cast<int>(scenario.landmarks().size());
+  map.cov_en_m2 = Eigen::MatrixXd::Zero(2 * n, 2 * n);
+  for (int k = 0; k < n; ++k) {
+    const TruthLandmark& lm = scenario.landmarks()[k];
+    const Eigen::Vector2d own(noise.Normal() * own_sigma_m, noise.Normal() * own_sigma_m);
+    map.ids.push_back(lm.id);
+    map.positions.push_back(scenario.frame().ToGeo(exact ? lm.position_m : Eigen::Vector2d(lm.position_m + common + own)));
+    for (int l = 0; l < n; ++l) {
+      map.cov_en_m2.block<2, 2>(2 * k, 2 * l) = common_sigma_m * common_sigma_m * Eigen::Matrix2d::Identity();
+    }
+    map.cov_en_m2.block<2, 2>(2 * k, 2 * k) += own_sigma_m * own_sigma_m * Eigen::Matrix2d::Identity();
+  }
+  map.version = 7;
+  return map;
+}
+
+// Error (East, North, heading) of a localised pose against the truth, in the scenario's frame.
+Eigen::Vector3d PoseError(const Scenario& scenario, const LocalizedPose& p) {
+  const Pose2 truth = scenario.TruePoseAt(p.t_s);
+  Eigen::Vector3d e;
+  e.head<2>() = scenario.frame().ToLocal(p.position) - truth.head<2>();
+  e.z() = NormalizeAngle(p.pose_m.z() - truth.z());
+  return e;
+}
+
+TEST(PassageLocalizer, RecoversNoiseFreePassageExactly) {
+  const Scenario scenario = MakeScenario(25);
+  const Passage passage = NoiseFree(scenario, scenario.MakePassage(0));
+  const LocalizationMap map = MakeMap(scenario, 0.0, 0.3, 1, /*exact=*/true);
+  absl::StatusOr<PassageLocalization> result = LocalizePassage(passage, map);
+  ASSERT_TRUE(result.ok()) << result.status();
+  EXPECT_TRUE(result->rejected.empty());
+  EXPECT_EQ(result->map_version, 7);
+  EXPECT_EQ(result->landmarks_used.size(), 25u);
+  ASSERT_GT(result->poses.size(), 165u);
+  double worst_m = 0.0, worst_rad = 0.0;
+  for (const LocalizedPose& p : result->poses) {
+    const Eigen::Vector3d e = PoseError(scenario, p);
+    worst_m = std::max(worst_m, e.head<2>().norm());
+    worst_rad = std::max(worst_rad, std::abs(e.z()));
+  }
+  // The passage's frame (at its first fix) and the scenario's are tangent planes at points 0.5 m
+  // apart: over the 2 km route they differ by a few micrometres.
+  EXPECT_LT(worst_m, 1e-5);
+  EXPECT_LT(worst_rad, 1e-6);
+  EXPECT_LT(result->chi2, 1e-8);
+}
+
+// Pose NEES over independent passages and maps (white noise, a consistent correlated map): the
+// covariance says how far the poses are.
+TEST(PassageLocalizer, PoseCovarianceIsConsistentOverManyPassages) {
+  const Scenario scenario = MakeScenario(25);
+  constexpr int kRuns = 24;
+  double nees_sum = 0.0;
+  int count = 0;
+  for (int run = 0; run < kRuns; ++run) {
+    const LocalizationMap map = MakeMap(scenario, 0.3, 0.4, 100 + run, /*exact=*/false);
+    absl::StatusOr<PassageLocalization> result = LocalizePassage(scenario.MakePassage(run), map);
+    ASSERT_TRUE(result.ok()) << result.status();
+    for (const LocalizedPose& p : result->poses) {
+      const Eigen::Vector3d e = PoseError(scenario, p);
+      nees_sum += e.dot(p.cov.ldlt().solve(e));
+      ++count;
+    }
+  }
+  const double nees_per_dof = nees_sum / (3.0 * count);
+  RecordProperty("pose_nees_per_dof", std::to_string(nees_per_dof));
+  EXPECT_GT(nees_per_dof, 0.75);
+  EXPECT_LT(nees_per_dof, 1.3);
+}
+
+TEST(PassageLocalizer, RejectsMislabelledDetection) {
+  const Scenario scenario = MakeScenario(150);
+  const Passage clean = scenario.MakePassage(3);
+  const LocalizationMap map = MakeMap(scenario, 0.0, 0.3, 5, /*exact=*/false);
+  Passage mislabelled = clean;
+  // One detection of landmark 5 reported as landmark 20, which stands elsewhere on the route.
+  Detection* wrong = nullptr;
+  for (Detection& d : mislabelled.detections) {
+    if (d.landmark_id == 5) wrong = &d;
+  }
+  ASSERT_NE(wrong, nullptr);
+  wrong->landmark_id = 20;
+  absl::StatusOr<PassageLocalization> a = LocalizePassage(clean, map);
+  absl::StatusOr<PassageLocalization> b = LocalizePassage(mislabelled, map);
+  ASSERT_TRUE(a.ok() && b.ok());
+  bool found = false;
+  for (const RejectedDetection& r : b->rejected) {
+    found |= r.landmark_id == 20 && std::abs(r.t_s - wrong->t_s) < 1e-6 && r.u_px == wrong->u_px;
+  }
+  EXPECT_TRUE(found) << b->Brief();
+  EXPECT_LE(b->rejected.size(), a->rejected.size() + 1) << a->Brief() << "\n" << b->Brief();
+  ASSERT_EQ(a->poses.size(), b->poses.size());
+  double worst = 0.0;
+  for (size_t k = 0; k < a->poses.size(); ++k) {
+    worst = std::max(worst, (a->poses[k].pose_m.head<2>() - b->poses[k].pose_m.head<2>()).norm());
+  }
+  EXPECT_LT(worst, 0.05);
+}
+
+TEST(PassageLocalizer, RejectsLandmarkWhoseDetectionsAllBelongElsewhere) {
+  // Dense enough that other landmarks are in view with it: a landmark seen alone, with metres of
+  // GNSS noise, moves the poses instead and nothing disagrees.
+  const Scenario scenario = MakeScenario(150);
+  LocalizationMap map = MakeMap(scenario, 0.0, 0.3, 6, /*exact=*/false);
+  // Landmark 9's map entry is 6 m from where it stands (twenty map sigmas).
+  map.positions[8] = scenario.frame().ToGeo(scenario.frame().ToLocal(map.positions[8]) + Eigen::Vector2d(6.0, 0.0));
+  absl::StatusOr<PassageLocalization> result = LocalizePassage(scenario.MakePassage(4), map);
+  ASSERT_TRUE(result.ok()) << result.status();
+  int whole = 0;
+  for (const RejectedDetection& r : result->rejected) whole += r.landmark_id == 9 && r.whole_landmark;
+  EXPECT_GT(whole, 0) << result->Brief();
+  EXPECT_EQ(std::count(result->landmarks_used.begin(), result->landmarks_used.end(), 9), 0);
+}
+
+TEST(PassageLocalizer, LocalizesWithoutMap) {
+  const Scenario scenario = MakeScenario(10);
+  absl::StatusOr<PassageLocalization> result = LocalizePassage(scenario.MakePassage(0), LocalizationMap{});
+  ASSERT_TRUE(result.ok()) << result.status();
+  EXPECT_TRUE(result->landmarks_used.empty());
+  EXPECT_GT(result->detections_unmapped, 0);
+}
+
+// The Schur path (dense landmark block) and one sparse selected inverse give the same marginals.
+TEST(PoseCovariances, SchurComplementMatchesSparseInverse) {
+  Calibration calib;
+  std::vector<Pose2> poses = {Pose2(0, 0, 0), Pose2(5, 0.5, 0.1), Pose2(10, 1.5, 0.2)};
+  std::vector<Eigen::Vector2d> landmarks = {Eigen::Vector2d(30, 5), Eigen::Vector2d(35, -4)};
+  ceres::Problem problem;
+  for (int k = 0; k + 1 < 3; ++k) {
+    RelativeMotion motion;
+    motion.delta = Pose2(5, 0.5, 0.1);
+    motion.cov = Eigen::Vector3d(0.01, 0.02, 0.001).asDiagonal();
+    problem.AddResidualBlock(OdometryFactor::Create(motion), nullptr, poses[k].data(), poses[k + 1].data());
+  }
+  for (Pose2& p : poses) {
+    problem.AddResidualBlock(GnssFactor::Create(p.head<2>(), 4.0 * Eigen::Matrix2d::Identity(), calib.gnss_lever_arm_m),
+                             nullptr, p.data());
+    for (Eigen::Vector2d& l : landmarks) {
+      problem.AddResidualBlock(CameraFactor::Create(900.0, 5.0, calib), nullptr, p.data(), l.data());
+    }
+  }
+  Eigen::Matrix4d cov = 0.04 * Eigen::Matrix4d::Ones() + 0.2 * Eigen::Matrix4d::Identity();
+  problem.AddResidualBlock(new LandmarkPriorFactor(Eigen::Vector4d(30, 5, 35, -4), SqrtInformation(cov)), nullptr,
+                           landmarks[0].data(), landmarks[1].data());
+  absl::StatusOr<std::vector<Eigen::Matrix3d>> schur = PoseCovariances(&problem, &poses, &landmarks, true);
+  absl::StatusOr<std::vector<Eigen::Matrix3d>> sparse = PoseCovariances(&problem, &poses, &landmarks, false);
+  ASSERT_TRUE(schur.ok() && sparse.ok());
+  for (size_t k = 0; k < poses.size(); ++k) EXPECT_LT(((*schur)[k] - (*sparse)[k]).norm(), 1e-9 * (*sparse)[k].norm());
+}
+
+TEST(ChiSquareUpperQuantile, MatchesTables) {
+  EXPECT_NEAR(ChiSquareUpperQuantile(1, 1e-3), 10.83, 0.01);
+  EXPECT_NEAR(ChiSquareUpperQuantile(2, 1e-3), 13.82, 0.01);
+  EXPECT_NEAR(ChiSquareUpperQuantile(10, 1e-3), 29.59, 0.3);
+  EXPECT_NEAR(ChiSquareUpperQuantile(10, 0.5), 9.34, 0.05);
+}
+
+TEST(PassageLocalizerOptions, RejectsInvalidGates) {
+  PassageLocalizerOptions options;
+  options.landmark_gate_probability = 0.0;
+  EXPECT_FALSE(options.Validate().ok());
+  options = {};
+  options.max_gating_rounds = 0;
+  EXPECT_FALSE(options.Validate().ok());
+}
+
+}  // namespace
+}  // namespace crowdmap

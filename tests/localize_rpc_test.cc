@@ -1,0 +1,83 @@
+// LocalizePassage against an in-process server on an ephemeral port and a temporary SQLite file.
+#include <cmath>
+
+#include "core/localization/passage_localizer.h"
+#include "server/testing/temp_dir.h"
+#include "server/wire_convert.h"
+#include "tests/support/mock_vehicle.h"
+#include "tests/support/test_server.h"
+
+namespace crowdmap {
+namespace {
+
+class LocalizeRpc : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    server_ = StartTestServer(TestServerOptions(dir_.File("map.db"), /*worker=*/true));
+    ASSERT_NE(server_, nullptr);
+    client_ = std::make_unique<MockVehicle>(server_->address());
+    for (int i = 0; i < 3; ++i) ASSERT_TRUE(client_->Upload(scenario_.MakePassage(i)).ok());
+    absl::StatusOr<pb::MapInfo> info = client_->WaitUntilIdle();
+    ASSERT_TRUE(info.ok()) << info.status();
+    ASSERT_EQ(info->passages_applied(), 3);
+    map_version_ = info->map_version();
+  }
+
+  TempDir dir_;
+  Scenario scenario_ = ShortScenario();
+  std::unique_ptr<MapServer> server_;
+  std::unique_ptr<MockVehicle> client_;
+  int64_t map_version_ = 0;
+};
+
+TEST_F(LocalizeRpc, ReturnsTheTrajectoryWithCovarianceAndLeavesTheMapAlone) {
+  const Passage passage = scenario_.MakePassage(10);
+  pb::Passage wire;
+  PassageToProto(passage, &wire);
+  absl::StatusOr<pb::LocalizePassageResponse> response = client_->client()->LocalizePassage(wire);
+  ASSERT_TRUE(response.ok()) << response.status();
+  EXPECT_EQ(response->map_version(), map_version_);
+  EXPECT_EQ(response->landmarks_used_size(), 6);
+  EXPECT_GT(response->detections_used(), 0);
+  EXPECT_GT(response->dof(), 0);
+  ASSERT_GT(response->poses_size(), 40);
+  for (const pb::LocalizedPose& p : response->poses()) {
+    ASSERT_EQ(p.covariance_size(), 9);
+    EXPECT_GT(p.covariance(0), 0.0);
+    EXPECT_GT(p.covariance(8), 0.0);
+    EXPECT_DOUBLE_EQ(p.covariance(1), p.covariance(3));
+    const Eigen::Vector2d error = scenario_.frame().ToLocal({p.lat_deg(), p.lon_deg()}) -
+                                  scenario_.TruePoseAt(p.t_s()).head<2>();
+    EXPECT_LT(error.norm(), 5.0 * std::sqrt(p.covariance(0) + p.covariance(4)) + 0.5) << "t=" << p.t_s();
+  }
+  // The same as localising in-process against the map read back.
+  absl::StatusOr<MapState> map = client_->DownloadMap(MockVehicle::World());
+  ASSERT_TRUE(map.ok()) << map.status();
+  absl::StatusOr<LocalizationMap> local_map = ReadLocalizationMap(*map, passage);
+  ASSERT_TRUE(local_map.ok()) << local_map.status();
+  absl::StatusOr<PassageLocalization> local = LocalizePassage(passage, *local_map);
+  ASSERT_TRUE(local.ok()) << local.status();
+  ASSERT_EQ(static_cast<int>(local->poses.size()), response->poses_size());
+  for (size_t k = 0; k < local->poses.size(); ++k) {
+    EXPECT_NEAR(local->poses[k].position.lat_deg, response->poses(k).lat_deg(), 1e-9);
+    EXPECT_NEAR(local->poses[k].heading_en_rad, response->poses(k).heading_rad(), 1e-7);
+    EXPECT_NEAR(local->poses[k].cov_en(0, 0), response->poses(k).covariance(0), 1e-6);
+  }
+  // Read-only.
+  absl::StatusOr<pb::MapInfo> info = client_->GetMapInfo();
+  ASSERT_TRUE(info.ok());
+  EXPECT_EQ(info->map_version(), map_version_);
+}
+
+TEST_F(LocalizeRpc, RefusesAnInvalidPassage) {
+  pb::Passage wire;
+  PassageToProto(scenario_.MakePassage(10), &wire);
+  wire.mutable_gnss(3)->set_lat_deg(91.0);
+  absl::StatusOr<pb::LocalizePassageResponse> response = client_->client()->LocalizePassage(wire);
+  ASSERT_FALSE(response.ok());
+  EXPECT_EQ(response.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_NE(response.status().message().find("gnss[3].lat_deg"), std::string::npos) << response.status();
+}
+
+}  // namespace
+}  // namespace crowdmap
