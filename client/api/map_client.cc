@@ -130,13 +130,24 @@ absl::StatusOr<pb::LocalizePassageResponse> MapClient::LocalizePassage(const pb:
   return response;
 }
 
-absl::StatusOr<pb::ExcludePassageResponse> MapClient::ExcludePassage(const PassageKey& key) {
-  grpc::ClientContext ctx;
-  SetDeadline(&ctx);
-  pb::ExcludePassageRequest request;
+namespace {
+
+// Requests that name a passage by id, or by vehicle_id and passage_id.
+template <typename Request>
+Request NamingPassage(const PassageKey& key) {
+  Request request;
   request.set_id(key.id);
   request.set_vehicle_id(key.vehicle_id);
   request.set_passage_id(key.passage_id);
+  return request;
+}
+
+}  // namespace
+
+absl::StatusOr<pb::ExcludePassageResponse> MapClient::ExcludePassage(const PassageKey& key) {
+  grpc::ClientContext ctx;
+  SetDeadline(&ctx);
+  const auto request = NamingPassage<pb::ExcludePassageRequest>(key);
   pb::ExcludePassageResponse response;
   if (absl::Status s = FromGrpcStatus(stub_->ExcludePassage(&ctx, request, &response)); !s.ok()) return s;
   return response;
@@ -146,10 +157,7 @@ absl::StatusOr<pb::PassageStatus> MapClient::ResolvePassage(const PassageKey& ke
                                                            pb::ResolvePassageRequest::Action action) {
   grpc::ClientContext ctx;
   SetDeadline(&ctx);
-  pb::ResolvePassageRequest request;
-  request.set_id(key.id);
-  request.set_vehicle_id(key.vehicle_id);
-  request.set_passage_id(key.passage_id);
+  auto request = NamingPassage<pb::ResolvePassageRequest>(key);
   request.set_action(action);
   pb::PassageStatus response;
   if (absl::Status s = FromGrpcStatus(stub_->ResolvePassage(&ctx, request, &response)); !s.ok()) return s;
