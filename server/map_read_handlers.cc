@@ -148,6 +148,7 @@ grpc::Status MapService::GetMapInfo(grpc::ServerContext* ctx, const pb::GetMapIn
   response->set_passages_quarantined(stats->passages_by_state[static_cast<int>(PassageState::kQuarantined)]);
   response->set_passages_discarded(stats->passages_by_state[static_cast<int>(PassageState::kDiscarded)]);
   response->set_strategy(UpdateStrategyName(context_->update.strategy));
+  response->set_server_version(CROWDMAP_VERSION);
   response->set_warmup_passages(context_->update.warmup_passages);
   response->set_relinearize_until_passages(context_->update.relinearize_until_passages);
   response->set_max_subgraph_dim(context_->update.max_subgraph_dim);

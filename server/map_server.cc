@@ -110,8 +110,8 @@ absl::StatusOr<std::unique_ptr<MapServer>> MapServer::Start(const MapServerOptio
   }
   server->server_->GetHealthCheckService()->SetServingStatus(true);
   if (options.start_worker) server->worker_->Start();
-  spdlog::info("event=started listen={} port={} db={} strategy={} workers={} max_queue={}", options.listen,
-               server->port_, options.db_path, UpdateStrategyName(context.update.strategy), options.worker.workers, options.max_queue);
+  spdlog::info("event=started version={} listen={} port={} db={} strategy={} workers={} max_queue={}",
+               CROWDMAP_VERSION, options.listen, server->port_, options.db_path, UpdateStrategyName(context.update.strategy), options.worker.workers, options.max_queue);
   return server;
 }
 

@@ -129,6 +129,7 @@ Usage: mapd [--flag value | --flag=value]...
                               degree of freedom (default 0 = never; see README)
   --log-level LEVEL           trace | debug | info | warn | error | off (default info)
   --config PATH               settings file: "name = value" lines with the names above
+  --version                   print the version and exit
   --help                      this text
 
 Every setting also reads the environment (MAPD_LISTEN, MAPD_DB, MAPD_MAX_QUEUE, ...; MAPD_CONFIG for
@@ -146,6 +147,10 @@ absl::StatusOr<MapdConfig> ParseMapdConfig(const std::vector<std::string>& args,
     const std::string& a = args[i];
     if (a == "--help" || a == "-h") {
       config.help = true;
+      continue;
+    }
+    if (a == "--version") {
+      config.version = true;
       continue;
     }
     if (a.rfind("--", 0) != 0) return absl::InvalidArgumentError(absl::StrCat("unexpected argument '", a, "'"));

@@ -14,6 +14,7 @@ struct MapdConfig {
   MapServerOptions server;
   std::string log_level = "info";  // trace | debug | info | warn | error | off
   bool help = false;
+  bool version = false;  // --version
 };
 
 // Looks up an environment variable; nullptr when unset.

@@ -82,6 +82,13 @@ TEST(MapdConfig, ReadsUpdateOptions) {
 namespace crowdmap {
 namespace {
 
+TEST(MapdConfig, VersionFlagIsRecognised) {
+  auto c = ParseMapdConfig({"--version"}, FakeEnv({}));
+  ASSERT_TRUE(c.ok()) << c.status();
+  EXPECT_TRUE(c->version);
+  EXPECT_FALSE(ParseMapdConfig({}, FakeEnv({}))->version);
+}
+
 TEST(MapdConfig, ReadsTheTrustRules) {
   auto c = ParseMapdConfig({"--max-detection-residual-sigmas", "4", "--max-landmark-shift-sigmas=6",
                             "--max-new-landmark-ray-sigma-m", "2.5"},

@@ -30,6 +30,10 @@ int main(int argc, char** argv) {
     std::cout << crowdmap::MapdUsage();
     return 0;
   }
+  if (config->version) {
+    std::cout << "mapd (crowdmap) " << CROWDMAP_VERSION << "\n";
+    return 0;
+  }
   auto logger = spdlog::stderr_color_mt("mapd");
   spdlog::set_default_logger(logger);
   spdlog::set_pattern("%Y-%m-%dT%H:%M:%S.%e %l %v");

@@ -152,6 +152,7 @@ TEST_F(ServiceRpc, WorkerAppliesPassagesAndMapInfoCountsThem) {
   auto info = client_->WaitUntilIdle();
   ASSERT_TRUE(info.ok()) << info.status();
   EXPECT_EQ(info->passages_applied(), 3);
+  EXPECT_EQ(info->server_version(), CROWDMAP_VERSION);
   EXPECT_EQ(info->queue_depth(), 0);
   EXPECT_EQ(info->landmark_count(), 6);
   EXPECT_GT(info->map_version(), 0);

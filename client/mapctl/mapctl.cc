@@ -28,6 +28,7 @@ namespace {
 constexpr char kUsage[] = R"(mapctl: operate a crowdmap map service (mapd).
 
 Usage: mapctl COMMAND [ARGS] [--server HOST:PORT] [--json] [--deadline-s S]
+       mapctl --version
 
 Commands:
   upload FILE...                 upload passage files (protobuf JSON or binary mapservice.v1.Passage)
@@ -477,6 +478,10 @@ int RunMapctl(const std::vector<std::string>& args, std::ostream& out, std::ostr
   if (args.empty()) {
     err << kUsage;
     return 2;
+  }
+  if (args[0] == "--version") {
+    out << "mapctl (crowdmap) " << CROWDMAP_VERSION << "\n";
+    return 0;
   }
   if (args[0] == "--help" || args[0] == "-h" || args[0] == "help") {
     out << kUsage;

@@ -252,3 +252,15 @@ TEST_F(MapctlTest, LocalizeWritesCsvAndGeoJson) {
 
 }  // namespace
 }  // namespace crowdmap
+
+namespace crowdmap {
+namespace {
+
+TEST(Mapctl, VersionPrintsTheProjectVersion) {
+  std::ostringstream out, err;
+  EXPECT_EQ(RunMapctl({"--version"}, out, err), 0);
+  EXPECT_EQ(out.str(), std::string("mapctl (crowdmap) ") + CROWDMAP_VERSION + "\n");
+}
+
+}  // namespace
+}  // namespace crowdmap

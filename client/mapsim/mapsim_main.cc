@@ -52,6 +52,7 @@ Usage:
                               wait until applied, read the map back, write the experiment outputs
   mapsim export-passages [flags]  write simulated passages as files for `mapctl upload`
   mapsim bench      [flags]   load-test a running mapd (use a scratch database)
+  mapsim --version            print the version
 
 experiment flags:
   --landmarks N               landmarks along the 2 km route (default 25)
@@ -756,6 +757,10 @@ int main(int argc, char** argv) {
   google::InitGoogleLogging(argv[0]);
   FLAGS_minloglevel = google::GLOG_ERROR;
   std::vector<std::string> args(argv + 1, argv + argc);
+  if (!args.empty() && args[0] == "--version") {
+    std::cout << "mapsim (crowdmap) " << CROWDMAP_VERSION << "\n";
+    return 0;
+  }
   if (args.empty() || args[0] == "--help" || args[0] == "-h" || args[0] == "help") {
     std::cout << crowdmap::kUsage;
     return args.empty() ? 2 : 0;
