@@ -12,6 +12,7 @@
 
 #include "absl/strings/str_cat.h"
 #include "core/estimation/passage_exclusion.h"
+#include "server/request_log.h"
 #include "server/wire_convert.h"
 
 namespace crowdmap {
@@ -314,8 +315,8 @@ void MapWorker::Finish(const StoredPassage& record, PassageState state, const st
   if (state == PassageState::kQueued) {
     spdlog::info("event=returned passage={} vehicle={} id={}", record.passage_id, record.vehicle_id, record.id);
   } else {
-    spdlog::warn("event={} passage={} vehicle={} id={} reason=\"{}\"", PassageStateName(state), record.passage_id,
-                 record.vehicle_id, record.id, reason);
+    spdlog::warn("event={} passage={} vehicle={} id={} reason=\"{}\"", PassageStateName(state),
+                 EscapeForLog(record.passage_id), EscapeForLog(record.vehicle_id), record.id, EscapeForLog(reason));
   }
 }
 

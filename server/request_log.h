@@ -3,6 +3,7 @@
 
 #include <chrono>
 #include <string>
+#include <string_view>
 
 #include <grpcpp/server_context.h>
 #include <spdlog/spdlog.h>
@@ -12,11 +13,31 @@
 
 namespace crowdmap {
 
-// Times one RPC and logs one key=value line when it ends; Done() converts the status.
+// `text` with every byte a log line must not carry raw (control characters, the backslash, bytes
+// outside printable ASCII) written as \xNN: a client-supplied value cannot start a line of its own.
+inline std::string EscapeForLog(const std::string& text) {
+  static constexpr char kHex[] = "0123456789abcdef";
+  std::string out;
+  out.reserve(text.size());
+  for (unsigned char c : text) {
+    if (c >= 0x20 && c < 0x7f && c != '\\') {
+      out += static_cast<char>(c);
+    } else {
+      out += "\\x";
+      out += kHex[c >> 4];
+      out += kHex[c & 15];
+    }
+  }
+  return out;
+}
+
+// Times one RPC and logs one key=value line when it ends; Done() converts the status. Successful
+// reads are logged at debug level (they come by the thousand per second), everything else at info,
+// failures at warn. Every client-supplied value is escaped (EscapeForLog).
 class RequestLog {
  public:
   RequestLog(const char* rpc, const grpc::ServerContextBase* ctx)
-      : rpc_(rpc), peer_(ctx->peer()), start_(std::chrono::steady_clock::now()) {}
+      : rpc_(rpc), peer_(ctx->peer()), start_(std::chrono::steady_clock::now()), read_(IsRead(rpc)) {}
 
   // Extra key=value pairs, e.g. "passage=p1 vehicle=v1".
   void Add(const std::string& fields) {
@@ -26,21 +47,31 @@ class RequestLog {
 
   grpc::Status Done(const absl::Status& status) {
     const double ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start_).count();
-    const auto level = status.ok() || status.code() == absl::StatusCode::kNotFound ? spdlog::level::info
-                                                                                   : spdlog::level::warn;
+    const bool quiet = status.ok() || status.code() == absl::StatusCode::kNotFound;
+    const auto level = !quiet ? spdlog::level::warn : read_ ? spdlog::level::debug : spdlog::level::info;
     if (status.ok()) {
-      spdlog::log(level, "rpc={} peer={} code=OK ms={:.2f}{}", rpc_, peer_, ms, fields_);
+      spdlog::log(level, "rpc={} peer={} code=OK ms={:.2f}{}", rpc_, EscapeForLog(peer_), ms, EscapeForLog(fields_));
     } else {
-      spdlog::log(level, "rpc={} peer={} code={} ms={:.2f}{} error=\"{}\"", rpc_, peer_,
-                  absl::StatusCodeToString(status.code()), ms, fields_, std::string(status.message()));
+      spdlog::log(level, "rpc={} peer={} code={} ms={:.2f}{} error=\"{}\"", rpc_, EscapeForLog(peer_),
+                  absl::StatusCodeToString(status.code()), ms, EscapeForLog(fields_),
+                  EscapeForLog(std::string(status.message())));
     }
     return ToGrpcStatus(status);
   }
 
  private:
+  static bool IsRead(std::string_view rpc) {
+    for (std::string_view read : {"GetLandmark", "GetMapInfo", "GetPassage", "GetTile", "ListPassages",
+                                  "LocalizePassage", "QueryRegion", "WatchRegion"}) {
+      if (rpc == read) return true;
+    }
+    return false;
+  }
+
   const char* rpc_;
   std::string peer_;
   std::chrono::steady_clock::time_point start_;
+  bool read_;
   std::string fields_;
 };
 
