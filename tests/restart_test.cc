@@ -1,4 +1,6 @@
 // Stopping the server and starting it on the same file keeps the map, its versions and the queue.
+#include "absl/strings/str_cat.h"
+#include "server/storage/sqlite_db.h"
 #include "server/storage/sqlite_map_store.h"
 #include "server/testing/temp_dir.h"
 #include "tests/support/map_compare.h"
@@ -134,6 +136,41 @@ TEST(ServiceRestart, InterruptedAttemptsDoNotCountButEndlessInterruptionsFail) {
     }
     server->Shutdown();
   }
+}
+
+}  // namespace
+}  // namespace crowdmap
+
+namespace crowdmap {
+namespace {
+
+TEST(ServiceRestart, ADamagedStoredMapIsRefusedAtStartNamingTheRecord) {
+  TempDir dir;
+  const std::string db = dir.File("map.db");
+  {
+    auto server = StartTestServer(TestServerOptions(db, /*start_worker=*/true));
+    MockVehicle client(server->address());
+    ASSERT_TRUE(client.Upload(ShortScenario().MakePassage(0)).ok());
+    ASSERT_TRUE(client.WaitUntilIdle().ok());
+    server->Shutdown();
+  }
+  int64_t damaged = 0;
+  {
+    auto connection = SqliteConnection::Open(db, 1000, /*read_only=*/false);
+    ASSERT_TRUE(connection.ok()) << connection.status();
+    auto select = (*connection)->Prepare("SELECT MIN(id) FROM landmarks");
+    ASSERT_TRUE(select.ok());
+    absl::StatusOr<bool> row = select->Step();
+    ASSERT_TRUE(row.ok() && *row);
+    damaged = select->Int(0);
+    ASSERT_TRUE((*connection)->Exec(absl::StrCat("UPDATE landmarks SET cov_ee = -1 WHERE id = ", damaged)).ok());
+  }
+  absl::StatusOr<std::unique_ptr<MapServer>> server = MapServer::Start(TestServerOptions(db, true));
+  ASSERT_FALSE(server.ok());
+  EXPECT_EQ(server.status().code(), absl::StatusCode::kDataLoss);
+  EXPECT_NE(server.status().message().find(absl::StrCat("stored map is damaged: landmark ", damaged, ": covariance")),
+            std::string::npos)
+      << server.status();
 }
 
 }  // namespace

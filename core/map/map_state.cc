@@ -266,41 +266,72 @@ void MapOverlay::RemoveFactor(int64_t id) {
   delta_.removed_factors.push_back(id);
 }
 
-absl::Status CheckDeltaInvariants(const MapDelta& delta) {
-  for (const auto& [id, l] : delta.landmarks) {
-    const auto on_globe = [](const LatLon& p) {
-      return std::isfinite(p.lat_deg) && std::isfinite(p.lon_deg) && std::abs(p.lat_deg) <= 90.0 &&
-             std::abs(p.lon_deg) <= 180.0;
-    };
-    if (!on_globe(l.position) || !on_globe(l.anchor)) {
-      return absl::InternalError(absl::StrCat("map invariant: landmark ", id, ": position not finite or off the globe"));
-    }
-    const Eigen::Matrix2d& c = l.cov_en_m2;
-    if (!c.allFinite() || std::abs(c(0, 1) - c(1, 0)) > 1e-9 * c.cwiseAbs().maxCoeff() ||
-        Eigen::LLT<Eigen::Matrix2d>(c).info() != Eigen::Success) {
-      return absl::InternalError(
-          absl::StrCat("map invariant: landmark ", id, ": covariance not finite, symmetric and positive definite"));
-    }
+namespace {
+
+absl::Status CheckLandmarkRecord(const Landmark& l) {
+  const auto on_globe = [](const LatLon& p) {
+    return std::isfinite(p.lat_deg) && std::isfinite(p.lon_deg) && std::abs(p.lat_deg) <= 90.0 &&
+           std::abs(p.lon_deg) <= 180.0;
+  };
+  if (!on_globe(l.position) || !on_globe(l.anchor)) {
+    return absl::InternalError(absl::StrCat("landmark ", l.id, ": position not finite or off the globe"));
   }
-  for (const auto& [id, f] : delta.added_factors) {
-    const Eigen::Index n = 2 * static_cast<Eigen::Index>(f.landmarks.size());
-    if (f.information.rows() != n || f.information.cols() != n || f.information_vector.size() != n) {
-      return absl::InternalError(absl::StrCat("map invariant: factor ", id, ": information of the wrong size"));
-    }
-    if (!f.information.allFinite() || !f.information_vector.allFinite()) {
-      return absl::InternalError(absl::StrCat("map invariant: factor ", id, ": information not finite"));
-    }
-    const double scale = std::max(1.0, f.information.cwiseAbs().maxCoeff());
-    if ((f.information - f.information.transpose()).cwiseAbs().maxCoeff() > 1e-9 * scale) {
-      return absl::InternalError(absl::StrCat("map invariant: factor ", id, ": information not symmetric"));
-    }
-    if (n > 0 && Eigen::SelfAdjointEigenSolver<Eigen::MatrixXd>(f.information, Eigen::EigenvaluesOnly)
-                         .eigenvalues()(0) < -1e-9 * scale) {
-      return absl::InternalError(
-          absl::StrCat("map invariant: factor ", id, ": information not positive semi-definite"));
-    }
+  const Eigen::Matrix2d& c = l.cov_en_m2;
+  if (!c.allFinite() || std::abs(c(0, 1) - c(1, 0)) > 1e-9 * c.cwiseAbs().maxCoeff() ||
+      Eigen::LLT<Eigen::Matrix2d>(c).info() != Eigen::Success) {
+    return absl::InternalError(
+        absl::StrCat("landmark ", l.id, ": covariance not finite, symmetric and positive definite"));
   }
   return absl::OkStatus();
+}
+
+// `semidefinite`: also check the information's smallest eigenvalue (cubic in the factor's size).
+absl::Status CheckFactorRecord(const MapFactor& f, bool semidefinite) {
+  const Eigen::Index n = 2 * static_cast<Eigen::Index>(f.landmarks.size());
+  if (f.information.rows() != n || f.information.cols() != n || f.information_vector.size() != n) {
+    return absl::InternalError(absl::StrCat("factor ", f.id, ": information of the wrong size"));
+  }
+  if (!f.information.allFinite() || !f.information_vector.allFinite()) {
+    return absl::InternalError(absl::StrCat("factor ", f.id, ": information not finite"));
+  }
+  const double scale = std::max(1.0, f.information.cwiseAbs().maxCoeff());
+  if ((f.information - f.information.transpose()).cwiseAbs().maxCoeff() > 1e-9 * scale) {
+    return absl::InternalError(absl::StrCat("factor ", f.id, ": information not symmetric"));
+  }
+  if (semidefinite && n > 0 &&
+      Eigen::SelfAdjointEigenSolver<Eigen::MatrixXd>(f.information, Eigen::EigenvaluesOnly).eigenvalues()(0) <
+          -1e-9 * scale) {
+    return absl::InternalError(absl::StrCat("factor ", f.id, ": information not positive semi-definite"));
+  }
+  return absl::OkStatus();
+}
+
+absl::Status Prefixed(const char* prefix, const absl::Status& s) {
+  return s.ok() ? s : absl::Status(s.code(), absl::StrCat(prefix, s.message()));
+}
+
+}  // namespace
+
+absl::Status CheckDeltaInvariants(const MapDelta& delta) {
+  for (const auto& [id, l] : delta.landmarks) {
+    if (absl::Status s = CheckLandmarkRecord(l); !s.ok()) return Prefixed("map invariant: ", s);
+  }
+  for (const auto& [id, f] : delta.added_factors) {
+    if (absl::Status s = CheckFactorRecord(f, /*semidefinite=*/true); !s.ok()) return Prefixed("map invariant: ", s);
+  }
+  return absl::OkStatus();
+}
+
+absl::Status CheckStoredMap(const MapState& map) {
+  absl::Status status;
+  map.ForEachLandmark([&](const Landmark& l) {
+    if (status.ok()) status = CheckLandmarkRecord(l);
+  });
+  map.ForEachFactor([&](const MapFactor& f) {
+    if (status.ok()) status = CheckFactorRecord(f, /*semidefinite=*/false);
+  });
+  if (status.ok()) return status;
+  return absl::DataLossError(absl::StrCat("the stored map is damaged: ", status.message()));
 }
 
 }  // namespace crowdmap

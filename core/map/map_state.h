@@ -136,6 +136,12 @@ struct MapDelta {
 // refused, the map left as it was.
 absl::Status CheckDeltaInvariants(const MapDelta& delta);
 
+class MapState;
+// The same checks on a whole loaded map, in time linear in its size (a factor's information is
+// checked finite and symmetric, not for its eigenvalues). DataLoss naming the first damaged
+// record: a service must not serve, nor update, a damaged map.
+absl::Status CheckStoredMap(const MapState& map);
+
 // In-memory map: the estimation core's map type, mirrored by the persistent store.
 class MapState : public MapReaderInterface {
  public:

@@ -23,6 +23,7 @@ absl::StatusOr<std::unique_ptr<CachedMapStore>> CachedMapStore::Create(std::uniq
   std::unique_ptr<CachedMapStore> store(new CachedMapStore(std::move(inner), covariance_window_hops));
   MapState& map = store->map_;
   if (auto s = store->inner_->LoadMap(&map); !s.ok()) return s;
+  if (auto s = CheckStoredMap(map); !s.ok()) return s;
   std::unordered_map<TileKey, Bucket> buckets;
   map.ForEachLandmark([&](const Landmark& l) {
     const TileKey key = KeyOf(TileContaining(l.position));
