@@ -92,7 +92,8 @@ std::string MapdUsage() {
 Usage: mapd [--flag value | --flag=value]...
 
   --listen ADDR               host:port to serve on (default 127.0.0.1:50051)
-  --db PATH                   SQLite map database, created on first start (default ./var/map.db)
+  --db PATH                   SQLite map database, created on first start (default ./var/map.db);
+                              the passage queue is kept beside it in PATH.queue
   --strategy NAME             map update strategy: cc | dc | cc-gsd (default cc-gsd)
   --max-subgraph-dim N        largest subgraph state dimension with cc-gsd (default 500)
   --window-hops N             after each subgraph the map is re-solved, and covariances are

@@ -189,7 +189,12 @@ struct SqliteMapStoreOptions {
   absl::Status Validate() const;
 };
 
-// Opens (creating and migrating when needed) the SQLite map store at `path`.
+// The passage queue's file beside the map's: `<path>.queue`. Back both up together.
+std::string SqliteQueuePath(const std::string& map_path);
+
+// Opens (creating and migrating when needed) the SQLite map store at `path` with its queue file.
+// A map file of schema 4 or older (queue and map in one file) has its queue moved to the queue
+// file. FailedPrecondition when the map file exists at a later schema and its queue file does not.
 absl::StatusOr<std::unique_ptr<MapStoreInterface>> CreateSqliteMapStore(const std::string& path,
                                                                         const SqliteMapStoreOptions& options = {});
 

@@ -195,4 +195,35 @@ SqliteReadTransaction::~SqliteReadTransaction() {
   if (db_ != nullptr) db_->Exec("COMMIT").IgnoreError();
 }
 
+
+absl::StatusOr<std::unique_ptr<SqliteFile>> SqliteFile::Open(const std::string& path, int busy_timeout_ms,
+                                                             int max_idle_readers) {
+  auto writer = SqliteConnection::Open(path, busy_timeout_ms, /*read_only=*/false);
+  if (!writer.ok()) return writer.status();
+  return std::unique_ptr<SqliteFile>(new SqliteFile(path, busy_timeout_ms, max_idle_readers, std::move(*writer)));
+}
+
+SqliteFile::ReaderLease::~ReaderLease() {
+  if (db_ != nullptr) file_->ReleaseReader(std::move(db_));
+}
+
+absl::StatusOr<SqliteFile::ReaderLease> SqliteFile::AcquireReader() {
+  {
+    std::lock_guard<std::mutex> lock(readers_mu_);
+    if (!idle_readers_.empty()) {
+      std::unique_ptr<SqliteConnection> db = std::move(idle_readers_.back());
+      idle_readers_.pop_back();
+      return ReaderLease(this, std::move(db));
+    }
+  }
+  auto db = SqliteConnection::Open(path_, busy_timeout_ms_, /*read_only=*/true);
+  if (!db.ok()) return db.status();
+  return ReaderLease(this, std::move(*db));
+}
+
+void SqliteFile::ReleaseReader(std::unique_ptr<SqliteConnection> db) {
+  std::lock_guard<std::mutex> lock(readers_mu_);
+  if (static_cast<int>(idle_readers_.size()) < max_idle_readers_) idle_readers_.push_back(std::move(db));
+}
+
 }  // namespace crowdmap

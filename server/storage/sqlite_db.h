@@ -4,9 +4,11 @@
 #include <cstdint>
 #include <functional>
 #include <memory>
+#include <mutex>
 #include <string>
 #include <string_view>
 #include <unordered_map>
+#include <vector>
 
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"
@@ -106,6 +108,57 @@ class SqliteReadTransaction {
  private:
   explicit SqliteReadTransaction(SqliteConnection* db) : db_(db) {}
   SqliteConnection* db_;
+};
+
+
+// One database file: a writer connection behind a mutex (every write is one BEGIN IMMEDIATE
+// transaction) and a pool of reader connections (WAL lets them read a consistent snapshot while
+// the writer commits).
+class SqliteFile {
+ public:
+  // Opens (creating when missing) `path` for writing; readers are opened on demand.
+  static absl::StatusOr<std::unique_ptr<SqliteFile>> Open(const std::string& path, int busy_timeout_ms,
+                                                          int max_idle_readers);
+
+  // A pooled reader connection, returned to the pool when the lease ends.
+  class ReaderLease {
+   public:
+    ReaderLease(SqliteFile* file, std::unique_ptr<SqliteConnection> db) : file_(file), db_(std::move(db)) {}
+    ReaderLease(ReaderLease&&) = default;
+    ~ReaderLease();
+    SqliteConnection* operator->() { return db_.get(); }
+    SqliteConnection* get() { return db_.get(); }
+
+   private:
+    SqliteFile* file_;
+    std::unique_ptr<SqliteConnection> db_;
+  };
+  absl::StatusOr<ReaderLease> AcquireReader();
+
+  // The writer connection, for as long as the lock is held.
+  struct Writer {
+    std::unique_lock<std::mutex> lock;
+    SqliteConnection* db;
+  };
+  Writer LockWriter() { return Writer{std::unique_lock<std::mutex>(writer_mu_), writer_.get()}; }
+
+  const std::string& path() const { return path_; }
+
+ private:
+  SqliteFile(std::string path, int busy_timeout_ms, int max_idle_readers, std::unique_ptr<SqliteConnection> writer)
+      : path_(std::move(path)),
+        busy_timeout_ms_(busy_timeout_ms),
+        max_idle_readers_(max_idle_readers),
+        writer_(std::move(writer)) {}
+  void ReleaseReader(std::unique_ptr<SqliteConnection> db);
+
+  const std::string path_;
+  const int busy_timeout_ms_;
+  const int max_idle_readers_;
+  std::mutex writer_mu_;
+  std::unique_ptr<SqliteConnection> writer_;
+  std::mutex readers_mu_;
+  std::vector<std::unique_ptr<SqliteConnection>> idle_readers_;
 };
 
 }  // namespace crowdmap

@@ -4,18 +4,23 @@
 #include <sched.h>
 
 #include <cmath>
+#include <filesystem>
 #include <functional>
 #include <unordered_set>
 
 #include <Eigen/LU>
 
 #include "absl/strings/str_cat.h"
+#include "spdlog/spdlog.h"
 #include "server/storage/map_reads.h"
 #include "server/storage/factor_codec.h"
 #include "server/storage/sqlite_schema.h"
 
 namespace crowdmap {
 namespace {
+
+// Schema 5 moved the passage queue out of the map's file.
+constexpr int kLastSchemaWithQueue = 4;
 
 constexpr char kLandmarkColumns[] =
     "SELECT l.id, l.lat_deg, l.lon_deg, l.cov_ee, l.cov_en, l.cov_ne, l.cov_nn, l.version, l.passages_seen, "
@@ -72,37 +77,45 @@ absl::StatusOr<std::unique_ptr<MapStoreInterface>> CreateSqliteMapStore(const st
   return std::unique_ptr<MapStoreInterface>(std::move(*store));
 }
 
+std::string SqliteQueuePath(const std::string& map_path) { return map_path + ".queue"; }
+
 absl::StatusOr<std::unique_ptr<SqliteMapStore>> SqliteMapStore::Open(const std::string& path,
                                                                     const SqliteMapStoreOptions& options) {
   if (auto s = options.Validate(); !s.ok()) return s;
-  auto writer = SqliteConnection::Open(path, options.busy_timeout_ms, /*read_only=*/false);
-  if (!writer.ok()) return writer.status();
-  if (auto s = MigrateSchema(writer->get()); !s.ok()) return s;
-  (*writer)->OnProgress(options.write_yield_vm_steps, [] { sched_yield(); });
-  return std::unique_ptr<SqliteMapStore>(new SqliteMapStore(path, options, std::move(*writer)));
-}
-
-SqliteMapStore::ReaderLease::~ReaderLease() {
-  if (db_ != nullptr) store_->ReleaseReader(std::move(db_));
-}
-
-absl::StatusOr<SqliteMapStore::ReaderLease> SqliteMapStore::AcquireReader() {
+  const std::string queue_path = SqliteQueuePath(path);
+  std::error_code ec;
+  const bool queue_existed = std::filesystem::exists(queue_path, ec);
+  auto map = SqliteFile::Open(path, options.busy_timeout_ms, options.max_idle_readers);
+  if (!map.ok()) return map.status();
   {
-    std::lock_guard<std::mutex> lock(readers_mu_);
-    if (!idle_readers_.empty()) {
-      std::unique_ptr<SqliteConnection> db = std::move(idle_readers_.back());
-      idle_readers_.pop_back();
-      return ReaderLease(this, std::move(db));
+    SqliteFile::Writer writer = (*map)->LockWriter();
+    // Up to the last schema with the queue inside the map's file, so that its queue can move out.
+    if (auto s = MigrateSchema(writer.db, kLastSchemaWithQueue); !s.ok()) return s;
+    auto version = writer.db->PragmaInt("user_version");
+    if (!version.ok()) return version.status();
+    if (*version > kLastSchemaWithQueue && !queue_existed) {
+      return absl::FailedPreconditionError(
+          absl::StrCat("db: the passage queue of ", path, " (", queue_path,
+                       ") is missing; restore it from the backup taken with the map, or move the map aside"));
     }
   }
-  auto db = SqliteConnection::Open(path_, options_.busy_timeout_ms, /*read_only=*/true);
-  if (!db.ok()) return db.status();
-  return ReaderLease(this, std::move(*db));
-}
-
-void SqliteMapStore::ReleaseReader(std::unique_ptr<SqliteConnection> db) {
-  std::lock_guard<std::mutex> lock(readers_mu_);
-  if (static_cast<int>(idle_readers_.size()) < options_.max_idle_readers) idle_readers_.push_back(std::move(db));
+  auto queue = SqliteFile::Open(queue_path, options.busy_timeout_ms, options.max_idle_readers);
+  if (!queue.ok()) return queue.status();
+  {
+    SqliteFile::Writer writer = (*queue)->LockWriter();
+    if (auto s = MigrateQueueSchema(writer.db); !s.ok()) return s;
+    if (auto s = ImportQueueFromMapFile(writer.db, path); !s.ok()) return s;
+  }
+  {
+    SqliteFile::Writer writer = (*map)->LockWriter();
+    if (auto s = MigrateSchema(writer.db); !s.ok()) return s;
+    writer.db->OnProgress(options.write_yield_vm_steps, [] { sched_yield(); });
+  }
+  {
+    SqliteFile::Writer writer = (*queue)->LockWriter();
+    if (auto n = ReconcileQueueWithMap(writer.db, path); !n.ok()) return n.status();
+  }
+  return std::unique_ptr<SqliteMapStore>(new SqliteMapStore(options, std::move(*map), std::move(*queue)));
 }
 
 absl::StatusOr<int64_t> SqliteMapStore::ReadMapVersion(SqliteConnection* db) {
@@ -268,40 +281,91 @@ absl::Status SqliteMapStore::FoldFactor(SqliteConnection* db, int64_t id) {
 }
 
 absl::Status SqliteMapStore::CommitMapChange(int64_t id, const MapDelta& delta, PassageState from, PassageState to,
-                                             const std::function<absl::Status(SqliteConnection*)>& also) {
-  std::lock_guard<std::mutex> lock(writer_mu_);
-  SqliteConnection* db = writer_.get();
-  auto txn = SqliteWriteTransaction::Begin(db);
+                                             const std::optional<PassageResult>& result) {
+  // Only the worker moves a passage out of processing or applied, one change at a time, so the
+  // state checked here still holds when the queue records the change.
+  {
+    auto queue = queue_->AcquireReader();
+    if (!queue.ok()) return queue.status();
+    if (auto s = CheckPassageState(queue->get(), id, from); !s.ok()) return s;
+  }
+  PendingConfirmation change{id, from, to, NowUnixMs(), result};
+  {
+    SqliteFile::Writer writer = map_->LockWriter();
+    SqliteConnection* db = writer.db;
+    auto txn = SqliteWriteTransaction::Begin(db);
+    if (!txn.ok()) return txn.status();
+    if (auto s = CheckBaseVersion(db, delta); !s.ok()) return s;
+    if (auto s = WriteMapDelta(db, delta); !s.ok()) return s;
+    if (result) {
+      if (auto s = WriteResult(db, "map_passages", id, *result); !s.ok()) return s;
+    }
+    auto mark = db->Prepare("UPDATE map_passages SET state = ?2, finished_unix_ms = ?3 WHERE id = ?1");
+    if (!mark.ok()) return mark.status();
+    mark->Bind(1, id).Bind(2, static_cast<int64_t>(to)).Bind(3, change.finished_unix_ms);
+    if (auto s = mark->Run(); !s.ok()) return s;
+    if (auto s = txn->Commit(); !s.ok()) return s;
+  }
+  SqliteFile::Writer writer = queue_->LockWriter();
+  pending_.push_back(std::move(change));
+  ConfirmPending(writer.db);
+  return absl::OkStatus();
+}
+
+absl::Status SqliteMapStore::RecordMapChange(SqliteConnection* queue, const PendingConfirmation& change) {
+  auto txn = SqliteWriteTransaction::Begin(queue);
   if (!txn.ok()) return txn.status();
-  if (auto s = CheckBaseVersion(db, delta); !s.ok()) return s;
-  if (auto s = CheckPassageState(db, id, from); !s.ok()) return s;
-  if (auto s = WriteMapDelta(db, delta); !s.ok()) return s;
-  auto mark = db->Prepare("UPDATE passages SET state = ?3, error = '', finished_unix_ms = ?2 WHERE id = ?1");
+  auto mark = queue->Prepare(
+      "UPDATE passages SET state = ?3, error = '', finished_unix_ms = ?2 WHERE id = ?1 AND state = ?4");
   if (!mark.ok()) return mark.status();
-  mark->Bind(1, id).Bind(2, NowUnixMs()).Bind(3, static_cast<int64_t>(to));
+  mark->Bind(1, change.id)
+      .Bind(2, change.finished_unix_ms)
+      .Bind(3, static_cast<int64_t>(change.to))
+      .Bind(4, static_cast<int64_t>(change.from));
   if (auto s = mark->Run(); !s.ok()) return s;
-  if (also) {
-    if (auto s = also(db); !s.ok()) return s;
+  if (queue->Changes() != 1) {
+    return absl::InternalError(absl::StrCat("passage id ", change.id, " left ", PassageStateName(change.from),
+                                            " while its map change was committed"));
+  }
+  if (change.result) {
+    if (auto s = WriteResult(queue, "passage_results", change.id, *change.result); !s.ok()) return s;
   }
   return txn->Commit();
 }
 
+void SqliteMapStore::ConfirmPending(SqliteConnection* queue) {
+  std::vector<PendingConfirmation> still;
+  for (PendingConfirmation& change : pending_) {
+    absl::Status s = RecordMapChange(queue, change);
+    if (absl::IsInternal(s)) {
+      spdlog::error("storage: {}", std::string(s.message()));  // nothing to retry: the queue moved on
+    } else if (!s.ok()) {
+      spdlog::warn("storage: passage id {} is {} in the map but not yet in the queue ({}); retried at the next queue "
+                   "write or start",
+                   change.id, PassageStateName(change.to), std::string(s.message()));
+      still.push_back(std::move(change));
+    }
+  }
+  pending_ = std::move(still);
+}
+
 absl::Status SqliteMapStore::CommitPassageExcluded(int64_t id, const MapDelta& delta) {
-  return CommitMapChange(id, delta, PassageState::kApplied, PassageState::kExcluded, nullptr);
+  return CommitMapChange(id, delta, PassageState::kApplied, PassageState::kExcluded, std::nullopt);
 }
 
 absl::Status SqliteMapStore::CommitPassageApplied(int64_t id, const MapDelta& delta, const PassageResult& result) {
-  return CommitMapChange(id, delta, PassageState::kProcessing, PassageState::kApplied, [&](SqliteConnection* db) {
-    return WriteResult(db, id, result);
-  });
+  return CommitMapChange(id, delta, PassageState::kProcessing, PassageState::kApplied, result);
 }
 
-absl::Status SqliteMapStore::WriteResult(SqliteConnection* db, int64_t id, const PassageResult& result) {
-  auto res = db->Prepare(
-      "INSERT OR REPLACE INTO passage_results (id, nodes, subgraphs, landmarks_updated, landmarks_created, "
+absl::Status SqliteMapStore::WriteResult(SqliteConnection* db, const std::string& table, int64_t id,
+                                         const PassageResult& result) {
+  // map_passages also has state and finished_unix_ms, set by the caller after this row exists.
+  const bool map_side = table == "map_passages";
+  auto res = db->Prepare(absl::StrCat(
+      "INSERT OR REPLACE INTO ", table, " (id, nodes, subgraphs, landmarks_updated, landmarks_created, "
       "landmarks_conditioned, detections_used, detections_dropped, solver_iterations, final_cost, solve_ms, "
-      "covariance_ms, total_ms, map_version, strategy) "
-      "VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13, ?14, ?15)");
+      "covariance_ms, total_ms, map_version, strategy", map_side ? ", state, finished_unix_ms" : "",
+      ") VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13, ?14, ?15", map_side ? ", 0, 0" : "", ")"));
   if (!res.ok()) return res.status();
   res->Bind(1, id)
       .Bind(2, static_cast<int64_t>(result.nodes))
@@ -322,7 +386,7 @@ absl::Status SqliteMapStore::WriteResult(SqliteConnection* db, int64_t id, const
 }
 
 absl::Status SqliteMapStore::LoadMap(MapState* map) {
-  auto db = AcquireReader();
+  auto db = map_->AcquireReader();
   if (!db.ok()) return db.status();
   auto snapshot = SqliteReadTransaction::Begin(db->get());
   if (!snapshot.ok()) return snapshot.status();
@@ -382,7 +446,7 @@ absl::Status SqliteMapStore::ReadMap(SqliteConnection* db, MapState* map) {
 absl::StatusOr<LandmarkPage> SqliteMapStore::ReadPage(const std::string& where,
                                                       const std::function<void(SqliteStatement&)>& bind, int limit,
                                                       bool include_cross) {
-  auto db = AcquireReader();
+  auto db = map_->AcquireReader();
   if (!db.ok()) return db.status();
   // One read transaction: the version, the landmarks and their blocks come from the same commit.
   auto snapshot = SqliteReadTransaction::Begin(db->get());
@@ -439,7 +503,7 @@ absl::StatusOr<LandmarkPage> SqliteMapStore::ChangedLandmarks(const BoundingBox&
 
 absl::StatusOr<LandmarkProvenance> SqliteMapStore::GetLandmarkProvenance(LandmarkId id) {
   // Without a map in memory (CachedMapStore has one) the whole map is read in one snapshot.
-  auto db = AcquireReader();
+  auto db = map_->AcquireReader();
   if (!db.ok()) return db.status();
   auto snapshot = SqliteReadTransaction::Begin(db->get());
   if (!snapshot.ok()) return snapshot.status();
@@ -449,7 +513,7 @@ absl::StatusOr<LandmarkProvenance> SqliteMapStore::GetLandmarkProvenance(Landmar
 }
 
 absl::StatusOr<MapStats> SqliteMapStore::GetStats() {
-  auto db = AcquireReader();
+  auto db = map_->AcquireReader();
   if (!db.ok()) return db.status();
   auto snapshot = SqliteReadTransaction::Begin(db->get());
   if (!snapshot.ok()) return snapshot.status();
@@ -471,8 +535,20 @@ absl::StatusOr<MapStats> SqliteMapStore::GetStats() {
     } else if (name == "factors") {
       stats.factor_count = n;
     }
+  }
+  // The passages' counts, from the queue file's own (a separate snapshot: a passage's map change
+  // may show there a moment later).
+  auto queue = queue_->AcquireReader();
+  if (!queue.ok()) return queue.status();
+  auto passages = (*queue)->Prepare("SELECT name, n FROM row_counts");
+  if (!passages.ok()) return passages.status();
+  while (true) {
+    auto row = passages->Step();
+    if (!row.ok()) return row.status();
+    if (!*row) break;
+    const std::string name = passages->Text(0);
     for (int state = 1; state < kPassageStateCount; ++state) {
-      if (name == absl::StrCat("passages_", state)) stats.passages_by_state[state] = n;
+      if (name == absl::StrCat("passages_", state)) stats.passages_by_state[state] = passages->Int(1);
     }
   }
   return stats;

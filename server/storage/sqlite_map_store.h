@@ -4,6 +4,7 @@
 #include <functional>
 #include <memory>
 #include <mutex>
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -12,8 +13,9 @@
 
 namespace crowdmap {
 
-// SQLite implementation of the map store: one writer connection behind a mutex (every write is a
-// BEGIN IMMEDIATE transaction), and a pool of reader connections (WAL lets them read a consistent
+// SQLite implementation of the map store, in two files: the map (`path`) and the passage queue
+// (SqliteQueuePath(path)). Each has one writer connection behind a mutex (every write is a BEGIN
+// IMMEDIATE transaction) and a pool of reader connections (WAL lets them read a consistent
 // snapshot while the writer commits).
 class SqliteMapStore : public MapStoreInterface {
  public:
@@ -44,25 +46,10 @@ class SqliteMapStore : public MapStoreInterface {
   absl::StatusOr<LandmarkProvenance> GetLandmarkProvenance(LandmarkId id) override;
 
  private:
-  // A pooled reader connection, returned to the pool when the lease ends.
-  class ReaderLease {
-   public:
-    ReaderLease(SqliteMapStore* store, std::unique_ptr<SqliteConnection> db) : store_(store), db_(std::move(db)) {}
-    ReaderLease(ReaderLease&&) = default;
-    ~ReaderLease();
-    SqliteConnection* operator->() { return db_.get(); }
-    SqliteConnection* get() { return db_.get(); }
+  SqliteMapStore(const SqliteMapStoreOptions& options, std::unique_ptr<SqliteFile> map,
+                 std::unique_ptr<SqliteFile> queue)
+      : options_(options), map_(std::move(map)), queue_(std::move(queue)) {}
 
-   private:
-    SqliteMapStore* store_;
-    std::unique_ptr<SqliteConnection> db_;
-  };
-
-  SqliteMapStore(std::string path, const SqliteMapStoreOptions& options, std::unique_ptr<SqliteConnection> writer)
-      : path_(std::move(path)), options_(options), writer_(std::move(writer)) {}
-
-  absl::StatusOr<ReaderLease> AcquireReader();
-  void ReleaseReader(std::unique_ptr<SqliteConnection> db);
 
   // Helpers running on a connection the caller holds (inside its transaction when needed).
   static absl::StatusOr<std::optional<StoredPassage>> ReadPassage(SqliteConnection* db, int64_t id);
@@ -74,12 +61,30 @@ class SqliteMapStore : public MapStoreInterface {
   // In the writer's transaction: the stored version is delta.base_version; passage `id` is in `state`.
   static absl::Status CheckBaseVersion(SqliteConnection* db, const MapDelta& delta);
   static absl::Status CheckPassageState(SqliteConnection* db, int64_t id, PassageState state);
-  // One write transaction: checks the base version and that passage `id` is `from`, writes the
-  // delta, sets the passage to `to`, runs `also` (may be empty), commits.
+  // Checks that passage `id` is `from`; then in the map file's transaction checks the base version,
+  // writes the delta and records the passage as `to` with its result (map_passages); then, in the
+  // queue file's, sets the passage to `to` with the result. When the queue's commit fails the map's
+  // stands: the passage is recorded in the queue by the next queue write (ConfirmPending) or at the
+  // next start (ReconcileQueueWithMap).
   absl::Status CommitMapChange(int64_t id, const MapDelta& delta, PassageState from, PassageState to,
-                               const std::function<absl::Status(SqliteConnection*)>& also);
-  // The result of an applied passage (in the writer's transaction).
-  static absl::Status WriteResult(SqliteConnection* db, int64_t id, const PassageResult& result);
+                               const std::optional<PassageResult>& result);
+  // A map change the queue has still to record.
+  struct PendingConfirmation {
+    int64_t id = 0;
+    PassageState from = PassageState::kProcessing;
+    PassageState to = PassageState::kApplied;
+    int64_t finished_unix_ms = 0;
+    std::optional<PassageResult> result;
+  };
+  // In the queue writer's transaction: records one map change.
+  static absl::Status RecordMapChange(SqliteConnection* queue, const PendingConfirmation& change);
+  // With the queue writer held: records the pending changes (each in its own transaction); those
+  // that fail stay pending.
+  void ConfirmPending(SqliteConnection* queue);
+  // The result of an applied passage: into passage_results (queue) or map_passages (map), in the
+  // caller's transaction.
+  static absl::Status WriteResult(SqliteConnection* db, const std::string& table, int64_t id,
+                                  const PassageResult& result);
   // Moves a stored factor into the base tables (in the writer's transaction).
   static absl::Status FoldFactor(SqliteConnection* db, int64_t id);
   // Writes the delta's landmarks, removals and factors and its version (in the writer's transaction).
@@ -91,12 +96,12 @@ class SqliteMapStore : public MapStoreInterface {
   absl::StatusOr<LandmarkPage> ReadPage(const std::string& where, const std::function<void(SqliteStatement&)>& bind,
                                         int limit, bool include_cross);
 
-  const std::string path_;
   const SqliteMapStoreOptions options_;
-  std::mutex writer_mu_;
-  std::unique_ptr<SqliteConnection> writer_;
-  std::mutex readers_mu_;
-  std::vector<std::unique_ptr<SqliteConnection>> idle_readers_;
+  // The map (landmarks, factors, base, version, map_passages) and the passage queue, in two files
+  // with a writer each, so that an upload's commit never waits for a map commit.
+  const std::unique_ptr<SqliteFile> map_;
+  const std::unique_ptr<SqliteFile> queue_;
+  std::vector<PendingConfirmation> pending_;  // guarded by the queue's writer lock
 };
 
 }  // namespace crowdmap

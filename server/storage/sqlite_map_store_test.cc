@@ -2,6 +2,7 @@
 
 #include <sqlite3.h>
 
+#include <cstdio>
 #include <memory>
 #include <string>
 
@@ -188,7 +189,7 @@ TEST(SqliteMapStore, DuplicateKeyReturnsOriginalRecordAndStoresNothingNew) {
   EXPECT_FALSE((*again)[1]->duplicate);
   EXPECT_TRUE((*again)[2]->duplicate);
   EXPECT_EQ((*again)[2]->record.id, (*again)[1]->record.id);
-  EXPECT_EQ(SqlInt(path, "SELECT COUNT(*) FROM passages"), 2);
+  EXPECT_EQ(SqlInt(SqliteQueuePath(path), "SELECT COUNT(*) FROM passages"), 2);
   EXPECT_EQ(*store->GetPassagePayload((*first)[0]->record.id), "first");
 }
 
@@ -204,8 +205,8 @@ TEST(SqliteMapStore, FullQueueRejectsNewUploadsButAnswersDuplicates) {
   auto dup = store->EnqueuePassages({MakeUpload("v", "1")}, 2);
   ASSERT_TRUE(dup.ok() && (*dup)[0].ok());
   EXPECT_TRUE((*dup)[0]->duplicate);
-  EXPECT_EQ(SqlInt(path, "SELECT COUNT(*) FROM passages"), 2);
-  EXPECT_EQ(SqlInt(path, "SELECT COUNT(*) FROM passage_payloads"), 2);
+  EXPECT_EQ(SqlInt(SqliteQueuePath(path), "SELECT COUNT(*) FROM passages"), 2);
+  EXPECT_EQ(SqlInt(SqliteQueuePath(path), "SELECT COUNT(*) FROM passage_payloads"), 2);
 }
 
 TEST(SqliteMapStore, ClaimTakesOldestQueuedAndCountsAttempts) {
@@ -346,7 +347,7 @@ void ExpectStatsEqualTableCounts(MapStoreInterface* store, const std::string& pa
   EXPECT_EQ(stats->factor_count, SqlInt(path, "SELECT COUNT(*) FROM factors"));
   for (int state = 1; state <= 6; ++state) {
     EXPECT_EQ(stats->passages_by_state[state],
-              SqlInt(path, "SELECT COUNT(*) FROM passages WHERE state = " + std::to_string(state)))
+              SqlInt(SqliteQueuePath(path), "SELECT COUNT(*) FROM passages WHERE state = " + std::to_string(state)))
         << "state " << state;
   }
 }
@@ -500,6 +501,205 @@ TEST(SqliteMapStore, ExclusionWritesItsDeltaAndMarksThePassageInOneTransaction) 
   EXPECT_EQ(map.last_factor_id(), 1) << "factor ids are not reused";
   EXPECT_EQ(store->CommitPassageExcluded(id, exclusion).code(), absl::StatusCode::kFailedPrecondition)
       << "already excluded";
+}
+
+
+// Another process's write transaction on one of the store's files, held until destroyed.
+class ForeignWriteLock {
+ public:
+  explicit ForeignWriteLock(const std::string& path) {
+    sqlite3_open(path.c_str(), &db_);
+    locked_ = sqlite3_exec(db_, "BEGIN IMMEDIATE", nullptr, nullptr, nullptr) == SQLITE_OK;
+  }
+  ~ForeignWriteLock() {
+    sqlite3_exec(db_, "ROLLBACK", nullptr, nullptr, nullptr);
+    sqlite3_close(db_);
+  }
+  bool locked() const { return locked_; }
+
+ private:
+  sqlite3* db_ = nullptr;
+  bool locked_ = false;
+};
+
+std::unique_ptr<MapStoreInterface> OpenStoreWithBusyTimeout(const std::string& path, int busy_timeout_ms) {
+  SqliteMapStoreOptions options;
+  options.busy_timeout_ms = busy_timeout_ms;
+  auto store = CreateSqliteMapStore(path, options);
+  EXPECT_TRUE(store.ok()) << store.status();
+  return store.ok() ? std::move(*store) : nullptr;
+}
+
+MapDelta OneLandmarkDelta(int64_t base_version) {
+  MapDelta delta;
+  delta.base_version = base_version;
+  delta.version = base_version + 1;
+  delta.landmarks[1] = MakeLandmark(1, 48.7, 2.17, delta.version);
+  delta.added_factors[base_version + 1] = MakeFactor(base_version + 1, {1}, Eigen::Matrix2d::Identity());
+  return delta;
+}
+
+PassageResult SomeResult() {
+  PassageResult result;
+  result.nodes = 17;
+  result.map_version = 1;
+  result.strategy = "cc";
+  return result;
+}
+
+TEST(SqliteMapStore, UploadsAndClaimsNeverWaitForTheMapFile) {
+  TempDir dir;
+  const std::string path = dir.File("map.db");
+  auto store = OpenStoreWithBusyTimeout(path, 200);
+  ForeignWriteLock map_locked(path);  // as if a long map commit were under way
+  ASSERT_TRUE(map_locked.locked());
+  auto out = store->EnqueuePassages({MakeUpload("v", "1"), MakeUpload("v", "2")}, 0);
+  ASSERT_TRUE(out.ok()) << out.status();
+  ASSERT_TRUE((*out)[0].ok());
+  auto claimed = store->ClaimNextPassage();
+  ASSERT_TRUE(claimed.ok() && claimed->has_value()) << claimed.status();
+  // The map's commit does wait for the map file, and changes nothing when it cannot get it.
+  const int64_t id = (*claimed)->record.id;
+  EXPECT_FALSE(store->CommitPassageApplied(id, OneLandmarkDelta(0), SomeResult()).ok());
+  EXPECT_EQ(store->GetPassage(id)->state, PassageState::kProcessing);
+  EXPECT_EQ(store->GetStats()->queue_depth(), 2);
+}
+
+TEST(SqliteMapStore, AMapCommitTheQueueCouldNotRecordIsRecordedByTheNextQueueWrite) {
+  TempDir dir;
+  const std::string path = dir.File("map.db");
+  auto store = OpenStoreWithBusyTimeout(path, 100);
+  const int64_t id = EnqueueAndClaim(store.get(), "p");
+  {
+    ForeignWriteLock queue_locked(SqliteQueuePath(path));
+    ASSERT_TRUE(queue_locked.locked());
+    // The map's commit is durable: it is not undone because the queue is busy.
+    ASSERT_TRUE(store->CommitPassageApplied(id, OneLandmarkDelta(0), SomeResult()).ok());
+    EXPECT_EQ(SqlInt(path, "SELECT state FROM map_passages WHERE id = " + std::to_string(id)), 3);
+    EXPECT_EQ(store->GetPassage(id)->state, PassageState::kProcessing);
+  }
+  // Nothing queued: the claim finds no passage but records the pending change first.
+  auto next = store->ClaimNextPassage();
+  ASSERT_TRUE(next.ok());
+  EXPECT_FALSE(next->has_value());
+  auto record = store->GetPassage(id);
+  ASSERT_TRUE(record.ok());
+  EXPECT_EQ(record->state, PassageState::kApplied);
+  ASSERT_TRUE(record->result.has_value());
+  EXPECT_EQ(record->result->nodes, 17);
+}
+
+TEST(SqliteMapStore, ACrashBetweenTheMapAndQueueCommitsIsReconciledAtStartAndNeverAppliedTwice) {
+  TempDir dir;
+  const std::string path = dir.File("map.db");
+  int64_t id = 0;
+  {
+    auto store = OpenStoreWithBusyTimeout(path, 100);
+    id = EnqueueAndClaim(store.get(), "p");
+    ForeignWriteLock queue_locked(SqliteQueuePath(path));
+    ASSERT_TRUE(store->CommitPassageApplied(id, OneLandmarkDelta(0), SomeResult()).ok());
+    // The store goes away with its pending change, as in a crash.
+  }
+  EXPECT_EQ(SqlInt(SqliteQueuePath(path), "SELECT state FROM passages WHERE id = " + std::to_string(id)), 2);
+  auto store = OpenStore(path);
+  ASSERT_NE(store, nullptr);
+  auto requeued = store->RequeueProcessingPassages();
+  ASSERT_TRUE(requeued.ok());
+  EXPECT_EQ(*requeued, 0) << "the passage is in the map: it must not be applied again";
+  auto record = store->GetPassage(id);
+  EXPECT_EQ(record->state, PassageState::kApplied);
+  ASSERT_TRUE(record->result.has_value());
+  EXPECT_EQ(record->result->strategy, "cc");
+  ExpectStatsEqualTableCounts(store.get(), path);
+}
+
+TEST(SqliteMapStore, AMapRestoredFromAnOlderBackupHasItsMissingPassagesAppliedAgain) {
+  TempDir dir;
+  const std::string path = dir.File("map.db");
+  int64_t applied = 0, excluded = 0;
+  {
+    auto store = OpenStore(path);
+    applied = EnqueueAndClaim(store.get(), "applied");
+    ASSERT_TRUE(store->CommitPassageApplied(applied, OneLandmarkDelta(0), SomeResult()).ok());
+    excluded = EnqueueAndClaim(store.get(), "excluded");
+    ASSERT_TRUE(store->CommitPassageApplied(excluded, OneLandmarkDelta(1), SomeResult()).ok());
+    MapDelta exclusion;
+    exclusion.base_version = 2;
+    exclusion.version = 3;
+    exclusion.removed_factors = {2};
+    ASSERT_TRUE(store->CommitPassageExcluded(excluded, exclusion).ok());
+  }
+  // The map as an earlier backup had it: without the first passage, the second still applied.
+  sqlite3* db = nullptr;
+  sqlite3_open(path.c_str(), &db);
+  ASSERT_EQ(sqlite3_exec(db,
+                         ("DELETE FROM map_passages WHERE id = " + std::to_string(applied) +
+                          "; UPDATE map_passages SET state = 3 WHERE id = " + std::to_string(excluded))
+                             .c_str(),
+                         nullptr, nullptr, nullptr),
+            SQLITE_OK);
+  sqlite3_close(db);
+  auto store = OpenStore(path);
+  EXPECT_EQ(store->GetPassage(applied)->state, PassageState::kQueued);
+  EXPECT_EQ(store->GetPassage(excluded)->state, PassageState::kApplied);
+  EXPECT_NE(store->GetPassage(excluded)->error.find("exclude it again"), std::string::npos);
+  ExpectStatsEqualTableCounts(store.get(), path);
+}
+
+TEST(SqliteMapStore, AMapWithoutItsQueueFileIsRefused) {
+  TempDir dir;
+  const std::string path = dir.File("map.db");
+  {
+    auto store = OpenStore(path);
+    const int64_t id = EnqueueAndClaim(store.get(), "p");
+    ASSERT_TRUE(store->CommitPassageApplied(id, OneLandmarkDelta(0), SomeResult()).ok());
+  }
+  for (const char* suffix : {"", "-wal", "-shm"}) std::remove((SqliteQueuePath(path) + suffix).c_str());
+  auto store = CreateSqliteMapStore(path);
+  ASSERT_FALSE(store.ok());
+  EXPECT_EQ(store.status().code(), absl::StatusCode::kFailedPrecondition);
+  EXPECT_NE(store.status().message().find("queue"), std::string_view::npos) << store.status();
+}
+
+// A map file of schema 4 held its queue: opening it moves the queue to its own file, once.
+TEST(SqliteMapStore, ASchemaFourFileHasItsQueueMovedToTheQueueFile) {
+  TempDir dir;
+  const std::string path = dir.File("map.db");
+  {
+    auto db = SqliteConnection::Open(path, 5000, /*read_only=*/false);
+    ASSERT_TRUE(db.ok()) << db.status();
+    ASSERT_TRUE(MigrateSchema(db->get(), 4).ok());
+    ASSERT_TRUE((*db)->Exec(R"sql(
+        INSERT INTO passages (id, vehicle_id, passage_id, state, attempts, received_unix_ms, finished_unix_ms,
+                              size_bytes, interruptions)
+          VALUES (1, 'v', 'applied', 3, 1, 10, 20, 5, 0), (2, 'v', 'excluded', 6, 1, 11, 21, 5, 0),
+                 (3, 'w', 'queued', 1, 0, 12, 0, 5, 2);
+        INSERT INTO passage_payloads (id, payload) VALUES (1, CAST('one' AS BLOB)), (2, CAST('two' AS BLOB)), (3, CAST('three' AS BLOB));
+        INSERT INTO passage_results (id, nodes, subgraphs, landmarks_updated, landmarks_created,
+                                     landmarks_conditioned, detections_used, detections_dropped, solver_iterations,
+                                     final_cost, solve_ms, covariance_ms, total_ms, map_version, strategy)
+          VALUES (1, 40, 1, 0, 3, 0, 9, 0, 5, 1.5, 2, 3, 4, 1, 'cc'), (2, 41, 1, 0, 1, 0, 9, 0, 5, 1.5, 2, 3, 4, 2, 'cc');
+        )sql")
+                    .ok());
+  }
+  for (int open = 0; open < 2; ++open) {
+    auto store = OpenStore(path);
+    ASSERT_NE(store, nullptr);
+    EXPECT_EQ(SqlInt(path, "PRAGMA user_version"), LatestSchemaVersion());
+    EXPECT_EQ(SqlInt(path, "SELECT COUNT(*) FROM sqlite_master WHERE name = 'passages'"), 0);
+    EXPECT_EQ(SqlInt(path, "SELECT COUNT(*) FROM map_passages"), 2) << "the applied and the excluded one";
+    EXPECT_EQ(SqlInt(SqliteQueuePath(path), "SELECT COUNT(*) FROM passages"), 3 + open) << "copied once";
+    EXPECT_EQ(*store->GetPassagePayload(3), "three");
+    EXPECT_EQ(store->FindPassage("v", "applied")->result->nodes, 40);
+    EXPECT_EQ(store->GetPassage(3)->interruptions, 2);
+    ExpectStatsEqualTableCounts(store.get(), path);
+    // Ids continue after the moved ones.
+    if (open == 0) {
+      auto out = store->EnqueuePassages({MakeUpload("w", "new")}, 0);
+      ASSERT_TRUE(out.ok() && (*out)[0].ok());
+      EXPECT_EQ((*out)[0]->record.id, 4);
+    }
+  }
 }
 
 TEST(SqliteMapStore, FoldedFactorsMoveIntoTheBaseAndTheMapStaysTheSame) {

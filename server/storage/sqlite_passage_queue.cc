@@ -99,8 +99,8 @@ absl::StatusOr<std::optional<StoredPassage>> SqliteMapStore::ReadPassageByKey(Sq
 
 absl::StatusOr<std::vector<absl::StatusOr<EnqueueOutcome>>> SqliteMapStore::EnqueuePassages(
     const std::vector<NewPassage>& passages, int64_t max_queue) {
-  std::lock_guard<std::mutex> lock(writer_mu_);
-  SqliteConnection* db = writer_.get();
+  SqliteFile::Writer writer = queue_->LockWriter();
+  SqliteConnection* db = writer.db;
   auto txn = SqliteWriteTransaction::Begin(db);
   if (!txn.ok()) return txn.status();
   auto depth = CountActive(db);
@@ -150,7 +150,7 @@ absl::StatusOr<std::vector<absl::StatusOr<EnqueueOutcome>>> SqliteMapStore::Enqu
 }
 
 absl::StatusOr<StoredPassage> SqliteMapStore::GetPassage(int64_t id) {
-  auto db = AcquireReader();
+  auto db = queue_->AcquireReader();
   if (!db.ok()) return db.status();
   auto record = ReadPassage(db->get(), id);
   if (!record.ok()) return record.status();
@@ -160,7 +160,7 @@ absl::StatusOr<StoredPassage> SqliteMapStore::GetPassage(int64_t id) {
 
 absl::StatusOr<StoredPassage> SqliteMapStore::FindPassage(const std::string& vehicle_id,
                                                           const std::string& passage_id) {
-  auto db = AcquireReader();
+  auto db = queue_->AcquireReader();
   if (!db.ok()) return db.status();
   auto record = ReadPassageByKey(db->get(), vehicle_id, passage_id);
   if (!record.ok()) return record.status();
@@ -171,7 +171,7 @@ absl::StatusOr<StoredPassage> SqliteMapStore::FindPassage(const std::string& veh
 }
 
 absl::StatusOr<std::vector<StoredPassage>> SqliteMapStore::ListPassages(const PassageQuery& query) {
-  auto db = AcquireReader();
+  auto db = queue_->AcquireReader();
   if (!db.ok()) return db.status();
   auto stmt = (*db)->Prepare(absl::StrCat(kPassageColumns,
                                           "WHERE p.id > ?1 AND (?2 = 0 OR p.state = ?2) "
@@ -192,7 +192,7 @@ absl::StatusOr<std::vector<StoredPassage>> SqliteMapStore::ListPassages(const Pa
 }
 
 absl::StatusOr<std::string> SqliteMapStore::GetPassagePayload(int64_t id) {
-  auto db = AcquireReader();
+  auto db = queue_->AcquireReader();
   if (!db.ok()) return db.status();
   auto stmt = (*db)->Prepare("SELECT payload FROM passage_payloads WHERE id = ?1");
   if (!stmt.ok()) return stmt.status();
@@ -204,8 +204,9 @@ absl::StatusOr<std::string> SqliteMapStore::GetPassagePayload(int64_t id) {
 }
 
 absl::StatusOr<std::optional<ClaimedPassage>> SqliteMapStore::ClaimNextPassage() {
-  std::lock_guard<std::mutex> lock(writer_mu_);
-  SqliteConnection* db = writer_.get();
+  SqliteFile::Writer writer = queue_->LockWriter();
+  SqliteConnection* db = writer.db;
+  ConfirmPending(db);
   auto txn = SqliteWriteTransaction::Begin(db);
   if (!txn.ok()) return txn.status();
   auto next = db->Prepare("SELECT id FROM passages WHERE state = 1 ORDER BY id LIMIT 1");
@@ -239,8 +240,8 @@ absl::Status SqliteMapStore::FinishPassageWithoutChange(int64_t id, PassageState
   if (state == PassageState::kApplied || state == PassageState::kProcessing) {
     return absl::InvalidArgumentError("FinishPassageWithoutChange: state must not be applied or processing");
   }
-  std::lock_guard<std::mutex> lock(writer_mu_);
-  SqliteConnection* db = writer_.get();
+  SqliteFile::Writer writer = queue_->LockWriter();
+  SqliteConnection* db = writer.db;
   auto txn = SqliteWriteTransaction::Begin(db);
   if (!txn.ok()) return txn.status();
   auto update = db->Prepare(
@@ -254,8 +255,8 @@ absl::Status SqliteMapStore::FinishPassageWithoutChange(int64_t id, PassageState
 }
 
 absl::StatusOr<int> SqliteMapStore::RecordFailedAttempt(int64_t id, const std::string& reason) {
-  std::lock_guard<std::mutex> lock(writer_mu_);
-  SqliteConnection* db = writer_.get();
+  SqliteFile::Writer writer = queue_->LockWriter();
+  SqliteConnection* db = writer.db;
   auto txn = SqliteWriteTransaction::Begin(db);
   if (!txn.ok()) return txn.status();
   auto update = db->Prepare("UPDATE passages SET attempts = attempts + 1, error = ?2 WHERE id = ?1 AND state = 2");
@@ -271,8 +272,8 @@ absl::StatusOr<int> SqliteMapStore::RecordFailedAttempt(int64_t id, const std::s
 
 absl::StatusOr<StoredPassage> SqliteMapStore::MovePassage(int64_t id, const std::vector<PassageState>& from,
                                                           PassageState to) {
-  std::lock_guard<std::mutex> lock(writer_mu_);
-  SqliteConnection* db = writer_.get();
+  SqliteFile::Writer writer = queue_->LockWriter();
+  SqliteConnection* db = writer.db;
   auto txn = SqliteWriteTransaction::Begin(db);
   if (!txn.ok()) return txn.status();
   auto record = ReadPassage(db, id);
@@ -296,8 +297,14 @@ absl::StatusOr<StoredPassage> SqliteMapStore::MovePassage(int64_t id, const std:
 }
 
 absl::StatusOr<int> SqliteMapStore::RequeueProcessingPassages() {
-  std::lock_guard<std::mutex> lock(writer_mu_);
-  SqliteConnection* db = writer_.get();
+  SqliteFile::Writer writer = queue_->LockWriter();
+  SqliteConnection* db = writer.db;
+  // A passage whose map change the queue has yet to record is in the map: never queue it again.
+  ConfirmPending(db);
+  if (!pending_.empty()) {
+    return absl::UnavailableError(absl::StrCat("passage id ", pending_.front().id,
+                                               " is in the map but the queue cannot record it yet; retry"));
+  }
   auto txn = SqliteWriteTransaction::Begin(db);
   if (!txn.ok()) return txn.status();
   // The interrupted attempt is not counted: it says nothing about the passage.

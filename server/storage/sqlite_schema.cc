@@ -3,6 +3,7 @@
 #include <functional>
 #include <map>
 #include <numeric>
+#include <string>
 #include <vector>
 
 #include <Eigen/Cholesky>
@@ -100,8 +101,13 @@ absl::Status ConvertCrossCovariancesToFactors(SqliteConnection* db) {
       )sql");
 }
 
+// The columns of a passage's result (passage_results in the queue file, map_passages in the map file).
+constexpr char kResultColumns[] =
+    "nodes, subgraphs, landmarks_updated, landmarks_created, landmarks_conditioned, detections_used, "
+    "detections_dropped, solver_iterations, final_cost, solve_ms, covariance_ms, total_ms, map_version, strategy";
+
 struct Migration {
-  const char* sql;
+  std::string sql;
   std::function<absl::Status(SqliteConnection*)> then;  // may be empty
 };
 
@@ -266,27 +272,127 @@ const std::vector<Migration>& Migrations() {
       INSERT INTO row_counts (name, n) VALUES ('passages_7', 0), ('passages_8', 0);
       ALTER TABLE passages ADD COLUMN interruptions INTEGER NOT NULL DEFAULT 0;
       )sql", nullptr},
+      // 4 -> 5: the passage queue moves to its own file (SqliteQueuePath; copied there by
+      // ImportQueueFromMapFile before this runs), so that uploads never wait for a map commit. The
+      // map file keeps, per passage it contains, its state and result: written in the map's own
+      // transaction, they let the queue be reconciled after a crash between the two commits.
+      {absl::StrCat(R"sql(
+      CREATE TABLE map_passages (
+        id INTEGER PRIMARY KEY,               -- the queue's passage id
+        state INTEGER NOT NULL,               -- 3 applied, 6 excluded
+        finished_unix_ms INTEGER NOT NULL,
+        nodes INTEGER NOT NULL,
+        subgraphs INTEGER NOT NULL,
+        landmarks_updated INTEGER NOT NULL,
+        landmarks_created INTEGER NOT NULL,
+        landmarks_conditioned INTEGER NOT NULL,
+        detections_used INTEGER NOT NULL,
+        detections_dropped INTEGER NOT NULL,
+        solver_iterations INTEGER NOT NULL,
+        final_cost REAL NOT NULL,
+        solve_ms REAL NOT NULL,
+        covariance_ms REAL NOT NULL,
+        total_ms REAL NOT NULL,
+        map_version INTEGER NOT NULL,
+        strategy TEXT NOT NULL
+      ) STRICT;
+      INSERT INTO map_passages (id, state, finished_unix_ms, )sql",
+                    kResultColumns, R"sql()
+        SELECT p.id, p.state, p.finished_unix_ms, r.nodes, r.subgraphs, r.landmarks_updated, r.landmarks_created,
+               r.landmarks_conditioned, r.detections_used, r.detections_dropped, r.solver_iterations, r.final_cost,
+               r.solve_ms, r.covariance_ms, r.total_ms, r.map_version, r.strategy
+        FROM passages p JOIN passage_results r ON r.id = p.id WHERE p.state IN (3, 6);
+      DROP TABLE passage_results;
+      DROP TABLE passage_payloads;
+      DROP TABLE passages;
+      DELETE FROM row_counts WHERE name LIKE 'passages_%';
+      )sql"),
+       nullptr},
   };
   return kMigrations;
 }
 
-}  // namespace
+// The queue file's own schema, versioned apart from the map's.
+const std::vector<Migration>& QueueMigrations() {
+  static const std::vector<Migration> kMigrations = {
+      // 0 -> 1: the passage queue as it stood in the map file at schema 4, with its row counts.
+      {absl::StrCat(R"sql(
+      CREATE TABLE queue_meta (
+        key TEXT PRIMARY KEY,
+        value INTEGER NOT NULL
+      ) STRICT;
+      CREATE TABLE passages (
+        id INTEGER PRIMARY KEY,               -- arrival order
+        vehicle_id TEXT NOT NULL,
+        passage_id TEXT NOT NULL,
+        state INTEGER NOT NULL,               -- PassageState
+        attempts INTEGER NOT NULL DEFAULT 0,
+        error TEXT NOT NULL DEFAULT '',
+        received_unix_ms INTEGER NOT NULL,
+        finished_unix_ms INTEGER NOT NULL DEFAULT 0,
+        size_bytes INTEGER NOT NULL,
+        interruptions INTEGER NOT NULL DEFAULT 0,
+        UNIQUE (vehicle_id, passage_id)
+      ) STRICT;
+      CREATE INDEX passages_by_state ON passages (state, id);
+      CREATE TABLE passage_payloads (
+        id INTEGER PRIMARY KEY REFERENCES passages (id),
+        payload BLOB NOT NULL                 -- serialized mapservice.v1.Passage
+      ) STRICT;
+      CREATE TABLE passage_results (
+        id INTEGER PRIMARY KEY REFERENCES passages (id),
+        nodes INTEGER NOT NULL,
+        subgraphs INTEGER NOT NULL,
+        landmarks_updated INTEGER NOT NULL,
+        landmarks_created INTEGER NOT NULL,
+        landmarks_conditioned INTEGER NOT NULL,
+        detections_used INTEGER NOT NULL,
+        detections_dropped INTEGER NOT NULL,
+        solver_iterations INTEGER NOT NULL,
+        final_cost REAL NOT NULL,
+        solve_ms REAL NOT NULL,
+        covariance_ms REAL NOT NULL,
+        total_ms REAL NOT NULL,
+        map_version INTEGER NOT NULL,
+        strategy TEXT NOT NULL
+      ) STRICT;
+      CREATE TABLE row_counts (
+        name TEXT PRIMARY KEY,
+        n INTEGER NOT NULL
+      ) STRICT, WITHOUT ROWID;
+      INSERT INTO row_counts (name, n) VALUES ('passages_0', 0), ('passages_1', 0), ('passages_2', 0),
+        ('passages_3', 0), ('passages_4', 0), ('passages_5', 0), ('passages_6', 0), ('passages_7', 0),
+        ('passages_8', 0);
+      CREATE TRIGGER count_passage_insert AFTER INSERT ON passages
+        BEGIN UPDATE row_counts SET n = n + 1 WHERE name = 'passages_' || NEW.state; END;
+      CREATE TRIGGER count_passage_state AFTER UPDATE OF state ON passages WHEN OLD.state <> NEW.state
+        BEGIN
+          UPDATE row_counts SET n = n - 1 WHERE name = 'passages_' || OLD.state;
+          UPDATE row_counts SET n = n + 1 WHERE name = 'passages_' || NEW.state;
+        END;
+      CREATE TRIGGER count_passage_delete AFTER DELETE ON passages
+        BEGIN UPDATE row_counts SET n = n - 1 WHERE name = 'passages_' || OLD.state; END;
+      )sql"),
+       nullptr},
+  };
+  return kMigrations;
+}
 
-int LatestSchemaVersion() { return static_cast<int>(Migrations().size()); }
-
-absl::Status MigrateSchema(SqliteConnection* db, int target_version) {
-  if (target_version < 0) target_version = LatestSchemaVersion();
+absl::Status Migrate(SqliteConnection* db, const std::vector<Migration>& migrations, int target_version,
+                     const char* what) {
+  const int latest = static_cast<int>(migrations.size());
+  if (target_version < 0) target_version = latest;
   while (true) {
     auto txn = SqliteWriteTransaction::Begin(db);
     if (!txn.ok()) return txn.status();
     auto version = db->PragmaInt("user_version");
     if (!version.ok()) return version.status();
-    if (*version >= target_version && *version <= LatestSchemaVersion()) return txn->Commit();
-    if (*version > LatestSchemaVersion() || *version < 0) {
-      return absl::FailedPreconditionError(absl::StrCat("database schema version ", *version,
-                                                        " is newer than this server's ", LatestSchemaVersion()));
+    if (*version >= target_version && *version <= latest) return txn->Commit();
+    if (*version > latest || *version < 0) {
+      return absl::FailedPreconditionError(
+          absl::StrCat(what, " schema version ", *version, " is newer than this server's ", latest));
     }
-    const Migration& migration = Migrations()[*version];
+    const Migration& migration = migrations[*version];
     if (auto s = db->Exec(migration.sql); !s.ok()) return s;
     if (migration.then) {
       if (auto s = migration.then(db); !s.ok()) return s;
@@ -294,6 +400,107 @@ absl::Status MigrateSchema(SqliteConnection* db, int target_version) {
     if (auto s = db->Exec(absl::StrCat("PRAGMA user_version = ", *version + 1)); !s.ok()) return s;
     if (auto s = txn->Commit(); !s.ok()) return s;
   }
+}
+
+// Runs `body` on `db` with the map file attached as `m`, detaching afterwards whatever happens.
+absl::Status WithMapAttached(SqliteConnection* db, const std::string& map_path,
+                             const std::function<absl::Status()>& body) {
+  auto attach = db->Prepare("ATTACH DATABASE ?1 AS m");
+  if (!attach.ok()) return attach.status();
+  attach->Bind(1, std::string_view(map_path));
+  if (auto s = attach->Run(); !s.ok()) return s;
+  absl::Status status = body();
+  absl::Status detached = db->Exec("DETACH DATABASE m");
+  return status.ok() ? detached : status;
+}
+
+}  // namespace
+
+int LatestSchemaVersion() { return static_cast<int>(Migrations().size()); }
+int LatestQueueSchemaVersion() { return static_cast<int>(QueueMigrations().size()); }
+
+absl::Status MigrateSchema(SqliteConnection* db, int target_version) {
+  return Migrate(db, Migrations(), target_version, "database");
+}
+
+absl::Status MigrateQueueSchema(SqliteConnection* queue) { return Migrate(queue, QueueMigrations(), -1, "queue database"); }
+
+absl::Status ImportQueueFromMapFile(SqliteConnection* queue, const std::string& map_path) {
+  return WithMapAttached(queue, map_path, [&]() -> absl::Status {
+    auto txn = SqliteWriteTransaction::Begin(queue);
+    if (!txn.ok()) return txn.status();
+    auto done = queue->Prepare("SELECT COUNT(*) FROM queue_meta WHERE key = 'imported_from_map'");
+    if (!done.ok()) return done.status();
+    if (auto row = done->Step(); !row.ok()) return row.status();
+    if (done->Int(0) > 0) return txn->Commit();
+    auto has_queue = queue->Prepare("SELECT COUNT(*) FROM m.sqlite_master WHERE type = 'table' AND name = 'passages'");
+    if (!has_queue.ok()) return has_queue.status();
+    if (auto row = has_queue->Step(); !row.ok()) return row.status();
+    if (has_queue->Int(0) > 0) {
+      if (auto s = queue->Exec(absl::StrCat(
+              "INSERT INTO passages (id, vehicle_id, passage_id, state, attempts, error, received_unix_ms, "
+              "finished_unix_ms, size_bytes, interruptions) SELECT id, vehicle_id, passage_id, state, attempts, error, "
+              "received_unix_ms, finished_unix_ms, size_bytes, interruptions FROM m.passages ORDER BY id;"
+              "INSERT INTO passage_payloads (id, payload) SELECT id, payload FROM m.passage_payloads;"
+              "INSERT INTO passage_results (id, ", kResultColumns, ") SELECT id, ", kResultColumns,
+              " FROM m.passage_results;"));
+          !s.ok()) {
+        return s;
+      }
+    }
+    if (auto s = queue->Exec("INSERT INTO queue_meta (key, value) VALUES ('imported_from_map', 1)"); !s.ok()) return s;
+    return txn->Commit();
+  });
+}
+
+absl::StatusOr<int> ReconcileQueueWithMap(SqliteConnection* queue, const std::string& map_path) {
+  int reconciled = 0;
+  absl::Status status = WithMapAttached(queue, map_path, [&]() -> absl::Status {
+    auto txn = SqliteWriteTransaction::Begin(queue);
+    if (!txn.ok()) return txn.status();
+    // A passage applied in the map but still processing in the queue, or excluded in the map but
+    // still applied in the queue: the map's commit landed and the queue's did not.
+    constexpr char kBehind[] =
+        "SELECT mp.id FROM m.map_passages mp JOIN passages p ON p.id = mp.id "
+        "WHERE (mp.state = 3 AND p.state = 2) OR (mp.state = 6 AND p.state = 3)";
+    if (auto s = queue->Exec(absl::StrCat("INSERT OR REPLACE INTO passage_results (id, ", kResultColumns,
+                                          ") SELECT id, ", kResultColumns, " FROM m.map_passages WHERE id IN (",
+                                          kBehind, ");"));
+        !s.ok()) {
+      return s;
+    }
+    if (auto s = queue->Exec(absl::StrCat(
+            "UPDATE passages SET error = '', "
+            "state = (SELECT mp.state FROM m.map_passages mp WHERE mp.id = passages.id), "
+            "finished_unix_ms = (SELECT mp.finished_unix_ms FROM m.map_passages mp WHERE mp.id = passages.id) "
+            "WHERE id IN (", kBehind, ")"));
+        !s.ok()) {
+      return s;
+    }
+    reconciled = queue->Changes();
+    // The other way round, the map is behind the queue: it was restored from a backup taken
+    // before the queue's (back up the map first, then the queue). Its missing passages are applied
+    // again; a passage excluded after the backup is applied in it again and must be excluded again.
+    if (auto s = queue->Exec(
+            "UPDATE passages SET state = 1, attempts = 0, finished_unix_ms = 0, "
+            "error = 'queued again at start: the map does not contain it (restored from an earlier backup)' "
+            "WHERE state = 3 AND id NOT IN (SELECT id FROM m.map_passages)");
+        !s.ok()) {
+      return s;
+    }
+    reconciled += queue->Changes();
+    if (auto s = queue->Exec(
+            "UPDATE passages SET state = 3, "
+            "error = 'the map (restored from an earlier backup) contains this excluded passage again: exclude it again' "
+            "WHERE state = 6 AND id IN (SELECT id FROM m.map_passages WHERE state = 3)");
+        !s.ok()) {
+      return s;
+    }
+    reconciled += queue->Changes();
+    return txn->Commit();
+  });
+  if (!status.ok()) return status;
+  return reconciled;
 }
 
 }  // namespace crowdmap

@@ -1,7 +1,10 @@
 #ifndef CROWDMAP_SERVER_STORAGE_SQLITE_SCHEMA_H_
 #define CROWDMAP_SERVER_STORAGE_SQLITE_SCHEMA_H_
 
+#include <string>
+
 #include "absl/status/status.h"
+#include "absl/status/statusor.h"
 #include "server/storage/sqlite_db.h"
 
 namespace crowdmap {
@@ -12,6 +15,25 @@ int LatestSchemaVersion();
 // Brings the database to the latest schema (or to `target_version`, for tests of a migration), one
 // migration per transaction. FailedPrecondition when the file comes from a newer release.
 absl::Status MigrateSchema(SqliteConnection* db, int target_version = -1);
+
+// The passage queue's own file has a schema of its own.
+int LatestQueueSchemaVersion();
+absl::Status MigrateQueueSchema(SqliteConnection* queue);
+
+// Copies the passage queue of a map file at schema 4 (the queue shared the map's file) into the
+// queue file, once (a flag in the queue file records it, so a crash before the map file's own
+// migration repeats nothing). Run before MigrateSchema takes the map file past schema 4.
+absl::Status ImportQueueFromMapFile(SqliteConnection* queue, const std::string& map_path);
+
+// Brings the queue in line with the map file, which is the truth about what the map contains:
+// - a passage the map holds as applied (or excluded) while the queue has it processing (or
+//   applied), after a crash between the map's commit and the queue's: recorded, with its result;
+// - a passage applied in the queue that the map does not contain (a map restored from a backup
+//   older than the queue's): queued again;
+// - a passage excluded in the queue that such a map contains: applied, with a note to exclude it
+//   again.
+// Returns how many passages changed.
+absl::StatusOr<int> ReconcileQueueWithMap(SqliteConnection* queue, const std::string& map_path);
 
 }  // namespace crowdmap
 
