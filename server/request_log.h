@@ -32,19 +32,19 @@ inline std::string EscapeForLog(const std::string& text) {
   return out;
 }
 
-// The response metadata key of the request id (initial metadata, sent with the first response).
+// The response metadata key of the request id. It travels in the trailing metadata: a server that
+// sends initial metadata commits the call, and gRPC's retry policy would no longer retry it (gRFC A6).
 inline constexpr char kRequestIdKey[] = "x-request-id";
 
 // Times one RPC and logs one key=value line when it ends; Done() converts the status. Each RPC gets
-// a request id, returned to the client as x-request-id and written in the line. Successful
+// a request id, returned to the client as x-request-id (trailing metadata) and written in the line. Successful
 // reads are logged at debug level (they come by the thousand per second), everything else at info,
 // failures at warn. Every client-supplied value is escaped (EscapeForLog).
 class RequestLog {
  public:
   RequestLog(const char* rpc, grpc::ServerContextBase* ctx)
-      : rpc_(rpc), id_(NewRequestId()), peer_(ctx->peer()), start_(std::chrono::steady_clock::now()), read_(IsRead(rpc)) {
-    ctx->AddInitialMetadata(kRequestIdKey, id_);
-  }
+      : rpc_(rpc), ctx_(ctx), id_(NewRequestId()), peer_(ctx->peer()), start_(std::chrono::steady_clock::now()),
+        read_(IsRead(rpc)) {}
 
   const std::string& request_id() const { return id_; }
 
@@ -55,6 +55,7 @@ class RequestLog {
   }
 
   grpc::Status Done(const absl::Status& status) {
+    ctx_->AddTrailingMetadata(kRequestIdKey, id_);
     const double ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start_).count();
     const bool quiet = status.ok() || status.code() == absl::StatusCode::kNotFound;
     const auto level = !quiet ? spdlog::level::warn : read_ ? spdlog::level::debug : spdlog::level::info;
@@ -79,6 +80,7 @@ class RequestLog {
   }
 
   const char* rpc_;
+  grpc::ServerContextBase* ctx_;
   std::string id_;
   std::string peer_;
   std::chrono::steady_clock::time_point start_;

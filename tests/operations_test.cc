@@ -146,7 +146,7 @@ TEST(Metrics, APortInUseIsRefusedNamingTheFlag) {
   EXPECT_NE(refused.status().message().find("metrics-listen"), absl::string_view::npos) << refused.status();
 }
 
-TEST(RequestId, EveryRpcReturnsADistinctIdInItsInitialMetadata) {
+TEST(RequestId, EveryRpcReturnsADistinctIdInItsTrailingMetadata) {
   TempDir dir;
   auto server = StartTestServer(TestServerOptions(dir.File("map.db"), /*start_worker=*/false));
   ASSERT_NE(server, nullptr);
@@ -157,8 +157,9 @@ TEST(RequestId, EveryRpcReturnsADistinctIdInItsInitialMetadata) {
     grpc::ClientContext ctx;
     pb::MapInfo info;
     ASSERT_TRUE(vehicle.stub()->GetMapInfo(&ctx, pb::GetMapInfoRequest(), &info).ok());
-    auto it = ctx.GetServerInitialMetadata().find("x-request-id");
-    ASSERT_NE(it, ctx.GetServerInitialMetadata().end());
+    EXPECT_TRUE(ctx.GetServerInitialMetadata().empty()) << "initial metadata would commit the call (no retries)";
+    auto it = ctx.GetServerTrailingMetadata().find("x-request-id");
+    ASSERT_NE(it, ctx.GetServerTrailingMetadata().end());
     const std::string id(it->second.data(), it->second.size());
     EXPECT_TRUE(std::regex_match(id, hex16)) << id;
     ids.insert(id);
@@ -170,9 +171,45 @@ TEST(RequestId, EveryRpcReturnsADistinctIdInItsInitialMetadata) {
   request.set_id(424242);
   pb::PassageStatus status;
   EXPECT_EQ(vehicle.stub()->GetPassage(&ctx, request, &status).error_code(), grpc::StatusCode::NOT_FOUND);
-  auto it = ctx.GetServerInitialMetadata().find("x-request-id");
-  ASSERT_NE(it, ctx.GetServerInitialMetadata().end());
+  auto it = ctx.GetServerTrailingMetadata().find("x-request-id");
+  ASSERT_NE(it, ctx.GetServerTrailingMetadata().end());
   EXPECT_TRUE(std::regex_match(std::string(it->second.data(), it->second.size()), hex16));
+}
+
+TEST(Pushback, AFullQueueTellsClientsWhenToRetry) {
+  TempDir dir;
+  MapServerOptions options = TestServerOptions(dir.File("map.db"), /*start_worker=*/false);
+  options.max_queue = 1;
+  auto server = StartTestServer(options);
+  ASSERT_NE(server, nullptr);
+  MockVehicle vehicle(server->address());
+  const Scenario scenario = ShortScenario();
+  pb::UploadPassageRequest request;
+  PassageToProto(scenario.MakePassage(0), request.mutable_passage());
+  pb::UploadPassageResponse response;
+  {
+    grpc::ClientContext ctx;
+    ASSERT_TRUE(vehicle.stub()->UploadPassage(&ctx, request, &response).ok());
+    EXPECT_EQ(ctx.GetServerTrailingMetadata().count("grpc-retry-pushback-ms"), 0u);
+  }
+  PassageToProto(scenario.MakePassage(1), request.mutable_passage());
+  grpc::ClientContext ctx;
+  EXPECT_EQ(vehicle.stub()->UploadPassage(&ctx, request, &response).error_code(), grpc::StatusCode::RESOURCE_EXHAUSTED);
+  auto it = ctx.GetServerTrailingMetadata().find("grpc-retry-pushback-ms");
+  ASSERT_NE(it, ctx.GetServerTrailingMetadata().end());
+  EXPECT_EQ(std::string(it->second.data(), it->second.size()), "1000");
+
+  // A client whose retry policy would pause at most 10 ms waits the server's second instead.
+  MapClientOptions retrying;
+  retrying.server = server->address();
+  retrying.max_attempts = 2;
+  retrying.initial_backoff = std::chrono::milliseconds(10);
+  retrying.max_backoff = std::chrono::milliseconds(10);
+  auto client = MapClient::Create(retrying);
+  ASSERT_TRUE(client.ok());
+  const auto start = std::chrono::steady_clock::now();
+  EXPECT_EQ((*client)->Upload(request.passage()).status().code(), absl::StatusCode::kResourceExhausted);
+  EXPECT_GE(std::chrono::steady_clock::now() - start, std::chrono::milliseconds(1000));
 }
 
 MapServerOptions NoCreate(const std::string& db) {
