@@ -1,14 +1,15 @@
 #!/usr/bin/env python3
 """Checks deploy/ the way CI can without a cluster or a container runtime.
 
-    scripts/check-deploy.py [PATH_TO_MAPD]
+    scripts/check-deploy.py [PATH_TO_MAPD [OTHER_BINARIES...]]
 
 - every JSON and YAML file parses; the Kubernetes manifest keeps one replica, a pinned image tag
   (never :latest), a headless Service named by the StatefulSet, a NetworkPolicy for mapd's pods;
 - every metric the Grafana dashboard queries is one mapd exports (server/metrics.cc);
 - the Dockerfile has a build and a runtime stage, and .dockerignore keeps builds, maps and .git out;
 - with mapd: deploy/mapd.conf and the ConfigMap's mapd.conf are accepted by mapd itself, the
-  runtime stage installs a package for every shared library mapd needs (apt-cache, readelf), and
+  runtime stage installs a package for every shared library mapd (and the other binaries given)
+  needs (apt-cache, readelf), and
   `systemd-analyze verify` accepts the unit (pointing ExecStart at this mapd) when systemd-analyze
   is installed.
 Prints one line per check; exits 1 when any fails. A check that cannot run here says "skipped".
@@ -103,7 +104,7 @@ def docker():
     return dockerfile
 
 
-def with_mapd(mapd, by_kind, dockerfile):
+def with_mapd(mapd, others, by_kind, dockerfile):
     def accepts(name, text):
         with tempfile.NamedTemporaryFile("w", suffix=".conf") as f:
             f.write(text)
@@ -124,15 +125,17 @@ def with_mapd(mapd, by_kind, dockerfile):
                                   "--no-conflicts", "--no-breaks", "--no-replaces", "--no-enhances"] + sorted(listed),
                                  capture_output=True, text=True).stdout
         provided = listed | {line.strip().split(":", 1)[-1].strip().split(":")[0] for line in depends.splitlines()}
-        needed = re.findall(r"\(NEEDED\)\s+Shared library: \[(.+?)\]", subprocess.run(
-            ["readelf", "-d", mapd], capture_output=True, text=True).stdout)
+        needed = set()
+        for binary in [mapd] + others:
+            needed |= set(re.findall(r"\(NEEDED\)\s+Shared library: \[(.+?)\]", subprocess.run(
+                ["readelf", "-d", binary], capture_output=True, text=True).stdout))
         missing = []
-        for lib in needed:
+        for lib in sorted(needed):
             owner = subprocess.run(["dpkg", "-S", "*/" + lib], capture_output=True, text=True).stdout
             packages = {line.split(":")[0] for line in owner.splitlines() if line}
             if packages and not packages & provided:
                 missing.append(lib + " (" + ",".join(sorted(packages)) + ")")
-        check("runtime stage installs every library mapd needs", not missing, "; ".join(missing))
+        check("runtime stage installs every library the binaries need", not missing, "; ".join(missing))
     else:
         skipped("runtime libraries", "readelf, dpkg or apt-cache not installed")
 
@@ -154,7 +157,7 @@ def main():
     dashboard_metrics()
     dockerfile = docker()
     if len(sys.argv) > 1:
-        with_mapd(sys.argv[1], by_kind, dockerfile)
+        with_mapd(sys.argv[1], sys.argv[2:], by_kind, dockerfile)
     else:
         skipped("checks with mapd", "no path to mapd given")
     print("deploy check: " + ("FAILED: " + ", ".join(failures) if failures else "all passed"))

@@ -23,6 +23,9 @@ namespace crowdmap {
 absl::Status MapServerOptions::Validate() const {
   if (listen.empty()) return absl::InvalidArgumentError("listen: must not be empty");
   if (db_path.empty()) return absl::InvalidArgumentError("db: must not be empty");
+  if (!metrics_listen.empty() && metrics_listen.rfind(':') == std::string::npos) {
+    return absl::InvalidArgumentError(absl::StrCat("metrics-listen: expected host:port, got '", metrics_listen, "'"));
+  }
   if (max_queue < 0) return absl::InvalidArgumentError(absl::StrCat("max_queue: must be >= 0, got ", max_queue));
   if (max_message_mb < 1 || max_message_mb > 2047) {
     return absl::InvalidArgumentError(absl::StrCat("max_message_mb: must lie in [1, 2047], got ", max_message_mb));
