@@ -13,7 +13,8 @@ PACKAGES=(
   libgrpc++-dev libprotobuf-dev protobuf-compiler protobuf-compiler-grpc
   libsqlite3-dev sqlite3 libspdlog-dev libfmt-dev
   libgtest-dev libgmock-dev libbenchmark-dev
-  libgeographiclib-dev libabsl-dev
+  libgeographiclib-dev libabsl-dev prometheus-cpp-dev
+  python3 python3-yaml
 )
 
 missing=()

@@ -37,7 +37,7 @@ grpc::ServerUnaryReactor* MapService::QueryRegion(grpc::CallbackServerContext* c
   return reactor;
 }
 
-grpc::Status MapService::ServeTile(const grpc::ServerContextBase* ctx, const pb::GetTileRequest* request,
+grpc::Status MapService::ServeTile(grpc::ServerContextBase* ctx, const pb::GetTileRequest* request,
                                    pb::GetTileResponse* response) {
   RequestLog log("GetTile", ctx);
   const TileId tile{request->tile().z(), request->tile().x(), request->tile().y()};
@@ -58,7 +58,7 @@ grpc::Status MapService::ServeTile(const grpc::ServerContextBase* ctx, const pb:
   return log.Done(absl::OkStatus());
 }
 
-grpc::Status MapService::ServeRegion(const grpc::ServerContextBase* ctx, const pb::QueryRegionRequest* request,
+grpc::Status MapService::ServeRegion(grpc::ServerContextBase* ctx, const pb::QueryRegionRequest* request,
                                      pb::QueryRegionResponse* response) {
   RequestLog log("QueryRegion", ctx);
   absl::StatusOr<BoundingBox> box = BoundingBoxFromProto(request->box(), "box");

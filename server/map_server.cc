@@ -23,6 +23,9 @@ namespace crowdmap {
 absl::Status MapServerOptions::Validate() const {
   if (listen.empty()) return absl::InvalidArgumentError("listen: must not be empty");
   if (db_path.empty()) return absl::InvalidArgumentError("db: must not be empty");
+  if (!metrics_listen.empty() && metrics_listen.rfind(':') == std::string::npos) {
+    return absl::InvalidArgumentError(absl::StrCat("metrics-listen: expected host:port, got '", metrics_listen, "'"));
+  }
   if (max_queue < 0) return absl::InvalidArgumentError(absl::StrCat("max_queue: must be >= 0, got ", max_queue));
   if (max_message_mb < 1 || max_message_mb > 2047) {
     return absl::InvalidArgumentError(absl::StrCat("max_message_mb: must lie in [1, 2047], got ", max_message_mb));
@@ -55,6 +58,32 @@ absl::StatusOr<int> LockDatabase(const std::string& db_path) {
   return fd;
 }
 
+// Refuses, unless `create`, a database that does not exist yet or is an empty file: a mistyped
+// --db would otherwise start an empty map silently.
+absl::Status CheckDatabasePath(const std::string& db_path, bool create) {
+  const std::filesystem::path path(db_path);
+  const std::filesystem::path dir = path.parent_path();
+  std::error_code ec;
+  if (!dir.empty() && !std::filesystem::is_directory(dir, ec)) {
+    if (!create) {
+      return absl::FailedPreconditionError(absl::StrCat("db: the directory ", dir.string(), " of ", db_path,
+                                                        " does not exist; check --db, or pass --create to create a new map there"));
+    }
+    std::filesystem::create_directories(dir, ec);
+    if (ec) return absl::FailedPreconditionError(absl::StrCat("db: cannot create ", dir.string(), ": ", ec.message()));
+  }
+  if (create) return absl::OkStatus();
+  if (!std::filesystem::exists(path, ec)) {
+    return absl::FailedPreconditionError(absl::StrCat(
+        "db: ", db_path, " does not exist; check --db, or pass --create to create a new, empty map there"));
+  }
+  if (std::filesystem::is_regular_file(path, ec) && std::filesystem::file_size(path, ec) == 0 && !ec) {
+    return absl::FailedPreconditionError(absl::StrCat(
+        "db: ", db_path, " is an empty file (0 bytes), not a map; check --db, or pass --create to create a new map in it"));
+  }
+  return absl::OkStatus();
+}
+
 void TuneProcessForServing() {
   mallopt(M_TRIM_THRESHOLD, 256 << 20);
   mallopt(M_MMAP_THRESHOLD, 32 << 20);
@@ -66,10 +95,7 @@ absl::StatusOr<std::unique_ptr<MapServer>> MapServer::Start(const MapServerOptio
   std::unique_ptr<MapServer> server(new MapServer());
   server->options_ = options;
 
-  const std::filesystem::path db_dir = std::filesystem::path(options.db_path).parent_path();
-  std::error_code ec;
-  if (!db_dir.empty()) std::filesystem::create_directories(db_dir, ec);
-  if (ec) return absl::FailedPreconditionError(absl::StrCat("db: cannot create ", db_dir.string(), ": ", ec.message()));
+  if (absl::Status s = CheckDatabasePath(options.db_path, options.create_db); !s.ok()) return s;
   absl::StatusOr<int> lock = LockDatabase(options.db_path);
   if (!lock.ok()) return lock.status();
   server->lock_.fd = *lock;
@@ -82,8 +108,15 @@ absl::StatusOr<std::unique_ptr<MapServer>> MapServer::Start(const MapServerOptio
   auto store = CachedMapStore::Create(std::move(*sqlite), options.worker.update.window_hops);
   if (!store.ok()) return store.status();
   server->store_ = std::move(*store);
+  MapWorkerOptions worker_options = options.worker;
+  if (!options.metrics_listen.empty()) {
+    auto metrics = ServerMetrics::Start(options.metrics_listen, server->store_.get());
+    if (!metrics.ok()) return metrics.status();
+    server->metrics_ = std::move(*metrics);
+    worker_options.on_applied = [m = server->metrics_.get()](const AppliedPassageTimings& t) { m->ObserveApplied(t); };
+  }
   server->committer_ = std::make_unique<UploadCommitter>(server->store_.get(), options.max_queue);
-  auto worker = MapWorker::Create(server->store_.get(), options.worker, &server->notifier_);
+  auto worker = MapWorker::Create(server->store_.get(), worker_options, &server->notifier_);
   if (!worker.ok()) return worker.status();
   server->worker_ = std::move(*worker);
 
@@ -92,6 +125,7 @@ absl::StatusOr<std::unique_ptr<MapServer>> MapServer::Start(const MapServerOptio
   context.committer = server->committer_.get();
   context.worker = server->worker_.get();
   context.notifier = &server->notifier_;
+  context.metrics = server->metrics_.get();
   context.limits.max_passage_bytes = static_cast<size_t>(options.max_passage_mb) << 20;
   context.update = options.worker.update;
   server->service_ = std::make_unique<MapService>(&context);
@@ -104,6 +138,11 @@ absl::StatusOr<std::unique_ptr<MapServer>> MapServer::Start(const MapServerOptio
   builder.AddChannelArgument(GRPC_ARG_ALLOW_REUSEPORT, 0);
   builder.SetMaxReceiveMessageSize(options.max_message_mb << 20);
   builder.RegisterService(server->service_.get());
+  if (server->metrics_ != nullptr) {
+    std::vector<std::unique_ptr<grpc::experimental::ServerInterceptorFactoryInterface>> interceptors;
+    interceptors.push_back(server->metrics_->InterceptorFactory());
+    builder.experimental().SetInterceptorCreators(std::move(interceptors));
+  }
   server->server_ = builder.BuildAndStart();
   if (server->server_ == nullptr || server->port_ == 0) {
     return absl::UnavailableError(absl::StrCat("listen: cannot bind ", options.listen, " (in use by another process?)"));

@@ -12,6 +12,7 @@
 #include "absl/status/statusor.h"
 #include "server/map_service.h"
 #include "server/map_worker.h"
+#include "server/metrics.h"
 #include "server/storage/map_store.h"
 #include "server/upload_committer.h"
 #include "server/version_notifier.h"
@@ -20,12 +21,16 @@ namespace crowdmap {
 
 struct MapServerOptions {
   std::string listen = "127.0.0.1:50051";  // host:port; port 0 picks a free one
-  std::string db_path = "./var/map.db";    // created (with its directory) on first start
+  std::string db_path = "./var/map.db";
+  // true: a missing database (and its directory) or an empty file is created as a new map;
+  // false: refused with FailedPrecondition naming the path (mapd's default, unless --create).
+  bool create_db = true;
   MapWorkerOptions worker;
   int64_t max_queue = 10000;  // passages queued or processing before uploads get RESOURCE_EXHAUSTED
   int max_message_mb = 4;     // gRPC receive limit per message
   int max_passage_mb = 64;    // largest accepted passage (chunked uploads)
   bool start_worker = true;   // false: accept and queue uploads, apply nothing
+  std::string metrics_listen;  // host:port of the Prometheus endpoint (/metrics); empty = none
 
   absl::Status Validate() const;
 };
@@ -47,6 +52,9 @@ class MapServer {
   MapServer& operator=(const MapServer&) = delete;
 
   int port() const { return port_; }
+  // The Prometheus endpoint's port; 0 without metrics_listen.
+  int metrics_port() const { return metrics_ == nullptr ? 0 : metrics_->port(); }
+  ServerMetrics* metrics() { return metrics_.get(); }
   // "host:port" a client on this machine can dial.
   std::string address() const;
   MapStoreInterface* store() { return store_.get(); }
@@ -67,6 +75,7 @@ class MapServer {
   DatabaseLock lock_;
   MapServerOptions options_;
   std::unique_ptr<MapStoreInterface> store_;
+  std::unique_ptr<ServerMetrics> metrics_;  // reads store_; used by the worker and gRPC
   VersionNotifier notifier_;
   std::unique_ptr<UploadCommitter> committer_;
   std::unique_ptr<MapWorker> worker_;

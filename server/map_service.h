@@ -10,6 +10,7 @@
 #include "core/estimation/map_updater.h"
 #include "mapservice/v1/map_service.grpc.pb.h"
 #include "server/map_worker.h"
+#include "server/metrics.h"
 #include "server/request_log.h"
 #include "server/storage/map_store.h"
 #include "server/upload_committer.h"
@@ -24,6 +25,7 @@ struct MapServiceContext {
   UploadCommitter* committer = nullptr;
   MapWorker* worker = nullptr;  // woken after each new upload
   VersionNotifier* notifier = nullptr;
+  ServerMetrics* metrics = nullptr;  // nullptr without --metrics-listen
   WireLimits limits;
   MapUpdateOptions update;  // the worker's estimator settings, reported by GetMapInfo
   std::atomic<bool> accepting_uploads{true};
@@ -102,9 +104,9 @@ class MapService final : public MapServiceBase {
   absl::Status AcceptUpload(const pb::Passage& wire, size_t wire_bytes, std::string payload,
                             pb::UploadPassageResponse* response);
 
-  grpc::Status ServeTile(const grpc::ServerContextBase* ctx, const pb::GetTileRequest* request,
+  grpc::Status ServeTile(grpc::ServerContextBase* ctx, const pb::GetTileRequest* request,
                          pb::GetTileResponse* response);
-  grpc::Status ServeRegion(const grpc::ServerContextBase* ctx, const pb::QueryRegionRequest* request,
+  grpc::Status ServeRegion(grpc::ServerContextBase* ctx, const pb::QueryRegionRequest* request,
                            pb::QueryRegionResponse* response);
 
   MapServiceContext* const context_;

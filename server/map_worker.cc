@@ -208,6 +208,7 @@ void MapWorker::Apply(const ClaimedPassage& claimed, const Passage& passage) {
   std::chrono::milliseconds pause(500);
   while (true) {
     std::string error;
+    const auto apply_start = std::chrono::steady_clock::now();
     auto update = updater_->Compute(passage, map_);
     if (update.ok()) {
       const PassageResult result = ResultFromSummary(update->summary, options_.update.strategy);
@@ -221,6 +222,10 @@ void MapWorker::Apply(const ClaimedPassage& claimed, const Passage& passage) {
         updater_->Applied(passage, update->delta);
         Yield();
         notifier_->Publish(map_.version());
+        if (options_.on_applied) {
+          const auto ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - apply_start);
+          options_.on_applied({ms.count(), result.solve_ms, result.covariance_ms, commit_ms});
+        }
         spdlog::info(
             "event=applied passage={} vehicle={} id={} nodes={} subgraphs={} landmarks_updated={} "
             "landmarks_created={} landmarks_conditioned={} solve_ms={:.1f} total_ms={:.1f} commit_ms={:.1f} "

@@ -5,6 +5,7 @@
 #include <chrono>
 #include <condition_variable>
 #include <cstdint>
+#include <functional>
 #include <memory>
 #include <mutex>
 #include <thread>
@@ -17,6 +18,14 @@
 #include "server/version_notifier.h"
 
 namespace crowdmap {
+
+// How long the steps of one applied passage took, milliseconds.
+struct AppliedPassageTimings {
+  double apply_ms = 0.0;       // the whole update: compute, commit, mirror
+  double solve_ms = 0.0;       // the estimator's solves (PassageUpdateSummary::solve_ms)
+  double covariance_ms = 0.0;  // its covariance recoveries (PassageUpdateSummary::covariance_ms)
+  double commit_ms = 0.0;      // the durable transaction
+};
 
 struct MapWorkerOptions {
   MapUpdateOptions update;
@@ -40,6 +49,8 @@ struct MapWorkerOptions {
   // millisecond or so hands the core to waiting requests at once and costs a system call when none
   // waits. See server/README.md for the measurements.
   bool yield = true;
+  // Called on the worker's thread after each passage is applied (metrics); empty = nothing.
+  std::function<void(const AppliedPassageTimings&)> on_applied;
   absl::Status Validate() const;
 };
 

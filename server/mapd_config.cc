@@ -9,6 +9,7 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_replace.h"
 #include "absl/strings/strip.h"
+#include "server/request_log.h"
 
 namespace crowdmap {
 namespace {
@@ -18,7 +19,7 @@ const std::vector<std::string>& SettingNames() {
       "listen", "db", "strategy", "max-subgraph-dim", "window-hops", "warmup-passages", "relinearize-until-passages", "workers",
       "retain-passages", "worker-nice", "max-queue", "max-message-mb", "max-passage-mb", "log-level",
       "max-detection-residual-sigmas", "max-landmark-shift-sigmas", "max-new-landmark-ray-sigma-m",
-      "max-chi2-per-dof"};
+      "max-chi2-per-dof", "metrics-listen", "log-format", "create"};
   return kNames;
 }
 
@@ -61,6 +62,13 @@ absl::StatusOr<int64_t> ToInt(const std::string& name, const std::string& value)
   int64_t v = 0;
   if (!absl::SimpleAtoi(value, &v)) return absl::InvalidArgumentError(absl::StrCat("--", name, ": expected an integer, got '", value, "'"));
   return v;
+}
+
+absl::StatusOr<bool> ToBool(const std::string& name, const std::string& value) {
+  const std::string v = absl::AsciiStrToLower(value);
+  if (v == "true" || v == "1" || v == "yes") return true;
+  if (v == "false" || v == "0" || v == "no") return false;
+  return absl::InvalidArgumentError(absl::StrCat("--", name, ": expected true or false, got '", value, "'"));
 }
 
 absl::StatusOr<double> ToDouble(const std::string& name, const std::string& value) {
@@ -128,7 +136,14 @@ Usage: mapd [--flag value | --flag=value]...
                               metres (default 3)
   --max-chi2-per-dof X        refuse a passage when a subgraph's solve leaves chi2 above X per
                               degree of freedom (default 0 = never; see README)
+  --create                    create a new, empty map when --db does not exist yet (or is an
+                              empty file), with its directory; without it mapd refuses to start
+                              there, so that a mistyped path cannot start an empty map
+  --metrics-listen ADDR       serve Prometheus metrics on http://ADDR/metrics (default: none;
+                              e.g. 127.0.0.1:9464; the endpoint has no authentication)
   --log-level LEVEL           trace | debug | info | warn | error | off (default info)
+  --log-format FORMAT         text (key=value lines) | json (one JSON object per line)
+                              (default text)
   --config PATH               settings file: "name = value" lines with the names above
   --version                   print the version and exit
   --help                      this text
@@ -152,6 +167,10 @@ absl::StatusOr<MapdConfig> ParseMapdConfig(const std::vector<std::string>& args,
     }
     if (a == "--version") {
       config.version = true;
+      continue;
+    }
+    if (a == "--create") {
+      flags["create"] = "true";
       continue;
     }
     if (a.rfind("--", 0) != 0) return absl::InvalidArgumentError(absl::StrCat("unexpected argument '", a, "'"));
@@ -183,6 +202,7 @@ absl::StatusOr<MapdConfig> ParseMapdConfig(const std::vector<std::string>& args,
   for (const auto& [name, value] : flags) values[name] = value;
 
   MapServerOptions& o = config.server;
+  o.create_db = false;  // mapd creates a map only when told to (--create)
   for (const auto& [name, value] : values) {
     if (name == "listen") {
       o.listen = value;
@@ -194,6 +214,17 @@ absl::StatusOr<MapdConfig> ParseMapdConfig(const std::vector<std::string>& args,
       o.worker.update.strategy = *strategy;
     } else if (name == "log-level") {
       config.log_level = value;
+    } else if (name == "log-format") {
+      if (value != "text" && value != "json") {
+        return absl::InvalidArgumentError(absl::StrCat("--log-format: expected text or json, got '", value, "'"));
+      }
+      config.log_format = value;
+    } else if (name == "metrics-listen") {
+      o.metrics_listen = value;
+    } else if (name == "create") {
+      absl::StatusOr<bool> create = ToBool(name, value);
+      if (!create.ok()) return create.status();
+      o.create_db = *create;
     } else if (absl::StatusOr<bool> rule = SetTrustRule(name, value, &o.worker.update); !rule.ok() || *rule) {
       if (!rule.ok()) return rule.status();
     } else {
@@ -213,6 +244,23 @@ absl::StatusOr<MapdConfig> ParseMapdConfig(const std::vector<std::string>& args,
   }
   if (auto s = o.Validate(); !s.ok()) return s;
   return config;
+}
+
+std::string DescribeMapdConfig(const MapdConfig& config) {
+  const MapServerOptions& o = config.server;
+  const MapUpdateOptions& u = o.worker.update;
+  return absl::StrCat(
+      "listen=", EscapeForLog(o.listen), " db=", EscapeForLog(o.db_path), " create=", o.create_db ? "true" : "false",
+      " strategy=", UpdateStrategyName(u.strategy), " max-subgraph-dim=", u.max_subgraph_dim,
+      " window-hops=", u.window_hops, " warmup-passages=", u.warmup_passages,
+      " relinearize-until-passages=", u.relinearize_until_passages, " retain-passages=", u.retain_passages,
+      " workers=", o.worker.workers, " worker-nice=", o.worker.nice, " max-queue=", o.max_queue,
+      " max-message-mb=", o.max_message_mb, " max-passage-mb=", o.max_passage_mb,
+      " max-detection-residual-sigmas=", u.max_detection_residual_sigmas,
+      " max-landmark-shift-sigmas=", std::sqrt(u.max_landmark_shift_mahalanobis2),
+      " max-new-landmark-ray-sigma-m=", u.max_new_landmark_ray_sigma_m, " max-chi2-per-dof=", u.max_chi2_per_dof,
+      " metrics-listen=", o.metrics_listen.empty() ? "none" : EscapeForLog(o.metrics_listen),
+      " log-level=", EscapeForLog(config.log_level), " log-format=", config.log_format);
 }
 
 }  // namespace crowdmap

@@ -107,5 +107,35 @@ TEST(MapdConfig, ReadsTheTrustRules) {
   EXPECT_NE(negative.status().message().find("max_new_landmark_ray_sigma_m"), std::string::npos) << negative.status();
 }
 
+TEST(MapdConfig, CreateMetricsAndLogFormatAreOffOrTextByDefaultAndSettable) {
+  auto defaults = ParseMapdConfig({}, FakeEnv({}));
+  ASSERT_TRUE(defaults.ok()) << defaults.status();
+  EXPECT_FALSE(defaults->server.create_db) << "mapd creates a map only with --create";
+  EXPECT_EQ(defaults->server.metrics_listen, "");
+  EXPECT_EQ(defaults->log_format, "text");
+  auto set = ParseMapdConfig({"--create", "--metrics-listen", "127.0.0.1:9464", "--log-format=json"}, FakeEnv({}));
+  ASSERT_TRUE(set.ok()) << set.status();
+  EXPECT_TRUE(set->server.create_db);
+  EXPECT_EQ(set->server.metrics_listen, "127.0.0.1:9464");
+  EXPECT_EQ(set->log_format, "json");
+  auto env = ParseMapdConfig({}, FakeEnv({{"MAPD_CREATE", "true"}, {"MAPD_LOG_FORMAT", "json"}}));
+  ASSERT_TRUE(env.ok()) << env.status();
+  EXPECT_TRUE(env->server.create_db);
+  EXPECT_EQ(env->log_format, "json");
+  const std::string described = DescribeMapdConfig(*set);
+  EXPECT_NE(described.find("create=true"), std::string::npos) << described;
+  EXPECT_NE(described.find("metrics-listen=127.0.0.1:9464"), std::string::npos) << described;
+  EXPECT_NE(described.find("max-landmark-shift-sigmas=5 "), std::string::npos) << described;
+}
+
+TEST(MapdConfig, BadLogFormatAndCreateValuesNameTheFlag) {
+  auto format = ParseMapdConfig({"--log-format", "xml"}, FakeEnv({}));
+  ASSERT_FALSE(format.ok());
+  EXPECT_NE(format.status().message().find("--log-format"), absl::string_view::npos) << format.status();
+  auto create = ParseMapdConfig({}, FakeEnv({{"MAPD_CREATE", "maybe"}}));
+  ASSERT_FALSE(create.ok());
+  EXPECT_NE(create.status().message().find("--create"), absl::string_view::npos) << create.status();
+}
+
 }  // namespace
 }  // namespace crowdmap

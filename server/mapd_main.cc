@@ -8,6 +8,7 @@
 #include <spdlog/sinks/stdout_color_sinks.h>
 #include <spdlog/spdlog.h>
 
+#include "server/log_format.h"
 #include "server/map_server.h"
 #include "server/mapd_config.h"
 
@@ -36,7 +37,11 @@ int main(int argc, char** argv) {
   }
   auto logger = spdlog::stderr_color_mt("mapd");
   spdlog::set_default_logger(logger);
-  spdlog::set_pattern("%Y-%m-%dT%H:%M:%S.%e %l %v");
+  if (config->log_format == "json") {
+    spdlog::set_formatter(crowdmap::MakeJsonLogFormatter());
+  } else {
+    spdlog::set_pattern("%Y-%m-%dT%H:%M:%S.%e %l %v");
+  }
   const auto level = spdlog::level::from_str(config->log_level);
   if (level == spdlog::level::off && config->log_level != "off") {
     std::cerr << "mapd: --log-level: unknown level '" << config->log_level << "'\n";
@@ -44,6 +49,7 @@ int main(int argc, char** argv) {
   }
   spdlog::set_level(level);
   spdlog::flush_on(spdlog::level::info);
+  spdlog::info("event=settings version={} {}", CROWDMAP_VERSION, crowdmap::DescribeMapdConfig(*config));
 
   auto server = crowdmap::MapServer::Start(config->server);
   if (!server.ok()) {

@@ -24,6 +24,14 @@ uint64_t Fingerprint(std::string_view text) {
   return h;
 }
 
+// A full queue or disk (RESOURCE_EXHAUSTED): clients' retry policies wait this long before the
+// next attempt (gRPC reads grpc-retry-pushback-ms) instead of their own short backoff.
+constexpr char kUploadPushbackMs[] = "1000";
+
+void AddPushback(grpc::ServerContext* ctx, const absl::Status& s) {
+  if (s.code() == absl::StatusCode::kResourceExhausted) ctx->AddTrailingMetadata("grpc-retry-pushback-ms", kUploadPushbackMs);
+}
+
 std::string PassageListQuery(const pb::ListPassagesRequest& request) {
   return absl::StrCat("passages|", request.state(), "|", request.vehicle_id());
 }
@@ -60,6 +68,7 @@ absl::Status MapService::AcceptUpload(const pb::Passage& wire, size_t wire_bytes
   absl::StatusOr<EnqueueOutcome> outcome = context_->committer->Commit(std::move(upload));
   if (!outcome.ok()) return outcome.status();
   if (!outcome->duplicate && context_->worker != nullptr) context_->worker->Wake();
+  if (context_->metrics != nullptr) context_->metrics->ObserveUpload(wire_bytes, outcome->duplicate);
   StoredPassageToProto(outcome->record, response->mutable_status());
   response->set_duplicate(outcome->duplicate);
   return absl::OkStatus();
@@ -71,6 +80,7 @@ grpc::Status MapService::UploadPassage(grpc::ServerContext* ctx, const pb::Uploa
   const pb::Passage& wire = request->passage();
   log.Add(absl::StrCat("passage=", wire.passage_id(), " vehicle=", wire.vehicle_id()));
   absl::Status s = AcceptUpload(wire, wire.ByteSizeLong(), wire.SerializeAsString(), response);
+  AddPushback(ctx, s);
   if (s.ok()) {
     log.Add(absl::StrCat("id=", response->status().id(), " duplicate=", response->duplicate() ? "true" : "false"));
   }
@@ -97,6 +107,7 @@ grpc::Status MapService::UploadPassageChunked(grpc::ServerContext* ctx,
   log.Add(absl::StrCat("passage=", wire.passage_id(), " vehicle=", wire.vehicle_id()));
   const size_t size = bytes.size();
   absl::Status s = AcceptUpload(wire, size, std::move(bytes), response);
+  AddPushback(ctx, s);
   if (s.ok()) {
     log.Add(absl::StrCat("id=", response->status().id(), " duplicate=", response->duplicate() ? "true" : "false"));
   }

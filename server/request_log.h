@@ -10,6 +10,7 @@
 
 #include "absl/status/status.h"
 #include "server/grpc_status.h"
+#include "server/log_format.h"
 
 namespace crowdmap {
 
@@ -31,13 +32,21 @@ inline std::string EscapeForLog(const std::string& text) {
   return out;
 }
 
-// Times one RPC and logs one key=value line when it ends; Done() converts the status. Successful
+// The response metadata key of the request id. It travels in the trailing metadata: a server that
+// sends initial metadata commits the call, and gRPC's retry policy would no longer retry it (gRFC A6).
+inline constexpr char kRequestIdKey[] = "x-request-id";
+
+// Times one RPC and logs one key=value line when it ends; Done() converts the status. Each RPC gets
+// a request id, returned to the client as x-request-id (trailing metadata) and written in the line. Successful
 // reads are logged at debug level (they come by the thousand per second), everything else at info,
 // failures at warn. Every client-supplied value is escaped (EscapeForLog).
 class RequestLog {
  public:
-  RequestLog(const char* rpc, const grpc::ServerContextBase* ctx)
-      : rpc_(rpc), peer_(ctx->peer()), start_(std::chrono::steady_clock::now()), read_(IsRead(rpc)) {}
+  RequestLog(const char* rpc, grpc::ServerContextBase* ctx)
+      : rpc_(rpc), ctx_(ctx), id_(NewRequestId()), peer_(ctx->peer()), start_(std::chrono::steady_clock::now()),
+        read_(IsRead(rpc)) {}
+
+  const std::string& request_id() const { return id_; }
 
   // Extra key=value pairs, e.g. "passage=p1 vehicle=v1".
   void Add(const std::string& fields) {
@@ -46,13 +55,15 @@ class RequestLog {
   }
 
   grpc::Status Done(const absl::Status& status) {
+    ctx_->AddTrailingMetadata(kRequestIdKey, id_);
     const double ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start_).count();
     const bool quiet = status.ok() || status.code() == absl::StatusCode::kNotFound;
     const auto level = !quiet ? spdlog::level::warn : read_ ? spdlog::level::debug : spdlog::level::info;
     if (status.ok()) {
-      spdlog::log(level, "rpc={} peer={} code=OK ms={:.2f}{}", rpc_, EscapeForLog(peer_), ms, EscapeForLog(fields_));
+      spdlog::log(level, "rpc={} request_id={} peer={} code=OK ms={:.2f}{}", rpc_, id_, EscapeForLog(peer_), ms,
+                  EscapeForLog(fields_));
     } else {
-      spdlog::log(level, "rpc={} peer={} code={} ms={:.2f}{} error=\"{}\"", rpc_, EscapeForLog(peer_),
+      spdlog::log(level, "rpc={} request_id={} peer={} code={} ms={:.2f}{} error=\"{}\"", rpc_, id_, EscapeForLog(peer_),
                   absl::StatusCodeToString(status.code()), ms, EscapeForLog(fields_),
                   EscapeForLog(std::string(status.message())));
     }
@@ -69,6 +80,8 @@ class RequestLog {
   }
 
   const char* rpc_;
+  grpc::ServerContextBase* ctx_;
+  std::string id_;
   std::string peer_;
   std::chrono::steady_clock::time_point start_;
   bool read_;

@@ -1,6 +1,11 @@
 #include "server/request_log.h"
 
 #include <gtest/gtest.h>
+#include <spdlog/logger.h>
+#include <spdlog/sinks/ostream_sink.h>
+
+#include <regex>
+#include <sstream>
 
 namespace crowdmap {
 namespace {
@@ -13,6 +18,35 @@ TEST(EscapeForLog, KeepsPrintableTextAndEscapesWhatCouldForgeALine) {
   EXPECT_EQ(EscapeForLog("back\\slash"), "back\\x5cslash") << "so that an escape cannot be faked either";
   EXPECT_EQ(EscapeForLog("\xc3\xa9"), "\\xc3\\xa9");
   EXPECT_EQ(EscapeForLog(std::string("nul\0byte", 8)), "nul\\x00byte");
+}
+
+TEST(JsonEscape, EscapesQuotesBackslashesControlAndNonAsciiBytes) {
+  EXPECT_EQ(JsonEscape("rpc=GetTile code=OK"), "rpc=GetTile code=OK");
+  EXPECT_EQ(JsonEscape("error=\"a\\b\""), "error=\\\"a\\\\b\\\"");
+  EXPECT_EQ(JsonEscape("a\nb\tc"), "a\\u000ab\\u0009c");
+  EXPECT_EQ(JsonEscape("\xc3\xa9\x7f"), "\\u00c3\\u00a9\\u007f");
+}
+
+TEST(JsonLogFormat, WritesOneObjectPerLineWithTimeLevelAndMessage) {
+  std::ostringstream out;
+  auto sink = std::make_shared<spdlog::sinks::ostream_sink_mt>(out);
+  spdlog::logger logger("test", sink);
+  logger.set_formatter(MakeJsonLogFormatter());
+  // A message that tries to end the object and start a line of its own.
+  logger.warn("rpc=UploadPassage vehicle={}", "v\"}\n{\"level\":\"error\"");
+  const std::string line = out.str();
+  EXPECT_TRUE(std::regex_match(
+      line, std::regex(R"re(\{"time":"\d{4}-\d\d-\d\dT\d\d:\d\d:\d\d\.\d{3}Z","level":"warning","msg":"(.*)"\}\n)re")))
+      << line;
+  EXPECT_NE(line.find(R"js("msg":"rpc=UploadPassage vehicle=v\"}\u000a{\"level\":\"error\""})js"), std::string::npos)
+      << line;
+  EXPECT_EQ(std::count(line.begin(), line.end(), '\n'), 1);
+}
+
+TEST(RequestIds, AreSixteenHexDigitsAndDistinct) {
+  const std::string a = NewRequestId(), b = NewRequestId();
+  EXPECT_TRUE(std::regex_match(a, std::regex("[0-9a-f]{16}"))) << a;
+  EXPECT_NE(a, b);
 }
 
 }  // namespace

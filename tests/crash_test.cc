@@ -44,7 +44,7 @@ class MapdProcess {
     pid_ = fork();
     if (pid_ == 0) {
       freopen(log_path.c_str(), "a", stderr);
-      execl(MAPD_PATH, MAPD_PATH, "--listen", listen.c_str(), "--db", db.c_str(), "--log-level", "info",
+      execl(MAPD_PATH, MAPD_PATH, "--listen", listen.c_str(), "--db", db.c_str(), "--create", "--log-level", "info",
             static_cast<char*>(nullptr));
       _exit(127);
     }

@@ -5,9 +5,12 @@
 #include <Eigen/Cholesky>
 
 #include <algorithm>
+#include <random>
 #include <thread>
 
+#include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
+#include "absl/strings/str_format.h"
 #include "server/wire_convert.h"
 
 namespace crowdmap {
@@ -17,20 +20,51 @@ bool IsTransient(absl::StatusCode code) {
   return code == absl::StatusCode::kUnavailable || code == absl::StatusCode::kResourceExhausted;
 }
 
+// gRPC's cap on a retry policy's attempts.
+constexpr int kMaxGrpcAttempts = 5;
+
+// The server's grpc-retry-pushback-ms, read as gRPC's retry policy reads it: absent = nullopt
+// (the policy's own backoff), a non-negative number = the pause, anything else = -1 (do not retry).
+std::optional<std::chrono::milliseconds> Pushback(const grpc::ClientContext& ctx) {
+  const auto& trailers = ctx.GetServerTrailingMetadata();
+  auto it = trailers.find("grpc-retry-pushback-ms");
+  if (it == trailers.end()) return std::nullopt;
+  int64_t ms = 0;
+  if (!absl::SimpleAtoi(absl::string_view(it->second.data(), it->second.size()), &ms) || ms < 0) {
+    return std::chrono::milliseconds(-1);
+  }
+  return std::chrono::milliseconds(ms);
+}
+
+// gRPC's duration syntax: seconds with a fraction.
+std::string Seconds(std::chrono::milliseconds d) { return absl::StrFormat("%.3fs", d.count() / 1000.0); }
+
 }  // namespace
 
 absl::Status MapClientOptions::Validate() const {
   if (server.empty()) return absl::InvalidArgumentError("server: empty address");
   if (call_deadline.count() <= 0) return absl::InvalidArgumentError("call_deadline: must be > 0");
-  if (max_attempts < 1) return absl::InvalidArgumentError("max_attempts: must be >= 1");
-  if (initial_backoff.count() < 0 || max_backoff < initial_backoff) {
-    return absl::InvalidArgumentError("backoff: need 0 <= initial_backoff <= max_backoff");
+  if (max_attempts < 1 || max_attempts > kMaxGrpcAttempts) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("max_attempts: must lie in [1, ", kMaxGrpcAttempts, "] (gRPC's retry policy), got ", max_attempts));
+  }
+  if (initial_backoff.count() <= 0 || max_backoff < initial_backoff) {
+    return absl::InvalidArgumentError("backoff: need 0 < initial_backoff <= max_backoff");
   }
   if (max_message_mb < 1) return absl::InvalidArgumentError("max_message_mb: must be >= 1");
   if (upload_chunk_bytes < 1 || upload_chunk_bytes > (static_cast<size_t>(max_message_mb) << 20) - 1024) {
     return absl::InvalidArgumentError("upload_chunk_bytes: must lie in [1, max_message_mb MiB - 1 KiB]");
   }
   return absl::OkStatus();
+}
+
+std::string RetryServiceConfig(const MapClientOptions& options) {
+  if (options.max_attempts < 2) return "{}";
+  return absl::StrFormat(
+      R"({"methodConfig": [{"name": [{"service": "mapservice.v1.MapService", "method": "UploadPassage"}],)"
+      R"( "retryPolicy": {"maxAttempts": %d, "initialBackoff": "%s", "maxBackoff": "%s", "backoffMultiplier": 2,)"
+      R"( "retryableStatusCodes": ["UNAVAILABLE", "RESOURCE_EXHAUSTED"]}}]})",
+      options.max_attempts, Seconds(options.initial_backoff), Seconds(options.max_backoff));
 }
 
 pb::BoundingBox WorldBox() {
@@ -51,6 +85,7 @@ MapClient::MapClient(const MapClientOptions& options) : options_(options) {
   grpc::ChannelArguments args;
   args.SetMaxReceiveMessageSize(options.max_message_mb << 20);
   args.SetMaxSendMessageSize(options.max_message_mb << 20);
+  args.SetServiceConfigJSON(RetryServiceConfig(options));
   channel_ = grpc::CreateCustomChannel(options.server, grpc::InsecureChannelCredentials(), args);
   stub_ = pb::MapService::NewStub(channel_);
 }
@@ -65,7 +100,8 @@ grpc::Status MapClient::UploadUnary(const pb::UploadPassageRequest& request, pb:
   return stub_->UploadPassage(&ctx, request, response);
 }
 
-grpc::Status MapClient::UploadChunked(const std::string& serialized, pb::UploadPassageResponse* response) {
+grpc::Status MapClient::UploadChunked(const std::string& serialized, pb::UploadPassageResponse* response,
+                                      std::optional<std::chrono::milliseconds>* pushback) {
   grpc::ClientContext ctx;
   SetDeadline(&ctx);
   std::unique_ptr<grpc::ClientWriter<pb::UploadPassageChunk>> writer = stub_->UploadPassageChunked(&ctx, response);
@@ -75,29 +111,43 @@ grpc::Status MapClient::UploadChunked(const std::string& serialized, pb::UploadP
     if (!writer->Write(chunk)) break;  // the server ended the call; Finish() says why
   }
   writer->WritesDone();
-  return writer->Finish();
+  grpc::Status status = writer->Finish();
+  *pushback = Pushback(ctx);
+  return status;
 }
 
-absl::StatusOr<pb::UploadPassageResponse> MapClient::Upload(const pb::Passage& passage) {
-  const bool chunked = passage.ByteSizeLong() > options_.unary_upload_limit_bytes;
-  pb::UploadPassageRequest request;
-  std::string serialized;
-  if (chunked) {
-    serialized = passage.SerializeAsString();
-  } else {
-    *request.mutable_passage() = passage;
-  }
+absl::StatusOr<pb::UploadPassageResponse> MapClient::UploadChunkedWithRetries(const std::string& serialized) {
+  // gRPC's policy (A6, "Retry design"): a pause drawn uniformly from [0, backoff), the backoff
+  // doubled after each retry up to its maximum; a pushback replaces the pause and resets it.
+  thread_local std::mt19937_64 random(std::random_device{}());
   std::chrono::milliseconds backoff = options_.initial_backoff;
   absl::Status last;
   for (int attempt = 1; attempt <= options_.max_attempts; ++attempt) {
     pb::UploadPassageResponse response;
-    last = FromGrpcStatus(chunked ? UploadChunked(serialized, &response) : UploadUnary(request, &response));
+    std::optional<std::chrono::milliseconds> pushback;
+    last = FromGrpcStatus(UploadChunked(serialized, &response, &pushback));
     if (last.ok()) return response;
     if (!IsTransient(last.code()) || attempt == options_.max_attempts) break;
-    std::this_thread::sleep_for(backoff);
-    backoff = std::min(backoff * 2, options_.max_backoff);
+    if (pushback && pushback->count() < 0) break;
+    if (pushback) {
+      std::this_thread::sleep_for(*pushback);
+      backoff = options_.initial_backoff;
+    } else {
+      std::this_thread::sleep_for(std::chrono::milliseconds(
+          std::uniform_int_distribution<int64_t>(0, std::max<int64_t>(0, backoff.count() - 1))(random)));
+      backoff = std::min(backoff * 2, options_.max_backoff);
+    }
   }
   return last;
+}
+
+absl::StatusOr<pb::UploadPassageResponse> MapClient::Upload(const pb::Passage& passage) {
+  if (passage.ByteSizeLong() > options_.unary_upload_limit_bytes) return UploadChunkedWithRetries(passage.SerializeAsString());
+  pb::UploadPassageRequest request;
+  *request.mutable_passage() = passage;
+  pb::UploadPassageResponse response;
+  if (absl::Status s = FromGrpcStatus(UploadUnary(request, &response)); !s.ok()) return s;
+  return response;
 }
 
 absl::StatusOr<pb::PassageStatus> MapClient::GetPassage(int64_t id) {

@@ -22,9 +22,14 @@ namespace pb = ::mapservice::v1;
 
 struct MapClientOptions {
   std::string server = "127.0.0.1:50051";         // host:port
-  std::chrono::milliseconds call_deadline{10000};  // per attempt of every unary call
-  int max_attempts = 8;                            // uploads: UNAVAILABLE / RESOURCE_EXHAUSTED retried
-  std::chrono::milliseconds initial_backoff{50};   // doubled after each retry, up to max_backoff
+  // Deadline of every unary call; an upload's retries (below) all fit in it.
+  std::chrono::milliseconds call_deadline{10000};
+  // Uploads failing with UNAVAILABLE or RESOURCE_EXHAUSTED are retried up to this many attempts
+  // in all (1..5; gRPC's retry policy allows at most 5), after a random pause of up to
+  // initial_backoff, doubled after each retry up to max_backoff; a server's pushback
+  // (grpc-retry-pushback-ms, sent with a full queue) replaces the pause.
+  int max_attempts = 5;
+  std::chrono::milliseconds initial_backoff{50};
   std::chrono::milliseconds max_backoff{2000};
   int max_message_mb = 64;  // receive and send limit of the channel
   // Passages whose serialized size exceeds this go through UploadPassageChunked in pieces of
@@ -42,11 +47,16 @@ struct RegionMap {
   int64_t map_version = 0;  // highest version seen over the pages
 };
 
+// The channel's service config: the retry policy of UploadPassage from `options` (none with
+// max_attempts 1).
+std::string RetryServiceConfig(const MapClientOptions& options);
+
 // A whole-world bounding box.
 pb::BoundingBox WorldBox();
 
 // Client of mapservice.v1: a deadline on every call; uploads (idempotent on passage_id) retried
-// with exponential backoff on UNAVAILABLE and RESOURCE_EXHAUSTED. Thread-safe.
+// with jittered exponential backoff on UNAVAILABLE and RESOURCE_EXHAUSTED, by gRPC's retry policy
+// (the channel's service config; RetryServiceConfig). Thread-safe.
 // A passage named by its server id (non-zero), or by vehicle_id and passage_id.
 struct PassageKey {
   int64_t id = 0;
@@ -58,7 +68,10 @@ class MapClient {
  public:
   static absl::StatusOr<std::unique_ptr<MapClient>> Create(const MapClientOptions& options);
 
-  // UploadPassage, or UploadPassageChunked above unary_upload_limit_bytes; retried as above.
+  // UploadPassage, or UploadPassageChunked above unary_upload_limit_bytes; retried as above. gRPC
+  // retries a streaming call only while what it sent fits its retry buffer (256 KiB), and a
+  // chunked passage is larger by definition, so chunked uploads are retried here, with the same
+  // policy (jitter, backoff, pushback).
   absl::StatusOr<pb::UploadPassageResponse> Upload(const pb::Passage& passage);
   absl::StatusOr<pb::PassageStatus> GetPassage(int64_t id);
   // One landmark and the passages that shaped it.
@@ -94,7 +107,10 @@ class MapClient {
   void SetDeadline(grpc::ClientContext* ctx) const;
   // One attempt of each upload RPC.
   grpc::Status UploadUnary(const pb::UploadPassageRequest& request, pb::UploadPassageResponse* response);
-  grpc::Status UploadChunked(const std::string& serialized, pb::UploadPassageResponse* response);
+  // `pushback` is set to the server's grpc-retry-pushback-ms when it sent one.
+  grpc::Status UploadChunked(const std::string& serialized, pb::UploadPassageResponse* response,
+                             std::optional<std::chrono::milliseconds>* pushback);
+  absl::StatusOr<pb::UploadPassageResponse> UploadChunkedWithRetries(const std::string& serialized);
 
   MapClientOptions options_;
   std::shared_ptr<grpc::Channel> channel_;

@@ -2,6 +2,10 @@
 // the chunked upload on their own.
 #include "client/api/map_client.h"
 
+#include <atomic>
+
+#include <grpcpp/server_builder.h>
+
 #include "server/testing/temp_dir.h"
 #include "server/wire_convert.h"
 #include "tests/support/test_server.h"
@@ -64,6 +68,150 @@ TEST(MapClient, RejectsAChunkSizeAboveTheMessageLimit) {
   options.max_message_mb = 4;
   options.upload_chunk_bytes = 4u << 20;
   EXPECT_EQ(MapClient::Create(options).status().code(), absl::StatusCode::kInvalidArgument);
+}
+
+// Answers the first `failures` uploads with `code` (and a pushback when `pushback_ms` is set),
+// then acknowledges.
+class FlakyUploads final : public pb::MapService::Service {
+ public:
+  FlakyUploads(int failures, grpc::StatusCode code, std::string pushback_ms = "")
+      : failures_(failures), code_(code), pushback_ms_(std::move(pushback_ms)) {}
+
+  grpc::Status UploadPassage(grpc::ServerContext* ctx, const pb::UploadPassageRequest*,
+                             pb::UploadPassageResponse* response) override {
+    if (calls_.fetch_add(1) < failures_) {
+      if (!pushback_ms_.empty()) ctx->AddTrailingMetadata("grpc-retry-pushback-ms", pushback_ms_);
+      return grpc::Status(code_, "try again");
+    }
+    response->mutable_status()->set_id(7);
+    return grpc::Status::OK;
+  }
+  grpc::Status UploadPassageChunked(grpc::ServerContext* ctx, grpc::ServerReader<pb::UploadPassageChunk>* reader,
+                                    pb::UploadPassageResponse* response) override {
+    pb::UploadPassageChunk chunk;
+    while (reader->Read(&chunk)) {
+    }
+    return UploadPassage(ctx, nullptr, response);
+  }
+  int calls() const { return calls_.load(); }
+
+ private:
+  const int failures_;
+  const grpc::StatusCode code_;
+  const std::string pushback_ms_;
+  std::atomic<int> calls_{0};
+};
+
+struct FakeServer {
+  explicit FakeServer(grpc::Service* service) {
+    grpc::ServerBuilder builder;
+    builder.AddListeningPort("127.0.0.1:0", grpc::InsecureServerCredentials(), &port);
+    builder.RegisterService(service);
+    server = builder.BuildAndStart();
+  }
+  ~FakeServer() { server->Shutdown(std::chrono::system_clock::now()); }
+  std::string address() const { return "127.0.0.1:" + std::to_string(port); }
+  int port = 0;
+  std::unique_ptr<grpc::Server> server;
+};
+
+std::unique_ptr<MapClient> RetryingClient(const std::string& address, int max_attempts, bool chunked = false) {
+  MapClientOptions options;
+  if (chunked) options.unary_upload_limit_bytes = 0;
+  options.server = address;
+  options.max_attempts = max_attempts;
+  options.initial_backoff = std::chrono::milliseconds(20);
+  options.max_backoff = std::chrono::milliseconds(40);
+  auto client = MapClient::Create(options);
+  EXPECT_TRUE(client.ok()) << client.status();
+  return client.ok() ? std::move(*client) : nullptr;
+}
+
+pb::Passage SmallPassage() {
+  pb::Passage wire;
+  PassageToProto(ShortScenario().MakePassage(0), &wire);
+  return wire;
+}
+
+TEST(MapClientRetries, GrpcRetriesATransientUploadFailureUpToMaxAttempts) {
+  FlakyUploads service(2, grpc::StatusCode::UNAVAILABLE);
+  FakeServer server(&service);
+  auto client = RetryingClient(server.address(), 3);
+  auto r = client->Upload(SmallPassage());
+  ASSERT_TRUE(r.ok()) << r.status();
+  EXPECT_EQ(r->status().id(), 7);
+  EXPECT_EQ(service.calls(), 3);
+
+  FlakyUploads always(100, grpc::StatusCode::RESOURCE_EXHAUSTED);
+  FakeServer full(&always);
+  auto gives_up = RetryingClient(full.address(), 4)->Upload(SmallPassage());
+  EXPECT_EQ(gives_up.status().code(), absl::StatusCode::kResourceExhausted);
+  EXPECT_EQ(always.calls(), 4);
+}
+
+TEST(MapClientRetries, NoRetryOfPermanentErrorsOrWithOneAttempt) {
+  FlakyUploads invalid(1, grpc::StatusCode::INVALID_ARGUMENT);
+  FakeServer server(&invalid);
+  EXPECT_EQ(RetryingClient(server.address(), 5)->Upload(SmallPassage()).status().code(),
+            absl::StatusCode::kInvalidArgument);
+  EXPECT_EQ(invalid.calls(), 1);
+
+  FlakyUploads unavailable(1, grpc::StatusCode::UNAVAILABLE);
+  FakeServer once(&unavailable);
+  EXPECT_EQ(RetryingClient(once.address(), 1)->Upload(SmallPassage()).status().code(), absl::StatusCode::kUnavailable);
+  EXPECT_EQ(unavailable.calls(), 1);
+}
+
+TEST(MapClientRetries, TheServersPushbackSetsThePauseAndANegativeOneStopsRetrying) {
+  FlakyUploads pushback(1, grpc::StatusCode::RESOURCE_EXHAUSTED, "400");
+  FakeServer server(&pushback);
+  auto client = RetryingClient(server.address(), 3);
+  const auto start = std::chrono::steady_clock::now();
+  ASSERT_TRUE(client->Upload(SmallPassage()).ok());
+  const auto waited = std::chrono::steady_clock::now() - start;
+  EXPECT_EQ(pushback.calls(), 2);
+  // Without the pushback the pause is under the 20 ms backoff.
+  EXPECT_GE(waited, std::chrono::milliseconds(400));
+
+  FlakyUploads refuse(1, grpc::StatusCode::RESOURCE_EXHAUSTED, "-1");
+  FakeServer refusing(&refuse);
+  EXPECT_EQ(RetryingClient(refusing.address(), 3)->Upload(SmallPassage()).status().code(),
+            absl::StatusCode::kResourceExhausted);
+  EXPECT_EQ(refuse.calls(), 1);
+}
+
+TEST(MapClientRetries, ChunkedUploadsFollowTheSamePolicy) {
+  FlakyUploads flaky(2, grpc::StatusCode::UNAVAILABLE);
+  FakeServer server(&flaky);
+  ASSERT_TRUE(RetryingClient(server.address(), 3, /*chunked=*/true)->Upload(SmallPassage()).ok());
+  EXPECT_EQ(flaky.calls(), 3);
+
+  FlakyUploads pushback(1, grpc::StatusCode::RESOURCE_EXHAUSTED, "400");
+  FakeServer pushing(&pushback);
+  const auto start = std::chrono::steady_clock::now();
+  ASSERT_TRUE(RetryingClient(pushing.address(), 3, /*chunked=*/true)->Upload(SmallPassage()).ok());
+  EXPECT_GE(std::chrono::steady_clock::now() - start, std::chrono::milliseconds(400));
+  EXPECT_EQ(pushback.calls(), 2);
+
+  FlakyUploads refuse(1, grpc::StatusCode::RESOURCE_EXHAUSTED, "-1");
+  FakeServer refusing(&refuse);
+  EXPECT_FALSE(RetryingClient(refusing.address(), 3, /*chunked=*/true)->Upload(SmallPassage()).ok());
+  EXPECT_EQ(refuse.calls(), 1);
+}
+
+TEST(MapClientRetries, ServiceConfigCarriesThePolicyAndOptionsAreChecked) {
+  MapClientOptions options;
+  options.max_attempts = 4;
+  options.initial_backoff = std::chrono::milliseconds(50);
+  options.max_backoff = std::chrono::milliseconds(2000);
+  const std::string config = RetryServiceConfig(options);
+  EXPECT_NE(config.find(R"("maxAttempts": 4)"), std::string::npos) << config;
+  EXPECT_NE(config.find(R"("initialBackoff": "0.050s")"), std::string::npos) << config;
+  EXPECT_NE(config.find(R"("maxBackoff": "2.000s")"), std::string::npos) << config;
+  options.max_attempts = 1;
+  EXPECT_EQ(RetryServiceConfig(options), "{}");
+  options.max_attempts = 6;
+  EXPECT_FALSE(options.Validate().ok()) << "gRPC caps a retry policy at 5 attempts";
 }
 
 }  // namespace

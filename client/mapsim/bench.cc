@@ -53,7 +53,7 @@ pb::BoundingBox RouteBox(const std::vector<TruthLandmark>& landmarks) {
 absl::StatusOr<std::unique_ptr<MapClient>> Connect(const std::string& server) {
   MapClientOptions options;
   options.server = server;
-  options.max_attempts = 20;
+  options.max_attempts = 5;
   return MapClient::Create(options);
 }
 
