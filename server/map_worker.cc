@@ -209,7 +209,7 @@ void MapWorker::Apply(const ClaimedPassage& claimed, const Passage& passage) {
   while (true) {
     std::string error;
     const auto apply_start = std::chrono::steady_clock::now();
-    auto update = updater_->Compute(passage, map_);
+    auto update = updater_->Compute(passage, map_, record.released);
     if (update.ok()) {
       const PassageResult result = ResultFromSummary(update->summary, options_.update.strategy);
       Yield();

@@ -165,21 +165,27 @@ grpc::Status MapService::ExcludePassage(grpc::ServerContext* ctx, const pb::Excl
 grpc::Status MapService::ResolvePassage(grpc::ServerContext* ctx, const pb::ResolvePassageRequest* request,
                                         pb::PassageStatus* response) {
   RequestLog log("ResolvePassage", ctx);
-  const std::vector<PassageState> finished_badly = {PassageState::kFailed, PassageState::kQuarantined};
+  std::vector<PassageState> from = {PassageState::kFailed, PassageState::kQuarantined};
   PassageState to;
+  bool released = false;
   switch (request->action()) {
     case pb::ResolvePassageRequest::REQUEUE:
       to = PassageState::kQueued;
+      break;
+    case pb::ResolvePassageRequest::RELEASE:
+      to = PassageState::kQueued;
+      released = true;
+      from = {PassageState::kQuarantined};  // a failed passage failed for other reasons
       break;
     case pb::ResolvePassageRequest::DISCARD:
       to = PassageState::kDiscarded;
       break;
     default:
-      return log.Done(absl::InvalidArgumentError("action: must be REQUEUE or DISCARD"));
+      return log.Done(absl::InvalidArgumentError("action: must be REQUEUE, RELEASE or DISCARD"));
   }
   absl::StatusOr<StoredPassage> record = FindRecord(request->id(), request->vehicle_id(), request->passage_id(), &log);
   if (!record.ok()) return log.Done(record.status());
-  absl::StatusOr<StoredPassage> moved = context_->store->MovePassage(record->id, finished_badly, to);
+  absl::StatusOr<StoredPassage> moved = context_->store->MovePassage(record->id, from, to, released);
   if (!moved.ok()) return log.Done(moved.status());
   if (to == PassageState::kQueued && context_->worker != nullptr) context_->worker->Wake();
   StoredPassageToProto(*moved, response);

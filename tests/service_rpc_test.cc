@@ -380,6 +380,34 @@ TEST_F(ServiceRpc, RefusedPassagesAreQuarantinedThenRequeuedOrDiscardedByAnOpera
             absl::StatusCode::kNotFound);
 }
 
+TEST_F(ServiceRpc, AReleasedQuarantinedPassageIsAppliedWithTheMapsChecksOffOnce) {
+  MapServerOptions options = TestServerOptions(dir_.File("map.db"), true);
+  options.worker.update.max_chi2_per_dof = 1e-3;  // every honest solve leaves about 1: all refused
+  server_ = StartTestServer(options);
+  ASSERT_NE(server_, nullptr);
+  client_ = std::make_unique<MockVehicle>(server_->address());
+  const Passage first = scenario_.MakePassage(0), second = scenario_.MakePassage(1);
+  MustUpload(first);
+  ASSERT_TRUE(client_->WaitUntilIdle().ok());
+  const PassageKey key{0, first.vehicle_id, first.passage_id};
+  absl::StatusOr<pb::PassageStatus> released = client_->client()->ResolvePassage(key, pb::ResolvePassageRequest::RELEASE);
+  ASSERT_TRUE(released.ok()) << released.status();
+  EXPECT_EQ(released->state(), pb::PASSAGE_STATE_QUEUED);
+  absl::StatusOr<pb::MapInfo> info = client_->WaitUntilIdle();
+  ASSERT_TRUE(info.ok());
+  EXPECT_EQ(info->passages_applied(), 1) << "applied despite the chi-square gate";
+  EXPECT_GT(info->landmark_count(), 0);
+  // Only that passage: the next one meets the same checks.
+  MustUpload(second);
+  info = client_->WaitUntilIdle();
+  ASSERT_TRUE(info.ok());
+  EXPECT_EQ(info->passages_quarantined(), 1);
+  // A failed passage cannot be released (it failed for reasons the checks do not cover).
+  EXPECT_EQ(client_->client()->ResolvePassage(key, pb::ResolvePassageRequest::RELEASE).status().code(),
+            absl::StatusCode::kFailedPrecondition)
+      << "an applied passage";
+}
+
 TEST_F(ServiceRpc, GetTileReturnsItsLandmarksAndVersion) {
   Start(true);
   MustUpload(scenario_.MakePassage(0));

@@ -40,6 +40,8 @@ Commands:
                                  VEHICLE/PASSAGE_ID): the map becomes what it would be without it
   requeue ID                     put a failed or quarantined passage back in the queue (its
                                  attempts cleared; the map's checks apply again)
+  release ID                     queue a quarantined passage to be applied once with the map's
+                                 consistency checks off (you vouch for it, e.g. a landmark moved)
   discard ID                     mark a failed or quarantined passage discarded: never applied
   info                           map version, landmark and queue counts, strategy
   tile Z X Y                     landmarks of one z16 tile
@@ -256,7 +258,7 @@ absl::Status Exclude(const Flags& flags, Context& ctx) {
   return absl::OkStatus();
 }
 
-// requeue ID / discard ID: an operator's decision on a failed or quarantined passage.
+// requeue ID / release ID / discard ID: an operator's decision on a failed or quarantined passage.
 absl::Status Resolve(const char* command, pb::ResolvePassageRequest::Action action, const Flags& flags, Context& ctx) {
   absl::StatusOr<PassageKey> key = PassageArgument(command, flags);
   if (!key.ok()) return key.status();
@@ -273,6 +275,10 @@ absl::Status Resolve(const char* command, pb::ResolvePassageRequest::Action acti
 
 absl::Status Requeue(const Flags& flags, Context& ctx) {
   return Resolve("requeue", pb::ResolvePassageRequest::REQUEUE, flags, ctx);
+}
+
+absl::Status Release(const Flags& flags, Context& ctx) {
+  return Resolve("release", pb::ResolvePassageRequest::RELEASE, flags, ctx);
 }
 
 absl::Status Discard(const Flags& flags, Context& ctx) {
@@ -457,6 +463,7 @@ const std::map<std::string, CommandSpec>& Commands() {
       {"status", {&Status, {}}},
       {"exclude", {&Exclude, {}}},
       {"requeue", {&Requeue, {}}},
+      {"release", {&Release, {}}},
       {"discard", {&Discard, {}}},
       {"landmark", {&LandmarkCommand, {}}},
       {"passages", {&Passages, {{"state", true}}}},

@@ -446,14 +446,20 @@ size_t MapUpdater::Leaving() const {
   return retain == 0 || retained_.size() < retain ? 0 : retained_.size() + 1 - retain;
 }
 
-absl::StatusOr<PassageUpdate> MapUpdater::Compute(const Passage& passage, const MapReaderInterface& map) const {
+absl::StatusOr<PassageUpdate> MapUpdater::Compute(const Passage& passage, const MapReaderInterface& map,
+                                                  bool vouched) const {
+  MapUpdateOptions options = options_;
+  if (vouched) {
+    options.max_chi2_per_dof = 0.0;
+    options.max_landmark_shift_mahalanobis2 = 0.0;
+  }
   absl::StatusOr<PassageUpdate> update;
   if (joint_next()) {
     std::vector<Passage> batch = kept_;
     batch.push_back(passage);
-    update = ComputeBatchUpdate(batch, options_, map);
+    update = ComputeBatchUpdate(batch, options, map);
   } else {
-    update = ComputePassageUpdate(passage, options_, map);
+    update = ComputePassageUpdate(passage, options, map);
   }
   if (!update.ok()) return update;
   for (size_t i = 0; i < Leaving(); ++i) {

@@ -112,7 +112,11 @@ class MapUpdater {
 
   // The map change `passage` brings to `map` (see ComputePassageUpdate for the errors), with the
   // folding of the passages that leave the retention (MapUpdateOptions::retain_passages).
-  absl::StatusOr<PassageUpdate> Compute(const Passage& passage, const MapReaderInterface& map) const;
+  // `vouched`: an operator released the passage from quarantine, so it is taken with the map's
+  // consistency checks off (options.max_chi2_per_dof and max_landmark_shift_mahalanobis2; the
+  // invariants still hold), e.g. for a landmark that really moved.
+  absl::StatusOr<PassageUpdate> Compute(const Passage& passage, const MapReaderInterface& map,
+                                        bool vouched = false) const;
   using PassageKey = std::pair<std::string, std::string>;  // vehicle_id, passage_id
 
   // Records that the delta Compute returned for `passage` was applied to the map.

@@ -45,8 +45,8 @@ class CachedMapStore : public MapStoreInterface {
     return inner_->FinishPassageWithoutChange(id, state, reason);
   }
   absl::StatusOr<StoredPassage> MovePassage(int64_t id, const std::vector<PassageState>& from,
-                                            PassageState to) override {
-    return inner_->MovePassage(id, from, to);
+                                            PassageState to, bool released) override {
+    return inner_->MovePassage(id, from, to, released);
   }
   absl::StatusOr<int> RecordFailedAttempt(int64_t id, const std::string& reason) override {
     return inner_->RecordFailedAttempt(id, reason);

@@ -56,6 +56,7 @@ struct StoredPassage {
   PassageState state = PassageState::kQueued;
   int attempts = 0;       // times the worker started applying it, less those a restart interrupted
   int interruptions = 0;  // times a restart or crash interrupted it (RequeueProcessingPassages)
+  bool released = false;  // an operator released it from quarantine: applied with the map's checks off
   std::string error;
   int64_t received_unix_ms = 0;
   int64_t finished_unix_ms = 0;
@@ -152,10 +153,10 @@ class MapStoreInterface {
   // attempts + 1 and the reason. Returns the new attempt count.
   virtual absl::StatusOr<int> RecordFailedAttempt(int64_t id, const std::string& reason) = 0;
   // An operator's decision on a finished passage: moves it from one of `from` to `to` (queued:
-  // with its attempts and error cleared). FailedPrecondition when it is in none of `from`;
-  // NotFound for an unknown id. Returns the updated record.
+  // with its attempts and error cleared, and marked `released` or not). FailedPrecondition when it
+  // is in none of `from`; NotFound for an unknown id. Returns the updated record.
   virtual absl::StatusOr<StoredPassage> MovePassage(int64_t id, const std::vector<PassageState>& from,
-                                                    PassageState to) = 0;
+                                                    PassageState to, bool released) = 0;
   // Start-up recovery: every processing passage goes back to queued, its interrupted attempt
   // uncounted and counted as an interruption instead. Returns how many.
   virtual absl::StatusOr<int> RequeueProcessingPassages() = 0;

@@ -33,7 +33,7 @@ class SqliteMapStore : public MapStoreInterface {
   absl::Status CommitPassageExcluded(int64_t id, const MapDelta& delta) override;
   absl::Status FinishPassageWithoutChange(int64_t id, PassageState state, const std::string& reason) override;
   absl::StatusOr<StoredPassage> MovePassage(int64_t id, const std::vector<PassageState>& from,
-                                            PassageState to) override;
+                                            PassageState to, bool released) override;
   absl::StatusOr<int> RecordFailedAttempt(int64_t id, const std::string& reason) override;
   absl::StatusOr<int> RequeueProcessingPassages() override;
 

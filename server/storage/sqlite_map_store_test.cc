@@ -244,11 +244,11 @@ TEST(SqliteMapStore, AnOperatorRequeuesOrDiscardsOnlyFailedAndQuarantinedPassage
   auto store = OpenStore(dir.File("map.db"));
   const int64_t id = EnqueueAndClaim(store.get(), "1");
   const std::vector<PassageState> badly = {PassageState::kFailed, PassageState::kQuarantined};
-  EXPECT_EQ(store->MovePassage(id, badly, PassageState::kQueued).status().code(), absl::StatusCode::kFailedPrecondition)
+  EXPECT_EQ(store->MovePassage(id, badly, PassageState::kQueued, false).status().code(), absl::StatusCode::kFailedPrecondition)
       << "processing";
   ASSERT_TRUE(store->FinishPassageWithoutChange(id, PassageState::kQuarantined, "inconsistent: chi2").ok());
   EXPECT_EQ(store->GetStats()->passages_by_state[static_cast<int>(PassageState::kQuarantined)], 1);
-  absl::StatusOr<StoredPassage> requeued = store->MovePassage(id, badly, PassageState::kQueued);
+  absl::StatusOr<StoredPassage> requeued = store->MovePassage(id, badly, PassageState::kQueued, false);
   ASSERT_TRUE(requeued.ok()) << requeued.status();
   EXPECT_EQ(requeued->state, PassageState::kQueued);
   EXPECT_EQ(requeued->attempts, 0);
@@ -257,7 +257,7 @@ TEST(SqliteMapStore, AnOperatorRequeuesOrDiscardsOnlyFailedAndQuarantinedPassage
   ASSERT_TRUE(claimed.ok() && claimed->has_value());
   EXPECT_EQ((*claimed)->record.attempts, 1);
   ASSERT_TRUE(store->FinishPassageWithoutChange(id, PassageState::kFailed, "solver unusable").ok());
-  absl::StatusOr<StoredPassage> discarded = store->MovePassage(id, badly, PassageState::kDiscarded);
+  absl::StatusOr<StoredPassage> discarded = store->MovePassage(id, badly, PassageState::kDiscarded, false);
   ASSERT_TRUE(discarded.ok()) << discarded.status();
   EXPECT_EQ(discarded->state, PassageState::kDiscarded);
   EXPECT_EQ(discarded->error, "solver unusable") << "the last reason stays on record";
@@ -265,8 +265,8 @@ TEST(SqliteMapStore, AnOperatorRequeuesOrDiscardsOnlyFailedAndQuarantinedPassage
   EXPECT_EQ(stats->passages_by_state[static_cast<int>(PassageState::kDiscarded)], 1);
   EXPECT_EQ(stats->passages_by_state[static_cast<int>(PassageState::kQuarantined)], 0);
   EXPECT_EQ(stats->passages_by_state[static_cast<int>(PassageState::kFailed)], 0);
-  EXPECT_EQ(store->MovePassage(id, badly, PassageState::kQueued).status().code(), absl::StatusCode::kFailedPrecondition);
-  EXPECT_EQ(store->MovePassage(999, badly, PassageState::kQueued).status().code(), absl::StatusCode::kNotFound);
+  EXPECT_EQ(store->MovePassage(id, badly, PassageState::kQueued, false).status().code(), absl::StatusCode::kFailedPrecondition);
+  EXPECT_EQ(store->MovePassage(999, badly, PassageState::kQueued, false).status().code(), absl::StatusCode::kNotFound);
 }
 
 TEST(SqliteMapStore, ProcessingPassagesReturnToQueueOnRequeue) {

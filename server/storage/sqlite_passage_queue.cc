@@ -12,7 +12,7 @@ constexpr char kPassageColumns[] =
     "SELECT p.id, p.vehicle_id, p.passage_id, p.state, p.attempts, p.error, p.received_unix_ms, "
     "p.finished_unix_ms, p.size_bytes, r.nodes, r.subgraphs, r.landmarks_updated, r.landmarks_created, "
     "r.landmarks_conditioned, r.detections_used, r.detections_dropped, r.solver_iterations, r.final_cost, "
-    "r.solve_ms, r.covariance_ms, r.total_ms, r.map_version, r.strategy, p.interruptions "
+    "r.solve_ms, r.covariance_ms, r.total_ms, r.map_version, r.strategy, p.interruptions, p.released "
     "FROM passages p LEFT JOIN passage_results r ON r.id = p.id ";
 
 StoredPassage PassageFromRow(const SqliteStatement& s) {
@@ -27,6 +27,7 @@ StoredPassage PassageFromRow(const SqliteStatement& s) {
   p.finished_unix_ms = s.Int(7);
   p.size_bytes = s.Int(8);
   p.interruptions = static_cast<int>(s.Int(23));
+  p.released = s.Int(24) != 0;
   if (!s.IsNull(9)) {
     PassageResult r;
     r.nodes = static_cast<int>(s.Int(9));
@@ -271,7 +272,7 @@ absl::StatusOr<int> SqliteMapStore::RecordFailedAttempt(int64_t id, const std::s
 }
 
 absl::StatusOr<StoredPassage> SqliteMapStore::MovePassage(int64_t id, const std::vector<PassageState>& from,
-                                                          PassageState to) {
+                                                          PassageState to, bool released) {
   SqliteFile::Writer writer = queue_->LockWriter();
   SqliteConnection* db = writer.db;
   auto txn = SqliteWriteTransaction::Begin(db);
@@ -286,9 +287,14 @@ absl::StatusOr<StoredPassage> SqliteMapStore::MovePassage(int64_t id, const std:
   const bool queued = to == PassageState::kQueued;
   auto update = db->Prepare(
       "UPDATE passages SET state = ?2, attempts = CASE WHEN ?3 THEN 0 ELSE attempts END, "
-      "error = CASE WHEN ?3 THEN '' ELSE error END, finished_unix_ms = CASE WHEN ?3 THEN 0 ELSE ?4 END WHERE id = ?1");
+      "error = CASE WHEN ?3 THEN '' ELSE error END, finished_unix_ms = CASE WHEN ?3 THEN 0 ELSE ?4 END, "
+      "released = ?5 WHERE id = ?1");
   if (!update.ok()) return update.status();
-  update->Bind(1, id).Bind(2, static_cast<int64_t>(to)).Bind(3, static_cast<int64_t>(queued)).Bind(4, NowUnixMs());
+  update->Bind(1, id)
+      .Bind(2, static_cast<int64_t>(to))
+      .Bind(3, static_cast<int64_t>(queued))
+      .Bind(4, NowUnixMs())
+      .Bind(5, static_cast<int64_t>(released));
   if (auto s = update->Run(); !s.ok()) return s;
   auto moved = ReadPassage(db, id);
   if (!moved.ok()) return moved.status();

@@ -374,6 +374,9 @@ const std::vector<Migration>& QueueMigrations() {
         BEGIN UPDATE row_counts SET n = n - 1 WHERE name = 'passages_' || OLD.state; END;
       )sql"),
        nullptr},
+      // 1 -> 2: an operator can release a quarantined passage (ResolvePassage RELEASE): it is
+      // queued again and applied once with the map's consistency checks off.
+      {"ALTER TABLE passages ADD COLUMN released INTEGER NOT NULL DEFAULT 0;", nullptr},
   };
   return kMigrations;
 }
