@@ -7,6 +7,7 @@
 #include <algorithm>
 #include <thread>
 
+#include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
 #include "server/wire_convert.h"
 
@@ -15,6 +16,17 @@ namespace {
 
 bool IsTransient(absl::StatusCode code) {
   return code == absl::StatusCode::kUnavailable || code == absl::StatusCode::kResourceExhausted;
+}
+
+// The server's pushback (grpc-retry-pushback-ms trailing metadata), 0 without one.
+std::chrono::milliseconds Pushback(const grpc::ClientContext& ctx) {
+  const auto& trailers = ctx.GetServerTrailingMetadata();
+  auto it = trailers.find("grpc-retry-pushback-ms");
+  int64_t ms = 0;
+  if (it == trailers.end() || !absl::SimpleAtoi(absl::string_view(it->second.data(), it->second.size()), &ms)) {
+    return std::chrono::milliseconds(0);
+  }
+  return std::chrono::milliseconds(std::max<int64_t>(0, ms));
 }
 
 }  // namespace
@@ -44,28 +56,43 @@ pb::BoundingBox WorldBox() {
 
 absl::StatusOr<std::unique_ptr<MapClient>> MapClient::Create(const MapClientOptions& options) {
   if (absl::Status s = options.Validate(); !s.ok()) return s;
-  return std::unique_ptr<MapClient>(new MapClient(options));
+  absl::StatusOr<std::shared_ptr<grpc::ChannelCredentials>> credentials = MakeChannelCredentials(options.security);
+  if (!credentials.ok()) return credentials.status();
+  return std::unique_ptr<MapClient>(new MapClient(options, *std::move(credentials)));
 }
 
-MapClient::MapClient(const MapClientOptions& options) : options_(options) {
+MapClient::MapClient(const MapClientOptions& options, std::shared_ptr<grpc::ChannelCredentials> credentials)
+    : options_(options) {
   grpc::ChannelArguments args;
   args.SetMaxReceiveMessageSize(options.max_message_mb << 20);
   args.SetMaxSendMessageSize(options.max_message_mb << 20);
-  channel_ = grpc::CreateCustomChannel(options.server, grpc::InsecureChannelCredentials(), args);
+  if (!options.security.tls_server_name.empty()) args.SetSslTargetNameOverride(options.security.tls_server_name);
+  channel_ = grpc::CreateCustomChannel(options.server, credentials, args);
   stub_ = pb::MapService::NewStub(channel_);
 }
 
 void MapClient::SetDeadline(grpc::ClientContext* ctx) const {
   ctx->set_deadline(std::chrono::system_clock::now() + options_.call_deadline);
+  Authorize(ctx);
 }
 
-grpc::Status MapClient::UploadUnary(const pb::UploadPassageRequest& request, pb::UploadPassageResponse* response) {
+// Sent as plain metadata, not as call credentials: gRPC sends those over TLS only, and mapd on
+// loopback may run without it.
+void MapClient::Authorize(grpc::ClientContext* ctx) const {
+  if (!options_.security.token.empty()) ctx->AddMetadata("authorization", "Bearer " + options_.security.token);
+}
+
+grpc::Status MapClient::UploadUnary(const pb::UploadPassageRequest& request, pb::UploadPassageResponse* response,
+                                    std::chrono::milliseconds* retry_after) {
   grpc::ClientContext ctx;
   SetDeadline(&ctx);
-  return stub_->UploadPassage(&ctx, request, response);
+  grpc::Status status = stub_->UploadPassage(&ctx, request, response);
+  *retry_after = Pushback(ctx);
+  return status;
 }
 
-grpc::Status MapClient::UploadChunked(const std::string& serialized, pb::UploadPassageResponse* response) {
+grpc::Status MapClient::UploadChunked(const std::string& serialized, pb::UploadPassageResponse* response,
+                                      std::chrono::milliseconds* retry_after) {
   grpc::ClientContext ctx;
   SetDeadline(&ctx);
   std::unique_ptr<grpc::ClientWriter<pb::UploadPassageChunk>> writer = stub_->UploadPassageChunked(&ctx, response);
@@ -75,7 +102,9 @@ grpc::Status MapClient::UploadChunked(const std::string& serialized, pb::UploadP
     if (!writer->Write(chunk)) break;  // the server ended the call; Finish() says why
   }
   writer->WritesDone();
-  return writer->Finish();
+  grpc::Status status = writer->Finish();
+  *retry_after = Pushback(ctx);
+  return status;
 }
 
 absl::StatusOr<pb::UploadPassageResponse> MapClient::Upload(const pb::Passage& passage) {
@@ -91,10 +120,12 @@ absl::StatusOr<pb::UploadPassageResponse> MapClient::Upload(const pb::Passage& p
   absl::Status last;
   for (int attempt = 1; attempt <= options_.max_attempts; ++attempt) {
     pb::UploadPassageResponse response;
-    last = FromGrpcStatus(chunked ? UploadChunked(serialized, &response) : UploadUnary(request, &response));
+    std::chrono::milliseconds retry_after(0);
+    last = FromGrpcStatus(chunked ? UploadChunked(serialized, &response, &retry_after)
+                                  : UploadUnary(request, &response, &retry_after));
     if (last.ok()) return response;
     if (!IsTransient(last.code()) || attempt == options_.max_attempts) break;
-    std::this_thread::sleep_for(backoff);
+    std::this_thread::sleep_for(std::max(backoff, retry_after));
     backoff = std::min(backoff * 2, options_.max_backoff);
   }
   return last;
@@ -286,6 +317,7 @@ absl::Status MapClient::WatchRegion(const pb::BoundingBox& box, int64_t since_ve
                                     std::optional<std::chrono::milliseconds> duration) {
   grpc::ClientContext ctx;
   if (duration) ctx.set_deadline(std::chrono::system_clock::now() + *duration);
+  Authorize(&ctx);
   pb::WatchRegionRequest request;
   *request.mutable_box() = box;
   request.set_since_version(since_version);
