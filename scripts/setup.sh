@@ -14,6 +14,7 @@ PACKAGES=(
   libsqlite3-dev sqlite3 libspdlog-dev libfmt-dev
   libgtest-dev libgmock-dev libbenchmark-dev
   libgeographiclib-dev libabsl-dev
+  libssl-dev openssl
 )
 
 missing=()

@@ -198,7 +198,7 @@ absl::StatusOr<Principal> Authenticator::Authenticate(const grpc::ServerContextB
   if (auto it = metadata.find("authorization"); it != metadata.end()) {
     absl::string_view value(it->second.data(), it->second.size());
     if (!absl::ConsumePrefix(&value, "Bearer ") || value.empty()) {
-      return absl::UnauthenticatedError("authorization: expected \"Bearer TOKEN\"");
+      return absl::UnauthenticatedError("authorization: expected 'Bearer TOKEN'");
     }
     const std::string hash = Sha256Hex(std::string(value));
     std::shared_lock lock(mu_);
@@ -217,7 +217,7 @@ absl::StatusOr<Principal> Authenticator::Authenticate(const grpc::ServerContextB
     }
   }
   return absl::UnauthenticatedError(
-      "no credentials: send \"authorization: Bearer TOKEN\" metadata (--token-file) or a client certificate");
+      "no credentials: send 'authorization: Bearer TOKEN' metadata (--token-file) or a client certificate");
 }
 
 absl::StatusOr<Principal> CheckAccess(const Authenticator* auth, const grpc::ServerContextBase& ctx,

@@ -45,7 +45,8 @@ absl::StatusOr<bool> SetSecuritySetting(const std::string& name, const std::stri
 }
 
 std::string SecurityUsage() {
-  return R"(TLS and authentication (README "Security"):
+  return R"(
+TLS and authentication (README "Security"):
   --tls-cert PATH             PEM certificate chain; with --tls-key mapd serves TLS only
   --tls-key PATH              PEM private key of --tls-cert
   --tls-client-ca PATH        PEM CA bundle: clients present certificates it signed (mTLS); without
