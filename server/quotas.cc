@@ -40,6 +40,12 @@ absl::Status LimitOptions::Validate(int max_passage_mb) const {
                                                    max_passage_mb, "), got ", max_inflight_mb));
   }
   if (max_threads < 4) return absl::InvalidArgumentError(absl::StrCat("--max-threads: must be >= 4, got ", max_threads));
+  if (max_upload_streams > 0 && max_watch_streams > 0 && max_threads < max_upload_streams + max_watch_streams + 16) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "--max-threads: must exceed --max-upload-streams + --max-watch-streams by at least 16 (each open stream holds ",
+        "a thread; unary calls need the rest), got ", max_threads, " < ", max_upload_streams, " + ", max_watch_streams,
+        " + 16"));
+  }
   return absl::OkStatus();
 }
 

@@ -26,10 +26,12 @@ struct LimitOptions {
   double vehicle_upload_mb_per_s = 8;   // sustained MiB per second per vehicle_id (0 = off)
   int vehicle_upload_burst_mb = 128;    // MiB at once; at least max_passage_mb
   int max_upload_streams = 64;          // concurrent UploadPassageChunked calls (0 = off)
-  int max_watch_streams = 256;          // concurrent WatchRegion calls (0 = off)
+  int max_watch_streams = 128;          // concurrent WatchRegion calls (0 = off)
   int upload_idle_timeout_s = 30;       // a chunked upload with no chunk for this long is cancelled (0 = off)
   int max_inflight_mb = 512;            // upload bytes held by handlers at once (0 = off)
-  int max_threads = 1024;               // gRPC's thread pool for the synchronous RPCs (grpc::ResourceQuota)
+  // gRPC's threads for the synchronous RPCs (grpc::ResourceQuota); beyond them a call gets
+  // RESOURCE_EXHAUSTED. More than the two stream caps together, so streams cannot take them all.
+  int max_threads = 512;
 
   absl::Status Validate(int max_passage_mb) const;
 };

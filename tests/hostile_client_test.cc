@@ -399,6 +399,8 @@ TEST_F(Hostile, AQuotaFloodIsRefusedWithRetryInformationWhileHonestVehiclesGetTh
   EXPECT_LE(flood_ok.load(), 5 + static_cast<int>(2 * elapsed_s) + 1);
   EXPECT_EQ(with_retry_info.load(), flood_exhausted.load());
   std::sort(honest_ms.begin(), honest_ms.end());
+  const double honest_p99_ms = honest_ms[static_cast<size_t>(0.99 * (honest_ms.size() - 1) + 0.5)];
+  EXPECT_LE(honest_p99_ms, 100.0);  // the issue's target for honest acknowledgements during a flood
   std::cout << "flood: " << flood_ok << " accepted, " << flood_exhausted << " RESOURCE_EXHAUSTED in " << elapsed_s
             << " s; honest acks max " << honest_ms.back() << " ms over " << honest_ms.size() << " uploads\n";
   // The honest vehicles' own quota was never touched by the flood.
@@ -501,12 +503,14 @@ StalledRun RunStalledStreams(pb::MapService::Stub* stub, int n, const std::strin
   return run;
 }
 
-// CROWDMAP_HOSTILE_STREAMS=2000 runs the issue's full count (default 300, to keep the suite fast).
+// The issue's 2,000 stalled clients (CROWDMAP_HOSTILE_STREAMS=N for another count).
 TEST_F(Hostile, StalledStreamsAreCappedAndTimedOutWithThreadsBounded) {
-  int n = 300;
+  int n = 2000;
   if (const char* env = std::getenv("CROWDMAP_HOSTILE_STREAMS"); env != nullptr) n = std::atoi(env);
   MapServerOptions options = Options();
   options.limits.max_upload_streams = 32;
+  options.limits.max_watch_streams = 32;
+  options.limits.max_threads = 128;
   options.limits.upload_idle_timeout_s = 2;
   options.limits.vehicle_uploads_per_s = 0;
   Start(options);
@@ -527,8 +531,9 @@ TEST_F(Hostile, StalledStreamsAreCappedAndTimedOutWithThreadsBounded) {
   EXPECT_EQ(exhausted + cancelled, n);  // each refused at once, or cancelled when idle
   EXPECT_GE(cancelled, options.limits.max_upload_streams);
   EXPECT_GE(exhausted, n / 2);
-  // One thread per open stream at most, not one per stalled client.
-  EXPECT_LE(run.max_threads, threads_before + options.limits.max_upload_streams + 40);
+  // Refusing a call takes a thread for a moment, so a burst of them fills the pool, but never
+  // beyond it: not one thread per stalled client (the issue measured 2,013 for 2,000).
+  EXPECT_LE(run.max_threads, threads_before + options.limits.max_threads + 40);
   EXPECT_LE(run.max_rss_kb, 1 << 20);  // 1 GiB
   EXPECT_LT(run.seconds, 60.0);
 }
