@@ -27,7 +27,9 @@ struct LimitOptions {
   int vehicle_upload_burst_mb = 128;    // MiB at once; at least max_passage_mb
   int max_upload_streams = 64;          // concurrent UploadPassageChunked calls (0 = off)
   int max_watch_streams = 128;          // concurrent WatchRegion calls (0 = off)
-  int upload_idle_timeout_s = 30;       // a chunked upload with no chunk for this long is cancelled (0 = off)
+  // A chunked upload with no chunk for this long is cancelled (0 = off). At least the time one
+  // chunk takes on the slowest link: MapClient's 1 MiB takes 33 s at 256 kbit/s.
+  int upload_idle_timeout_s = 60;
   int max_inflight_mb = 512;            // upload bytes held by handlers at once (0 = off)
   // gRPC's threads for the synchronous RPCs (grpc::ResourceQuota); beyond them a call gets
   // RESOURCE_EXHAUSTED. More than the two stream caps together, so streams cannot take them all.

@@ -64,8 +64,8 @@ Quotas and limits (RESOURCE_EXHAUSTED, with retry-after trailing metadata where 
   --vehicle-upload-burst-mb N MiB a vehicle may upload at once, >= --max-passage-mb (default 128)
   --max-upload-streams N      concurrent UploadPassageChunked calls (default 64; 0 = off)
   --max-watch-streams N       concurrent WatchRegion calls (default 128; 0 = off)
-  --upload-idle-timeout-s N   a chunked upload that sends no chunk for N s is cancelled (default 30;
-                              0 = off)
+  --upload-idle-timeout-s N   a chunked upload that sends no chunk for N s is cancelled; at least
+                              one chunk's time on the slowest link (default 60; 0 = off)
   --max-inflight-mb N         upload bytes held by the handlers at once (default 512; 0 = off)
   --max-threads N             threads for synchronous RPCs; calls beyond get RESOURCE_EXHAUSTED;
                               more than the two stream caps + 16 (default 512)
