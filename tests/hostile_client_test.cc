@@ -17,6 +17,7 @@
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
 #include "server/auth.h"
+#include "server/quotas.h"
 #include "server/testing/temp_dir.h"
 #include "server/wire_convert.h"
 #include "tests/support/test_server.h"
@@ -628,6 +629,70 @@ TEST_F(Hostile, BytesInFlightAreCapped) {
   for (int i = 0; i < 2; ++i) {
     EXPECT_EQ(open[i]->writer->Finish().error_code(), grpc::StatusCode::CANCELLED);  // idle: cut after 2 s
   }
+}
+
+TEST(VehicleQuotas, BytesAndPassagesAreBothTakenOrNeitherWithTheWaitInTheStatus) {
+  LimitOptions limits;
+  limits.vehicle_uploads_per_s = 1;
+  limits.vehicle_upload_burst = 3;
+  limits.vehicle_upload_mb_per_s = 1;
+  limits.vehicle_upload_burst_mb = 2;
+  VehicleQuotas quotas(limits);
+  EXPECT_TRUE(quotas.Admit("a", 1536 << 10).ok());  // 1.5 of 2 MiB
+  const absl::Status bytes = quotas.Admit("a", 1 << 20);  // 1 MiB more: about 0.5 s short
+  EXPECT_EQ(bytes.code(), absl::StatusCode::kResourceExhausted);
+  EXPECT_TRUE(absl::StrContains(bytes.message(), "byte quota")) << bytes;
+  EXPECT_GT(RetryAfter(bytes), std::chrono::milliseconds(300));
+  EXPECT_LE(RetryAfter(bytes), std::chrono::milliseconds(600));
+  // The refused upload took no passage: two small ones still fit in the burst of 3, a third not.
+  EXPECT_TRUE(quotas.Admit("a", 1).ok());
+  EXPECT_TRUE(quotas.Admit("a", 1).ok());
+  const absl::Status count = quotas.Admit("a", 1);
+  EXPECT_EQ(count.code(), absl::StatusCode::kResourceExhausted);
+  EXPECT_TRUE(absl::StrContains(count.message(), "upload quota")) << count;
+  EXPECT_TRUE(quotas.Admit("b", 1).ok());  // another vehicle has its own buckets
+}
+
+TEST_F(Hostile, WatchStreamsAreCapped) {
+  MapServerOptions options = Options();
+  options.limits.max_watch_streams = 2;
+  Start(options);
+  auto reader = Client(kV1Token);
+  struct Watch {
+    grpc::ClientContext ctx;
+    std::unique_ptr<grpc::ClientReader<pb::WatchRegionResponse>> stream;
+  };
+  pb::WatchRegionRequest request;
+  *request.mutable_box() = WorldBox();
+  std::vector<std::unique_ptr<Watch>> watches;
+  for (int i = 0; i < 3; ++i) {
+    watches.push_back(std::make_unique<Watch>());
+    watches[i]->ctx.AddMetadata("authorization", std::string("Bearer ") + kV1Token);
+    watches[i]->stream = reader->stub()->WatchRegion(&watches[i]->ctx, request);
+  }
+  pb::WatchRegionResponse first;
+  EXPECT_TRUE(watches[0]->stream->Read(&first));  // the first message always comes: the version
+  EXPECT_TRUE(watches[1]->stream->Read(&first));
+  EXPECT_FALSE(watches[2]->stream->Read(&first));
+  const grpc::Status third = watches[2]->stream->Finish();
+  EXPECT_EQ(third.error_code(), grpc::StatusCode::RESOURCE_EXHAUSTED) << third.error_message();
+  EXPECT_TRUE(absl::StrContains(third.error_message(), "--max-watch-streams")) << third.error_message();
+  for (int i = 0; i < 2; ++i) {
+    watches[i]->ctx.TryCancel();
+    EXPECT_EQ(watches[i]->stream->Finish().error_code(), grpc::StatusCode::CANCELLED);
+  }
+  // A slot is free again once a watcher has gone (the handler notices within its 0.5 s poll).
+  bool reopened = false;
+  for (int attempt = 0; attempt < 20 && !reopened; ++attempt) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(100));
+    Watch again;
+    again.ctx.AddMetadata("authorization", std::string("Bearer ") + kV1Token);
+    again.stream = reader->stub()->WatchRegion(&again.ctx, request);
+    reopened = again.stream->Read(&first);
+    again.ctx.TryCancel();
+    again.stream->Finish();
+  }
+  EXPECT_TRUE(reopened);
 }
 
 }  // namespace
