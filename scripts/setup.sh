@@ -15,6 +15,7 @@ PACKAGES=(
   libgtest-dev libgmock-dev libbenchmark-dev
   libgeographiclib-dev libabsl-dev prometheus-cpp-dev
   python3 python3-yaml
+  libssl-dev openssl
 )
 
 missing=()

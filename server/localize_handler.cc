@@ -69,6 +69,7 @@ LocalizationMap LocalizationMapFromPage(const Passage& passage, const LandmarkPa
 grpc::Status MapService::LocalizePassage(grpc::ServerContext* ctx, const pb::LocalizePassageRequest* request,
                                          pb::LocalizePassageResponse* response) {
   RequestLog log("LocalizePassage", ctx);
+  if (auto who = CheckAccess(context_->auth, *ctx, Permission::kReadMap, &log); !who.ok()) return log.Done(who.status());
   absl::StatusOr<Passage> passage = PassageFromProto(request->passage());
   if (!passage.ok()) return log.Done(passage.status());
   log.Add(absl::StrCat("vehicle=", passage->vehicle_id, " passage=", passage->passage_id));

@@ -40,6 +40,7 @@ grpc::ServerUnaryReactor* MapService::QueryRegion(grpc::CallbackServerContext* c
 grpc::Status MapService::ServeTile(grpc::ServerContextBase* ctx, const pb::GetTileRequest* request,
                                    pb::GetTileResponse* response) {
   RequestLog log("GetTile", ctx);
+  if (auto who = CheckAccess(context_->auth, *ctx, Permission::kReadMap, &log); !who.ok()) return log.Done(who.status());
   const TileId tile{request->tile().z(), request->tile().x(), request->tile().y()};
   log.Add(absl::StrCat("tile=", tile.z, "/", tile.x, "/", tile.y));
   if (tile.z != kStorageZoom || !IsValidTile(tile)) {
@@ -61,6 +62,7 @@ grpc::Status MapService::ServeTile(grpc::ServerContextBase* ctx, const pb::GetTi
 grpc::Status MapService::ServeRegion(grpc::ServerContextBase* ctx, const pb::QueryRegionRequest* request,
                                      pb::QueryRegionResponse* response) {
   RequestLog log("QueryRegion", ctx);
+  if (auto who = CheckAccess(context_->auth, *ctx, Permission::kReadMap, &log); !who.ok()) return log.Done(who.status());
   absl::StatusOr<BoundingBox> box = BoundingBoxFromProto(request->box(), "box");
   if (!box.ok()) return log.Done(box.status());
   if (request->page_size() < 0 || request->page_size() > kMaxRegionPage) {
@@ -86,6 +88,12 @@ grpc::Status MapService::ServeRegion(grpc::ServerContextBase* ctx, const pb::Que
 grpc::Status MapService::WatchRegion(grpc::ServerContext* ctx, const pb::WatchRegionRequest* request,
                                      grpc::ServerWriter<pb::WatchRegionResponse>* writer) {
   RequestLog log("WatchRegion", ctx);
+  if (auto who = CheckAccess(context_->auth, *ctx, Permission::kReadMap, &log); !who.ok()) return log.Done(who.status());
+  absl::StatusOr<std::unique_ptr<StreamLimiter::Lease>> stream = context_->streams->OpenWatch(ctx);
+  if (!stream.ok()) {
+    AddRetryTrailers(stream.status(), ctx);
+    return log.Done(stream.status());
+  }
   absl::StatusOr<BoundingBox> box = BoundingBoxFromProto(request->box(), "box");
   if (!box.ok()) return log.Done(box.status());
   if (request->since_version() < 0) return log.Done(absl::InvalidArgumentError("since_version: must be >= 0"));
@@ -117,11 +125,15 @@ grpc::Status MapService::WatchRegion(grpc::ServerContext* ctx, const pb::WatchRe
 grpc::Status MapService::GetLandmark(grpc::ServerContext* ctx, const pb::GetLandmarkRequest* request,
                                      pb::GetLandmarkResponse* response) {
   RequestLog log("GetLandmark", ctx);
+  absl::StatusOr<Principal> who = CheckAccess(context_->auth, *ctx, Permission::kReadMap, &log);
+  if (!who.ok()) return log.Done(who.status());
   log.Add(absl::StrCat("id=", request->id()));
   absl::StatusOr<LandmarkProvenance> provenance = context_->store->GetLandmarkProvenance(request->id());
   if (!provenance.ok()) return log.Done(provenance.status());
   LandmarkToProto(provenance->landmark, response->mutable_landmark());
+  // Which vehicles drove where is passage data: operators and admins only.
   for (const auto& [vehicle_id, passage_id] : provenance->passages) {
+    if (!who->MayReadAllPassages()) break;
     pb::PassageKey* key = response->add_passages();
     key->set_vehicle_id(vehicle_id);
     key->set_passage_id(passage_id);
@@ -134,6 +146,7 @@ grpc::Status MapService::GetLandmark(grpc::ServerContext* ctx, const pb::GetLand
 grpc::Status MapService::GetMapInfo(grpc::ServerContext* ctx, const pb::GetMapInfoRequest* request,
                                     pb::MapInfo* response) {
   RequestLog log("GetMapInfo", ctx);
+  if (auto who = CheckAccess(context_->auth, *ctx, Permission::kReadMap, &log); !who.ok()) return log.Done(who.status());
   absl::StatusOr<MapStats> stats = context_->store->GetStats();
   if (!stats.ok()) return log.Done(stats.status());
   response->set_map_version(stats->map_version);

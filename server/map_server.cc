@@ -5,10 +5,13 @@
 #include <sys/file.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <filesystem>
 
 #include <grpcpp/ext/proto_server_reflection_plugin.h>
 #include <grpcpp/health_check_service_interface.h>
+#include <grpcpp/impl/server_builder_option.h>
+#include <grpcpp/resource_quota.h>
 #include <grpcpp/security/server_credentials.h>
 #include <grpc/impl/codegen/grpc_types.h>
 #include <grpcpp/server_builder.h>
@@ -33,6 +36,8 @@ absl::Status MapServerOptions::Validate() const {
   if (max_passage_mb < 1 || max_passage_mb > 2047) {
     return absl::InvalidArgumentError(absl::StrCat("max_passage_mb: must lie in [1, 2047], got ", max_passage_mb));
   }
+  if (absl::Status s = security.Validate(); !s.ok()) return s;
+  if (absl::Status s = limits.Validate(max_passage_mb); !s.ok()) return s;
   return worker.Validate();
 }
 
@@ -41,6 +46,18 @@ namespace {
 // The writer's yields come about every 0.1 ms of a commit (some 65 cross-covariance rows; a
 // passage's commit at 100 landmarks writes 4950 of them in about 8 ms).
 constexpr int kWriteYieldVmSteps = 4000;
+
+// Takes server reflection out of a builder: linking the reflection library registers it for every
+// server of the process.
+class WithoutReflection : public grpc::ServerBuilderOption {
+ public:
+  void UpdateArguments(grpc::ChannelArguments*) override {}
+  void UpdatePlugins(std::vector<std::unique_ptr<grpc::ServerBuilderPlugin>>* plugins) override {
+    plugins->erase(std::remove_if(plugins->begin(), plugins->end(),
+                                  [](const auto& p) { return p->name().find("reflection") != std::string::npos; }),
+                   plugins->end());
+  }
+};
 
 }  // namespace
 
@@ -120,7 +137,30 @@ absl::StatusOr<std::unique_ptr<MapServer>> MapServer::Start(const MapServerOptio
   if (!worker.ok()) return worker.status();
   server->worker_ = std::move(*worker);
 
+  const bool auth_on = AuthEnabled(options.security, options.listen);
+  if (auth_on) {
+    if (options.security.auth_file.empty() && options.security.tls_client_ca.empty()) {
+      return absl::FailedPreconditionError(absl::StrCat(
+          "--auth: on (", options.security.auth == "auto" ? "mapd listens on " + options.listen + ", not loopback" : "asked for",
+          ") but no client could authenticate: give --auth-file (tokens, certificate names) and/or --tls-client-ca, "
+          "or --auth off to serve without authentication"));
+    }
+    auto auth = Authenticator::Create(options.security.auth_file);
+    if (!auth.ok()) return auth.status();
+    server->auth_ = std::move(*auth);
+  }
+  auto credentials = MakeServerCredentials(options.security);
+  if (!credentials.ok()) return credentials.status();
+  server->quotas_ = std::make_unique<VehicleQuotas>(options.limits);
+  server->inflight_ = std::make_unique<InflightBytes>(static_cast<int64_t>(options.limits.max_inflight_mb) << 20);
+  server->streams_ = std::make_unique<StreamLimiter>(options.limits.max_upload_streams, options.limits.max_watch_streams,
+                                                     std::chrono::seconds(options.limits.upload_idle_timeout_s));
+
   MapServiceContext& context = server->context_;
+  context.auth = server->auth_.get();
+  context.quotas = server->quotas_.get();
+  context.inflight = server->inflight_.get();
+  context.streams = server->streams_.get();
   context.store = server->store_.get();
   context.committer = server->committer_.get();
   context.worker = server->worker_.get();
@@ -131,9 +171,15 @@ absl::StatusOr<std::unique_ptr<MapServer>> MapServer::Start(const MapServerOptio
   server->service_ = std::make_unique<MapService>(&context);
 
   grpc::EnableDefaultHealthCheckService(true);
-  grpc::reflection::InitProtoReflectionServerBuilderPlugin();
+  const bool reflection = ReflectionEnabled(options.security, options.listen);
+  if (reflection) grpc::reflection::InitProtoReflectionServerBuilderPlugin();
   grpc::ServerBuilder builder;
-  builder.AddListeningPort(options.listen, grpc::InsecureServerCredentials(), &server->port_);
+  if (!reflection) builder.SetOption(std::make_unique<WithoutReflection>());
+  builder.AddListeningPort(options.listen, *credentials, &server->port_);
+  // Each synchronous call holds one of these threads; beyond them gRPC answers RESOURCE_EXHAUSTED.
+  grpc::ResourceQuota quota("mapd");
+  quota.SetMaxThreads(options.limits.max_threads);
+  builder.SetResourceQuota(quota);
   // A second server on the same port must fail, not share it (clients would see two maps).
   builder.AddChannelArgument(GRPC_ARG_ALLOW_REUSEPORT, 0);
   builder.SetMaxReceiveMessageSize(options.max_message_mb << 20);
@@ -151,7 +197,28 @@ absl::StatusOr<std::unique_ptr<MapServer>> MapServer::Start(const MapServerOptio
   if (options.start_worker) server->worker_->Start();
   spdlog::info("event=started version={} listen={} port={} db={} strategy={} workers={} max_queue={}",
                CROWDMAP_VERSION, options.listen, server->port_, options.db_path, UpdateStrategyName(context.update.strategy), options.worker.workers, options.max_queue);
+  spdlog::info("event=security tls={} mtls={} auth={} identities={} reflection={} max_threads={} max_upload_streams={} "
+               "upload_idle_timeout_s={} max_inflight_mb={} vehicle_uploads_per_s={} vehicle_upload_mb_per_s={}",
+               options.security.tls(), !options.security.tls_client_ca.empty(), auth_on,
+               auth_on ? server->auth_->identities() : 0, reflection, options.limits.max_threads,
+               options.limits.max_upload_streams, options.limits.upload_idle_timeout_s, options.limits.max_inflight_mb,
+               options.limits.vehicle_uploads_per_s, options.limits.vehicle_upload_mb_per_s);
+  if (auth_on && !options.security.tls() && !IsLoopbackListen(options.listen)) {
+    spdlog::warn("event=plaintext_tokens listen={} (bearer tokens cross the network in clear: give --tls-cert and --tls-key)",
+                 options.listen);
+  }
   return server;
+}
+
+absl::Status MapServer::ReloadAuth() {
+  if (auth_ == nullptr) return absl::FailedPreconditionError("auth: off, nothing to reload");
+  absl::Status s = auth_->Reload();
+  if (s.ok()) {
+    spdlog::info("event=auth_reloaded identities={}", auth_->identities());
+  } else {
+    spdlog::error("event=auth_reload_failed error=\"{}\" (the identities loaded before stay in force)", EscapeForLog(std::string(s.message())));
+  }
+  return s;
 }
 
 MapServer::DatabaseLock::~DatabaseLock() {

@@ -10,9 +10,11 @@
 #include <grpcpp/server.h>
 
 #include "absl/status/statusor.h"
+#include "server/auth.h"
 #include "server/map_service.h"
 #include "server/map_worker.h"
 #include "server/metrics.h"
+#include "server/quotas.h"
 #include "server/storage/map_store.h"
 #include "server/upload_committer.h"
 #include "server/version_notifier.h"
@@ -31,6 +33,8 @@ struct MapServerOptions {
   int max_passage_mb = 64;    // largest accepted passage (chunked uploads)
   bool start_worker = true;   // false: accept and queue uploads, apply nothing
   std::string metrics_listen;  // host:port of the Prometheus endpoint (/metrics); empty = none
+  SecurityOptions security;   // TLS, authentication, roles (server/auth.h)
+  LimitOptions limits;        // quotas, streams, bytes in flight, threads (server/quotas.h)
 
   absl::Status Validate() const;
 };
@@ -58,6 +62,10 @@ class MapServer {
   // "host:port" a client on this machine can dial.
   std::string address() const;
   MapStoreInterface* store() { return store_.get(); }
+  // Reads the auth file again (SIGHUP); FailedPrecondition when authentication is off. On an
+  // error the identities loaded before stay in force.
+  absl::Status ReloadAuth();
+  bool auth_enabled() const { return auth_ != nullptr; }
 
   // Health NOT_SERVING, refuse uploads, finish the passage being applied, end streams, stop gRPC
   // (in-flight calls get `grace`; gRPC also waits that long for idle client connections to
@@ -79,6 +87,10 @@ class MapServer {
   VersionNotifier notifier_;
   std::unique_ptr<UploadCommitter> committer_;
   std::unique_ptr<MapWorker> worker_;
+  std::unique_ptr<Authenticator> auth_;
+  std::unique_ptr<VehicleQuotas> quotas_;
+  std::unique_ptr<InflightBytes> inflight_;
+  std::unique_ptr<StreamLimiter> streams_;
   MapServiceContext context_;
   std::unique_ptr<MapService> service_;
   std::unique_ptr<grpc::Server> server_;

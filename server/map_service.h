@@ -9,8 +9,10 @@
 
 #include "core/estimation/map_updater.h"
 #include "mapservice/v1/map_service.grpc.pb.h"
+#include "server/auth.h"
 #include "server/map_worker.h"
 #include "server/metrics.h"
+#include "server/quotas.h"
 #include "server/request_log.h"
 #include "server/storage/map_store.h"
 #include "server/upload_committer.h"
@@ -29,6 +31,10 @@ struct MapServiceContext {
   WireLimits limits;
   MapUpdateOptions update;  // the worker's estimator settings, reported by GetMapInfo
   std::atomic<bool> accepting_uploads{true};
+  const Authenticator* auth = nullptr;  // null: authentication off
+  VehicleQuotas* quotas = nullptr;
+  InflightBytes* inflight = nullptr;
+  StreamLimiter* streams = nullptr;
 };
 
 // mapservice.v1.MapService: one thin handler per RPC; conversion in wire_convert, errors through
@@ -101,7 +107,9 @@ class MapService final : public MapServiceBase {
   absl::StatusOr<StoredPassage> FindRecord(int64_t id, const std::string& vehicle_id, const std::string& passage_id,
                                            RequestLog* log);
   // Validates, commits and acknowledges one upload (both upload RPCs end here).
-  absl::Status AcceptUpload(const pb::Passage& wire, size_t wire_bytes, std::string payload,
+  // `who` may upload only as itself (Principal::MayActFor); the upload counts against the quota of
+  // its vehicle_id.
+  absl::Status AcceptUpload(const Principal& who, const pb::Passage& wire, size_t wire_bytes, std::string payload,
                             pb::UploadPassageResponse* response);
 
   grpc::Status ServeTile(grpc::ServerContextBase* ctx, const pb::GetTileRequest* request,

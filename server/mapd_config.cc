@@ -10,6 +10,7 @@
 #include "absl/strings/str_replace.h"
 #include "absl/strings/strip.h"
 #include "server/request_log.h"
+#include "server/security_config.h"
 
 namespace crowdmap {
 namespace {
@@ -25,6 +26,9 @@ const std::vector<std::string>& SettingNames() {
 
 bool IsSetting(const std::string& name) {
   for (const std::string& n : SettingNames()) {
+    if (n == name) return true;
+  }
+  for (const std::string& n : SecuritySettingNames()) {
     if (n == name) return true;
   }
   return false;
@@ -147,11 +151,11 @@ Usage: mapd [--flag value | --flag=value]...
   --config PATH               settings file: "name = value" lines with the names above
   --version                   print the version and exit
   --help                      this text
-
+)" + SecurityUsage() + R"(
 Every setting also reads the environment (MAPD_LISTEN, MAPD_DB, MAPD_MAX_QUEUE, ...; MAPD_CONFIG for
 the file). Precedence: flag, environment, config file, default.
 SIGTERM / SIGINT: health turns NOT_SERVING, uploads are refused (UNAVAILABLE), the passage being
-applied is finished, and mapd exits 0.
+applied is finished, and mapd exits 0. SIGHUP: the --auth-file is read again.
 )";
 }
 
@@ -196,8 +200,10 @@ absl::StatusOr<MapdConfig> ParseMapdConfig(const std::vector<std::string>& args,
   if (!config_path.empty()) {
     if (auto s = ReadConfigFile(config_path, &values); !s.ok()) return s;
   }
-  for (const std::string& name : SettingNames()) {
-    if (const char* v = env(EnvName(name).c_str()); v != nullptr) values[name] = v;
+  for (const std::vector<std::string>* names : {&SettingNames(), &SecuritySettingNames()}) {
+    for (const std::string& name : *names) {
+      if (const char* v = env(EnvName(name).c_str()); v != nullptr) values[name] = v;
+    }
   }
   for (const auto& [name, value] : flags) values[name] = value;
 
@@ -212,6 +218,8 @@ absl::StatusOr<MapdConfig> ParseMapdConfig(const std::vector<std::string>& args,
       auto strategy = ParseUpdateStrategy(value);
       if (!strategy.ok()) return absl::InvalidArgumentError(absl::StrCat("--strategy: ", strategy.status().message()));
       o.worker.update.strategy = *strategy;
+    } else if (absl::StatusOr<bool> security = SetSecuritySetting(name, value, &o); !security.ok() || *security) {
+      if (!security.ok()) return security.status();
     } else if (name == "log-level") {
       config.log_level = value;
     } else if (name == "log-format") {

@@ -137,5 +137,42 @@ TEST(MapdConfig, BadLogFormatAndCreateValuesNameTheFlag) {
   EXPECT_NE(create.status().message().find("--create"), absl::string_view::npos) << create.status();
 }
 
+TEST(MapdConfig, SecurityAndLimitSettingsComeFromFlagsEnvironmentAndFile) {
+  TempDir dir;
+  const std::string path = dir.File("mapd.conf");
+  std::ofstream(path) << "tls_cert = /etc/mapd/cert.pem\ntls_key = /etc/mapd/key.pem\nauth_file = /etc/mapd/auth\n";
+  auto c = ParseMapdConfig({"--config", path, "--max-threads", "256", "--vehicle-upload-rate=0.5"},
+                           FakeEnv({{"MAPD_MAX_UPLOAD_STREAMS", "8"}, {"MAPD_AUTH", "on"}}));
+  ASSERT_TRUE(c.ok()) << c.status();
+  EXPECT_EQ(c->server.security.tls_cert, "/etc/mapd/cert.pem");
+  EXPECT_EQ(c->server.security.auth_file, "/etc/mapd/auth");
+  EXPECT_EQ(c->server.security.auth, "on");
+  EXPECT_EQ(c->server.limits.max_threads, 256);
+  EXPECT_EQ(c->server.limits.max_upload_streams, 8);
+  EXPECT_DOUBLE_EQ(c->server.limits.vehicle_uploads_per_s, 0.5);
+}
+
+TEST(MapdConfig, SecurityErrorsNameTheFlag) {
+  auto half_tls = ParseMapdConfig({"--tls-cert", "c.pem"}, FakeEnv({}));
+  ASSERT_FALSE(half_tls.ok());
+  EXPECT_NE(half_tls.status().message().find("--tls-key"), std::string::npos) << half_tls.status();
+  auto ca_alone = ParseMapdConfig({"--tls-client-ca", "ca.pem"}, FakeEnv({}));
+  ASSERT_FALSE(ca_alone.ok());
+  EXPECT_NE(ca_alone.status().message().find("--tls-client-ca"), std::string::npos) << ca_alone.status();
+  auto auth = ParseMapdConfig({"--auth", "maybe"}, FakeEnv({}));
+  ASSERT_FALSE(auth.ok());
+  EXPECT_NE(auth.status().message().find("--auth"), std::string::npos) << auth.status();
+  auto threads = ParseMapdConfig({"--max-threads", "many"}, FakeEnv({}));
+  ASSERT_FALSE(threads.ok());
+  EXPECT_NE(threads.status().message().find("--max-threads"), std::string::npos) << threads.status();
+  auto few_threads = ParseMapdConfig({"--max-threads", "100"}, FakeEnv({}));  // streams could take them all
+  ASSERT_FALSE(few_threads.ok());
+  EXPECT_NE(few_threads.status().message().find("--max-upload-streams + --max-watch-streams"), std::string::npos)
+      << few_threads.status();
+  auto burst = ParseMapdConfig({"--vehicle-upload-burst-mb", "8"}, FakeEnv({}));
+  ASSERT_FALSE(burst.ok());
+  EXPECT_NE(burst.status().message().find("--max-passage-mb"), std::string::npos) << burst.status();
+}
+
 }  // namespace
 }  // namespace crowdmap

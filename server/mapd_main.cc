@@ -1,4 +1,5 @@
-// mapd: serves the map until SIGTERM/SIGINT, then shuts down in order and exits 0.
+// mapd: serves the map until SIGTERM/SIGINT, then shuts down in order and exits 0; SIGHUP reloads
+// the auth file.
 #include <pthread.h>
 #include <signal.h>
 
@@ -19,6 +20,7 @@ int main(int argc, char** argv) {
   sigemptyset(&signals);
   sigaddset(&signals, SIGTERM);
   sigaddset(&signals, SIGINT);
+  sigaddset(&signals, SIGHUP);  // reload the auth file
   pthread_sigmask(SIG_BLOCK, &signals, nullptr);
 
   std::vector<std::string> args(argv + 1, argv + argc);
@@ -57,7 +59,10 @@ int main(int argc, char** argv) {
     return 1;
   }
   int signal_number = 0;
-  sigwait(&signals, &signal_number);
+  while (sigwait(&signals, &signal_number) == 0 && signal_number == SIGHUP) {
+    spdlog::info("event=signal signal=SIGHUP");
+    if ((*server)->auth_enabled()) (void)(*server)->ReloadAuth();
+  }
   spdlog::info("event=signal signal={}", signal_number == SIGTERM ? "SIGTERM" : "SIGINT");
   (*server)->Shutdown();
   server->reset();

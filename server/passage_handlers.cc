@@ -28,8 +28,15 @@ uint64_t Fingerprint(std::string_view text) {
 // next attempt (gRPC reads grpc-retry-pushback-ms) instead of their own short backoff.
 constexpr char kUploadPushbackMs[] = "1000";
 
+// A refusal with its own retry time (a quota) says so (AddRetryTrailers); other refusals of an
+// upload with RESOURCE_EXHAUSTED (queue or disk full) get kUploadPushbackMs.
 void AddPushback(grpc::ServerContext* ctx, const absl::Status& s) {
-  if (s.code() == absl::StatusCode::kResourceExhausted) ctx->AddTrailingMetadata("grpc-retry-pushback-ms", kUploadPushbackMs);
+  if (s.code() != absl::StatusCode::kResourceExhausted) return;
+  if (RetryAfter(s).count() > 0) {
+    AddRetryTrailers(s, ctx);
+  } else {
+    ctx->AddTrailingMetadata("grpc-retry-pushback-ms", kUploadPushbackMs);
+  }
 }
 
 std::string PassageListQuery(const pb::ListPassagesRequest& request) {
@@ -58,10 +65,14 @@ absl::StatusOr<int64_t> ParsePageToken(const std::string& token, std::string_vie
   return id;
 }
 
-absl::Status MapService::AcceptUpload(const pb::Passage& wire, size_t wire_bytes, std::string payload,
-                                      pb::UploadPassageResponse* response) {
+absl::Status MapService::AcceptUpload(const Principal& who, const pb::Passage& wire, size_t wire_bytes,
+                                      std::string payload, pb::UploadPassageResponse* response) {
   if (!context_->accepting_uploads) return absl::UnavailableError("server is shutting down; retry on another replica or later");
   if (auto s = CheckPassageSize(wire_bytes, context_->limits); !s.ok()) return s;
+  // The idempotency key (vehicle_id, passage_id) is the authenticated vehicle's own: nobody else
+  // can take it first.
+  if (auto s = who.MayActFor(wire.vehicle_id()); !s.ok()) return s;
+  if (auto s = context_->quotas->Admit(wire.vehicle_id(), wire_bytes); !s.ok()) return s;
   absl::StatusOr<Passage> passage = PassageFromProto(wire);
   if (!passage.ok()) return passage.status();
   NewPassage upload{passage->vehicle_id, passage->passage_id, std::move(payload), NowUnixMs()};
@@ -79,11 +90,14 @@ grpc::Status MapService::UploadPassage(grpc::ServerContext* ctx, const pb::Uploa
   RequestLog log("UploadPassage", ctx);
   const pb::Passage& wire = request->passage();
   log.Add(absl::StrCat("passage=", wire.passage_id(), " vehicle=", wire.vehicle_id()));
-  absl::Status s = AcceptUpload(wire, wire.ByteSizeLong(), wire.SerializeAsString(), response);
-  AddPushback(ctx, s);
+  absl::StatusOr<Principal> who = CheckAccess(context_->auth, *ctx, Permission::kUpload, &log);
+  InflightBytes::Lease held(context_->inflight);
+  absl::Status s = who.ok() ? held.GrowTo(wire.ByteSizeLong()) : who.status();
+  if (s.ok()) s = AcceptUpload(*who, wire, wire.ByteSizeLong(), wire.SerializeAsString(), response);
   if (s.ok()) {
     log.Add(absl::StrCat("id=", response->status().id(), " duplicate=", response->duplicate() ? "true" : "false"));
   }
+  AddPushback(ctx, s);
   return log.Done(s);
 }
 
@@ -91,26 +105,43 @@ grpc::Status MapService::UploadPassageChunked(grpc::ServerContext* ctx,
                                               grpc::ServerReader<pb::UploadPassageChunk>* reader,
                                               pb::UploadPassageResponse* response) {
   RequestLog log("UploadPassageChunked", ctx);
+  absl::StatusOr<Principal> who = CheckAccess(context_->auth, *ctx, Permission::kUpload, &log);
+  if (!who.ok()) return log.Done(who.status());
+  absl::StatusOr<std::unique_ptr<StreamLimiter::Lease>> stream = context_->streams->OpenUpload(ctx);
+  if (!stream.ok()) {
+    AddRetryTrailers(stream.status(), ctx);
+    return log.Done(stream.status());
+  }
+  InflightBytes::Lease held(context_->inflight);
   std::string bytes;
   pb::UploadPassageChunk chunk;
   int chunks = 0;
   while (reader->Read(&chunk)) {
+    (*stream)->Touch();
     ++chunks;
+    const size_t total = bytes.size() + chunk.data().size();
+    if (absl::Status s = CheckPassageSize(total, context_->limits); !s.ok()) return log.Done(s);
+    if (absl::Status s = held.GrowTo(total); !s.ok()) {
+      AddRetryTrailers(s, ctx);
+      return log.Done(s);
+    }
     bytes += chunk.data();
-    if (absl::Status s = CheckPassageSize(bytes.size(), context_->limits); !s.ok()) return log.Done(s);
   }
   log.Add(absl::StrCat("chunks=", chunks, " bytes=", bytes.size()));
+  if ((*stream)->timed_out()) {
+    return log.Done(absl::DeadlineExceededError("upload: no chunk within --upload-idle-timeout-s; call cancelled"));
+  }
   pb::Passage wire;
   if (bytes.empty() || !wire.ParseFromString(bytes)) {
     return log.Done(absl::InvalidArgumentError("passage: the chunks do not form a serialized Passage"));
   }
   log.Add(absl::StrCat("passage=", wire.passage_id(), " vehicle=", wire.vehicle_id()));
   const size_t size = bytes.size();
-  absl::Status s = AcceptUpload(wire, size, std::move(bytes), response);
-  AddPushback(ctx, s);
+  absl::Status s = AcceptUpload(*who, wire, size, std::move(bytes), response);
   if (s.ok()) {
     log.Add(absl::StrCat("id=", response->status().id(), " duplicate=", response->duplicate() ? "true" : "false"));
   }
+  AddPushback(ctx, s);
   return log.Done(s);
 }
 
@@ -130,14 +161,21 @@ absl::StatusOr<StoredPassage> MapService::FindRecord(int64_t id, const std::stri
 grpc::Status MapService::GetPassage(grpc::ServerContext* ctx, const pb::GetPassageRequest* request,
                                     pb::PassageStatus* response) {
   RequestLog log("GetPassage", ctx);
+  absl::StatusOr<Principal> who = CheckAccess(context_->auth, *ctx, Permission::kReadPassages, &log);
+  if (!who.ok()) return log.Done(who.status());
   absl::StatusOr<StoredPassage> record = FindRecord(request->id(), request->vehicle_id(), request->passage_id(), &log);
-  if (record.ok()) StoredPassageToProto(*record, response);
-  return log.Done(record.status());
+  if (!record.ok()) return log.Done(record.status());
+  if (!who->MayReadAllPassages()) {
+    if (absl::Status s = who->MayActFor(record->vehicle_id); !s.ok()) return log.Done(s);
+  }
+  StoredPassageToProto(*record, response);
+  return log.Done(absl::OkStatus());
 }
 
 grpc::Status MapService::ExcludePassage(grpc::ServerContext* ctx, const pb::ExcludePassageRequest* request,
                                         pb::ExcludePassageResponse* response) {
   RequestLog log("ExcludePassage", ctx);
+  if (auto who = CheckAccess(context_->auth, *ctx, Permission::kAdministrate, &log); !who.ok()) return log.Done(who.status());
   absl::StatusOr<StoredPassage> record = FindRecord(request->id(), request->vehicle_id(), request->passage_id(), &log);
   if (!record.ok()) return log.Done(record.status());
   if (record->state != PassageState::kApplied) {
@@ -165,6 +203,7 @@ grpc::Status MapService::ExcludePassage(grpc::ServerContext* ctx, const pb::Excl
 grpc::Status MapService::ResolvePassage(grpc::ServerContext* ctx, const pb::ResolvePassageRequest* request,
                                         pb::PassageStatus* response) {
   RequestLog log("ResolvePassage", ctx);
+  if (auto who = CheckAccess(context_->auth, *ctx, Permission::kAdministrate, &log); !who.ok()) return log.Done(who.status());
   std::vector<PassageState> from = {PassageState::kFailed, PassageState::kQuarantined};
   PassageState to;
   bool released = false;
@@ -196,6 +235,12 @@ grpc::Status MapService::ResolvePassage(grpc::ServerContext* ctx, const pb::Reso
 grpc::Status MapService::ListPassages(grpc::ServerContext* ctx, const pb::ListPassagesRequest* request,
                                       pb::ListPassagesResponse* response) {
   RequestLog log("ListPassages", ctx);
+  absl::StatusOr<Principal> who = CheckAccess(context_->auth, *ctx, Permission::kReadPassages, &log);
+  if (!who.ok()) return log.Done(who.status());
+  if (!who->MayReadAllPassages() && request->vehicle_id() != who->name) {
+    return log.Done(absl::PermissionDeniedError(
+        absl::StrCat("vehicle_id: a vehicle lists its own passages only; set it to '", who->name, "'")));
+  }
   if (request->page_size() < 0 || request->page_size() > kMaxPassagePage) {
     return log.Done(absl::InvalidArgumentError(absl::StrCat("page_size: must lie in [0, ", kMaxPassagePage, "]")));
   }

@@ -78,20 +78,31 @@ pb::BoundingBox WorldBox() {
 
 absl::StatusOr<std::unique_ptr<MapClient>> MapClient::Create(const MapClientOptions& options) {
   if (absl::Status s = options.Validate(); !s.ok()) return s;
-  return std::unique_ptr<MapClient>(new MapClient(options));
+  absl::StatusOr<std::shared_ptr<grpc::ChannelCredentials>> credentials = MakeChannelCredentials(options.security);
+  if (!credentials.ok()) return credentials.status();
+  return std::unique_ptr<MapClient>(new MapClient(options, *std::move(credentials)));
 }
 
-MapClient::MapClient(const MapClientOptions& options) : options_(options) {
+MapClient::MapClient(const MapClientOptions& options, std::shared_ptr<grpc::ChannelCredentials> credentials)
+    : options_(options) {
   grpc::ChannelArguments args;
   args.SetMaxReceiveMessageSize(options.max_message_mb << 20);
   args.SetMaxSendMessageSize(options.max_message_mb << 20);
   args.SetServiceConfigJSON(RetryServiceConfig(options));
-  channel_ = grpc::CreateCustomChannel(options.server, grpc::InsecureChannelCredentials(), args);
+  if (!options.security.tls_server_name.empty()) args.SetSslTargetNameOverride(options.security.tls_server_name);
+  channel_ = grpc::CreateCustomChannel(options.server, credentials, args);
   stub_ = pb::MapService::NewStub(channel_);
 }
 
 void MapClient::SetDeadline(grpc::ClientContext* ctx) const {
   ctx->set_deadline(std::chrono::system_clock::now() + options_.call_deadline);
+  Authorize(ctx);
+}
+
+// Sent as plain metadata, not as call credentials: gRPC sends those over TLS only, and mapd on
+// loopback may run without it.
+void MapClient::Authorize(grpc::ClientContext* ctx) const {
+  if (!options_.security.token.empty()) ctx->AddMetadata("authorization", "Bearer " + options_.security.token);
 }
 
 grpc::Status MapClient::UploadUnary(const pb::UploadPassageRequest& request, pb::UploadPassageResponse* response) {
@@ -336,6 +347,7 @@ absl::Status MapClient::WatchRegion(const pb::BoundingBox& box, int64_t since_ve
                                     std::optional<std::chrono::milliseconds> duration) {
   grpc::ClientContext ctx;
   if (duration) ctx.set_deadline(std::chrono::system_clock::now() + *duration);
+  Authorize(&ctx);
   pb::WatchRegionRequest request;
   *request.mutable_box() = box;
   request.set_since_version(since_version);

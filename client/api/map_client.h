@@ -12,6 +12,7 @@
 #include <grpcpp/grpcpp.h>
 
 #include "absl/status/statusor.h"
+#include "client/api/client_security.h"
 #include "core/map/map_state.h"
 #include "mapservice/v1/map_service.grpc.pb.h"
 #include "server/grpc_status.h"
@@ -36,6 +37,7 @@ struct MapClientOptions {
   // upload_chunk_bytes; the default stays under mapd's default 4 MiB receive limit.
   size_t unary_upload_limit_bytes = (4u << 20) - (64u << 10);
   size_t upload_chunk_bytes = 1u << 20;
+  ClientSecurityOptions security;  // TLS, client certificate, bearer token
 
   absl::Status Validate() const;
 };
@@ -103,8 +105,10 @@ class MapClient {
   const std::shared_ptr<grpc::Channel>& channel() const { return channel_; }
 
  private:
-  explicit MapClient(const MapClientOptions& options);
+  MapClient(const MapClientOptions& options, std::shared_ptr<grpc::ChannelCredentials> credentials);
+  // The call deadline and the bearer token.
   void SetDeadline(grpc::ClientContext* ctx) const;
+  void Authorize(grpc::ClientContext* ctx) const;
   // One attempt of each upload RPC.
   grpc::Status UploadUnary(const pb::UploadPassageRequest& request, pb::UploadPassageResponse* response);
   // `pushback` is set to the server's grpc-retry-pushback-ms when it sent one.

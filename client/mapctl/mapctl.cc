@@ -59,6 +59,10 @@ Common flags:
   --server HOST:PORT             mapd address (default $MAPCTL_SERVER or 127.0.0.1:50051)
   --json                         machine-readable output (protobuf JSON) instead of tables
   --deadline-s S                 deadline of each call, seconds (default 10)
+  --tls-ca PATH                  TLS: the PEM CA that signed mapd's certificate (default plaintext)
+  --tls-cert PATH --tls-key PATH mTLS: this client's PEM certificate and key
+  --tls-server-name NAME         the name in mapd's certificate, if not the --server host
+  --token-file PATH              bearer token (default $CROWDMAP_TOKEN_FILE; none)
 
 Exit codes: 0 success, 1 failure (unreachable server, malformed file, unknown id, ...), 2 usage error.
 )";
@@ -502,6 +506,7 @@ int RunMapctl(const std::vector<std::string>& args, std::ostream& out, std::ostr
   }
   std::map<std::string, bool> known = it->second.flags;
   known.insert({{"server", true}, {"json", false}, {"deadline-s", true}, {"help", false}});
+  for (const auto& flag : ClientSecurityFlags()) known.insert(flag);
   absl::StatusOr<Flags> flags = Flags::Parse({args.begin() + 1, args.end()}, known);
   if (!flags.ok()) {
     err << "mapctl " << name << ": " << OneLine(flags.status().message()) << "\n";
@@ -520,6 +525,10 @@ int RunMapctl(const std::vector<std::string>& args, std::ostream& out, std::ostr
     return 2;
   }
   options.call_deadline = std::chrono::milliseconds(static_cast<int64_t>(*deadline_s * 1000));
+  if (absl::Status s = ApplyClientSecurityFlags(*flags, &options.security); !s.ok()) {
+    err << "mapctl " << name << ": " << OneLine(s.message()) << "\n";
+    return 2;
+  }
   absl::StatusOr<std::unique_ptr<MapClient>> client = MapClient::Create(options);
   if (!client.ok()) {
     err << "mapctl " << name << ": " << OneLine(client.status().message()) << "\n";

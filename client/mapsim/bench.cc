@@ -50,9 +50,10 @@ pb::BoundingBox RouteBox(const std::vector<TruthLandmark>& landmarks) {
   return box;
 }
 
-absl::StatusOr<std::unique_ptr<MapClient>> Connect(const std::string& server) {
+absl::StatusOr<std::unique_ptr<MapClient>> Connect(const std::string& server, const ClientSecurityOptions& security) {
   MapClientOptions options;
   options.server = server;
+  options.security = security;
   options.max_attempts = 5;
   return MapClient::Create(options);
 }
@@ -106,7 +107,7 @@ absl::StatusOr<BenchResult> RunBench(const BenchOptions& options) {
   if (absl::Status s = options.Validate(); !s.ok()) return s;
   absl::StatusOr<BenchScenario> scenario = MakeBenchScenario(options);
   if (!scenario.ok()) return scenario.status();
-  absl::StatusOr<std::unique_ptr<MapClient>> control = Connect(options.server);
+  absl::StatusOr<std::unique_ptr<MapClient>> control = Connect(options.server, options.security);
   if (!control.ok()) return control.status();
   absl::StatusOr<pb::MapInfo> start = (*control)->GetMapInfo();
   if (!start.ok()) return start.status();
@@ -131,7 +132,7 @@ absl::StatusOr<BenchResult> RunBench(const BenchOptions& options) {
   std::vector<std::thread> uploaders;
   for (int k = 0; k < options.clients; ++k) {
     uploaders.emplace_back([&] {
-      absl::StatusOr<std::unique_ptr<MapClient>> client = Connect(options.server);
+      absl::StatusOr<std::unique_ptr<MapClient>> client = Connect(options.server, options.security);
       std::vector<double> mine;
       for (int i = next++; client.ok() && i < options.passages; i = next++) {
         if (options.upload_rate_per_s > 0.0) {
@@ -172,7 +173,7 @@ absl::StatusOr<BenchResult> RunBench(const BenchOptions& options) {
   std::vector<std::thread> readers;
   for (int r = 0; r < options.readers; ++r) {
     readers.emplace_back([&, r] {
-      absl::StatusOr<std::unique_ptr<MapClient>> client = Connect(options.server);
+      absl::StatusOr<std::unique_ptr<MapClient>> client = Connect(options.server, options.security);
       std::vector<double> my_region, my_tile;
       for (size_t n = r; client.ok() && !stop.load(); ++n) {
         const Clock::time_point a = Clock::now();

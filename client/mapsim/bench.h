@@ -4,6 +4,7 @@
 #include <string>
 
 #include "absl/status/statusor.h"
+#include "client/api/client_security.h"
 #include "core/sim/city_scenario.h"
 #include "core/sim/scenario.h"
 
@@ -16,6 +17,7 @@ namespace crowdmap {
 // first, so every measured read competes with map updates.
 struct BenchOptions {
   std::string server = "127.0.0.1:50051";
+  ClientSecurityOptions security;  // TLS and token of every client
   ScenarioOptions scenario;
   // City passages (CityScenario) instead of the loop's; the read box is then the whole city.
   bool city = false;

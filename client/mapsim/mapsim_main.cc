@@ -162,6 +162,13 @@ bench flags (and --landmarks, --seed):
                               fast as acknowledgements come back); a paced run measures the
                               acknowledgements while the worker commits map changes
 
+fleet and bench also take mapd's TLS and token flags:
+  --tls-ca PATH               TLS: the PEM CA that signed mapd's certificate (default plaintext)
+  --tls-cert PATH --tls-key PATH  mTLS: this client's PEM certificate and key
+  --tls-server-name NAME      the name in mapd's certificate, if not the --server host
+  --token-file PATH           bearer token (default $CROWDMAP_TOKEN_FILE; none); uploading
+                              simulated vehicles' passages needs an admin token
+
 localize flags:
   --landmarks LIST            landmark counts, comma-separated (default 44,500)
   --runs R                    passages (and generated maps) averaged per cell (default 10)
@@ -454,11 +461,17 @@ absl::StatusOr<ScenarioOptions> ScenarioFromFlags(const Flags& flags) {
 }
 
 #if CROWDMAP_MAPSIM_SERVICE
+// The command's flags and the client security flags (--tls-ca, --token-file, ...).
+std::map<std::string, bool> WithSecurityFlags(std::map<std::string, bool> known) {
+  for (const auto& flag : ClientSecurityFlags()) known.insert(flag);
+  return known;
+}
+
 absl::Status RunFleetCommand(const std::vector<std::string>& args) {
-  absl::StatusOr<Flags> flags = Flags::Parse(args, {{"server", true}, {"landmarks", true}, {"passages", true},
+  absl::StatusOr<Flags> flags = Flags::Parse(args, WithSecurityFlags({{"server", true}, {"landmarks", true}, {"passages", true},
                                                     {"noise", true}, {"seed", true}, {"vehicles", true},
                                                     {"strategy", true}, {"sample-ms", true}, {"out", true},
-                                                    {"quiet", false}, {"no-replay", false}});
+                                                    {"quiet", false}, {"no-replay", false}}));
   if (!flags.ok()) return flags.status();
   absl::StatusOr<ScenarioOptions> scenario = ScenarioFromFlags(*flags);
   if (!scenario.ok()) return scenario.status();
@@ -469,6 +482,7 @@ absl::Status RunFleetCommand(const std::vector<std::string>& args) {
   }
   FleetOptions options;
   options.server = flags->GetString("server", options.server);
+  if (absl::Status s = ApplyClientSecurityFlags(*flags, &options.client.security); !s.ok()) return s;
   options.scenario = *scenario;
   options.passages = static_cast<int>(*passages);
   options.vehicles = static_cast<int>(*vehicles);
@@ -510,10 +524,10 @@ absl::Status RunExportPassagesCommand(const std::vector<std::string>& args) {
 }
 
 absl::Status RunBenchCommand(const std::vector<std::string>& args) {
-  absl::StatusOr<Flags> flags = Flags::Parse(args, {{"server", true}, {"landmarks", true}, {"seed", true},
+  absl::StatusOr<Flags> flags = Flags::Parse(args, WithSecurityFlags({{"server", true}, {"landmarks", true}, {"seed", true},
                                                     {"clients", true}, {"passages", true}, {"readers", true},
                                                     {"seconds", true}, {"city", false}, {"route-m", true},
-                                                    {"upload-rate", true}});
+                                                    {"upload-rate", true}}));
   if (!flags.ok()) return flags.status();
   absl::StatusOr<ScenarioOptions> scenario = ScenarioFromFlags(*flags);
   if (!scenario.ok()) return scenario.status();
@@ -533,6 +547,7 @@ absl::Status RunBenchCommand(const std::vector<std::string>& args) {
   options.city_scenario.route_length_m = *route_m;
   options.upload_rate_per_s = *upload_rate;
   options.server = flags->GetString("server", options.server);
+  if (absl::Status s = ApplyClientSecurityFlags(*flags, &options.security); !s.ok()) return s;
   options.scenario = *scenario;
   options.clients = static_cast<int>(*clients);
   options.passages = static_cast<int>(*passages);
