@@ -388,8 +388,7 @@ void StreamingLocalizer::PredictPose(double t_s, Pose2* pose, Eigen::Matrix3d* c
 
 struct StreamingLocalizer::Step {
   Eigen::VectorXd x;       // posterior state
-  Eigen::MatrixXd gain;    // K (n x m)
-  Eigen::MatrixXd pht;     // P H^T (n x m)
+  Eigen::MatrixXd factor;  // U = P H^T L^-T with L L^T = H P H^T + I, so that P+ = P - U U^T
   Eigen::MatrixXd hpht;    // H P H^T (m x m), at the last linearisation
 };
 
@@ -433,13 +432,12 @@ bool StreamingLocalizer::ComputeUpdate(const std::vector<Measurement>& measureme
     hpht = 0.5 * (hpht + hpht.transpose()).eval();
     const Eigen::LLT<Eigen::MatrixXd> llt(hpht + Eigen::MatrixXd::Identity(rows, rows));
     if (llt.info() != Eigen::Success) break;
-    Eigen::MatrixXd gain = llt.solve(pht.transpose()).transpose();
-    Eigen::VectorXd next = x0 + gain * innovation;
+    Eigen::MatrixXd factor = llt.matrixL().solve(pht.transpose()).transpose();
+    Eigen::VectorXd next = x0 + factor * llt.matrixL().solve(innovation);
     const double change = (next.head<3>() - xi.head<3>()).cwiseAbs().maxCoeff();
     xi = next;
     step->x = std::move(next);
-    step->gain = std::move(gain);
-    step->pht = std::move(pht);
+    step->factor = std::move(factor);
     step->hpht = std::move(hpht);
     updated = true;
     if (change < options_.iteration_tolerance) break;
@@ -450,8 +448,8 @@ bool StreamingLocalizer::ComputeUpdate(const std::vector<Measurement>& measureme
 void StreamingLocalizer::Apply(const Step& step) {
   x_ = step.x;
   x_.z() = NormalizeAngle(x_.z());
-  P_.noalias() -= step.gain * step.pht.transpose();
-  P_ = 0.5 * (P_ + P_.transpose()).eval();
+  // K S K^T as U U^T: symmetric as computed, and one pass over P.
+  P_.noalias() -= step.factor * step.factor.transpose();
 }
 
 bool StreamingLocalizer::Update(const std::vector<Measurement>& measurements) {
