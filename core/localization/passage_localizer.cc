@@ -235,6 +235,21 @@ int Gate(const PassageGraph& graph, const Passage& passage, const LocalPrior& pr
 
 }  // namespace
 
+LocalizedPose MakeLocalizedPose(const LocalFrame& frame, double t_s, const Pose2& pose_m, const Eigen::Matrix3d& cov) {
+  LocalizedPose p;
+  p.t_s = t_s;
+  p.pose_m = pose_m;
+  p.pose_m.z() = NormalizeAngle(p.pose_m.z());
+  p.position = frame.ToGeo(pose_m.head<2>());
+  p.cov = 0.5 * (cov + cov.transpose());
+  Eigen::Matrix3d to_en = Eigen::Matrix3d::Identity();
+  to_en.topLeftCorner<2, 2>() = frame.EnToLocal(p.position).inverse();
+  const Eigen::Vector2d forward = to_en.topLeftCorner<2, 2>() * Eigen::Vector2d(std::cos(p.pose_m.z()), std::sin(p.pose_m.z()));
+  p.heading_en_rad = std::atan2(forward.y(), forward.x());
+  p.cov_en = to_en * p.cov * to_en.transpose();
+  return p;
+}
+
 absl::Status LocalizationMap::Validate() const {
   const int n = static_cast<int>(ids.size());
   if (static_cast<int>(positions.size()) != n) return absl::InvalidArgumentError("localization map: one position per id");
@@ -381,18 +396,7 @@ absl::StatusOr<PassageLocalization> LocalizePassage(const Passage& passage, cons
     if (used[k]) out.landmarks_used.push_back(map.ids[k]);
   }
   for (int k = 0; k < graph->node_count(); ++k) {
-    LocalizedPose p;
-    p.t_s = graph->node_times_s[k];
-    p.pose_m = poses[k];
-    p.pose_m.z() = NormalizeAngle(p.pose_m.z());
-    p.position = graph->frame.ToGeo(poses[k].head<2>());
-    p.cov = 0.5 * ((*covariances)[k] + (*covariances)[k].transpose());
-    Eigen::Matrix3d to_en = Eigen::Matrix3d::Identity();
-    to_en.topLeftCorner<2, 2>() = graph->frame.EnToLocal(p.position).inverse();
-    const Eigen::Vector2d forward = to_en.topLeftCorner<2, 2>() * Eigen::Vector2d(std::cos(p.pose_m.z()), std::sin(p.pose_m.z()));
-    p.heading_en_rad = std::atan2(forward.y(), forward.x());
-    p.cov_en = to_en * p.cov * to_en.transpose();
-    out.poses.push_back(p);
+    out.poses.push_back(MakeLocalizedPose(graph->frame, graph->node_times_s[k], poses[k], (*covariances)[k]));
   }
   out.solve_ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
   return out;

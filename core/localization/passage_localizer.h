@@ -61,6 +61,10 @@ struct LocalizedPose {
   Eigen::Matrix3d cov_en;
 };
 
+// A pose of the local `frame` with its covariance there, as a LocalizedPose (WGS84, and heading and
+// covariance in the East/North frame at the pose).
+LocalizedPose MakeLocalizedPose(const LocalFrame& frame, double t_s, const Pose2& pose_m, const Eigen::Matrix3d& cov);
+
 struct RejectedDetection {
   double t_s = 0.0;
   LandmarkId landmark_id = 0;
