@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <limits>
 
 #include <Eigen/Cholesky>
 #include <Eigen/Eigenvalues>
@@ -10,19 +11,47 @@
 
 namespace crowdmap {
 
+namespace {
+
+// The block (row's landmark, b), inserted (zero, no factor) when absent.
+InformationBlock& BlockIn(InformationRow& row, LandmarkId b) {
+  auto it = std::lower_bound(row.begin(), row.end(), b, [](const LinkedBlock& e, LandmarkId id) { return e.id < id; });
+  if (it == row.end() || it->id != b) it = row.insert(it, LinkedBlock{b, InformationBlock{}});
+  return it->block;
+}
+
+const InformationBlock* FindIn(const InformationRow& row, LandmarkId b) {
+  auto it = std::lower_bound(row.begin(), row.end(), b, [](const LinkedBlock& e, LandmarkId id) { return e.id < id; });
+  return it == row.end() || it->id != b ? nullptr : &it->block;
+}
+
+}  // namespace
+
 void AssembledInformation::Add(const MapFactor& factor, int sign) {
   const int k = static_cast<int>(factor.landmarks.size());
+  // The factor's landmarks in increasing id, merged into each of their rows in one pass.
+  std::vector<int> order(k);
+  for (int j = 0; j < k; ++j) order[j] = j;
+  std::sort(order.begin(), order.end(), [&](int x, int y) { return factor.landmarks[x] < factor.landmarks[y]; });
+  InformationRow merged;
   for (int i = 0; i < k; ++i) {
     const LandmarkId a = factor.landmarks[i];
     auto [it, inserted] = vector_.try_emplace(a, Eigen::Vector2d::Zero());
     it->second += sign * factor.information_vector.segment<2>(2 * i);
-    auto& row = rows_[a];
-    for (int j = 0; j < k; ++j) {
-      InformationBlock& block = row[factor.landmarks[j]];
-      block.value += sign * factor.information.block<2, 2>(2 * i, 2 * j);
-      block.factors += sign;
-      if (block.factors == 0 && !difference_) row.erase(factor.landmarks[j]);
+    InformationRow& row = rows_[a];
+    merged.clear();
+    merged.reserve(row.size() + k);
+    size_t r = 0;
+    for (int j : order) {
+      const LandmarkId b = factor.landmarks[j];
+      while (r < row.size() && row[r].id < b) merged.push_back(row[r++]);
+      LinkedBlock entry = r < row.size() && row[r].id == b ? row[r++] : LinkedBlock{b, InformationBlock{}};
+      entry.block.value += sign * factor.information.block<2, 2>(2 * i, 2 * j);
+      entry.block.factors += sign;
+      if (entry.block.factors != 0 || difference_) merged.push_back(entry);
     }
+    while (r < row.size()) merged.push_back(row[r++]);
+    row.swap(merged);
     if (row.empty() && !difference_) {
       rows_.erase(a);
       vector_.erase(a);
@@ -31,12 +60,12 @@ void AssembledInformation::Add(const MapFactor& factor, int sign) {
 }
 
 void AssembledInformation::AddBlock(LandmarkId a, LandmarkId b, const Eigen::Matrix2d& value) {
-  InformationBlock& ab = rows_[a][b];
+  InformationBlock& ab = BlockIn(rows_[a], b);
   ab.value += value;
   ++ab.factors;
   vector_.try_emplace(a, Eigen::Vector2d::Zero());
   if (a == b) return;
-  InformationBlock& ba = rows_[b][a];
+  InformationBlock& ba = BlockIn(rows_[b], a);
   ba.value += value.transpose();
   ++ba.factors;
   vector_.try_emplace(b, Eigen::Vector2d::Zero());
@@ -48,10 +77,14 @@ void AssembledInformation::AddVector(LandmarkId id, const Eigen::Vector2d& value
 }
 
 InformationBlock AssembledInformation::Block(LandmarkId a, LandmarkId b) const {
+  const InformationRow* row = Row(a);
+  const InformationBlock* block = row == nullptr ? nullptr : FindIn(*row, b);
+  return block == nullptr ? InformationBlock{} : *block;
+}
+
+const InformationRow* AssembledInformation::Row(LandmarkId a) const {
   auto it = rows_.find(a);
-  if (it == rows_.end()) return {};
-  auto jt = it->second.find(b);
-  return jt == it->second.end() ? InformationBlock{} : jt->second;
+  return it == rows_.end() ? nullptr : &it->second;
 }
 
 Eigen::Vector2d AssembledInformation::Vector(LandmarkId id) const {
@@ -61,10 +94,10 @@ Eigen::Vector2d AssembledInformation::Vector(LandmarkId id) const {
 
 void AssembledInformation::ForEachLinked(LandmarkId a,
                                          const std::function<void(LandmarkId, const InformationBlock&)>& fn) const {
-  auto it = rows_.find(a);
-  if (it == rows_.end()) return;
-  for (const auto& [b, block] : it->second) {
-    if (b != a) fn(b, block);
+  const InformationRow* row = Row(a);
+  if (row == nullptr) return;
+  for (const LinkedBlock& e : *row) {
+    if (e.id != a) fn(e.id, e.block);
   }
 }
 
@@ -185,16 +218,30 @@ Eigen::Vector2d MapOverlay::InformationVector(LandmarkId id) const {
 
 void MapOverlay::ForEachLink(LandmarkId id,
                              const std::function<void(LandmarkId, const InformationBlock&)>& fn) const {
+  // The base's links and the change's row, both in increasing id, merged.
+  const InformationRow* change = change_.Row(id);
+  size_t c = 0;
+  const auto changes_before = [&](LandmarkId limit) {  // links only the change has
+    for (; change != nullptr && c < change->size() && (*change)[c].id < limit; ++c) {
+      const LinkedBlock& e = (*change)[c];
+      if (e.id != id && e.block.factors > 0) fn(e.id, e.block);
+    }
+  };
   base_.ForEachLink(id, [&](LandmarkId b, const InformationBlock& base) {
+    changes_before(b);
     InformationBlock block = base;
-    const InformationBlock change = change_.Block(id, b);
-    block.value += change.value;
-    block.factors += change.factors;
+    if (change != nullptr && c < change->size() && (*change)[c].id == b) {
+      block.value += (*change)[c].block.value;
+      block.factors += (*change)[c].block.factors;
+      ++c;
+    }
     if (block.factors > 0) fn(b, block);
   });
-  change_.ForEachLinked(id, [&](LandmarkId b, const InformationBlock& change) {
-    if (change.factors > 0 && base_.Information(id, b).factors == 0) fn(b, change);
-  });
+  changes_before(std::numeric_limits<LandmarkId>::max());
+  if (change != nullptr && c < change->size()) {  // the largest id itself
+    const LinkedBlock& e = (*change)[c];
+    if (e.id != id && e.block.factors > 0) fn(e.id, e.block);
+  }
 }
 
 const MapFactor* MapOverlay::FindFactor(int64_t id) const {

@@ -68,7 +68,8 @@ class MapReaderInterface {
   // Block (a, b) of the information matrix; a == b is the landmark's own block.
   virtual InformationBlock Information(LandmarkId a, LandmarkId b) const = 0;
   virtual Eigen::Vector2d InformationVector(LandmarkId id) const = 0;
-  // Calls fn(b, block (id, b)) for every other landmark b that shares information with `id`.
+  // Calls fn(b, block (id, b)) for every other landmark b that shares information with `id`, in
+  // increasing order of b.
   virtual void ForEachLink(LandmarkId id,
                            const std::function<void(LandmarkId, const InformationBlock&)>& fn) const = 0;
   // Appends the other landmarks that share information with `id` (each once).
@@ -86,6 +87,15 @@ class MapReaderInterface {
   virtual int64_t version() const = 0;
 };
 
+// One stored block of a row of the information: (row landmark, `id`).
+struct LinkedBlock {
+  LandmarkId id = 0;
+  InformationBlock block;
+};
+// A row of the information: its blocks in increasing id order (the diagonal included), contiguous
+// so that a window's assembly reads it without chasing pointers.
+using InformationRow = std::vector<LinkedBlock>;
+
 // The information matrix and vector that a set of factors sums to, as sparse 2x2 blocks.
 class AssembledInformation {
  public:
@@ -101,11 +111,13 @@ class AssembledInformation {
   // Block (a, b); zero with factors == 0 when absent.
   InformationBlock Block(LandmarkId a, LandmarkId b) const;
   Eigen::Vector2d Vector(LandmarkId id) const;
-  // Calls fn(b, block) for every stored block (a, b), b != a.
+  // Calls fn(b, block) for every stored block (a, b), b != a, in increasing b.
   void ForEachLinked(LandmarkId a, const std::function<void(LandmarkId, const InformationBlock&)>& fn) const;
+  // Row a; nullptr when it holds no block.
+  const InformationRow* Row(LandmarkId a) const;
 
  private:
-  std::unordered_map<LandmarkId, std::unordered_map<LandmarkId, InformationBlock>> rows_;
+  std::unordered_map<LandmarkId, InformationRow> rows_;
   std::unordered_map<LandmarkId, Eigen::Vector2d> vector_;
   bool difference_;
 };
