@@ -140,6 +140,27 @@ std::vector<Landmark> CachedMapStore::Select(const View& view, const BoundingBox
   return out;
 }
 
+std::shared_ptr<const MapWindow> CachedMapStore::WholeMapWindow() const {
+  std::lock_guard<std::mutex> lock(window_mu_);
+  if (window_ == nullptr || window_version_ != map_.version()) {
+    window_.reset();
+    absl::StatusOr<MapWindow> window = MapWindow::Build(map_, map_.LandmarkIds(), MapWindowOptions());
+    if (!window.ok()) return nullptr;  // the caller falls back to a window of its own, with the error
+    window_ = std::make_shared<const MapWindow>(*std::move(window));
+    window_version_ = map_.version();
+  }
+  return window_;
+}
+
+absl::Status CachedMapStore::AppendCovariances(LandmarkPage* page) const {
+  if (covariance_window_hops_ == 0 && !page->landmarks.empty()) {
+    if (std::shared_ptr<const MapWindow> window = WholeMapWindow(); window != nullptr) {
+      return AppendCrossCovariances(*window, page);
+    }
+  }
+  return AppendCrossCovariances(map_, covariance_window_hops_, page);
+}
+
 absl::StatusOr<LandmarkPage> CachedMapStore::QueryRegion(const BoundingBox& box, LandmarkId after_id, int limit,
                                                          bool include_cross) {
   // With covariances, the view and the map are read under the map's lock: the same version.
@@ -154,7 +175,7 @@ absl::StatusOr<LandmarkPage> CachedMapStore::QueryRegion(const BoundingBox& box,
     page.more = true;
   }
   if (include_cross) {
-    if (auto s = AppendCrossCovariances(map_, covariance_window_hops_, &page); !s.ok()) return s;
+    if (auto s = AppendCovariances(&page); !s.ok()) return s;
   }
   return page;
 }
@@ -168,7 +189,7 @@ absl::StatusOr<LandmarkPage> CachedMapStore::GetTile(const TileId& tile, bool in
   page.map_version = view->version;
   if (auto it = view->tiles.find(KeyOf(tile)); it != view->tiles.end()) page.landmarks = *it->second;
   if (include_cross) {
-    if (auto s = AppendCrossCovariances(map_, covariance_window_hops_, &page); !s.ok()) return s;
+    if (auto s = AppendCovariances(&page); !s.ok()) return s;
   }
   return page;
 }

@@ -8,6 +8,7 @@
 #include <unordered_map>
 #include <vector>
 
+#include "core/map/map_window.h"
 #include "server/storage/map_store.h"
 
 namespace crowdmap {
@@ -95,6 +96,14 @@ class CachedMapStore : public MapStoreInterface {
   // together with the view's publication.
   mutable std::shared_mutex map_mu_;
   MapState map_;
+  // Over the whole map at one version, for reads with covariances (covariance_window_hops_ 0): one
+  // factorisation serves every such read until the next commit. Built by the first read that needs
+  // it, under map_mu_ shared; window_mu_ orders its building.
+  std::shared_ptr<const MapWindow> WholeMapWindow() const;
+  absl::Status AppendCovariances(LandmarkPage* page) const;
+  mutable std::mutex window_mu_;
+  mutable std::shared_ptr<const MapWindow> window_;
+  mutable int64_t window_version_ = -1;
   mutable std::mutex view_mu_;  // guards the pointer only; held for a copy of it
   std::shared_ptr<const View> view_;
   std::mutex writer_mu_;                                 // orders commits and their publication

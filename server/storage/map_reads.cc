@@ -7,15 +7,44 @@
 
 namespace crowdmap {
 
+namespace {
+
+std::vector<LandmarkId> IdsOf(const LandmarkPage& page) {
+  std::vector<LandmarkId> ids;
+  ids.reserve(page.landmarks.size());
+  for (const Landmark& l : page.landmarks) ids.push_back(l.id);
+  return ids;
+}
+
+// Puts the joint covariance `cov` of the page's landmarks (in page order) into the page.
+void PutCovariance(const std::vector<LandmarkId>& ids, const Eigen::MatrixXd& cov, LandmarkPage* page);
+
+}  // namespace
+
 absl::Status AppendCrossCovariances(const MapReaderInterface& map, int window_hops, LandmarkPage* page) {
   if (page->landmarks.empty()) return absl::OkStatus();
-  std::vector<LandmarkId> ids;
-  ids.reserve(page->landmarks.size());
-  for (const Landmark& l : page->landmarks) ids.push_back(l.id);
+  const std::vector<LandmarkId> ids = IdsOf(*page);
   MapWindowOptions options;
   options.hops = window_hops;
   absl::StatusOr<Eigen::MatrixXd> cov = JointCovariance(map, ids, options);
   if (!cov.ok()) return cov.status();
+  PutCovariance(ids, *cov, page);
+  return absl::OkStatus();
+}
+
+absl::Status AppendCrossCovariances(const MapWindow& window, LandmarkPage* page) {
+  if (page->landmarks.empty()) return absl::OkStatus();
+  const std::vector<LandmarkId> ids = IdsOf(*page);
+  absl::StatusOr<Eigen::MatrixXd> cov = window.Covariance(ids);
+  if (!cov.ok()) return cov.status();
+  PutCovariance(ids, *cov, page);
+  return absl::OkStatus();
+}
+
+namespace {
+
+void PutCovariance(const std::vector<LandmarkId>& ids, const Eigen::MatrixXd& cov_matrix, LandmarkPage* page) {
+  const Eigen::MatrixXd* cov = &cov_matrix;
   const size_t n = ids.size();
   page->cross.reserve(page->cross.size() + n * (n - 1) / 2);
   for (size_t i = 0; i < n; ++i) {
@@ -27,8 +56,9 @@ absl::Status AppendCrossCovariances(const MapReaderInterface& map, int window_ho
       page->cross.emplace_back(ordered ? LandmarkPair{ids[i], ids[j]} : LandmarkPair{ids[j], ids[i]}, block);
     }
   }
-  return absl::OkStatus();
 }
+
+}  // namespace
 
 absl::StatusOr<LandmarkProvenance> ProvenanceOf(const MapReaderInterface& map, LandmarkId id) {
   const Landmark* landmark = map.FindLandmark(id);

@@ -3,6 +3,7 @@
 
 #include "absl/status/status.h"
 #include "core/map/map_state.h"
+#include "core/map/map_window.h"
 #include "server/storage/map_store.h"
 
 namespace crowdmap {
@@ -11,6 +12,8 @@ namespace crowdmap {
 // with `window_hops`) and puts it in the page: every cross block, and the diagonal blocks as the
 // landmarks' covariances, so that what is returned is one consistent matrix.
 absl::Status AppendCrossCovariances(const MapReaderInterface& map, int window_hops, LandmarkPage* page);
+// The same from a window that holds every landmark of the page (e.g. one over the whole map).
+absl::Status AppendCrossCovariances(const MapWindow& window, LandmarkPage* page);
 
 // Landmark `id` of `map` and the passages whose factors it is in. NotFound when it is not mapped.
 absl::StatusOr<LandmarkProvenance> ProvenanceOf(const MapReaderInterface& map, LandmarkId id);

@@ -954,5 +954,43 @@ TEST(CachedMapStore, AnswersLikeSqliteAcrossCommitsThatMoveLandmarksBetweenTiles
   ExpectSamePage((*reopened)->QueryRegion(around, 0, 0, false), (*cached)->QueryRegion(around, 0, 0, false));
 }
 
+// Reads with covariances share one factorisation of the whole map per version: after every commit
+// (each changes the information), twice in a row, they equal SQLite's, which factorises per read.
+TEST(CachedMapStore, CovarianceReadsFollowEveryCommit) {
+  TempDir dir;
+  const std::string path = dir.File("map.db");
+  auto cached = CachedMapStore::Create(OpenStore(path));
+  ASSERT_TRUE(cached.ok()) << cached.status();
+  auto sqlite = OpenStore(path);
+  const BoundingBox box{48.69, 2.16, 48.72, 2.18};
+  for (int step = 0; step < 6; ++step) {
+    const int64_t id = EnqueueAndClaim(cached->get(), "p" + std::to_string(step));
+    MapDelta delta;
+    delta.base_version = step;
+    delta.version = step + 1;
+    for (LandmarkId lid : {1, 2, 3}) delta.landmarks[lid] = MakeLandmark(lid, 48.70 + 1e-4 * lid, 2.17, step + 1);
+    Eigen::Matrix2d block;
+    block << 0.01 * (step + 1), 0.02, -0.01, 0.03;
+    delta.added_factors[step + 1] = MakeFactor(step + 1, {step % 2 ? 1 : 2, 3}, PairCovariance(block));
+    if (step == 0) delta.added_factors[100] = MakeFactor(100, {1, 2}, PairCovariance(-block));
+    ASSERT_TRUE((*cached)->CommitPassageApplied(id, delta, {}).ok());
+    for (int read = 0; read < 2; ++read) {
+      auto got = (*cached)->QueryRegion(box, 0, 0, true);
+      auto want = sqlite->QueryRegion(box, 0, 0, true);
+      ASSERT_TRUE(got.ok() && want.ok()) << got.status() << want.status();
+      ASSERT_EQ(got->landmarks.size(), 3u);
+      ASSERT_EQ(got->cross.size(), want->cross.size());
+      for (size_t i = 0; i < got->landmarks.size(); ++i) {
+        EXPECT_LT((got->landmarks[i].cov_en_m2 - want->landmarks[i].cov_en_m2).cwiseAbs().maxCoeff(), 1e-12)
+            << "step " << step << " read " << read;
+      }
+      for (size_t k = 0; k < got->cross.size(); ++k) {
+        EXPECT_EQ(got->cross[k].first, want->cross[k].first);
+        EXPECT_LT((got->cross[k].second - want->cross[k].second).cwiseAbs().maxCoeff(), 1e-12);
+      }
+    }
+  }
+}
+
 }  // namespace
 }  // namespace crowdmap
