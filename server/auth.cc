@@ -196,15 +196,7 @@ size_t Authenticator::identities() const {
 absl::StatusOr<Principal> Authenticator::Authenticate(const grpc::ServerContextBase& ctx) const {
   const auto& metadata = ctx.client_metadata();
   if (auto it = metadata.find("authorization"); it != metadata.end()) {
-    absl::string_view value(it->second.data(), it->second.size());
-    if (!absl::ConsumePrefix(&value, "Bearer ") || value.empty()) {
-      return absl::UnauthenticatedError("authorization: expected 'Bearer TOKEN'");
-    }
-    const std::string hash = Sha256Hex(std::string(value));
-    std::shared_lock lock(mu_);
-    auto found = identities_.token_hashes.find(hash);
-    if (found == identities_.token_hashes.end()) return absl::UnauthenticatedError("authorization: unknown token");
-    return found->second;
+    return AuthenticateBearer(std::string_view(it->second.data(), it->second.size()));
   }
   const std::shared_ptr<const grpc::AuthContext> auth = ctx.auth_context();
   if (auth != nullptr && auth->IsPeerAuthenticated()) {
@@ -218,6 +210,18 @@ absl::StatusOr<Principal> Authenticator::Authenticate(const grpc::ServerContextB
   }
   return absl::UnauthenticatedError(
       "no credentials: send 'authorization: Bearer TOKEN' metadata (--token-file) or a client certificate");
+}
+
+absl::StatusOr<Principal> Authenticator::AuthenticateBearer(std::string_view authorization) const {
+  absl::string_view value(authorization.data(), authorization.size());
+  if (!absl::ConsumePrefix(&value, "Bearer ") || value.empty()) {
+    return absl::UnauthenticatedError("authorization: expected 'Bearer TOKEN'");
+  }
+  const std::string hash = Sha256Hex(std::string(value));
+  std::shared_lock lock(mu_);
+  auto found = identities_.token_hashes.find(hash);
+  if (found == identities_.token_hashes.end()) return absl::UnauthenticatedError("authorization: unknown token");
+  return found->second;
 }
 
 absl::StatusOr<Principal> CheckAccess(const Authenticator* auth, const grpc::ServerContextBase& ctx,

@@ -6,6 +6,7 @@
 #include <mutex>
 #include <shared_mutex>
 #include <string>
+#include <string_view>
 
 #include <grpcpp/security/server_credentials.h>
 #include <grpcpp/server_context.h>
@@ -81,6 +82,9 @@ class Authenticator {
   // The caller of `ctx`: its bearer token ("authorization: Bearer TOKEN") if it sent one, otherwise
   // its verified client certificate; UNAUTHENTICATED when neither names a known identity.
   absl::StatusOr<Principal> Authenticate(const grpc::ServerContextBase& ctx) const;
+  // The identity of an "authorization" header's value, "Bearer TOKEN" (the HTTP map viewer uses
+  // it too); UNAUTHENTICATED when malformed or unknown.
+  absl::StatusOr<Principal> AuthenticateBearer(std::string_view authorization) const;
   size_t identities() const;
 
  private:

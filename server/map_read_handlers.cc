@@ -22,6 +22,26 @@ void AddLandmarks(const LandmarkPage& page, Response* response) {
 
 }  // namespace
 
+void MapInfoToProto(const MapStats& stats, const MapUpdateOptions& update, pb::MapInfo* info) {
+  info->set_map_version(stats.map_version);
+  info->set_landmark_count(stats.landmark_count);
+  info->set_factor_count(stats.factor_count);
+  info->set_queue_depth(stats.queue_depth());
+  info->set_passages_queued(stats.passages_by_state[static_cast<int>(PassageState::kQueued)]);
+  info->set_passages_processing(stats.passages_by_state[static_cast<int>(PassageState::kProcessing)]);
+  info->set_passages_applied(stats.passages_by_state[static_cast<int>(PassageState::kApplied)]);
+  info->set_passages_rejected(stats.passages_by_state[static_cast<int>(PassageState::kRejected)]);
+  info->set_passages_failed(stats.passages_by_state[static_cast<int>(PassageState::kFailed)]);
+  info->set_passages_quarantined(stats.passages_by_state[static_cast<int>(PassageState::kQuarantined)]);
+  info->set_passages_discarded(stats.passages_by_state[static_cast<int>(PassageState::kDiscarded)]);
+  info->set_strategy(UpdateStrategyName(update.strategy));
+  info->set_server_version(CROWDMAP_VERSION);
+  info->set_warmup_passages(update.warmup_passages);
+  info->set_relinearize_until_passages(update.relinearize_until_passages);
+  info->set_max_subgraph_dim(update.max_subgraph_dim);
+  info->set_window_hops(update.window_hops);
+}
+
 grpc::ServerUnaryReactor* MapService::GetTile(grpc::CallbackServerContext* ctx, const pb::GetTileRequest* request,
                                               pb::GetTileResponse* response) {
   grpc::ServerUnaryReactor* reactor = ctx->DefaultReactor();
@@ -149,23 +169,7 @@ grpc::Status MapService::GetMapInfo(grpc::ServerContext* ctx, const pb::GetMapIn
   if (auto who = CheckAccess(context_->auth, *ctx, Permission::kReadMap, &log); !who.ok()) return log.Done(who.status());
   absl::StatusOr<MapStats> stats = context_->store->GetStats();
   if (!stats.ok()) return log.Done(stats.status());
-  response->set_map_version(stats->map_version);
-  response->set_landmark_count(stats->landmark_count);
-  response->set_factor_count(stats->factor_count);
-  response->set_queue_depth(stats->queue_depth());
-  response->set_passages_queued(stats->passages_by_state[static_cast<int>(PassageState::kQueued)]);
-  response->set_passages_processing(stats->passages_by_state[static_cast<int>(PassageState::kProcessing)]);
-  response->set_passages_applied(stats->passages_by_state[static_cast<int>(PassageState::kApplied)]);
-  response->set_passages_rejected(stats->passages_by_state[static_cast<int>(PassageState::kRejected)]);
-  response->set_passages_failed(stats->passages_by_state[static_cast<int>(PassageState::kFailed)]);
-  response->set_passages_quarantined(stats->passages_by_state[static_cast<int>(PassageState::kQuarantined)]);
-  response->set_passages_discarded(stats->passages_by_state[static_cast<int>(PassageState::kDiscarded)]);
-  response->set_strategy(UpdateStrategyName(context_->update.strategy));
-  response->set_server_version(CROWDMAP_VERSION);
-  response->set_warmup_passages(context_->update.warmup_passages);
-  response->set_relinearize_until_passages(context_->update.relinearize_until_passages);
-  response->set_max_subgraph_dim(context_->update.max_subgraph_dim);
-  response->set_window_hops(context_->update.window_hops);
+  MapInfoToProto(*stats, context_->update, response);
   log.Add(absl::StrCat("map_version=", stats->map_version, " queue_depth=", stats->queue_depth()));
   return log.Done(absl::OkStatus());
 }

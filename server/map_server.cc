@@ -26,6 +26,12 @@ namespace crowdmap {
 absl::Status MapServerOptions::Validate() const {
   if (listen.empty()) return absl::InvalidArgumentError("listen: must not be empty");
   if (db_path.empty()) return absl::InvalidArgumentError("db: must not be empty");
+  if (!http_listen.empty()) {
+    HttpViewerOptions viewer{http_listen, viewer_basemap};
+    if (absl::Status s = viewer.Validate(); !s.ok()) return s;
+  } else if (!viewer_basemap.empty()) {
+    return absl::InvalidArgumentError("viewer-basemap: needs http-listen (the viewer is off)");
+  }
   if (!metrics_listen.empty() && metrics_listen.rfind(':') == std::string::npos) {
     return absl::InvalidArgumentError(absl::StrCat("metrics-listen: expected host:port, got '", metrics_listen, "'"));
   }
@@ -149,6 +155,16 @@ absl::StatusOr<std::unique_ptr<MapServer>> MapServer::Start(const MapServerOptio
     if (!auth.ok()) return auth.status();
     server->auth_ = std::move(*auth);
   }
+  if (!options.http_listen.empty()) {
+    auto http = HttpViewer::Start(HttpViewerOptions{options.http_listen, options.viewer_basemap}, server->store_.get(),
+                                  server->auth_.get(), options.worker.update);
+    if (!http.ok()) return http.status();
+    server->http_ = std::move(*http);
+    if (auth_on && !IsLoopbackListen(options.http_listen)) {
+      spdlog::warn("event=plaintext_tokens http_listen={} (the map viewer is plain HTTP: its bearer tokens cross the "
+                   "network in clear; keep it on loopback behind a TLS proxy)", options.http_listen);
+    }
+  }
   auto credentials = MakeServerCredentials(options.security);
   if (!credentials.ok()) return credentials.status();
   server->quotas_ = std::make_unique<VehicleQuotas>(options.limits);
@@ -241,6 +257,7 @@ void MapServer::Shutdown(std::chrono::milliseconds grace) {
   shut_down_ = true;
   spdlog::info("event=shutting_down");
   if (server_ != nullptr) server_->GetHealthCheckService()->SetServingStatus(false);
+  http_.reset();
   context_.accepting_uploads = false;
   if (worker_ != nullptr) worker_->Stop();
   notifier_.Close();

@@ -11,6 +11,7 @@
 
 #include "absl/status/statusor.h"
 #include "server/auth.h"
+#include "server/http_viewer.h"
 #include "server/map_service.h"
 #include "server/map_worker.h"
 #include "server/metrics.h"
@@ -33,6 +34,8 @@ struct MapServerOptions {
   int max_passage_mb = 64;    // largest accepted passage (chunked uploads)
   bool start_worker = true;   // false: accept and queue uploads, apply nothing
   std::string metrics_listen;  // host:port of the Prometheus endpoint (/metrics); empty = none
+  std::string http_listen;     // host:port of the map viewer (server/http_viewer.h); empty = none
+  std::string viewer_basemap;  // the viewer's optional XYZ basemap URL template; empty = no tiles
   SecurityOptions security;   // TLS, authentication, roles (server/auth.h)
   LimitOptions limits;        // quotas, streams, bytes in flight, threads (server/quotas.h)
 
@@ -59,6 +62,8 @@ class MapServer {
   // The Prometheus endpoint's port; 0 without metrics_listen.
   int metrics_port() const { return metrics_ == nullptr ? 0 : metrics_->port(); }
   ServerMetrics* metrics() { return metrics_.get(); }
+  // The map viewer's HTTP port; 0 without http_listen.
+  int http_port() const { return http_ == nullptr ? 0 : http_->port(); }
   // "host:port" a client on this machine can dial.
   std::string address() const;
   MapStoreInterface* store() { return store_.get(); }
@@ -88,6 +93,7 @@ class MapServer {
   std::unique_ptr<UploadCommitter> committer_;
   std::unique_ptr<MapWorker> worker_;
   std::unique_ptr<Authenticator> auth_;
+  std::unique_ptr<HttpViewer> http_;  // reads store_, checks tokens with auth_
   std::unique_ptr<VehicleQuotas> quotas_;
   std::unique_ptr<InflightBytes> inflight_;
   std::unique_ptr<StreamLimiter> streams_;

@@ -37,6 +37,9 @@ struct MapServiceContext {
   StreamLimiter* streams = nullptr;
 };
 
+// GetMapInfo's answer: the store's counts and the estimator's settings (also the map viewer's).
+void MapInfoToProto(const MapStats& stats, const MapUpdateOptions& update, pb::MapInfo* info);
+
 // mapservice.v1.MapService: one thin handler per RPC; conversion in wire_convert, errors through
 // ToGrpcStatus, one log line per request.
 // Allocates a callback call's request and response on one protobuf arena, freed with the call.

@@ -20,7 +20,7 @@ const std::vector<std::string>& SettingNames() {
       "listen", "db", "strategy", "max-subgraph-dim", "window-hops", "warmup-passages", "relinearize-until-passages", "workers",
       "retain-passages", "worker-nice", "max-queue", "max-message-mb", "max-passage-mb", "log-level",
       "max-detection-residual-sigmas", "max-landmark-shift-sigmas", "max-new-landmark-ray-sigma-m",
-      "max-chi2-per-dof", "metrics-listen", "log-format", "create"};
+      "max-chi2-per-dof", "metrics-listen", "http-listen", "viewer-basemap", "log-format", "create"};
   return kNames;
 }
 
@@ -145,6 +145,11 @@ Usage: mapd [--flag value | --flag=value]...
                               there, so that a mistyped path cannot start an empty map
   --metrics-listen ADDR       serve Prometheus metrics on http://ADDR/metrics (default: none;
                               e.g. 127.0.0.1:9464; the endpoint has no authentication)
+  --http-listen ADDR          serve the map viewer on http://ADDR/ (default: none; e.g.
+                              127.0.0.1:8080). With authentication on, its /api/ needs the
+                              same bearer tokens as gRPC
+  --viewer-basemap URL        XYZ tile URL template for the viewer's basemap, e.g.
+                              https://tile.example.org/{z}/{x}/{y}.png (default: none, no tiles)
   --log-level LEVEL           trace | debug | info | warn | error | off (default info)
   --log-format FORMAT         text (key=value lines) | json (one JSON object per line)
                               (default text)
@@ -229,6 +234,10 @@ absl::StatusOr<MapdConfig> ParseMapdConfig(const std::vector<std::string>& args,
       config.log_format = value;
     } else if (name == "metrics-listen") {
       o.metrics_listen = value;
+    } else if (name == "http-listen") {
+      o.http_listen = value;
+    } else if (name == "viewer-basemap") {
+      o.viewer_basemap = value;
     } else if (name == "create") {
       absl::StatusOr<bool> create = ToBool(name, value);
       if (!create.ok()) return create.status();
@@ -268,6 +277,8 @@ std::string DescribeMapdConfig(const MapdConfig& config) {
       " max-landmark-shift-sigmas=", std::sqrt(u.max_landmark_shift_mahalanobis2),
       " max-new-landmark-ray-sigma-m=", u.max_new_landmark_ray_sigma_m, " max-chi2-per-dof=", u.max_chi2_per_dof,
       " metrics-listen=", o.metrics_listen.empty() ? "none" : EscapeForLog(o.metrics_listen),
+      " http-listen=", o.http_listen.empty() ? "none" : EscapeForLog(o.http_listen),
+      " viewer-basemap=", o.viewer_basemap.empty() ? "none" : EscapeForLog(o.viewer_basemap),
       " log-level=", EscapeForLog(config.log_level), " log-format=", config.log_format);
 }
 

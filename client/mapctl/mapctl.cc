@@ -16,7 +16,7 @@
 #include "absl/strings/str_split.h"
 #include "absl/time/clock.h"
 #include "absl/time/time.h"
-#include "client/api/geojson.h"
+#include "server/geojson.h"
 #include "client/api/localization_export.h"
 #include "client/api/map_client.h"
 #include "client/api/passage_files.h"

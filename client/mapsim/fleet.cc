@@ -12,7 +12,7 @@
 
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
-#include "client/api/geojson.h"
+#include "server/geojson.h"
 #include "client/api/passage_files.h"
 #include "core/geo/local_frame.h"
 #include "core/sim/metrics.h"

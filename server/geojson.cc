@@ -1,4 +1,4 @@
-#include "client/api/geojson.h"
+#include "server/geojson.h"
 
 #include <algorithm>
 #include <cmath>

@@ -1,5 +1,5 @@
-#ifndef CROWDMAP_CLIENT_API_GEOJSON_H_
-#define CROWDMAP_CLIENT_API_GEOJSON_H_
+#ifndef CROWDMAP_SERVER_GEOJSON_H_
+#define CROWDMAP_SERVER_GEOJSON_H_
 
 #include <string>
 #include <vector>
@@ -31,4 +31,4 @@ std::string LandmarksToGeoJson(const std::vector<::mapservice::v1::Landmark>& la
 
 }  // namespace crowdmap
 
-#endif  // CROWDMAP_CLIENT_API_GEOJSON_H_
+#endif  // CROWDMAP_SERVER_GEOJSON_H_
