@@ -1,4 +1,5 @@
 #include "client/mapsim/city_experiment.h"
+#include "server/testing/temp_dir.h"
 
 #include <cmath>
 #include <filesystem>
@@ -53,7 +54,8 @@ TEST(CityExperiment, MapsTheCityAndWritesItsOutputs) {
     EXPECT_GT(e.sigma_north_m, 0.0);
   }
 
-  const std::filesystem::path dir = std::filesystem::path(testing::TempDir()) / "city_experiment_test";
+  TempDir scratch;  // a fresh directory: no leftover of another run
+  const std::filesystem::path dir = std::filesystem::path(scratch.path()) / "city_experiment_test";
   std::filesystem::remove_all(dir);
   ASSERT_TRUE(WriteCityOutputs(options, *result, dir.string()).ok());
   EXPECT_EQ(CountLines(dir / "landmarks.csv"), static_cast<int>(result->errors.size()) + 1);

@@ -1,4 +1,5 @@
 #include "client/mapsim/experiment.h"
+#include "server/testing/temp_dir.h"
 
 #include <algorithm>
 #include <filesystem>
@@ -120,7 +121,8 @@ TEST(Experiment, RejectsAnOrderThatIsNotAPermutation) {
 }
 
 TEST(Experiment, OrderFileRoundTripsAndNamesTheBadLine) {
-  const std::filesystem::path dir = std::filesystem::path(testing::TempDir()) / "order_files";
+  TempDir scratch;  // a fresh directory: no leftover of another run
+  const std::filesystem::path dir = std::filesystem::path(scratch.path()) / "order_files";
   std::filesystem::create_directories(dir);
   const std::vector<int> order = {2, 0, 3, 1};
   ASSERT_TRUE(WriteOrderFile(order, (dir / "order.txt").string()).ok());
@@ -152,7 +154,8 @@ TEST(Experiment, WritesCsvSummaryAndPlot) {
   options.passages = 3;
   absl::StatusOr<ExperimentResult> result = RunExperiment(options);
   ASSERT_TRUE(result.ok()) << result.status();
-  const std::filesystem::path dir = std::filesystem::path(testing::TempDir()) / "experiment_outputs";
+  TempDir scratch;  // a fresh directory: no leftover of another run
+  const std::filesystem::path dir = std::filesystem::path(scratch.path()) / "experiment_outputs";
   ASSERT_TRUE(WriteExperimentOutputs(options, *result, dir.string()).ok());
   const auto [header, rows] = ReadCsv(dir / "passages.csv");
   EXPECT_EQ(header.rfind("passage,mean_dist_err_m,mean_east_err_m,mean_north_err_m,east_3sigma_m,north_3sigma_m,"

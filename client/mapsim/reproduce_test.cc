@@ -1,4 +1,5 @@
 #include "client/mapsim/reproduce.h"
+#include "server/testing/temp_dir.h"
 
 #include <filesystem>
 #include <fstream>
@@ -16,7 +17,8 @@ std::string ReadAll(const std::filesystem::path& path) {
 
 TEST(Reproduce, RunsEveryExperimentForEachSeedAndReportsTheMeans) {
   ReproduceOptions options;
-  options.out_dir = (std::filesystem::path(testing::TempDir()) / "reproduce").string();
+  TempDir scratch;  // a fresh directory: no leftover of another run
+  options.out_dir = (std::filesystem::path(scratch.path()) / "reproduce").string();
   options.passages = 2;
   options.seed = 4;
   options.seeds = 2;
@@ -44,7 +46,8 @@ TEST(Reproduce, RunsEveryExperimentForEachSeedAndReportsTheMeans) {
 
 TEST(Reproduce, ConsistencyCellsTakeSeedsUntilTheirMeanNeesIsPreciseEnough) {
   ReproduceOptions options;
-  options.out_dir = (std::filesystem::path(testing::TempDir()) / "reproduce_more").string();
+  TempDir scratch;  // a fresh directory: no leftover of another run
+  options.out_dir = (std::filesystem::path(scratch.path()) / "reproduce_more").string();
   options.passages = 2;
   options.seeds = 1;
   options.max_seeds = 3;
@@ -65,7 +68,8 @@ TEST(Reproduce, ConsistencyCellsTakeSeedsUntilTheirMeanNeesIsPreciseEnough) {
 
 TEST(Reproduce, RefusesZeroSeeds) {
   ReproduceOptions options;
-  options.out_dir = (std::filesystem::path(testing::TempDir()) / "reproduce_none").string();
+  TempDir scratch;  // a fresh directory: no leftover of another run
+  options.out_dir = (std::filesystem::path(scratch.path()) / "reproduce_none").string();
   options.seeds = 0;
   const absl::Status s = RunReproduction(options);
   EXPECT_EQ(s.code(), absl::StatusCode::kInvalidArgument);
