@@ -5,7 +5,8 @@
 // must be refused with a retryable code and a message.
 //
 // CI runs a short version; the full run (see README, "Faults and recovery"):
-//   CROWDMAP_SOAK_KILLS=24 CROWDMAP_SOAK_PASSAGES=130 CROWDMAP_SOAK_FULL_DISK_S=60 \
+//   CROWDMAP_SOAK_KILLS=24 CROWDMAP_SOAK_PASSAGES=130 CROWDMAP_SOAK_LANDMARKS=25 CROWDMAP_SOAK_PASSAGE_S=200 \
+//   CROWDMAP_SOAK_FULL_DISK_S=60 CROWDMAP_SOAK_DISK_PASSAGES=60 \
 //     ./build/tests/service_fault_soak_test
 #include <sys/mount.h>
 
@@ -175,7 +176,9 @@ TEST(FaultSoak, SigkillsDuringUploadsAndJointSolvesLoseNothingAndApplyNothingTwi
   const int passages = EnvInt("CROWDMAP_SOAK_PASSAGES", 20);
   const int kills = EnvInt("CROWDMAP_SOAK_KILLS", 4);
   const int clients = EnvInt("CROWDMAP_SOAK_CLIENTS", 4);
-  const Scenario scenario = ShortScenario(10, 60.0);
+  // Longer passages with more landmarks keep the worker busy (and the joint solves long).
+  const Scenario scenario =
+      ShortScenario(EnvInt("CROWDMAP_SOAK_LANDMARKS", 10), EnvInt("CROWDMAP_SOAK_PASSAGE_S", 60));
   TempDir dir;
   const std::string db = dir.File("map.db"), log = dir.File("mapd.log");
   auto mapd = std::make_unique<MapdProcess>(db, log);
@@ -186,20 +189,23 @@ TEST(FaultSoak, SigkillsDuringUploadsAndJointSolvesLoseNothingAndApplyNothingTwi
   std::vector<UploadRecord> records(passages);
   Refusals refusals;
   const auto start = std::chrono::steady_clock::now();
-  // Uploads spread over the kills: about 0.9 s between kills on average.
-  Fleet fleet(scenario, mapd->address(), 0, passages, clients, std::max(20, 900 * kills / passages * clients / 2),
+  // Uploads spread over the kills (about 1.1 s apart with the restart).
+  Fleet fleet(scenario, mapd->address(), 0, passages, clients, std::max(10, 1100 * kills * clients / passages / 2),
               &refusals, &records);
   std::mt19937 rng(17);
   std::uniform_int_distribution<int> delay_ms(20, 1500);
   int while_processing = 0, during_joint_solve = 0;
   for (int k = 0; k < kills; ++k) {
     bool processing = false, joint = false;
-    if (k % 3 == 0) {
-      // Aim at a joint solve: wait (a while) until one is under way.
+    if (k % 3 != 2) {
+      // Aim at a joint solve (every third kill) or at any passage being applied: wait (a while)
+      // until one is under way, then a little longer.
       for (int poll = 0; poll < 600; ++poll) {
         auto info = observer.GetMapInfo();
-        if (info.ok() && info->passages_processing() > 0 && IsJointSolve(info->passages_applied() + 1)) {
-          processing = joint = true;
+        if (info.ok() && info->passages_processing() > 0 &&
+            (k % 3 == 1 || IsJointSolve(info->passages_applied() + 1))) {
+          processing = true;
+          joint = IsJointSolve(info->passages_applied() + 1);
           std::this_thread::sleep_for(std::chrono::milliseconds(delay_ms(rng) / 10));
           break;
         }
