@@ -5,7 +5,9 @@
 #include <string>
 
 #include <google/protobuf/arena.h>
+#include <grpcpp/support/byte_buffer.h>
 #include <grpcpp/support/message_allocator.h>
+#include <grpcpp/support/sync_stream.h>
 
 #include "core/estimation/map_updater.h"
 #include "mapservice/v1/map_service.grpc.pb.h"
@@ -73,17 +75,17 @@ class ArenaMessageAllocator : public grpc::MessageAllocator<Request, Response> {
 using MapServiceBase =
     pb::MapService::WithCallbackMethod_GetTile<pb::MapService::WithCallbackMethod_QueryRegion<pb::MapService::Service>>;
 
+// The two upload RPCs are served raw (their request bytes parsed in the handler, see wire_parse.h),
+// so that a malformed upload gets INVALID_ARGUMENT naming the field.
 class MapService final : public MapServiceBase {
  public:
-  explicit MapService(MapServiceContext* context) : context_(context) {
-    SetMessageAllocatorFor_GetTile(&tile_allocator_);
-    SetMessageAllocatorFor_QueryRegion(&region_allocator_);
-  }
+  explicit MapService(MapServiceContext* context);
 
-  grpc::Status UploadPassage(grpc::ServerContext* ctx, const pb::UploadPassageRequest* request,
-                             pb::UploadPassageResponse* response) override;
-  grpc::Status UploadPassageChunked(grpc::ServerContext* ctx, grpc::ServerReader<pb::UploadPassageChunk>* reader,
-                                    pb::UploadPassageResponse* response) override;
+  grpc::Status UploadPassageRaw(grpc::ServerContext* ctx, const grpc::ByteBuffer* request,
+                                pb::UploadPassageResponse* response);
+  grpc::Status UploadPassageChunkedRaw(
+      grpc::ServerContext* ctx, grpc::ServerReaderWriterInterface<pb::UploadPassageResponse, grpc::ByteBuffer>* reader,
+      pb::UploadPassageResponse* response);
   grpc::Status GetPassage(grpc::ServerContext* ctx, const pb::GetPassageRequest* request,
                           pb::PassageStatus* response) override;
   grpc::Status ListPassages(grpc::ServerContext* ctx, const pb::ListPassagesRequest* request,

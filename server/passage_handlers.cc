@@ -1,4 +1,6 @@
 // MapService handlers for uploads and the passage queue.
+#include <grpcpp/support/method_handler.h>
+#include <google/protobuf/descriptor.h>
 #include <spdlog/spdlog.h>
 
 #include "absl/strings/numbers.h"
@@ -6,6 +8,7 @@
 #include "absl/strings/str_split.h"
 #include "server/map_service.h"
 #include "server/request_log.h"
+#include "server/wire_parse.h"
 
 namespace crowdmap {
 namespace {
@@ -85,15 +88,54 @@ absl::Status MapService::AcceptUpload(const Principal& who, const pb::Passage& w
   return absl::OkStatus();
 }
 
-grpc::Status MapService::UploadPassage(grpc::ServerContext* ctx, const pb::UploadPassageRequest* request,
-                                       pb::UploadPassageResponse* response) {
+MapService::MapService(MapServiceContext* context) : context_(context) {
+  SetMessageAllocatorFor_GetTile(&tile_allocator_);
+  SetMessageAllocatorFor_QueryRegion(&region_allocator_);
+  // The upload methods get handlers that receive the request messages as raw bytes. gRPC serves a
+  // method given its own handler as a stream (MarkMethodStreamed), which the unary handler reads
+  // once and answers once; the clients see the same RPCs.
+  const google::protobuf::ServiceDescriptor* service =
+      google::protobuf::DescriptorPool::generated_pool()->FindServiceByName(pb::MapService::service_full_name());
+  using Response = pb::UploadPassageResponse;
+  MarkMethodStreamed(
+      service->FindMethodByName("UploadPassage")->index(),
+      new grpc::internal::StreamedUnaryHandler<grpc::ByteBuffer, Response>(
+          [this](grpc::ServerContext* ctx, grpc::ServerUnaryStreamer<grpc::ByteBuffer, Response>* stream) {
+            grpc::ByteBuffer request;
+            if (!stream->Read(&request)) return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, "request: missing");
+            Response response;
+            grpc::Status status = UploadPassageRaw(ctx, &request, &response);
+            if (status.ok()) stream->Write(response);
+            return status;
+          }));
+  MarkMethodStreamed(service->FindMethodByName("UploadPassageChunked")->index(),
+                     new grpc::internal::BidiStreamingHandler<MapService, grpc::ByteBuffer, Response>(
+                         [](MapService* self, grpc::ServerContext* ctx,
+                            grpc::ServerReaderWriter<Response, grpc::ByteBuffer>* stream) {
+                           Response response;
+                           grpc::Status status = self->UploadPassageChunkedRaw(ctx, stream, &response);
+                           if (status.ok()) stream->Write(response);
+                           return status;
+                         },
+                         this));
+}
+
+grpc::Status MapService::UploadPassageRaw(grpc::ServerContext* ctx, const grpc::ByteBuffer* raw,
+                                          pb::UploadPassageResponse* response) {
   RequestLog log("UploadPassage", ctx);
-  const pb::Passage& wire = request->passage();
-  log.Add(absl::StrCat("passage=", wire.passage_id(), " vehicle=", wire.vehicle_id()));
   absl::StatusOr<Principal> who = CheckAccess(context_->auth, *ctx, Permission::kUpload, &log);
+  if (!who.ok()) return log.Done(who.status());
   InflightBytes::Lease held(context_->inflight);
-  absl::Status s = who.ok() ? held.GrowTo(wire.ByteSizeLong()) : who.status();
-  if (s.ok()) s = AcceptUpload(*who, wire, wire.ByteSizeLong(), wire.SerializeAsString(), response);
+  absl::Status s = held.GrowTo(raw->Length());
+  if (!s.ok()) {
+    AddPushback(ctx, s);
+    return log.Done(s);
+  }
+  pb::UploadPassageRequest request;
+  if (s = ParseWireMessage(FlattenByteBuffer(*raw), "", &request); !s.ok()) return log.Done(s);
+  const pb::Passage& wire = request.passage();
+  log.Add(absl::StrCat("passage=", wire.passage_id(), " vehicle=", wire.vehicle_id()));
+  s = AcceptUpload(*who, wire, wire.ByteSizeLong(), wire.SerializeAsString(), response);
   if (s.ok()) {
     log.Add(absl::StrCat("id=", response->status().id(), " duplicate=", response->duplicate() ? "true" : "false"));
   }
@@ -101,9 +143,9 @@ grpc::Status MapService::UploadPassage(grpc::ServerContext* ctx, const pb::Uploa
   return log.Done(s);
 }
 
-grpc::Status MapService::UploadPassageChunked(grpc::ServerContext* ctx,
-                                              grpc::ServerReader<pb::UploadPassageChunk>* reader,
-                                              pb::UploadPassageResponse* response) {
+grpc::Status MapService::UploadPassageChunkedRaw(grpc::ServerContext* ctx,
+                                                 grpc::ServerReaderWriterInterface<pb::UploadPassageResponse, grpc::ByteBuffer>* reader,
+                                                 pb::UploadPassageResponse* response) {
   RequestLog log("UploadPassageChunked", ctx);
   absl::StatusOr<Principal> who = CheckAccess(context_->auth, *ctx, Permission::kUpload, &log);
   if (!who.ok()) return log.Done(who.status());
@@ -114,10 +156,15 @@ grpc::Status MapService::UploadPassageChunked(grpc::ServerContext* ctx,
   }
   InflightBytes::Lease held(context_->inflight);
   std::string bytes;
+  grpc::ByteBuffer raw;
   pb::UploadPassageChunk chunk;
   int chunks = 0;
-  while (reader->Read(&chunk)) {
+  while (reader->Read(&raw)) {
     (*stream)->Touch();
+    if (absl::Status s = ParseWireMessage(FlattenByteBuffer(raw), absl::StrCat("chunk[", chunks, "]"), &chunk);
+        !s.ok()) {
+      return log.Done(s);
+    }
     ++chunks;
     const size_t total = bytes.size() + chunk.data().size();
     if (absl::Status s = CheckPassageSize(total, context_->limits); !s.ok()) return log.Done(s);
@@ -131,9 +178,11 @@ grpc::Status MapService::UploadPassageChunked(grpc::ServerContext* ctx,
   if ((*stream)->timed_out()) {
     return log.Done(absl::DeadlineExceededError("upload: no chunk within --upload-idle-timeout-s; call cancelled"));
   }
+  if (bytes.empty()) return log.Done(absl::InvalidArgumentError("passage: no chunk carried any bytes"));
   pb::Passage wire;
-  if (bytes.empty() || !wire.ParseFromString(bytes)) {
-    return log.Done(absl::InvalidArgumentError("passage: the chunks do not form a serialized Passage"));
+  if (absl::Status s = ParseWireMessage(bytes, "passage", &wire); !s.ok()) {
+    return log.Done(absl::InvalidArgumentError(
+        absl::StrCat(s.message(), " (the chunks, joined in order, must form one serialized Passage)")));
   }
   log.Add(absl::StrCat("passage=", wire.passage_id(), " vehicle=", wire.vehicle_id()));
   const size_t size = bytes.size();

@@ -1,19 +1,12 @@
 // mapd as a child process: SIGKILL while it applies a passage, restart on the same file; every
 // acknowledged passage ends applied exactly once and the map equals an uninterrupted run's.
 // Repeat with CROWDMAP_CRASH_REPEAT=20 (see server/README.md).
-#include <arpa/inet.h>
-#include <netinet/in.h>
-#include <signal.h>
-#include <sys/socket.h>
-#include <sys/wait.h>
-#include <unistd.h>
-
 #include <cstdlib>
-#include <thread>
 
 #include "core/estimation/map_updater.h"
 #include "server/testing/temp_dir.h"
 #include "tests/support/map_compare.h"
+#include "tests/support/mapd_process.h"
 #include "tests/support/mock_vehicle.h"
 #include "tests/support/test_server.h"
 
@@ -23,68 +16,6 @@ namespace {
 // With the default settings the 16th passage re-solves the map's first 15 jointly, so a round also
 // covers a joint solve that needs passages applied before the kill, read back from the store.
 constexpr int kPassages = 17;
-
-int FreePort() {
-  const int fd = socket(AF_INET, SOCK_STREAM, 0);
-  sockaddr_in addr{};
-  addr.sin_family = AF_INET;
-  addr.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
-  bind(fd, reinterpret_cast<sockaddr*>(&addr), sizeof(addr));
-  socklen_t len = sizeof(addr);
-  getsockname(fd, reinterpret_cast<sockaddr*>(&addr), &len);
-  close(fd);
-  return ntohs(addr.sin_port);
-}
-
-// A mapd child process serving `db` on a loopback port.
-class MapdProcess {
- public:
-  MapdProcess(const std::string& db, const std::string& log_path) : port_(FreePort()) {
-    const std::string listen = "127.0.0.1:" + std::to_string(port_);
-    pid_ = fork();
-    if (pid_ == 0) {
-      freopen(log_path.c_str(), "a", stderr);
-      execl(MAPD_PATH, MAPD_PATH, "--listen", listen.c_str(), "--db", db.c_str(), "--create", "--log-level", "info",
-            static_cast<char*>(nullptr));
-      _exit(127);
-    }
-  }
-  ~MapdProcess() {
-    if (pid_ > 0) Kill(SIGKILL);
-  }
-
-  std::string address() const { return "127.0.0.1:" + std::to_string(port_); }
-
-  // Waits until the port accepts connections (a client dialing earlier would sit in gRPC's
-  // reconnect backoff), then until the server answers.
-  bool WaitReady() {
-    for (int i = 0; i < 1000; ++i) {
-      const int fd = socket(AF_INET, SOCK_STREAM, 0);
-      sockaddr_in addr{};
-      addr.sin_family = AF_INET;
-      addr.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
-      addr.sin_port = htons(port_);
-      const bool up = connect(fd, reinterpret_cast<sockaddr*>(&addr), sizeof(addr)) == 0;
-      close(fd);
-      if (up) return MockVehicle(address()).GetMapInfo().ok();
-      std::this_thread::sleep_for(std::chrono::milliseconds(10));
-    }
-    return false;
-  }
-
-  // Sends `signal` and returns the wait status.
-  int Kill(int signal) {
-    kill(pid_, signal);
-    int status = 0;
-    waitpid(pid_, &status, 0);
-    pid_ = -1;
-    return status;
-  }
-
- private:
-  int port_;
-  pid_t pid_ = -1;
-};
 
 // Polls until a passage is being applied; false if the queue drained first.
 bool WaitUntilProcessing(MockVehicle* client) {

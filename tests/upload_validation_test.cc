@@ -179,7 +179,8 @@ TEST_F(UploadValidation, RejectsChunksThatAreNotAPassage) {
   writer->WritesDone();
   grpc::Status s = writer->Finish();
   EXPECT_EQ(s.error_code(), grpc::StatusCode::INVALID_ARGUMENT);
-  EXPECT_EQ(s.error_message().substr(0, 8), "passage:");
+  const std::string expected = "passage.<field 1000>: length 100 runs past the end";
+  EXPECT_EQ(s.error_message().substr(0, expected.size()), expected) << s.error_message();
   ExpectNothingStored();
 }
 

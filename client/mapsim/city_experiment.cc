@@ -55,10 +55,12 @@ absl::Status CityExperimentOptions::Validate() const {
 std::string CityExperimentResult::Brief() const {
   return absl::StrFormat(
       "layout_landmarks=%d landmarks_mapped=%d passages=%d failed=%d (faulty %d, clean %d) faulty=%d "
-      "relinearized=%d inflated=%d held_back=%d disagreeing=%d mean_error_m=%.4f median_error_m=%.4f "
+      "quarantined=%d relinearized=%d inflated=%d held_back=%d disagreeing=%d detections_used=%d "
+      "detections_outliers=%d mean_error_m=%.4f median_error_m=%.4f "
       "p95_error_m=%.4f nees_per_dof=%.3f p50_ms=%.1f p95_ms=%.1f",
       layout_landmarks, errors.size(), passages, failed_passages, failed_faulty_passages, failed_clean_passages,
-      faulty_passages, relinearized_passages, inflated_passages, landmarks_held_back, landmarks_disagreeing,
+      faulty_passages, quarantined_passages, relinearized_passages, inflated_passages, landmarks_held_back,
+      landmarks_disagreeing, detections_used, detections_outliers,
       mean_error_m, median_error_m, p95_error_m, nees_per_dof, p50_ms, p95_ms);
 }
 
@@ -127,9 +129,12 @@ absl::StatusOr<CityExperimentResult> RunCityExperiment(const CityExperimentOptio
       result.landmarks_held_back += update->summary.landmarks_held_back;
       result.landmarks_disagreeing += update->summary.landmarks_disagreeing;
       result.inflated_passages += update->summary.max_variance_factor > 1.0 ? 1 : 0;
+      result.detections_used += update->summary.detections_used;
+      result.detections_outliers += update->summary.detections_outliers;
       result.relinearized_passages += RelinearizeStaleInMemory(passage_of, &updater, &map);
     } else {
       ++result.failed_passages;
+      if (absl::IsFailedPrecondition(update.status())) ++result.quarantined_passages;
       ++(faults.any() ? result.failed_faulty_passages : result.failed_clean_passages);
       spdlog::warn("passage={} rejected: {}", passage.passage_id, update.status().ToString());
     }
@@ -190,6 +195,9 @@ absl::Status WriteCityOutputs(const CityExperimentOptions& options, const CityEx
        << absl::StrFormat("  \"passages_inflated\": %d,\n", result.inflated_passages)
        << absl::StrFormat("  \"landmarks_held_back\": %d,\n", result.landmarks_held_back)
        << absl::StrFormat("  \"landmarks_disagreeing\": %d,\n", result.landmarks_disagreeing)
+       << absl::StrFormat("  \"passages_quarantined\": %d,\n", result.quarantined_passages)
+       << absl::StrFormat("  \"detections_used\": %d,\n", result.detections_used)
+       << absl::StrFormat("  \"detections_outliers\": %d,\n", result.detections_outliers)
        << absl::StrFormat("  \"faults\": {\"seed\": %d, \"mislabel_rate\": %g, \"multipath_rate\": %g, "
                           "\"overconfident_rate\": %g, \"bad_calibration_rate\": %g,\n", options.faults.seed,
                           options.faults.mislabel_rate, options.faults.multipath_rate, options.faults.overconfident_rate,

@@ -64,6 +64,9 @@ struct CityExperimentResult {
   int landmarks_held_back = 0;   // summed over the passages (PassageUpdateSummary)
   int landmarks_disagreeing = 0;
   int inflated_passages = 0;     // whose consistency test scaled their covariances
+  int quarantined_passages = 0;  // refused by the map's checks (FailedPrecondition; also in failed_passages)
+  int64_t detections_used = 0;
+  int64_t detections_outliers = 0;  // set aside by the residual test
   std::vector<double> passage_ms;         // wall time of each passage: simulation excluded
   std::vector<CityLandmarkError> errors;  // the final map's landmarks, by id
   double mean_error_m = 0.0;

@@ -169,8 +169,12 @@ absl::StatusOr<ExperimentResult> RunExperiment(const ExperimentOptions& options,
         record.subgraphs = u->summary.subgraphs;
         if (u->summary.max_variance_factor > 1.0) ++result.inflated_passages;
         if (u->summary.joint_rejected) ++result.joint_rejected_passages;
+        result.detections_used += u->summary.detections_used;
+        result.detections_outliers += u->summary.detections_outliers;
+        result.landmarks_disagreeing += u->summary.landmarks_disagreeing;
       } else {
         ++result.failed_passages;
+        if (absl::IsFailedPrecondition(u.status())) ++result.quarantined_passages;
         spdlog::warn("passage={} rejected: {}", passage.passage_id, u.status().ToString());
       }
     }
@@ -267,6 +271,10 @@ absl::Status WriteExperimentOutputs(const ExperimentOptions& options, const Expe
        << absl::StrFormat("  \"relinearize_until_passages\": %d,\n", options.update.relinearize_until_passages)
        << "  \"edge_margin_sigmas\": " << JsonNumber(options.update.edge_margin_sigmas) << ",\n"
        << absl::StrFormat("  \"joint_rejected_passages\": %d,\n", result.joint_rejected_passages)
+       << absl::StrFormat("  \"quarantined_passages\": %d,\n", result.quarantined_passages)
+       << absl::StrFormat("  \"detections_used\": %d,\n", result.detections_used)
+       << absl::StrFormat("  \"detections_outliers\": %d,\n", result.detections_outliers)
+       << absl::StrFormat("  \"landmarks_disagreeing\": %d,\n", result.landmarks_disagreeing)
        << "  \"final_mean_dist_err_m\": " << JsonNumber(result.final_mean_dist_err_m) << ",\n"
        << "  \"final_nees_per_dof\": " << JsonNumber(result.final_nees_per_dof) << ",\n"
        << "  \"final_joint_nees_per_dof\": " << JsonNumber(result.final_joint_nees_per_dof) << ",\n"

@@ -53,6 +53,13 @@ struct ExperimentResult {
   int relinearized_passages = 0;    // re-linearisations applied (MapUpdateOptions::relinearize_sigmas)
   int inflated_passages = 0;        // passages whose measurement covariances the consistency test inflated
   int joint_rejected_passages = 0;  // warm-up passages applied sequentially: the joint solve was not usable
+  // What the map's gates set aside (as mapd would): passages quarantined (FailedPrecondition, the
+  // map's checks refused them; counted in failed_passages too), detections used and set aside as
+  // outliers, map landmarks a passage disagreed with (not used for it).
+  int quarantined_passages = 0;
+  int64_t detections_used = 0;
+  int64_t detections_outliers = 0;
+  int landmarks_disagreeing = 0;
   // The Cramer-Rao bound on the mean distance error after the last passage (NaN when not computed
   // or not defined), with white noise the floor of final_mean_dist_err_m.
   double crlb_mean_dist_err_m = std::numeric_limits<double>::quiet_NaN();

@@ -343,11 +343,13 @@ absl::Status RunExperimentCommand(const std::vector<std::string>& args) {
   if (absl::Status s = WriteExperimentOutputs(options, *result, out); !s.ok()) return s;
   std::cout << absl::StrFormat(
       "strategy=%s noise=%s landmarks=%d passages=%d final_mean_dist_err_m=%.4f final_nees_per_dof=%.3f "
-      "final_joint_nees_per_dof=%.3f median_passage_ms=%.2f failed=%d inflated=%d joint_rejected=%d out=%s\n",
+      "final_joint_nees_per_dof=%.3f median_passage_ms=%.2f failed=%d quarantined=%d inflated=%d joint_rejected=%d "
+      "detections_used=%d detections_outliers=%d landmarks_disagreeing=%d out=%s\n",
       options.strategy, NoiseConfigName(options.scenario.noise), options.scenario.landmarks, options.passages,
       result->final_mean_dist_err_m, result->final_nees_per_dof, result->final_joint_nees_per_dof,
-      result->median_passage_ms, result->failed_passages, result->inflated_passages, result->joint_rejected_passages,
-      out);
+      result->median_passage_ms, result->failed_passages, result->quarantined_passages, result->inflated_passages,
+      result->joint_rejected_passages, result->detections_used, result->detections_outliers,
+      result->landmarks_disagreeing, out);
   return absl::OkStatus();
 }
 
