@@ -33,7 +33,7 @@ PassageResult ResultFromSummary(const PassageUpdateSummary& s, UpdateStrategy st
   r.covariance_ms = s.covariance_ms;
   r.total_ms = s.total_ms;
   r.map_version = s.map_version;
-  r.strategy = UpdateStrategyName(strategy);
+  r.strategy = absl::StrCat(UpdateStrategyName(strategy), s.joint_passages > 0 ? "+joint" : "");
   return r;
 }
 
@@ -49,6 +49,10 @@ absl::StatusOr<Passage> DecodeStoredPassage(const std::string& payload) {
 absl::Status MapWorkerOptions::Validate() const {
   if (workers < 1) return absl::InvalidArgumentError(absl::StrCat("workers: must be >= 1, got ", workers));
   if (max_attempts < 1) return absl::InvalidArgumentError(absl::StrCat("max_attempts: must be >= 1, got ", max_attempts));
+  if (sequential_after_interruptions < 1) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("sequential_after_interruptions: must be >= 1, got ", sequential_after_interruptions));
+  }
   if (max_interruptions < 1) {
     return absl::InvalidArgumentError(absl::StrCat("max_interruptions: must be >= 1, got ", max_interruptions));
   }
@@ -209,7 +213,10 @@ void MapWorker::Apply(const ClaimedPassage& claimed, const Passage& passage) {
   while (true) {
     std::string error;
     const auto apply_start = std::chrono::steady_clock::now();
-    auto update = updater_->Compute(passage, map_, record.released);
+    MapUpdater::Mode mode;
+    mode.vouched = record.released;
+    mode.sequential = record.interruptions >= options_.sequential_after_interruptions;
+    auto update = updater_->Compute(passage, map_, mode);
     if (update.ok()) {
       const PassageResult result = ResultFromSummary(update->summary, options_.update.strategy);
       Yield();

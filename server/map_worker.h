@@ -37,6 +37,10 @@ struct MapWorkerOptions {
   // A passage interrupted this many times while being applied (restarts, crashes) is marked failed,
   // so that one that crashes the server cannot keep it from serving.
   int max_interruptions = 10;
+  // A passage whose joint solve (the young map's warm-up and re-solves, seconds long) was
+  // interrupted this many times is applied by a sequential update instead, which takes
+  // milliseconds: restarts during a long solve must not end with the passage failed.
+  int sequential_after_interruptions = 3;
   std::chrono::milliseconds idle_poll{200};
   // Scheduling niceness of the worker threads (Linux, 0..19). Applying passages is background
   // work: a positive value lets request handling preempt the solver, so reads stay fast while the

@@ -447,14 +447,14 @@ size_t MapUpdater::Leaving() const {
 }
 
 absl::StatusOr<PassageUpdate> MapUpdater::Compute(const Passage& passage, const MapReaderInterface& map,
-                                                  bool vouched) const {
+                                                  Mode mode) const {
   MapUpdateOptions options = options_;
-  if (vouched) {
+  if (mode.vouched) {
     options.max_chi2_per_dof = 0.0;
     options.max_landmark_shift_mahalanobis2 = 0.0;
   }
   absl::StatusOr<PassageUpdate> update;
-  if (joint_next()) {
+  if (joint_next() && !mode.sequential) {
     std::vector<Passage> batch = kept_;
     batch.push_back(passage);
     update = ComputeBatchUpdate(batch, options, map);

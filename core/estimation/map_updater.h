@@ -112,11 +112,20 @@ class MapUpdater {
 
   // The map change `passage` brings to `map` (see ComputePassageUpdate for the errors), with the
   // folding of the passages that leave the retention (MapUpdateOptions::retain_passages).
-  // `vouched`: an operator released the passage from quarantine, so it is taken with the map's
-  // consistency checks off (options.max_chi2_per_dof and max_landmark_shift_mahalanobis2; the
-  // invariants still hold), e.g. for a landmark that really moved.
-  absl::StatusOr<PassageUpdate> Compute(const Passage& passage, const MapReaderInterface& map,
-                                        bool vouched = false) const;
+  // How one passage is to be taken, beyond the options.
+  struct Mode {
+    // An operator released the passage from quarantine: taken with the map's consistency checks
+    // off (options.max_chi2_per_dof and max_landmark_shift_mahalanobis2; the invariants still
+    // hold), e.g. for a landmark that really moved.
+    bool vouched = false;
+    // A sequential update even where a joint solve is due (as when a joint solve is not usable):
+    // the service takes a passage this way once its joint solves were interrupted again and again.
+    bool sequential = false;
+  };
+  absl::StatusOr<PassageUpdate> Compute(const Passage& passage, const MapReaderInterface& map, Mode mode) const;
+  absl::StatusOr<PassageUpdate> Compute(const Passage& passage, const MapReaderInterface& map) const {
+    return Compute(passage, map, Mode());
+  }
   using PassageKey = std::pair<std::string, std::string>;  // vehicle_id, passage_id
 
   // Records that the delta Compute returned for `passage` was applied to the map.
