@@ -138,54 +138,47 @@ TEST(ServiceRestart, InterruptedAttemptsDoNotCountButEndlessInterruptionsFail) {
   }
 }
 
-// A passage whose joint solve keeps being interrupted (restarts during a solve of seconds) is
-// applied by a sequential update instead of failing.
-TEST(ServiceRestart, APassageWhoseJointSolveKeepsBeingInterruptedIsAppliedSequentially) {
-  TempDir dir;
-  const std::string db = dir.File("map.db");
-  const Scenario scenario = ShortScenario();
-  const Passage passage = scenario.MakePassage(0);
+// Uploads `passage` to a fresh database with no worker, then leaves it interrupted `times` times
+// while being applied, as restarts during its update would (claimed, then requeued at start).
+void UploadAndInterrupt(const std::string& db, const Passage& passage, int times) {
   {
     auto server = StartTestServer(TestServerOptions(db, /*start_worker=*/false));
     MockVehicle client(server->address());
     ASSERT_TRUE(client.Upload(passage).ok());
     server->Shutdown();
   }
-  for (int interruption = 1; interruption <= 3; ++interruption) {
+  for (int interruption = 0; interruption < times; ++interruption) {
     auto store = CreateSqliteMapStore(db);
     ASSERT_TRUE(store.ok()) << store.status();
     ASSERT_TRUE((*store)->RequeueProcessingPassages().ok());
     auto claimed = (*store)->ClaimNextPassage();
     ASSERT_TRUE(claimed.ok() && claimed->has_value());
   }
-  for (const bool sequential : {false, true}) {
-    SCOPED_TRACE(sequential ? "after 3 interruptions" : "after 2 interruptions");
-    MapServerOptions options = TestServerOptions(dir.File(sequential ? "map.db" : "copy.db"), true);
+}
+
+// A passage whose joint solve keeps being interrupted (restarts during a solve of seconds) is
+// applied by a sequential update instead of failing; interrupted fewer times, it is still solved
+// jointly.
+TEST(ServiceRestart, APassageWhoseJointSolveKeepsBeingInterruptedIsAppliedSequentially) {
+  TempDir dir;
+  const Passage passage = ShortScenario().MakePassage(0);
+  for (const int interruptions : {2, 3}) {
+    SCOPED_TRACE(interruptions);
+    const std::string db = dir.File("map" + std::to_string(interruptions) + ".db");
+    UploadAndInterrupt(db, passage, interruptions);
+    MapServerOptions options = TestServerOptions(db, /*start_worker=*/true);
     options.worker.update.warmup_passages = 4;  // its first passage is a joint solve
     options.worker.sequential_after_interruptions = 3;
-    if (!sequential) {
-      // The same passage, interrupted twice only, on a database of its own: still a joint solve.
-      auto server = StartTestServer(TestServerOptions(dir.File("copy.db"), false));
-      MockVehicle client(server->address());
-      ASSERT_TRUE(client.Upload(passage).ok());
-      server->Shutdown();
-      for (int interruption = 1; interruption <= 2; ++interruption) {
-        auto store = CreateSqliteMapStore(dir.File("copy.db"));
-        ASSERT_TRUE(store.ok() && (*store)->RequeueProcessingPassages().ok());
-        ASSERT_TRUE((*store)->ClaimNextPassage().ok());
-      }
-    }
     auto server = StartTestServer(options);
     MockVehicle client(server->address());
     ASSERT_TRUE(client.WaitUntilIdle().ok());
     absl::StatusOr<pb::PassageStatus> status = client.GetPassage(passage.vehicle_id, passage.passage_id);
     ASSERT_TRUE(status.ok());
     EXPECT_EQ(status->state(), pb::PASSAGE_STATE_APPLIED) << status->error();
-    EXPECT_EQ(status->result().strategy(), sequential ? "cc-gsd" : "cc-gsd+joint");
+    EXPECT_EQ(status->result().strategy(), interruptions >= 3 ? "cc-gsd" : "cc-gsd+joint");
     server->Shutdown();
   }
 }
-
 }  // namespace
 }  // namespace crowdmap
 
