@@ -127,13 +127,21 @@ class Fleet {
 };
 
 // Every acknowledged passage is APPLIED, nothing failed, was refused or quarantined, and the map
-// equals the same passages applied in-process in the server's order (a passage applied twice, or
-// one lost, changes both the map and its version).
+// equals the same passages applied in-process in the server's order, each as the server took it
+// (a joint solve, or a sequential update where its joint solve kept being interrupted: its
+// result's strategy says which): a passage applied twice, or one lost, changes both the map and
+// its version.
 void ExpectEveryAcknowledgedPassageAppliedOnce(MockVehicle* client, const Scenario& scenario,
                                                const std::vector<UploadRecord>& records) {
   auto info = client->WaitUntilIdle(std::chrono::minutes(10));
   ASSERT_TRUE(info.ok()) << info.status();
-  std::vector<std::pair<int64_t, int>> order;  // (server id, scenario index)
+  struct Applied {
+    int64_t id;   // the server's
+    int index;    // the scenario's
+    bool joint;   // the server took it by a joint solve
+    bool operator<(const Applied& o) const { return id < o.id; }
+  };
+  std::vector<Applied> order;
   int acknowledged = 0, applied = 0;
   for (size_t i = 0; i < records.size(); ++i) {
     EXPECT_TRUE(records[i].acknowledged) << "passage " << i << " was never acknowledged";
@@ -145,7 +153,8 @@ void ExpectEveryAcknowledgedPassageAppliedOnce(MockVehicle* client, const Scenar
     EXPECT_EQ(status->id(), records[i].id);
     EXPECT_EQ(status->state(), pb::PASSAGE_STATE_APPLIED) << p.passage_id << " error=" << status->error();
     applied += status->state() == pb::PASSAGE_STATE_APPLIED;
-    order.emplace_back(status->id(), static_cast<int>(i));
+    const std::string& strategy = status->result().strategy();
+    order.push_back({status->id(), static_cast<int>(i), strategy.size() > 6 && strategy.substr(strategy.size() - 6) == "+joint"});
   }
   EXPECT_EQ(info->passages_applied(), acknowledged);
   EXPECT_EQ(info->passages_failed(), 0);
@@ -155,9 +164,13 @@ void ExpectEveryAcknowledgedPassageAppliedOnce(MockVehicle* client, const Scenar
   std::sort(order.begin(), order.end());
   MapState expected;
   MapUpdater updater{MapUpdateOptions()};
-  for (const auto& [id, index] : order) {
-    const Passage passage = scenario.MakePassage(index);
-    absl::StatusOr<PassageUpdate> update = updater.Compute(passage, expected);
+  int sequential_instead = 0;
+  for (const Applied& a : order) {
+    const Passage passage = scenario.MakePassage(a.index);
+    MapUpdater::Mode mode;
+    mode.sequential = updater.joint_next() && !a.joint;
+    sequential_instead += mode.sequential;
+    absl::StatusOr<PassageUpdate> update = updater.Compute(passage, expected, mode);
     ASSERT_TRUE(update.ok()) << update.status();
     expected.Apply(update->delta);
     updater.Applied(passage, update->delta);
@@ -166,8 +179,9 @@ void ExpectEveryAcknowledgedPassageAppliedOnce(MockVehicle* client, const Scenar
   ASSERT_TRUE(map.ok()) << map.status();
   EXPECT_TRUE(MapsMatch(expected, *map, 1e-6, 1e-9));
   EXPECT_EQ(map->version(), expected.version());
-  std::printf("soak: acknowledged=%d applied=%d failed=%ld quarantined=%ld map_version=%ld landmarks=%ld\n",
-              acknowledged, applied, static_cast<long>(info->passages_failed()),
+  std::printf("soak: acknowledged=%d applied=%d (%d by a sequential update instead of an interrupted joint solve) "
+              "failed=%ld quarantined=%ld map_version=%ld landmarks=%ld\n",
+              acknowledged, applied, sequential_instead, static_cast<long>(info->passages_failed()),
               static_cast<long>(info->passages_quarantined()), static_cast<long>(map->version()),
               static_cast<long>(info->landmark_count()));
 }

@@ -142,7 +142,8 @@ absl::Status SqliteConnection::Exec(const std::string& sql) {
   char* error = nullptr;
   const int rc = sqlite3_exec(db_, sql.c_str(), nullptr, nullptr, &error);
   if (rc == SQLITE_OK) return absl::OkStatus();
-  absl::Status status = SqliteError(db_, rc, absl::StrCat("exec: ", error ? error : ""));
+  // SqliteError adds the error message itself; name the statement instead (its start).
+  absl::Status status = SqliteError(db_, rc, absl::StrCat("exec '", absl::string_view(sql).substr(0, 60), "'"));
   sqlite3_free(error);
   return status;
 }
