@@ -118,9 +118,26 @@ void AddPoseGraphFactors(const PassageGraph& graph, int first, int last, const E
   for (int k = first; k < last; ++k) {
     problem->AddResidualBlock(OdometryFactor::Create(graph.motions[k]), loss, pose(k), pose(k + 1));
   }
-  for (const GnssObservation& o : graph.gnss) {
+  const double tau = graph.gnss_correlation_time_s;
+  for (size_t j = 0; j < graph.gnss.size(); ++j) {
+    const GnssObservation& o = graph.gnss[j];
     if (o.node < first || o.node > last) continue;
-    problem->AddResidualBlock(GnssFactor::Create(o.position_m, o.cov_m2, gnss_lever_arm_m), loss, pose(o.node));
+    if (tau <= 0.0 || j == 0) {
+      problem->AddResidualBlock(GnssFactor::Create(o.position_m, o.cov_m2, gnss_lever_arm_m), loss, pose(o.node));
+      continue;
+    }
+    const GnssObservation& previous = graph.gnss[j - 1];
+    if (previous.node < first) continue;
+    const double dt_s = o.t_s - previous.t_s;
+    if (previous.node == o.node) {
+      problem->AddResidualBlock(GnssAr1Factor::CreateAtOneNode(previous.position_m, previous.cov_m2, o.position_m,
+                                                               o.cov_m2, gnss_lever_arm_m, dt_s, tau),
+                                loss, pose(o.node));
+    } else {
+      problem->AddResidualBlock(GnssAr1Factor::Create(previous.position_m, previous.cov_m2, o.position_m, o.cov_m2,
+                                                      gnss_lever_arm_m, dt_s, tau),
+                                loss, pose(previous.node), pose(o.node));
+    }
   }
 }
 
@@ -144,13 +161,18 @@ absl::StatusOr<PassageGraph> BuildPassageGraph(const Passage& passage, const Gra
     g.motions.push_back(Preintegrate(passage.odometry, g.node_times_s[k], g.node_times_s[k + 1], wheelbase, passage.noise));
   }
 
+  g.gnss_correlation_time_s = passage.noise.gnss_correlation_time_s;
+  const double process_sigma_m = passage.noise.gnss_process_sigma_m;
   for (const GnssFix& f : passage.gnss) {
     const LatLon p{f.lat_deg, f.lon_deg};
     const Eigen::Matrix2d r = g.frame.EnToLocal(p);
     GnssObservation o;
     o.node = NodeIndex(g.node_times_s, f.t_s, options.node_merge_tolerance_s);
+    o.t_s = f.t_s;
     o.position_m = g.frame.ToLocal(p);
-    o.cov_m2 = r * f.cov_en_m2 * r.transpose();
+    const Eigen::Matrix2d cov_en = process_sigma_m > 0.0 ? Eigen::Matrix2d(Eigen::Matrix2d::Identity() * process_sigma_m * process_sigma_m)
+                                                         : f.cov_en_m2;
+    o.cov_m2 = r * cov_en * r.transpose();
     g.gnss.push_back(o);
   }
   for (const Detection* d : used) {
