@@ -184,7 +184,7 @@ pose-bias flags (and --seed):
   --gnss-noise-scale X        scale the GNSS noise likewise (default 1)
   --pixel-noise-scale X       scale the camera's pixel noise likewise (default 1)
 
-passage-consistency flags (and --landmarks, --seed, --detections-per-landmark and the
+passage-consistency flags (and --landmarks, --seed, --noise, --detections-per-landmark and the
 --...-noise-scale flags as for experiment):
   --passages P                independent passages, each applied alone to an empty map (default 300)
   --strategy S                cc | cc-gsd (default cc)
@@ -687,9 +687,12 @@ absl::Status RunPassageConsistencyCommand(const std::vector<std::string>& args) 
       Flags::Parse(args, {{"landmarks", true}, {"passages", true}, {"strategy", true}, {"seed", true},
                           {"detections-per-landmark", true}, {"steering-noise-scale", true},
                           {"speed-noise-scale", true}, {"gnss-noise-scale", true}, {"pixel-noise-scale", true},
-                          {"quiet", false}});
+                          {"noise", true}, {"quiet", false}});
   if (!flags.ok()) return flags.status();
   PassageConsistencyOptions options;
+  absl::StatusOr<NoiseConfig> noise = ParseNoiseConfig(flags->GetString("noise", "white"));
+  if (!noise.ok()) return noise.status();
+  options.scenario.noise = *noise;
   absl::StatusOr<long long> landmarks = flags->GetInt("landmarks", 25),
                             passages = flags->GetInt("passages", options.passages), seed = flags->GetInt("seed", 1),
                             per_landmark = flags->GetInt("detections-per-landmark", 5);

@@ -95,7 +95,8 @@ std::vector<Pose2> AlignDeadReckoning(const PassageGraph& g, const Calibration& 
 
 absl::Status SolvePoseGraph(const Calibration& calib, int max_iterations, PassageGraph* g) {
   ceres::Problem problem;
-  AddPoseGraphFactors(*g, 0, g->node_count() - 1, calib.gnss_lever_arm_m, nullptr, &g->initial_poses, &problem);
+  AddPoseGraphFactors(*g, 0, g->node_count() - 1, calib.gnss_lever_arm_m, nullptr, &g->initial_poses, &problem,
+                      /*independent_fixes=*/true);
   ceres::Solver::Options options;
   options.linear_solver_type = ceres::SPARSE_NORMAL_CHOLESKY;
   options.max_num_iterations = max_iterations;
@@ -112,13 +113,14 @@ absl::Status SolvePoseGraph(const Calibration& calib, int max_iterations, Passag
 }  // namespace
 
 void AddPoseGraphFactors(const PassageGraph& graph, int first, int last, const Eigen::Vector2d& gnss_lever_arm_m,
-                         ceres::LossFunction* loss, std::vector<Pose2>* poses, ceres::Problem* problem) {
+                         ceres::LossFunction* loss, std::vector<Pose2>* poses, ceres::Problem* problem,
+                         bool independent_fixes) {
   auto pose = [&](int node) { return (*poses)[node - first].data(); };
   for (Pose2& p : *poses) problem->AddParameterBlock(p.data(), 3);
   for (int k = first; k < last; ++k) {
     problem->AddResidualBlock(OdometryFactor::Create(graph.motions[k]), loss, pose(k), pose(k + 1));
   }
-  const double tau = graph.gnss_correlation_time_s;
+  const double tau = independent_fixes ? 0.0 : graph.gnss_correlation_time_s;
   for (size_t j = 0; j < graph.gnss.size(); ++j) {
     const GnssObservation& o = graph.gnss[j];
     if (o.node < first || o.node > last) continue;

@@ -63,12 +63,14 @@ struct PassageGraph {
 // passage's first fix alone, every other with the one before it. An innovation whose earlier fix
 // lies before `first` is left out, like the odometry across the cut: the subgraphs of a passage
 // then hold disjoint sets of independent innovations, so their factors add up without counting
-// any GNSS error twice.
+// any GNSS error twice. `independent_fixes` enters every fix alone with its stationary covariance,
+// whatever the process: for initial guesses, which need each fix's pull on its own pose to stay
+// robust (the innovations of a coloured process barely hold a piece of the trajectory in place,
+// and bounded bearing residuals to the map then turn it into wrong minima), not for estimates.
 void AddPoseGraphFactors(const PassageGraph& graph, int first, int last, const Eigen::Vector2d& gnss_lever_arm_m,
-                         ceres::LossFunction* loss, std::vector<Pose2>* poses, ceres::Problem* problem);
+                         ceres::LossFunction* loss, std::vector<Pose2>* poses, ceres::Problem* problem,
+                         bool independent_fixes = false);
 
-// Builds the graph of a validated passage and initialises its poses: odometry dead-reckoning
-// aligned to the GNSS fixes, then (optionally) a Ceres solve of the odometry + GNSS pose graph.
 absl::StatusOr<PassageGraph> BuildPassageGraph(const Passage& passage, const GraphOptions& options);
 
 }  // namespace crowdmap

@@ -163,7 +163,7 @@ TEST(BuildPassageGraph, ADeclaredProcessSigmaReplacesTheFixCovariance) {
   Passage passage = Scenario::Create(options)->MakePassage(0);
   passage.noise.gnss_process_sigma_m = 4.0;
   const PassageGraph g = *BuildPassageGraph(passage, GraphOptions());
-  for (const GnssObservation& o : g.gnss) EXPECT_LT((o.cov_m2 - 16.0 * Eigen::Matrix2d::Identity()).norm(), 1e-6);
+  for (const GnssObservation& o : g.gnss) EXPECT_LT((o.cov_m2 - 16.0 * Eigen::Matrix2d::Identity()).norm(), 1e-5);  // the frame's rotation
 }
 
 // Bounds set at about twice the worst seen over 4 scenario seeds x 8 passages (GNSS sigma 10 m,
