@@ -2,7 +2,6 @@
 
 #include <algorithm>
 #include <cmath>
-#include <cstdio>
 
 #include <gtest/gtest.h>
 
@@ -175,7 +174,8 @@ TEST(CramerRaoBound, OnePassageBoundMatchesTheEstimatorsErrorUnderCorrelatedGnss
     }
   }
   const double ratio = squared_error / bound;
-  std::printf("AR(1), one passage: squared error / bound %.3f, NEES/dof %.3f\n", ratio, nees / dof);
+  // Measured: 1.05 and NEES/dof 1.05 (with cc-gsd's cut at 500 dimensions, before ranges were
+  // kept three correlation times long: 7.7 and 1.10).
   EXPECT_GT(ratio, 0.6);
   EXPECT_LT(ratio, 1.6);
   EXPECT_GT(nees / dof, 0.6);
