@@ -65,6 +65,8 @@ absl::StatusOr<Passage> PassageFromProto(const pb::Passage& wire) {
   if (n.has_speed_sigma_mps()) p.noise.speed_sigma_mps = n.speed_sigma_mps();
   if (n.has_steering_sigma_rad()) p.noise.steering_sigma_rad = n.steering_sigma_rad();
   if (n.has_pixel_sigma_px()) p.noise.pixel_sigma_px = n.pixel_sigma_px();
+  if (n.has_gnss_correlation_time_s()) p.noise.gnss_correlation_time_s = n.gnss_correlation_time_s();
+  if (n.has_gnss_process_sigma_m()) p.noise.gnss_process_sigma_m = n.gnss_process_sigma_m();
 
   p.odometry.reserve(wire.odometry_size());
   for (const pb::OdometrySample& o : wire.odometry()) p.odometry.push_back({o.t_s(), o.speed_mps(), o.steering_rad()});
@@ -116,6 +118,9 @@ void PassageToProto(const Passage& p, pb::Passage* wire) {
   n->set_speed_sigma_mps(p.noise.speed_sigma_mps);
   n->set_steering_sigma_rad(p.noise.steering_sigma_rad);
   n->set_pixel_sigma_px(p.noise.pixel_sigma_px);
+  // The GNSS process only when declared: an absent field is white noise to every reader.
+  if (p.noise.gnss_correlation_time_s != 0.0) n->set_gnss_correlation_time_s(p.noise.gnss_correlation_time_s);
+  if (p.noise.gnss_process_sigma_m != 0.0) n->set_gnss_process_sigma_m(p.noise.gnss_process_sigma_m);
   wire->mutable_odometry()->Reserve(static_cast<int>(p.odometry.size()));
   for (const OdometrySample& o : p.odometry) {
     pb::OdometrySample* w = wire->add_odometry();

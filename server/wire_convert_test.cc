@@ -71,6 +71,33 @@ TEST(WireConvert, AbsentNoiseFieldsTakeTheThesisDefaults) {
   EXPECT_EQ(p->noise.pixel_sigma_px, defaults.pixel_sigma_px);
 }
 
+TEST(WireConvert, TheGnssProcessTravelsOnlyWhenDeclared) {
+  Passage p = SmallPassage();
+  pb::Passage wire;
+  PassageToProto(p, &wire);
+  EXPECT_FALSE(wire.noise().has_gnss_correlation_time_s());  // white: nothing on the wire
+  EXPECT_FALSE(wire.noise().has_gnss_process_sigma_m());
+  auto white = PassageFromProto(wire);
+  ASSERT_TRUE(white.ok()) << white.status();
+  EXPECT_EQ(white->noise.gnss_correlation_time_s, 0.0);
+  EXPECT_EQ(white->noise.gnss_process_sigma_m, 0.0);
+
+  p.noise.gnss_correlation_time_s = kStandardReceiverGnssCorrelationTimeS;
+  p.noise.gnss_process_sigma_m = kStandardReceiverGnssProcessSigmaM;
+  wire.Clear();
+  PassageToProto(p, &wire);
+  auto back = PassageFromProto(wire);
+  ASSERT_TRUE(back.ok()) << back.status();
+  EXPECT_EQ(back->noise.gnss_correlation_time_s, kStandardReceiverGnssCorrelationTimeS);
+  EXPECT_EQ(back->noise.gnss_process_sigma_m, kStandardReceiverGnssProcessSigmaM);
+
+  wire.mutable_noise()->set_gnss_correlation_time_s(-5.0);
+  auto negative = PassageFromProto(wire);
+  EXPECT_EQ(negative.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_NE(negative.status().message().find("noise.gnss_correlation_time_s"), std::string::npos)
+      << negative.status();
+}
+
 TEST(WireConvert, GnssSigmaStandsInForAMissingCovariance) {
   pb::Passage wire;
   PassageToProto(SmallPassage(), &wire);

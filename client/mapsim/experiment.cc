@@ -140,16 +140,21 @@ absl::StatusOr<ExperimentResult> RunExperiment(const ExperimentOptions& options,
   TriangulationMapper triangulation_mapper;
   MapUpdater updater(update);
   std::map<MapUpdater::PassageKey, int> index_of;
+  const auto make_passage = [&](int index) {
+    Passage passage = scenario->MakePassage(index);
+    if (options.assume_white_gnss) passage.noise.gnss_correlation_time_s = 0.0;
+    return passage;
+  };
   const auto passage_of = [&](const MapUpdater::PassageKey& key) -> absl::StatusOr<Passage> {
     const auto it = index_of.find(key);
     if (it == index_of.end()) return absl::NotFoundError("passage not applied");
-    return scenario->MakePassage(it->second);
+    return make_passage(it->second);
   };
 
   ExperimentResult result;
   std::vector<double> times;
   for (int i = 0; i < options.passages; ++i) {
-    const Passage passage = scenario->MakePassage(options.order.empty() ? i : options.order[i]);
+    const Passage passage = make_passage(options.order.empty() ? i : options.order[i]);
     PassageRecord record;
     record.passage = i + 1;
     const auto start = std::chrono::steady_clock::now();

@@ -27,6 +27,10 @@ struct ExperimentOptions {
   std::vector<int> order;
   // Compute the Cramer-Rao bound of the same passages (LoopCramerRaoMeanError) for summary.json.
   bool crlb = true;
+  // Clear the GNSS process the simulated passages declare (NoiseModel::gnss_correlation_time_s)
+  // before the estimator sees them: the estimator then assumes white GNSS noise, as it did before
+  // it modelled coloured noise. The bound still models the process that was simulated.
+  bool assume_white_gnss = false;
 
   absl::Status Validate() const;
 };

@@ -92,6 +92,9 @@ experiment flags:
   --no-bias-correction        skip the second-order bias correction of each solution
   --no-crlb                   skip the Cramer-Rao bound of the same passages (summary.json:
                               crlb_mean_dist_err_m, error_over_crlb)
+  --assume-white-gnss         the estimator ignores the coloured GNSS process the passages declare
+                              (gnss-ar1, ar1+yaw) and assumes white noise, as before it modelled
+                              it; the bound still models it
   --quiet                     no progress line
 
 city flags:
@@ -188,7 +191,7 @@ pose-bias flags (and --seed):
   --gnss-noise-scale X        scale the GNSS noise likewise (default 1)
   --pixel-noise-scale X       scale the camera's pixel noise likewise (default 1)
 
-passage-consistency flags (and --landmarks, --seed, --detections-per-landmark and the
+passage-consistency flags (and --landmarks, --seed, --noise, --detections-per-landmark and the
 --...-noise-scale flags as for experiment):
   --passages P                independent passages, each applied alone to an empty map (default 300)
   --strategy S                cc | cc-gsd (default cc)
@@ -274,7 +277,8 @@ absl::Status RunExperimentCommand(const std::vector<std::string>& args) {
                                                     {"order-file", true}, {"steering-noise-scale", true},
                                                     {"speed-noise-scale", true}, {"gnss-noise-scale", true},
                                                     {"pixel-noise-scale", true}, {"no-bias-correction", false},
-                                                    {"no-crlb", false}, {"quiet", false}});
+                                                    {"no-crlb", false}, {"assume-white-gnss", false},
+                                                    {"quiet", false}});
   if (!flags.ok()) return flags.status();
   ExperimentOptions options;
   absl::StatusOr<long long> landmarks = flags->GetInt("landmarks", 25), passages = flags->GetInt("passages", 100),
@@ -313,6 +317,7 @@ absl::Status RunExperimentCommand(const std::vector<std::string>& args) {
   options.update.edge_margin_sigmas = *edge_margin;
   options.update.bias_correction = !flags->Has("no-bias-correction");
   options.crlb = !flags->Has("no-crlb");
+  options.assume_white_gnss = flags->Has("assume-white-gnss");
   if (absl::Status s = ParseLocalRelinearization(*flags, &options.update); !s.ok()) return s;
   if (*shuffle_window < 0) return absl::InvalidArgumentError("shuffle-window: must be >= 0");
   if (*shuffle_from < 0) return absl::InvalidArgumentError("shuffle-from: must be >= 0");
@@ -699,9 +704,12 @@ absl::Status RunPassageConsistencyCommand(const std::vector<std::string>& args) 
       Flags::Parse(args, {{"landmarks", true}, {"passages", true}, {"strategy", true}, {"seed", true},
                           {"detections-per-landmark", true}, {"steering-noise-scale", true},
                           {"speed-noise-scale", true}, {"gnss-noise-scale", true}, {"pixel-noise-scale", true},
-                          {"quiet", false}});
+                          {"noise", true}, {"quiet", false}});
   if (!flags.ok()) return flags.status();
   PassageConsistencyOptions options;
+  absl::StatusOr<NoiseConfig> noise = ParseNoiseConfig(flags->GetString("noise", "white"));
+  if (!noise.ok()) return noise.status();
+  options.scenario.noise = *noise;
   absl::StatusOr<long long> landmarks = flags->GetInt("landmarks", 25),
                             passages = flags->GetInt("passages", options.passages), seed = flags->GetInt("seed", 1),
                             per_landmark = flags->GetInt("detections-per-landmark", 5);

@@ -54,10 +54,10 @@ TEST(Reproduce, ConsistencyCellsTakeSeedsUntilTheirMeanNeesIsPreciseEnough) {
   options.nees_sd_target = 1e-6;  // never reached: every CC and CC+GSD cell takes max_seeds
   ASSERT_TRUE(RunReproduction(options).ok());
   const std::filesystem::path out(options.out_dir);
-  for (const char* name : {"n4_cc_white_s3", "n100_cc-gsd_white_s3"}) {
+  for (const char* name : {"n4_cc_white_s3", "n100_cc-gsd_white_s3", "n50_cc-gsd_gnss-ar1_s3"}) {
     EXPECT_TRUE(std::filesystem::exists(out / name / "summary.json")) << name;
   }
-  for (const char* name : {"n4_cc_white_s4", "n4_dc_white_s2", "n50_cc-gsd_gnss-ar1_s2"}) {
+  for (const char* name : {"n4_cc_white_s4", "n4_dc_white_s2", "n50_cc-gsd_ar1+yaw_s2", "n50_cc-gsd_yaw-bias_s2"}) {
     EXPECT_FALSE(std::filesystem::exists(out / name)) << name;
   }
   const std::string md = ReadAll(out / "reproduction.md");

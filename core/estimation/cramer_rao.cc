@@ -10,6 +10,81 @@
 #include "core/estimation/graph_linearization.h"
 
 namespace crowdmap {
+namespace {
+
+// All GNSS fixes of a passage as one residual block, whitened by the Cholesky factor of their
+// joint covariance: with coloured noise (NoiseModel::gnss_correlation_time_s) the fixes' normalised
+// errors z_j = S_j (antenna_j - y_j) are correlated exp(-|t_i - t_j| / tau) per axis. Written
+// apart from the estimator's factors (GnssAr1Factor, a recursive whitening), from the process's
+// correlation function, so that the bound can judge them.
+class CorrelatedGnssSequence : public ceres::CostFunction {
+ public:
+  CorrelatedGnssSequence(const PassageGraph& graph, const Eigen::Vector2d& lever_arm,
+                         const std::vector<int>& block_of_fix, int blocks)
+      : graph_(graph), lever_arm_(lever_arm), block_of_fix_(block_of_fix) {
+    const int n = static_cast<int>(graph.gnss.size());
+    Eigen::MatrixXd correlation(n, n);
+    for (int i = 0; i < n; ++i) {
+      for (int j = 0; j < n; ++j) {
+        correlation(i, j) = std::exp(-std::abs(graph.gnss[i].t_s - graph.gnss[j].t_s) / graph.gnss_correlation_time_s);
+      }
+    }
+    const Eigen::LLT<Eigen::MatrixXd> llt(correlation);
+    whitening_ = llt.matrixL().solve(Eigen::MatrixXd::Identity(n, n));
+    for (const GnssObservation& o : graph.gnss) {
+      sqrt_info_.push_back(Eigen::LLT<Eigen::Matrix2d>(o.cov_m2).matrixL().solve(Eigen::Matrix2d::Identity()));
+    }
+    set_num_residuals(2 * n);
+    for (int b = 0; b < blocks; ++b) mutable_parameter_block_sizes()->push_back(3);
+  }
+
+  bool Evaluate(double const* const* parameters, double* residuals, double** jacobians) const override {
+    const int n = static_cast<int>(graph_.gnss.size());
+    const int blocks = static_cast<int>(parameter_block_sizes().size());
+    Eigen::VectorXd z(2 * n);
+    Eigen::MatrixXd dz = Eigen::MatrixXd::Zero(2 * n, 3 * blocks);
+    for (int j = 0; j < n; ++j) {
+      const double* pose = parameters[block_of_fix_[j]];
+      const double c = std::cos(pose[2]), s = std::sin(pose[2]);
+      const Eigen::Vector2d antenna(pose[0] + c * lever_arm_.x() - s * lever_arm_.y(),
+                                    pose[1] + s * lever_arm_.x() + c * lever_arm_.y());
+      z.segment<2>(2 * j) = sqrt_info_[j] * (antenna - graph_.gnss[j].position_m);
+      Eigen::Matrix<double, 2, 3> d;
+      d << 1.0, 0.0, -s * lever_arm_.x() - c * lever_arm_.y(), 0.0, 1.0, c * lever_arm_.x() - s * lever_arm_.y();
+      dz.block<2, 3>(2 * j, 3 * block_of_fix_[j]) = sqrt_info_[j] * d;
+    }
+    // r = (L^-1 kron I2) z, with axes interleaved per fix.
+    const auto whiten = [&](const Eigen::MatrixXd& m) {
+      Eigen::MatrixXd out(m.rows(), m.cols());
+      for (int axis = 0; axis < 2; ++axis) {
+        Eigen::MatrixXd rows(n, m.cols());
+        for (int j = 0; j < n; ++j) rows.row(j) = m.row(2 * j + axis);
+        rows = whitening_ * rows;
+        for (int j = 0; j < n; ++j) out.row(2 * j + axis) = rows.row(j);
+      }
+      return out;
+    };
+    Eigen::Map<Eigen::VectorXd>(residuals, 2 * n) = whiten(z);
+    if (jacobians != nullptr) {
+      const Eigen::MatrixXd jr = whiten(dz);
+      for (int b = 0; b < blocks; ++b) {
+        if (jacobians[b] == nullptr) continue;
+        Eigen::Map<Eigen::Matrix<double, Eigen::Dynamic, 3, Eigen::RowMajor>>(jacobians[b], 2 * n, 3) =
+            jr.middleCols<3>(3 * b);
+      }
+    }
+    return true;
+  }
+
+ private:
+  const PassageGraph& graph_;
+  Eigen::Vector2d lever_arm_;
+  std::vector<int> block_of_fix_;
+  Eigen::MatrixXd whitening_;
+  std::vector<Eigen::Matrix2d> sqrt_info_;
+};
+
+}  // namespace
 
 absl::StatusOr<PassageFisherInformation> PassageLandmarkInformation(
     const Passage& passage, const GraphOptions& options, const std::function<Pose2(double)>& true_pose,
@@ -24,8 +99,26 @@ absl::StatusOr<PassageFisherInformation> PassageLandmarkInformation(
 
   ceres::Problem::Options problem_options;
   ceres::Problem problem(problem_options);
-  AddPoseGraphFactors(*graph, 0, graph->node_count() - 1, passage.calibration.gnss_lever_arm_m, nullptr, &poses,
-                      &problem);
+  if (graph->gnss_correlation_time_s <= 0.0) {
+    AddPoseGraphFactors(*graph, 0, graph->node_count() - 1, passage.calibration.gnss_lever_arm_m, nullptr, &poses,
+                        &problem);
+  } else {
+    PassageGraph odometry_only = *graph;
+    odometry_only.gnss.clear();
+    AddPoseGraphFactors(odometry_only, 0, graph->node_count() - 1, passage.calibration.gnss_lever_arm_m, nullptr,
+                        &poses, &problem);
+    std::vector<int> block_of_fix;
+    std::vector<double*> fix_blocks;
+    std::map<int, int> block_of_node;
+    for (const GnssObservation& o : graph->gnss) {
+      auto [it, inserted] = block_of_node.emplace(o.node, static_cast<int>(fix_blocks.size()));
+      if (inserted) fix_blocks.push_back(poses[o.node].data());
+      block_of_fix.push_back(it->second);
+    }
+    problem.AddResidualBlock(new CorrelatedGnssSequence(*graph, passage.calibration.gnss_lever_arm_m, block_of_fix,
+                                                        static_cast<int>(fix_blocks.size())),
+                             nullptr, fix_blocks);
+  }
   PassageFisherInformation out;
   std::map<LandmarkId, int> slot;
   std::vector<Eigen::Vector2d> positions;

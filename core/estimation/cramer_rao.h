@@ -22,6 +22,9 @@ namespace crowdmap {
 // One passage's Fisher information about the landmarks it detects, in the graph frame of
 // `options.frame_origin` (East/North, metres), from the estimator's own graph (`options`: the
 // same nodes, detections and noise model) evaluated at the true poses and landmark positions.
+// Coloured GNSS noise declared by the passage (NoiseModel::gnss_correlation_time_s) is whitened
+// with the Cholesky factor of the fixes' full correlation matrix, not with the estimator's
+// factors, so that the bound checks them.
 struct PassageFisherInformation {
   std::vector<LandmarkId> landmarks;
   Eigen::MatrixXd information;  // 2 rows per landmark, in `landmarks` order

@@ -23,6 +23,38 @@ ceres::CostFunction* GnssFactor::Create(const Eigen::Vector2d& measured, const E
   return new ceres::AutoDiffCostFunction<GnssFactor, 2, 3>(new GnssFactor(measured, lever_arm, SqrtInformation(cov)));
 }
 
+namespace {
+
+// Both fixes of a GnssAr1Factor at one pose node (fixes less than the node merge tolerance apart).
+struct GnssAr1AtOneNode {
+  template <typename T>
+  bool operator()(const T* pose, T* residual) const {
+    return factor(pose, pose, residual);
+  }
+  GnssAr1Factor factor;
+};
+
+}  // namespace
+
+double GnssAr1Factor::Alpha(double dt_s, double correlation_time_s) { return std::exp(-dt_s / correlation_time_s); }
+
+ceres::CostFunction* GnssAr1Factor::Create(const Eigen::Vector2d& previous_measured, const Eigen::Matrix2d& previous_cov,
+                                           const Eigen::Vector2d& measured, const Eigen::Matrix2d& cov,
+                                           const Eigen::Vector2d& lever_arm, double dt_s, double correlation_time_s) {
+  return new ceres::AutoDiffCostFunction<GnssAr1Factor, 2, 3, 3>(
+      new GnssAr1Factor(previous_measured, SqrtInformation(previous_cov), measured, SqrtInformation(cov), lever_arm,
+                        Alpha(dt_s, correlation_time_s)));
+}
+
+ceres::CostFunction* GnssAr1Factor::CreateAtOneNode(const Eigen::Vector2d& previous_measured,
+                                                    const Eigen::Matrix2d& previous_cov, const Eigen::Vector2d& measured,
+                                                    const Eigen::Matrix2d& cov, const Eigen::Vector2d& lever_arm,
+                                                    double dt_s, double correlation_time_s) {
+  return new ceres::AutoDiffCostFunction<GnssAr1AtOneNode, 2, 3>(new GnssAr1AtOneNode{
+      GnssAr1Factor(previous_measured, SqrtInformation(previous_cov), measured, SqrtInformation(cov), lever_arm,
+                    Alpha(dt_s, correlation_time_s))});
+}
+
 ceres::CostFunction* CameraFactor::Create(double u_px, double sigma_px, const Calibration& calib) {
   return new ceres::AutoDiffCostFunction<CameraFactor, 1, 3, 2>(new CameraFactor(u_px, sigma_px, calib));
 }

@@ -1,6 +1,7 @@
 #ifndef CROWDMAP_CORE_ESTIMATION_FACTORS_H_
 #define CROWDMAP_CORE_ESTIMATION_FACTORS_H_
 
+#include <cmath>
 #include <vector>
 
 #include <Eigen/Core>
@@ -72,6 +73,63 @@ class GnssFactor {
   Eigen::Vector2d measured_;
   Eigen::Vector2d lever_arm_;
   Eigen::Matrix2d sqrt_info_;
+};
+
+// Two consecutive GNSS fixes whose errors follow a first-order Gauss-Markov process (see
+// NoiseModel::gnss_correlation_time_s): with z = S (antenna(pose) - y) the normalised error of a
+// fix (S its stationary square-root information), the process's white innovation
+//   r = (z_k - alpha z_(k-1)) / sqrt(1 - alpha^2),
+// unit-variance and independent of every other innovation and of the first fix's z_0 (a plain
+// GnssFactor), so a chain of these whitens the correlated sequence exactly. Blocks: the pose of
+// fix k-1 (3), the pose of fix k (3); CreateAtOneNode when both fixes share a pose node.
+class GnssAr1Factor {
+ public:
+  GnssAr1Factor(const Eigen::Vector2d& previous_measured, const Eigen::Matrix2d& previous_sqrt_info,
+                const Eigen::Vector2d& measured, const Eigen::Matrix2d& sqrt_info, const Eigen::Vector2d& lever_arm,
+                double alpha)
+      : previous_measured_(previous_measured),
+        previous_sqrt_info_(previous_sqrt_info),
+        measured_(measured),
+        sqrt_info_(sqrt_info),
+        lever_arm_(lever_arm),
+        alpha_(alpha),
+        inv_beta_(1.0 / std::sqrt(1.0 - alpha * alpha)) {}
+
+  template <typename T>
+  bool operator()(const T* previous_pose, const T* pose, T* residual) const {
+    const Eigen::Matrix<T, 2, 1> z_previous = previous_sqrt_info_.cast<T>() * (Antenna(previous_pose) - previous_measured_.cast<T>());
+    const Eigen::Matrix<T, 2, 1> z = sqrt_info_.cast<T>() * (Antenna(pose) - measured_.cast<T>());
+    Eigen::Map<Eigen::Matrix<T, 2, 1>> out(residual);
+    out = (z - T(alpha_) * z_previous) * T(inv_beta_);
+    return true;
+  }
+
+  // The innovation between fixes `dt_s` apart, each with its stationary covariance.
+  static ceres::CostFunction* Create(const Eigen::Vector2d& previous_measured, const Eigen::Matrix2d& previous_cov,
+                                     const Eigen::Vector2d& measured, const Eigen::Matrix2d& cov,
+                                     const Eigen::Vector2d& lever_arm, double dt_s, double correlation_time_s);
+  static ceres::CostFunction* CreateAtOneNode(const Eigen::Vector2d& previous_measured,
+                                              const Eigen::Matrix2d& previous_cov, const Eigen::Vector2d& measured,
+                                              const Eigen::Matrix2d& cov, const Eigen::Vector2d& lever_arm, double dt_s,
+                                              double correlation_time_s);
+  // alpha = exp(-dt / tau).
+  static double Alpha(double dt_s, double correlation_time_s);
+
+ private:
+  template <typename T>
+  Eigen::Matrix<T, 2, 1> Antenna(const T* pose) const {
+    const T c = cos(pose[2]), s = sin(pose[2]);
+    return Eigen::Matrix<T, 2, 1>(pose[0] + c * T(lever_arm_.x()) - s * T(lever_arm_.y()),
+                                  pose[1] + s * T(lever_arm_.x()) + c * T(lever_arm_.y()));
+  }
+
+  Eigen::Vector2d previous_measured_;
+  Eigen::Matrix2d previous_sqrt_info_;
+  Eigen::Vector2d measured_;
+  Eigen::Matrix2d sqrt_info_;
+  Eigen::Vector2d lever_arm_;
+  double alpha_;
+  double inv_beta_;
 };
 
 // One detection: residual (u_predicted - u_measured) / sigma_px. Blocks: pose (3), landmark (2).

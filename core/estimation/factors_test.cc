@@ -112,6 +112,38 @@ TEST(GnssFactor, ResidualIsZeroAtTheAntenna) {
   EXPECT_LT(r.norm(), 1e-12);
 }
 
+TEST(GnssAr1Factor, JacobianMatchesFiniteDifferences) {
+  std::mt19937 rng(4);
+  std::uniform_real_distribution<double> u(-3.0, 3.0);
+  Eigen::Matrix2d cov_a, cov_b;
+  cov_a << 90.0, 12.0, 12.0, 110.0;
+  cov_b << 60.0, -5.0, -5.0, 70.0;
+  for (int trial = 0; trial < 20; ++trial) {
+    std::unique_ptr<ceres::CostFunction> cost(GnssAr1Factor::Create(
+        Eigen::Vector2d(u(rng), u(rng)), cov_a, Eigen::Vector2d(u(rng) + 10.0, u(rng)), cov_b,
+        Eigen::Vector2d(0.5, 0.2), 0.3 + 0.1 * (u(rng) + 3.0), 82.8));
+    ExpectJacobiansMatchFiniteDifferences(*cost, {{u(rng), u(rng), u(rng)}, {u(rng) + 10.0, u(rng), u(rng)}}, 1e-6);
+    std::unique_ptr<ceres::CostFunction> one_node(GnssAr1Factor::CreateAtOneNode(
+        Eigen::Vector2d(u(rng), u(rng)), cov_a, Eigen::Vector2d(u(rng), u(rng)), cov_b, Eigen::Vector2d(0.5, 0.2),
+        5e-4, 82.8));
+    ExpectJacobiansMatchFiniteDifferences(*one_node, {{u(rng), u(rng), u(rng)}}, 1e-6);
+  }
+}
+
+TEST(GnssAr1Factor, ResidualIsTheProcessInnovation) {
+  // Errors e_a, e_b of two fixes 1 s apart with tau = 82.8 s: r = (e_b - alpha e_a) / (sigma beta).
+  const double sigma = 10.0, alpha = std::exp(-1.0 / 82.8), beta = std::sqrt(1.0 - alpha * alpha);
+  const Pose2 a(3.0, 4.0, M_PI / 2), b(3.0, 16.0, M_PI / 2);  // antennas at (3, 4.5) and (3, 16.5)
+  const Eigen::Vector2d e_a(2.0, -1.0), e_b(1.5, 0.5);
+  std::unique_ptr<ceres::CostFunction> cost(GnssAr1Factor::Create(
+      Eigen::Vector2d(3.0, 4.5) - e_a, sigma * sigma * Eigen::Matrix2d::Identity(), Eigen::Vector2d(3.0, 16.5) - e_b,
+      sigma * sigma * Eigen::Matrix2d::Identity(), Eigen::Vector2d(0.5, 0.0), 1.0, 82.8));
+  const double* params[] = {a.data(), b.data()};
+  Eigen::Vector2d r;
+  ASSERT_TRUE(cost->Evaluate(params, r.data(), nullptr));
+  EXPECT_LT((r - (e_b - alpha * e_a) / (sigma * beta)).norm(), 1e-12);
+}
+
 TEST(CameraFactor, JacobianMatchesFiniteDifferences) {
   std::mt19937 rng(4);
   std::uniform_real_distribution<double> u(-1.0, 1.0);

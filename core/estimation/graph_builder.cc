@@ -95,7 +95,8 @@ std::vector<Pose2> AlignDeadReckoning(const PassageGraph& g, const Calibration& 
 
 absl::Status SolvePoseGraph(const Calibration& calib, int max_iterations, PassageGraph* g) {
   ceres::Problem problem;
-  AddPoseGraphFactors(*g, 0, g->node_count() - 1, calib.gnss_lever_arm_m, nullptr, &g->initial_poses, &problem);
+  AddPoseGraphFactors(*g, 0, g->node_count() - 1, calib.gnss_lever_arm_m, nullptr, &g->initial_poses, &problem,
+                      /*independent_fixes=*/true);
   ceres::Solver::Options options;
   options.linear_solver_type = ceres::SPARSE_NORMAL_CHOLESKY;
   options.max_num_iterations = max_iterations;
@@ -112,15 +113,33 @@ absl::Status SolvePoseGraph(const Calibration& calib, int max_iterations, Passag
 }  // namespace
 
 void AddPoseGraphFactors(const PassageGraph& graph, int first, int last, const Eigen::Vector2d& gnss_lever_arm_m,
-                         ceres::LossFunction* loss, std::vector<Pose2>* poses, ceres::Problem* problem) {
+                         ceres::LossFunction* loss, std::vector<Pose2>* poses, ceres::Problem* problem,
+                         bool independent_fixes) {
   auto pose = [&](int node) { return (*poses)[node - first].data(); };
   for (Pose2& p : *poses) problem->AddParameterBlock(p.data(), 3);
   for (int k = first; k < last; ++k) {
     problem->AddResidualBlock(OdometryFactor::Create(graph.motions[k]), loss, pose(k), pose(k + 1));
   }
-  for (const GnssObservation& o : graph.gnss) {
+  const double tau = independent_fixes ? 0.0 : graph.gnss_correlation_time_s;
+  for (size_t j = 0; j < graph.gnss.size(); ++j) {
+    const GnssObservation& o = graph.gnss[j];
     if (o.node < first || o.node > last) continue;
-    problem->AddResidualBlock(GnssFactor::Create(o.position_m, o.cov_m2, gnss_lever_arm_m), loss, pose(o.node));
+    if (tau <= 0.0 || j == 0) {
+      problem->AddResidualBlock(GnssFactor::Create(o.position_m, o.cov_m2, gnss_lever_arm_m), loss, pose(o.node));
+      continue;
+    }
+    const GnssObservation& previous = graph.gnss[j - 1];
+    if (previous.node < first) continue;
+    const double dt_s = o.t_s - previous.t_s;
+    if (previous.node == o.node) {
+      problem->AddResidualBlock(GnssAr1Factor::CreateAtOneNode(previous.position_m, previous.cov_m2, o.position_m,
+                                                               o.cov_m2, gnss_lever_arm_m, dt_s, tau),
+                                loss, pose(o.node));
+    } else {
+      problem->AddResidualBlock(GnssAr1Factor::Create(previous.position_m, previous.cov_m2, o.position_m, o.cov_m2,
+                                                      gnss_lever_arm_m, dt_s, tau),
+                                loss, pose(previous.node), pose(o.node));
+    }
   }
 }
 
@@ -144,13 +163,18 @@ absl::StatusOr<PassageGraph> BuildPassageGraph(const Passage& passage, const Gra
     g.motions.push_back(Preintegrate(passage.odometry, g.node_times_s[k], g.node_times_s[k + 1], wheelbase, passage.noise));
   }
 
+  g.gnss_correlation_time_s = passage.noise.gnss_correlation_time_s;
+  const double process_sigma_m = passage.noise.gnss_process_sigma_m;
   for (const GnssFix& f : passage.gnss) {
     const LatLon p{f.lat_deg, f.lon_deg};
     const Eigen::Matrix2d r = g.frame.EnToLocal(p);
     GnssObservation o;
     o.node = NodeIndex(g.node_times_s, f.t_s, options.node_merge_tolerance_s);
+    o.t_s = f.t_s;
     o.position_m = g.frame.ToLocal(p);
-    o.cov_m2 = r * f.cov_en_m2 * r.transpose();
+    const Eigen::Matrix2d cov_en = process_sigma_m > 0.0 ? Eigen::Matrix2d(Eigen::Matrix2d::Identity() * process_sigma_m * process_sigma_m)
+                                                         : f.cov_en_m2;
+    o.cov_m2 = r * cov_en * r.transpose();
     g.gnss.push_back(o);
   }
   for (const Detection* d : used) {

@@ -31,6 +31,7 @@ struct GraphOptions {
 
 struct GnssObservation {
   int node = 0;
+  double t_s = 0.0;            // fix time (s since the passage start)
   Eigen::Vector2d position_m;  // antenna position in the graph frame
   Eigen::Matrix2d cov_m2;      // in the graph frame
 };
@@ -47,7 +48,9 @@ struct PassageGraph {
   std::vector<double> node_times_s;            // union of GNSS and used-detection times
   std::vector<Pose2> initial_poses;            // odometry + GNSS pose graph, solved
   std::vector<RelativeMotion> motions;         // motions[k]: node k -> k+1
-  std::vector<GnssObservation> gnss;           // sorted by node
+  std::vector<GnssObservation> gnss;           // sorted by node; cov_m2: the error's stationary covariance
+  // The GNSS error's Gauss-Markov correlation time (s), 0 = white (NoiseModel).
+  double gnss_correlation_time_s = 0.0;
   std::vector<CameraObservation> detections;   // used detections, sorted by node
   int detections_dropped = 0;                  // detections not kept (beyond the last K)
 
@@ -56,11 +59,18 @@ struct PassageGraph {
 
 // Adds the pose blocks of nodes first..last (inclusive; poses[k] is node first + k) and the
 // odometry and GNSS factors among them to `problem`. `loss` (may be null) weights every residual.
+// With coloured GNSS noise the fixes enter as the process's innovations (GnssAr1Factor): the
+// passage's first fix alone, every other with the one before it. An innovation whose earlier fix
+// lies before `first` is left out, like the odometry across the cut: the subgraphs of a passage
+// then hold disjoint sets of independent innovations, so their factors add up without counting
+// any GNSS error twice. `independent_fixes` enters every fix alone with its stationary covariance,
+// whatever the process: for initial guesses, which need each fix's pull on its own pose to stay
+// robust (the innovations of a coloured process barely hold a piece of the trajectory in place,
+// and bounded bearing residuals to the map then turn it into wrong minima), not for estimates.
 void AddPoseGraphFactors(const PassageGraph& graph, int first, int last, const Eigen::Vector2d& gnss_lever_arm_m,
-                         ceres::LossFunction* loss, std::vector<Pose2>* poses, ceres::Problem* problem);
+                         ceres::LossFunction* loss, std::vector<Pose2>* poses, ceres::Problem* problem,
+                         bool independent_fixes = false);
 
-// Builds the graph of a validated passage and initialises its poses: odometry dead-reckoning
-// aligned to the GNSS fixes, then (optionally) a Ceres solve of the odometry + GNSS pose graph.
 absl::StatusOr<PassageGraph> BuildPassageGraph(const Passage& passage, const GraphOptions& options);
 
 }  // namespace crowdmap

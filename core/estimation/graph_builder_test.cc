@@ -128,6 +128,44 @@ TEST_F(GraphBuilderTest, RejectsAPassageWithFewerThanTwoFixes) {
   EXPECT_EQ(BuildPassageGraph(passage_, GraphOptions()).status().code(), absl::StatusCode::kInvalidArgument);
 }
 
+// GNSS residual blocks AddPoseGraphFactors puts on nodes first..last.
+int GnssBlocks(const PassageGraph& g, int first, int last) {
+  std::vector<Pose2> poses(g.initial_poses.begin() + first, g.initial_poses.begin() + last + 1);
+  ceres::Problem problem;
+  AddPoseGraphFactors(g, first, last, Eigen::Vector2d(0.5, 0.0), nullptr, &poses, &problem);
+  return problem.NumResidualBlocks() - (last - first);  // less the odometry between the nodes
+}
+
+TEST(AddPoseGraphFactors, CorrelatedGnssEntersAsInnovationsAndACutDropsTheOneAcrossIt) {
+  ScenarioOptions options;
+  options.landmarks = 25;
+  options.noise = NoiseConfig::kGnssAr1;
+  const Scenario scenario = *Scenario::Create(options);
+  const Passage passage = scenario.MakePassage(0);
+  const PassageGraph g = *BuildPassageGraph(passage, GraphOptions());
+  EXPECT_NEAR(g.gnss_correlation_time_s, -1.0 / std::log(0.988), 1e-9);
+  const int fixes = static_cast<int>(g.gnss.size());
+  const int n = g.node_count();
+  EXPECT_EQ(GnssBlocks(g, 0, n - 1), fixes);  // the first fix, then one innovation per fix
+  // Cut after a node that holds a fix (with a later fix in the second range).
+  const int cut = g.gnss[fixes / 2].node;
+  EXPECT_EQ(GnssBlocks(g, 0, cut) + GnssBlocks(g, cut + 1, n - 1), fixes - 1);
+
+  Passage white = passage;
+  white.noise.gnss_correlation_time_s = 0.0;
+  const PassageGraph w = *BuildPassageGraph(white, GraphOptions());
+  EXPECT_EQ(GnssBlocks(w, 0, cut) + GnssBlocks(w, cut + 1, n - 1), fixes);  // white: every fix on its own
+}
+
+TEST(BuildPassageGraph, ADeclaredProcessSigmaReplacesTheFixCovariance) {
+  ScenarioOptions options;
+  options.landmarks = 5;
+  Passage passage = Scenario::Create(options)->MakePassage(0);
+  passage.noise.gnss_process_sigma_m = 4.0;
+  const PassageGraph g = *BuildPassageGraph(passage, GraphOptions());
+  for (const GnssObservation& o : g.gnss) EXPECT_LT((o.cov_m2 - 16.0 * Eigen::Matrix2d::Identity()).norm(), 1e-5);  // the frame's rotation
+}
+
 // Bounds set at about twice the worst seen over 4 scenario seeds x 8 passages (GNSS sigma 10 m,
 // white): whole passage max 14.3 m / 0.21 rad (the ends, with fixes on one side only), interior
 // (10 s from the ends) max 9.1 m / 0.17 rad, per-passage RMS at most 4.2 m / 0.059 rad.

@@ -4,6 +4,7 @@
 #include <memory>
 #include <optional>
 #include <set>
+#include <unordered_set>
 
 #include <ceres/ceres.h>
 #include <spdlog/spdlog.h>
@@ -101,6 +102,18 @@ absl::StatusOr<PassageUpdate> SolveJointly(const std::vector<Passage>& passages,
                             options.edge_margin_sigmas * passages[p].noise.pixel_sigma_px,
                             options.min_new_landmark_parallax_rad, /*min_new_detections=*/2, &seen[p]);
   }
+
+  // A landmark left with a single usable detection over all the passages (its others behind the
+  // camera at the localised poses) is not determined by the joint solve: set it aside with it.
+  std::map<LandmarkId, int> usable_detections;
+  for (int p = 0; p < count; ++p) {
+    for (size_t i = 0; i < seen[p].ids.size(); ++i) usable_detections[seen[p].ids[i]] += seen[p].detections[i].size();
+  }
+  std::unordered_set<LandmarkId> undetermined;
+  for (const auto& [id, n] : usable_detections) {
+    if (n < 2) undetermined.insert(id);
+  }
+  for (int p = 0; p < count; ++p) summary.detections_dropped += SetAside(undetermined, {}, &seen[p]);
 
   // Landmarks with a usable detection, how many passages saw each, and when last.
   std::map<LandmarkId, int> seen_by;

@@ -1,5 +1,7 @@
 #include "core/estimation/subdivision.h"
 
+#include <algorithm>
+#include <cmath>
 #include <unordered_set>
 
 namespace crowdmap {
@@ -48,9 +50,17 @@ std::vector<NodeRange> SubdivideGraph(const PassageGraph& graph, int max_dim) {
   if (graph.node_count() == 0) return {};
   if (max_dim <= 0) return {{0, graph.node_count() - 1}};
   const auto by_node = LandmarksByNode(graph);
-  const size_t pieces = Pack(by_node, max_dim).size();
+  size_t pieces = Pack(by_node, max_dim).size();
+  int hi = max_dim;
+  if (graph.gnss_correlation_time_s > 0.0) {
+    const double span_s = graph.node_times_s.back() - graph.node_times_s.front();
+    const double most = std::floor(span_s / (kMinSubgraphCorrelationTimes * graph.gnss_correlation_time_s));
+    pieces = std::min(pieces, static_cast<size_t>(std::max(1.0, most)));
+    if (pieces == 1) return {{0, graph.node_count() - 1}};
+    hi = std::max(max_dim, SubgraphDimension(graph, {0, graph.node_count() - 1}));  // one piece at most
+  }
   // The smallest cap that still needs no more pieces gives the most even split.
-  int lo = 1, hi = max_dim;
+  int lo = 1;
   while (lo < hi) {
     const int mid = lo + (hi - lo) / 2;
     if (Pack(by_node, mid).size() <= pieces) {

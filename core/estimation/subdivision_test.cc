@@ -131,5 +131,37 @@ TEST(SubdivideGraph, TheThesisGraphSplitsIntoTwoOrThreeAtFiveHundred) {
   EXPECT_LE(ranges.size(), 3u);
 }
 
+TEST(SubdivideGraph, CorrelatedGnssKeepsEveryRangeThreeCorrelationTimesLong) {
+  ScenarioOptions options;
+  options.landmarks = 50;
+  options.noise = NoiseConfig::kGnssAr1;
+  options.duration_s = 1000.0;
+  options.repeat_route = true;
+  GraphOptions graph_options;
+  graph_options.refine_initial_poses = false;
+  PassageGraph graph = *BuildPassageGraph(Scenario::Create(options)->MakePassage(0), graph_options);
+  const double tau = graph.gnss_correlation_time_s;
+  ASSERT_GT(tau, 80.0);
+  // 1000 s over 3 x 83 s: at most 4 ranges, where the dimension bound alone asks for more.
+  graph.gnss_correlation_time_s = 0.0;
+  const size_t white = SubdivideGraph(graph, 500).size();
+  graph.gnss_correlation_time_s = tau;
+  const std::vector<NodeRange> ranges = SubdivideGraph(graph, 500);
+  EXPECT_GT(white, 4u);
+  EXPECT_EQ(ranges.size(), 4u);
+  EXPECT_EQ(ranges.front().first, 0);
+  EXPECT_EQ(ranges.back().last, graph.node_count() - 1);
+  for (size_t k = 0; k < ranges.size(); ++k) {
+    if (k > 0) EXPECT_EQ(ranges[k].first, ranges[k - 1].last + 1);
+    const double span_s = graph.node_times_s[ranges[k].last] - graph.node_times_s[ranges[k].first];
+    EXPECT_GT(span_s, 2.0 * tau) << k;  // balanced by dimension, so about 250 s each
+  }
+  // The 165 s loop passage stays whole.
+  options.duration_s = 165.0;
+  options.repeat_route = false;
+  EXPECT_EQ(SubdivideGraph(*BuildPassageGraph(Scenario::Create(options)->MakePassage(0), graph_options), 500).size(),
+            1u);
+}
+
 }  // namespace
 }  // namespace crowdmap

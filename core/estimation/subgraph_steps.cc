@@ -117,7 +117,8 @@ void Solve(const MapUpdateOptions& options, ceres::Solver::Options solver_option
 void InitializePoses(const PassageGraph& graph, const NodeRange& range, const Passage& passage,
                      const MapUpdateOptions& update_options, SubgraphLandmarks* landmarks, std::vector<Pose2>* poses) {
   ceres::Problem problem;
-  AddPoseGraphFactors(graph, range.first, range.last, passage.calibration.gnss_lever_arm_m, nullptr, poses, &problem);
+  AddPoseGraphFactors(graph, range.first, range.last, passage.calibration.gnss_lever_arm_m, nullptr, poses, &problem,
+                      /*independent_fixes=*/true);
   for (size_t i = 0; i < landmarks->ids.size(); ++i) {
     if (!landmarks->known[i]) continue;
     for (const CameraObservation* d : landmarks->detections[i]) {

@@ -122,7 +122,12 @@ absl::Status ValidateCalibration(const Calibration& c) {
 absl::Status ValidateNoise(const NoiseModel& n) {
   if (auto s = CheckPositive("noise.speed_sigma_mps", n.speed_sigma_mps); !s.ok()) return s;
   if (auto s = CheckPositive("noise.steering_sigma_rad", n.steering_sigma_rad); !s.ok()) return s;
-  return CheckPositive("noise.pixel_sigma_px", n.pixel_sigma_px);
+  if (auto s = CheckPositive("noise.pixel_sigma_px", n.pixel_sigma_px); !s.ok()) return s;
+  // Up to a day: a longer correlation is a constant bias over any drive.
+  if (auto s = CheckRange("noise.gnss_correlation_time_s", n.gnss_correlation_time_s, 0.0, 86400.0, "s"); !s.ok()) {
+    return s;
+  }
+  return CheckRange("noise.gnss_process_sigma_m", n.gnss_process_sigma_m, 0.0, 1000.0, "m");
 }
 
 }  // namespace

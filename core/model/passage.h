@@ -25,11 +25,27 @@ struct Calibration {
   double image_width_px = 1920.0;
 };
 
-// Measurement noise the estimator assumes. Defaults: thesis Table 5.1.
+// Coloured GNSS error of a standard (single-frequency, code-only) receiver, for clients that know
+// nothing better about theirs: a first-order Gauss-Markov process with this correlation time
+// (alpha = 0.988 per fix at 1 Hz, the thesis's simulation) and stationary sigma per axis. Not
+// applied by default: a passage that declares no process is estimated with white GNSS noise.
+constexpr double kStandardReceiverGnssCorrelationTimeS = 82.8;
+constexpr double kStandardReceiverGnssProcessSigmaM = 10.0;
+
+// Measurement noise the estimator assumes. Defaults: thesis Table 5.1, white GNSS noise.
 struct NoiseModel {
   double speed_sigma_mps = 0.56;
   double steering_sigma_rad = 0.044;
   double pixel_sigma_px = 5.0;
+  // GNSS error as a first-order Gauss-Markov (AR(1)) process per axis: between fixes dt apart,
+  // e_k = alpha e_(k-1) + w_k with alpha = exp(-dt / tau) and w_k white with covariance
+  // (1 - alpha^2) C_k, C_k the process's stationary covariance at fix k. tau in seconds;
+  // 0 = white (independent fixes, as the estimator has always assumed).
+  double gnss_correlation_time_s = 0.0;
+  // Stationary standard deviation (m, per axis) of the GNSS error; 0 = each fix's own declared
+  // covariance (cov_en_m2) is the error's. Set it when the receiver's reported covariance is not
+  // the error's (receivers often report the white part only).
+  double gnss_process_sigma_m = 0.0;
 };
 
 // One wheel/steering encoder reading, held until the next sample.

@@ -1,5 +1,7 @@
 #include "core/model/passage.h"
 
+#include <cmath>
+
 #include <functional>
 #include <limits>
 #include <string>
@@ -94,6 +96,10 @@ std::vector<BadInput> BadInputs() {
       {"noise.steering_sigma_rad", [](Passage* p) { p->noise.steering_sigma_rad = -0.044; }},
       {"noise.pixel_sigma_px", [](Passage* p) { p->noise.pixel_sigma_px = -5.0; }},
       {"noise.pixel_sigma_px", [](Passage* p) { p->noise.pixel_sigma_px = 0.0; }},
+      {"noise.gnss_correlation_time_s", [](Passage* p) { p->noise.gnss_correlation_time_s = -1.0; }},
+      {"noise.gnss_correlation_time_s", [](Passage* p) { p->noise.gnss_correlation_time_s = 1e6; }},
+      {"noise.gnss_correlation_time_s", [](Passage* p) { p->noise.gnss_correlation_time_s = std::nan(""); }},
+      {"noise.gnss_process_sigma_m", [](Passage* p) { p->noise.gnss_process_sigma_m = -10.0; }},
       // Physically impossible inputs (each once applied to a real map; see the trust rules).
       {"gnss[0].lat_deg", [](Passage* p) { for (GnssFix& f : p->gnss) f.lat_deg = -90.0; }},
       {"gnss[1]", [](Passage* p) { p->gnss[1].lat_deg = p->gnss[0].lat_deg + 1.0; }},  // 111 km jump

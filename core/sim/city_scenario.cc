@@ -73,6 +73,7 @@ std::pair<Passage, CityDrive> CityScenario::MakePassageWithTruth(int index) cons
   gnss.sigma_m = o.gnss_sigma_m;
   gnss.ar1 = HasGnssAr1(o.noise);
   gnss.ar1_alpha = o.gnss_ar1_alpha;
+  p.noise.gnss_correlation_time_s = gnss.CorrelationTimeS();  // the passage declares its GNSS process
   p.gnss = SimulateGnss([&drive](double t) { return drive.PoseAt(t); }, drive.duration_s, frame(), o.calibration,
                         gnss, &noise);
 

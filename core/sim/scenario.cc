@@ -161,6 +161,7 @@ Passage Scenario::MakePassage(int index) const {
   gnss.sigma_m = o.gnss_sigma_m;
   gnss.ar1 = o.noise == NoiseConfig::kGnssAr1 || o.noise == NoiseConfig::kGnssAr1YawBias;
   gnss.ar1_alpha = o.gnss_ar1_alpha;
+  p.noise.gnss_correlation_time_s = gnss.CorrelationTimeS();  // the passage declares its GNSS process
   p.gnss = SimulateGnss([this](double t) { return TruePoseAt(t); }, o.duration_s, frame_, o.calibration, gnss, &noise);
 
   const bool yaw_bias = o.noise == NoiseConfig::kYawBias || o.noise == NoiseConfig::kGnssAr1YawBias;

@@ -34,6 +34,11 @@ std::vector<OdometrySample> SimulateOdometry(const std::vector<OdometrySample>& 
   return out;
 }
 
+double GnssSimulation::CorrelationTimeS() const {
+  if (!ar1 || ar1_alpha <= 0.0) return 0.0;
+  return -1.0 / (rate_hz * std::log(ar1_alpha));
+}
+
 std::vector<GnssFix> SimulateGnss(const TruePoseFn& pose_at, double duration_s, const LocalFrame& frame,
                                   const Calibration& calibration, const GnssSimulation& gnss, NoiseSource* source) {
   const double sigma = gnss.sigma_m;

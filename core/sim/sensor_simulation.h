@@ -49,6 +49,10 @@ struct GnssSimulation {
   double sigma_m = 10.0;
   bool ar1 = false;          // e_k = alpha e_(k-1) + sqrt(1 - alpha^2) w_k per axis, else white
   double ar1_alpha = 0.988;
+
+  // The process as a passage declares it (NoiseModel::gnss_correlation_time_s): tau with
+  // alpha = exp(-1 / (rate tau)); 0 for white noise.
+  double CorrelationTimeS() const;
 };
 
 // Fixes at k / rate_hz for k = 0.. while t <= duration_s, of the antenna (lever arm from
