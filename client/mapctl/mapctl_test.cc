@@ -4,7 +4,9 @@
 #include <fstream>
 #include <sstream>
 
+#include "absl/strings/ascii.h"
 #include "absl/strings/match.h"
+#include "absl/strings/str_split.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
 #include "client/api/map_client.h"
@@ -90,6 +92,10 @@ TEST_F(MapctlTest, InfoShowsTheEmptyMapAndItsStrategy) {
   EXPECT_TRUE(absl::StrContains(j.out, "\"strategy\": \"cc-gsd\"")) << j.out;
   EXPECT_TRUE(absl::StrContains(j.out, "\"warmup_passages\": 8")) << j.out;
   EXPECT_TRUE(absl::StrContains(j.out, "\"relinearize_until_passages\": 128")) << j.out;
+  // Zero-valued fields are printed, not left out (int64 prints as a JSON string).
+  EXPECT_TRUE(absl::StrContains(j.out, "\"landmark_count\": \"0\"")) << j.out;
+  EXPECT_TRUE(absl::StrContains(j.out, "\"map_version\": \"0\"")) << j.out;
+  EXPECT_TRUE(absl::StrContains(j.out, "\"passages_failed\": \"0\"")) << j.out;
 }
 
 TEST_F(MapctlTest, UploadedFilesAreAppliedAndListed) {
@@ -201,13 +207,19 @@ TEST_F(MapctlTest, BadInputGivesOneLineAndNonZeroExit) {
   CliRun missing = Mapctl({"upload", dir_.File("nowhere.json")}, address_);
   EXPECT_TRUE(OneErrorLine(missing)) << missing.err;
 
+  for (const CliRun& failed : {unknown_id, malformed, binary, missing}) EXPECT_EQ(failed.code, 1) << failed.err;
+
   CliRun bbox = Mapctl({"region", "--bbox", "1,2,3"}, address_);
   EXPECT_TRUE(OneErrorLine(bbox)) << bbox.err;
+  EXPECT_EQ(bbox.code, 2);
   CliRun state = Mapctl({"passages", "--state", "sleeping"}, address_);
   EXPECT_TRUE(OneErrorLine(state)) << state.err;
+  EXPECT_EQ(state.code, 2);
+  // The server refuses the zoom: a failed call, not a usage error.
   CliRun tile = Mapctl({"tile", "3", "1", "1"}, address_);
   EXPECT_TRUE(OneErrorLine(tile)) << tile.err;
   EXPECT_TRUE(absl::StrContains(tile.err, "INVALID_ARGUMENT")) << tile.err;
+  EXPECT_EQ(tile.code, 1);
 
   CliRun command = Mapctl({"frobnicate"}, address_);
   EXPECT_EQ(command.code, 2);
@@ -227,8 +239,107 @@ TEST(Mapctl, UnreachableServerGivesOneLineAndNonZeroExit) {
         {"region", "--bbox", "0,0,1,1"}, {"export", "--bbox", "0,0,1,1"}, {"watch", "--bbox", "0,0,1,1", "--seconds", "1"}}) {
     CliRun r = Mapctl(args, address);
     EXPECT_TRUE(OneErrorLine(r)) << args[0] << ": " << r.err;
+    EXPECT_EQ(r.code, 1) << args[0] << ": " << r.err;
     EXPECT_TRUE(absl::StrContains(r.err, "UNAVAILABLE")) << args[0] << ": " << r.err;
   }
+}
+
+// Every usage error exits with 2 and one line naming the problem, before any call: the server
+// here is unreachable, so a call would exit with 1.
+TEST(Mapctl, UsageErrorsExitWithTwoBeforeAnyCall) {
+  const std::string nowhere = "127.0.0.1:1";
+  const std::vector<std::pair<std::vector<std::string>, std::string>> cases = {
+      {{"frobnicate"}, "unknown command"},
+      {{"info", "--colour"}, "unknown flag --colour"},
+      {{"info", "extra"}, "unexpected argument 'extra'"},
+      {{"region", "--bbox"}, "--bbox needs a value"},
+      {{"region"}, "--bbox MINLON,MINLAT,MAXLON,MAXLAT is required"},
+      {{"region", "--bbox", "0,0,x,1"}, "'x' is not a number"},
+      {{"region", "--bbox", "0,0,200,100"}, "--bbox: '0,0,200,100' cannot be a box"},
+      {{"region", "--bbox", "2,0,1,1"}, "--bbox: need MINLON <= MAXLON"},
+      {{"watch", "--bbox", "0,0,1,1", "--seconds", "soon"}, "--seconds: expected a number"},
+      {{"watch", "--bbox", "0,0,1,1", "--since", "1.5"}, "--since: expected an integer"},
+      {{"info", "--deadline-s", "-1"}, "--deadline-s"},
+      {{"status"}, "give one ID"},
+      {{"status", "abc"}, "neither a number nor VEHICLE/PASSAGE_ID"},
+      {{"landmark", "x"}, "give one landmark id"},
+      {{"upload"}, "give at least one passage file"},
+      {{"passages", "--state", "sleeping"}, "--state: 'sleeping'"},
+      {{"tile", "16", "1"}, "give Z X Y or --at LAT,LON"},
+      {{"tile", "--at", "48.1"}, "--at: '48.1' is not LAT,LON"},
+      {{"tile", "--at", "89,11"}, "--at: need |LAT| <= 85.0511"},
+      {{"export", "--bbox", "0,0,1,1", "--format", "kml"}, "--format: 'kml' is not geojson"},
+      {{"localize", "x.json", "--format", "kml"}, "--format: 'kml' is not csv or geojson"},
+  };
+  for (const auto& [args, message] : cases) {
+    CliRun r = Mapctl(args, nowhere);
+    EXPECT_EQ(r.code, 2) << args[0] << ": " << r.err;
+    EXPECT_TRUE(OneErrorLine(r)) << args[0] << ": " << r.err;
+    EXPECT_TRUE(absl::StrContains(r.err, message)) << r.err;
+    EXPECT_FALSE(absl::StrContains(r.err, "UNAVAILABLE")) << r.err;
+  }
+  CliRun none = Mapctl({}, "");
+  EXPECT_EQ(none.code, 2);
+  EXPECT_TRUE(absl::StrContains(none.err, "Usage:")) << none.err;
+  CliRun help = Mapctl({"region", "--help"}, "");
+  EXPECT_EQ(help.code, 0);
+  EXPECT_TRUE(absl::StrContains(help.out, "Exit codes: 0 success, 1 failure")) << help.out;
+}
+
+TEST(Mapctl, TileAtPrintsTheStorageTileOfAPoint) {
+  const LatLon munich{48.137154, 11.576124};
+  const TileId expected = TileContaining(munich, kStorageZoom);
+  CliRun r = Mapctl({"tile", "--at", "48.137154,11.576124"}, "127.0.0.1:1");  // no call is made
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_EQ(r.out, absl::StrFormat("16 %d %d\n", expected.x, expected.y));
+  EXPECT_EQ(expected.x, 34875);  // OpenStreetMap's z16 tile of Munich's Marienplatz
+  EXPECT_EQ(expected.y, 22743);
+  CliRun json = Mapctl({"tile", "--at=48.137154,11.576124", "--json"}, "127.0.0.1:1");
+  ASSERT_EQ(json.code, 0) << json.err;
+  EXPECT_EQ(json.out, absl::StrFormat("{\n  \"z\": 16,\n  \"x\": %d,\n  \"y\": %d\n}\n", expected.x, expected.y));
+  CliRun south_west = Mapctl({"tile", "--at", "-33.8568,151.2153"}, "127.0.0.1:1");
+  ASSERT_EQ(south_west.code, 0) << south_west.err;
+  EXPECT_EQ(south_west.out, "16 60295 39325\n");
+}
+
+TEST_F(MapctlTest, TileAtNamesTheTileThatHoldsALandmark) {
+  UploadAndApply(1);
+  auto scenario = Scenario::Create(scenario_);
+  ASSERT_TRUE(scenario.ok());
+  const LatLon p = scenario->landmarks()[0].position;
+  CliRun at = Mapctl({"tile", "--at", absl::StrFormat("%.9f,%.9f", p.lat_deg, p.lon_deg)}, address_);
+  ASSERT_EQ(at.code, 0) << at.err;
+  std::vector<std::string> zxy = absl::StrSplit(absl::StripAsciiWhitespace(at.out), ' ');
+  ASSERT_EQ(zxy.size(), 3u) << at.out;
+  CliRun tile = Mapctl({"tile", zxy[0], zxy[1], zxy[2], "--json"}, address_);
+  ASSERT_EQ(tile.code, 0) << tile.err;
+  EXPECT_TRUE(absl::StrContains(tile.out, absl::StrCat("\"id\": \"", scenario->landmarks()[0].id, "\""))) << tile.out;
+}
+
+TEST_F(MapctlTest, SwappedBboxIsReadSwappedWithAWarning) {
+  // West of -90 degrees a box written MINLAT,MINLON,MAXLAT,MAXLON has "latitudes" beyond -90.
+  scenario_.origin = LatLon{37.7749, -122.4194};
+  UploadAndApply(1);
+  const double lat = scenario_.origin.lat_deg, lon = scenario_.origin.lon_deg;
+  CliRun right = Mapctl({"region", "--bbox", RouteBbox()}, address_);
+  ASSERT_EQ(right.code, 0) << right.err;
+  EXPECT_TRUE(right.err.empty()) << right.err;
+  EXPECT_TRUE(absl::StrContains(right.out, absl::StrCat(scenario_.landmarks, " landmarks"))) << right.out;
+
+  const std::string swapped =
+      absl::StrFormat("%.6f,%.6f,%.6f,%.6f", lat - 0.05, lon - 0.05, lat + 0.05, lon + 0.05);
+  CliRun r = Mapctl({"region", "--bbox", swapped}, address_);
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_EQ(Count(r.err, "\n"), 1) << r.err;
+  EXPECT_TRUE(absl::StrContains(r.err, "mapctl region: warning: --bbox")) << r.err;
+  EXPECT_TRUE(absl::StrContains(r.err, "swapped")) << r.err;
+  EXPECT_EQ(r.out, right.out);
+
+  // Swapped or not, latitudes beyond 90 cannot make a box.
+  CliRun neither = Mapctl({"region", "--bbox", "-122.5,95,-122.3,97"}, address_);
+  EXPECT_EQ(neither.code, 2);
+  EXPECT_TRUE(OneErrorLine(neither)) << neither.err;
+  EXPECT_TRUE(absl::StrContains(neither.err, "--bbox")) << neither.err;
 }
 
 TEST_F(MapctlTest, LocalizeWritesCsvAndGeoJson) {
