@@ -22,6 +22,7 @@
 #include "client/api/map_client.h"
 #include "client/api/passage_files.h"
 #include "client/common/flags.h"
+#include "client/mapctl/table_cell.h"
 
 namespace crowdmap {
 namespace {
@@ -182,8 +183,9 @@ void PrintLandmarkTable(const std::vector<pb::Landmark>& landmarks, std::ostream
 }
 
 void PrintPassageRow(const pb::PassageStatus& p, std::ostream& out) {
-  out << absl::StrFormat("%8d  %-14s %-16s %-10s %8d  %-19s  %s\n", p.id(), p.vehicle_id(), p.passage_id(),
-                         StateName(p.state()), p.attempts(), FormatTime(p.received_unix_ms()), OneLine(p.error()));
+  out << absl::StrFormat("%8d  %s %s %-10s %8d  %-19s  %s\n", p.id(), TableCell(p.vehicle_id(), 14),
+                         TableCell(p.passage_id(), 16), StateName(p.state()), p.attempts(),
+                         FormatTime(p.received_unix_ms()), EscapeForTerminal(OneLine(p.error())));
 }
 
 absl::Status Upload(const Flags& flags, Context& ctx) {
@@ -202,8 +204,9 @@ absl::Status Upload(const Flags& flags, Context& ctx) {
       *ctx.out << ToJson(*response);
     } else {
       const pb::PassageStatus& s = response->status();
-      *ctx.out << absl::StrFormat("%-32s %8d  %-14s %-16s %-10s %s\n", path, s.id(), s.vehicle_id(), s.passage_id(),
-                                  StateName(s.state()), response->duplicate() ? "yes" : "no");
+      *ctx.out << absl::StrFormat("%s %8d  %s %s %-10s %s\n", TableCell(path, 32), s.id(), TableCell(s.vehicle_id(), 14),
+                                  TableCell(s.passage_id(), 16), StateName(s.state()),
+                                  response->duplicate() ? "yes" : "no");
     }
   }
   return absl::OkStatus();
@@ -238,10 +241,11 @@ absl::Status Status(const Flags& flags, Context& ctx) {
   std::ostream& out = *ctx.out;
   out << absl::StrFormat("id:          %d\nvehicle:     %s\npassage:     %s\nstate:       %s\nattempts:    %d\n"
                          "received:    %s\nfinished:    %s\nsize:        %d bytes\n",
-                         status->id(), status->vehicle_id(), status->passage_id(), StateName(status->state()),
+                         status->id(), EscapeForTerminal(status->vehicle_id()),
+                         EscapeForTerminal(status->passage_id()), StateName(status->state()),
                          status->attempts(), FormatTime(status->received_unix_ms()),
                          FormatTime(status->finished_unix_ms()), status->size_bytes());
-  if (!status->error().empty()) out << "error:       " << OneLine(status->error()) << "\n";
+  if (!status->error().empty()) out << "error:       " << EscapeForTerminal(OneLine(status->error())) << "\n";
   if (status->has_result()) {
     const pb::PassageResult& r = status->result();
     out << absl::StrFormat("result:      strategy=%s nodes=%d subgraphs=%d updated=%d created=%d conditioned=%d "
@@ -271,7 +275,9 @@ absl::Status LandmarkCommand(const Flags& flags, Context& ctx) {
       l.passages_seen());
   *ctx.out << absl::StrFormat("shaped by:   %d passages retained apart (older ones are folded into the map)\n",
                               response->passages_size());
-  for (const pb::PassageKey& p : response->passages()) *ctx.out << "  " << p.vehicle_id() << "/" << p.passage_id() << "\n";
+  for (const pb::PassageKey& p : response->passages()) {
+    *ctx.out << "  " << EscapeForTerminal(p.vehicle_id()) << "/" << EscapeForTerminal(p.passage_id()) << "\n";
+  }
   return absl::OkStatus();
 }
 
@@ -286,8 +292,8 @@ absl::Status Exclude(const Flags& flags, Context& ctx) {
   }
   *ctx.out << absl::StrFormat("passage %d (%s/%s) excluded: map version %d, %d landmarks re-estimated, %d removed, "
                               "%d moved through their correlation\n",
-                              response->status().id(), response->status().vehicle_id(),
-                              response->status().passage_id(), response->map_version(), response->landmarks_updated(),
+                              response->status().id(), EscapeForTerminal(response->status().vehicle_id()),
+                              EscapeForTerminal(response->status().passage_id()), response->map_version(), response->landmarks_updated(),
                               response->landmarks_removed(), response->landmarks_conditioned());
   return absl::OkStatus();
 }
@@ -302,8 +308,8 @@ absl::Status Resolve(const char* command, pb::ResolvePassageRequest::Action acti
     *ctx.out << ToJson(*status);
     return absl::OkStatus();
   }
-  *ctx.out << absl::StrFormat("passage %d (%s/%s) is now %s\n", status->id(), status->vehicle_id(), status->passage_id(),
-                              StateName(status->state()));
+  *ctx.out << absl::StrFormat("passage %d (%s/%s) is now %s\n", status->id(), EscapeForTerminal(status->vehicle_id()),
+                              EscapeForTerminal(status->passage_id()), StateName(status->state()));
   return absl::OkStatus();
 }
 

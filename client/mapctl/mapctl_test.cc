@@ -9,6 +9,7 @@
 #include "absl/strings/str_split.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
+#include "absl/strings/str_replace.h"
 #include "client/api/map_client.h"
 #include "client/mapsim/fleet.h"
 #include "core/geo/tiles.h"
@@ -340,6 +341,54 @@ TEST_F(MapctlTest, SwappedBboxIsReadSwappedWithAWarning) {
   EXPECT_EQ(neither.code, 2);
   EXPECT_TRUE(OneErrorLine(neither)) << neither.err;
   EXPECT_TRUE(absl::StrContains(neither.err, "--bbox")) << neither.err;
+}
+
+// Every row of the table has its columns where the header has them, whatever the ids' length.
+TEST_F(MapctlTest, TablesKeepTheirColumnsWithLongIds) {
+  ASSERT_TRUE(ExportPassages(scenario_, 2, /*binary=*/false, dir_.File("json")).ok());
+  const std::string long_vehicle(100, 'v');
+  const std::string long_passage = "passage-" + std::string(110, 'p');
+  std::vector<std::string> files;
+  for (int i = 0; i < 2; ++i) {
+    std::ifstream in(dir_.File(absl::StrFormat("json/passage-%05d.json", i)));
+    std::stringstream text;
+    text << in.rdbuf();
+    std::string json = text.str();
+    const Passage original = Scenario::Create(scenario_)->MakePassage(i);
+    json = absl::StrReplaceAll(json, {{"\"" + original.vehicle_id + "\"", "\"" + long_vehicle + "\""}});
+    if (i == 1) json = absl::StrReplaceAll(json, {{"\"" + original.passage_id + "\"", "\"" + long_passage + "\""}});
+    files.push_back(dir_.File(absl::StrFormat("long-%d-%s.json", i, std::string(40, 'f'))));
+    std::ofstream(files.back()) << json;
+  }
+  CliRun upload = Mapctl({"upload", files[0], files[1]}, address_);
+  ASSERT_EQ(upload.code, 0) << upload.err;
+  CliRun list = Mapctl({"passages"}, address_);
+  ASSERT_EQ(list.code, 0) << list.err;
+  for (const CliRun* table : {&upload, &list}) {
+    std::vector<std::string> lines = absl::StrSplit(table->out, '\n', absl::SkipEmpty());
+    ASSERT_GE(lines.size(), 3u) << table->out;
+    // The column after PASSAGE starts at the same character in the header and both rows.
+    const size_t state_column = lines[0].find("STATE");
+    ASSERT_NE(state_column, std::string::npos) << lines[0];
+    for (size_t k = 1; k < 3; ++k) {
+      EXPECT_NE(lines[k].find("\u2026"), std::string::npos) << lines[k];
+      EXPECT_FALSE(absl::StrContains(lines[k], long_vehicle)) << lines[k];
+      // Count characters (code points), not bytes: the ellipsis is 3 bytes.
+      size_t chars = 0, byte = 0;
+      for (; byte < lines[k].size() && chars < state_column; ++byte) {
+        if ((static_cast<unsigned char>(lines[k][byte]) & 0xc0) != 0x80) ++chars;
+      }
+      while (byte < lines[k].size() && (static_cast<unsigned char>(lines[k][byte]) & 0xc0) == 0x80) ++byte;
+      EXPECT_TRUE(absl::StartsWith(lines[k].substr(byte), "queued") ||
+                  absl::StartsWith(lines[k].substr(byte), "processing") ||
+                  absl::StartsWith(lines[k].substr(byte), "applied"))
+          << "\n" << lines[0] << "\n" << lines[k];
+    }
+  }
+  // The detail view shows the whole id.
+  CliRun status = Mapctl({"status", "2"}, address_);
+  ASSERT_EQ(status.code, 0) << status.err;
+  EXPECT_TRUE(absl::StrContains(status.out, long_passage)) << status.out;
 }
 
 TEST_F(MapctlTest, LocalizeWritesCsvAndGeoJson) {
