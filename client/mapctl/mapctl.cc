@@ -52,7 +52,10 @@ Commands:
                                  landmarks inside a bounding box (a box valid only with lat and
                                  lon swapped is read swapped, with a warning)
   watch --bbox ... [--since V] [--seconds S] [--updates N]
-                                 follow changes in a bounding box (until Ctrl-C, S seconds or N updates)
+                                 follow changes in a bounding box (until Ctrl-C, S seconds or N updates);
+                                 each call's first answer must come within --deadline-s; when the
+                                 server restarts, it reconnects from the last version received
+                                 (waiting up to --deadline-s for the server, a warning on stderr)
   export --bbox ... --format geojson [--ellipses] [--out FILE]
                                  RFC 7946 FeatureCollection of the landmarks (stdout unless --out)
   localize FILE [--format csv|geojson] [--out FILE]
@@ -437,8 +440,15 @@ absl::Status Watch(const Flags& flags, Context& ctx) {
   for (const absl::Status& s : {since.status(), updates.status(), seconds.status()}) {
     if (!s.ok()) return s;
   }
-  std::optional<std::chrono::milliseconds> duration;
-  if (*seconds > 0) duration = std::chrono::milliseconds(static_cast<int64_t>(*seconds * 1000));
+  if (*since < 0) return UsageError("--since: must be >= 0");
+  if (!(*seconds >= 0)) return UsageError("--seconds: must be >= 0 (0 = until Ctrl-C or --updates)");
+  MapClient::WatchOptions options;
+  if (*seconds > 0) options.duration = std::chrono::milliseconds(static_cast<int64_t>(*seconds * 1000));
+  options.reconnect = true;
+  options.on_reconnect = [&](const absl::Status& lost, int64_t version) {
+    ctx.Warn() << "connection lost (" << absl::StatusCodeToString(lost.code()) << ": " << OneLine(lost.message())
+               << "); reconnecting from map version " << version << "\n";
+  };
   long long received = 0;
   return ctx.client->WatchRegion(*box, *since, [&](const pb::WatchRegionResponse& change) {
     if (ctx.json) {
@@ -457,7 +467,7 @@ absl::Status Watch(const Flags& flags, Context& ctx) {
     }
     ctx.out->flush();
     return *updates <= 0 || ++received < *updates;
-  }, duration);
+  }, options);
 }
 
 absl::Status WriteTextFile(const std::string& path, const std::string& text) {

@@ -1,7 +1,13 @@
 // mapctl against a real in-process mapd on an ephemeral port with a temporary database.
 #include "client/mapctl/mapctl.h"
 
+#include <arpa/inet.h>
+#include <netinet/in.h>
+#include <sys/socket.h>
+#include <unistd.h>
+
 #include <fstream>
+#include <thread>
 #include <sstream>
 
 #include "absl/strings/ascii.h"
@@ -389,6 +395,74 @@ TEST_F(MapctlTest, TablesKeepTheirColumnsWithLongIds) {
   CliRun status = Mapctl({"status", "2"}, address_);
   ASSERT_EQ(status.code, 0) << status.err;
   EXPECT_TRUE(absl::StrContains(status.out, long_passage)) << status.out;
+}
+
+TEST_F(MapctlTest, WatchReconnectsFromItsLastVersionWhenTheServerRestarts) {
+  UploadAndApply(1);
+  MapClientOptions client_options;
+  client_options.server = address_;
+  auto client = MapClient::Create(client_options);
+  ASSERT_TRUE(client.ok());
+  const int64_t first_version = (*client)->GetMapInfo()->map_version();
+  ASSERT_GT(first_version, 0);
+
+  // The watch runs a fixed time: whether it reconnects before or after the next upload lands, it
+  // must print the first passage's changes once and the next passage's changes once.
+  CliRun w;
+  std::thread watch([&] {
+    w = Mapctl({"watch", "--bbox", RouteBbox(), "--since", "0", "--seconds", "6", "--deadline-s", "20"}, address_);
+  });
+  // Give the watch its first answer before the restart, so that it has a version to resume from.
+  std::this_thread::sleep_for(std::chrono::milliseconds(1000));
+  server_->Shutdown();
+  server_.reset();
+  std::this_thread::sleep_for(std::chrono::milliseconds(300));
+  MapServerOptions again = TestServerOptions(dir_.File("map.db"));
+  again.listen = address_;
+  server_ = StartTestServer(again);
+  ASSERT_NE(server_, nullptr);
+  // The second passage of the scenario, uploaded to the restarted server.
+  ASSERT_TRUE(ExportPassages(scenario_, 2, /*binary=*/false, dir_.File("more")).ok());
+  CliRun upload = Mapctl({"upload", dir_.File("more/passage-00001.json")}, address_);
+  ASSERT_EQ(upload.code, 0) << upload.err;
+  watch.join();
+
+  ASSERT_EQ(w.code, 0) << w.err;
+  EXPECT_TRUE(absl::StrContains(w.err, "mapctl watch: connection lost (UNAVAILABLE")) << w.err;
+  EXPECT_TRUE(absl::StrContains(w.err, absl::StrCat("reconnecting from map version ", first_version))) << w.err;
+  EXPECT_EQ(Count(w.err, "\n"), 1) << w.err;
+  std::vector<std::string> with_changes;
+  for (absl::string_view line : absl::StrSplit(w.out, '\n')) {
+    if (absl::StartsWith(line, "map version ") && !absl::StrContains(line, ": 0 landmarks")) {
+      with_changes.emplace_back(line);
+    }
+  }
+  ASSERT_EQ(with_changes.size(), 2u) << w.out;
+  EXPECT_TRUE(absl::StartsWith(with_changes[0], absl::StrCat("map version ", first_version, ": "))) << w.out;
+  EXPECT_TRUE(absl::StartsWith(with_changes[1], absl::StrCat("map version ", first_version + 1, ": "))) << w.out;
+}
+
+// A server that accepts the connection but never answers: the watch gives up after --deadline-s.
+TEST(Mapctl, WatchHonoursTheDeadlineForItsFirstAnswer) {
+  const int listener = socket(AF_INET, SOCK_STREAM, 0);
+  ASSERT_GE(listener, 0);
+  sockaddr_in addr{};
+  addr.sin_family = AF_INET;
+  addr.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
+  ASSERT_EQ(bind(listener, reinterpret_cast<sockaddr*>(&addr), sizeof(addr)), 0);
+  ASSERT_EQ(listen(listener, 4), 0);
+  socklen_t len = sizeof(addr);
+  ASSERT_EQ(getsockname(listener, reinterpret_cast<sockaddr*>(&addr), &len), 0);
+  const std::string address = absl::StrCat("127.0.0.1:", ntohs(addr.sin_port));
+  const auto start = std::chrono::steady_clock::now();
+  CliRun r = Mapctl({"watch", "--bbox", "0,0,1,1", "--deadline-s", "0.5"}, address);
+  const double elapsed_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  close(listener);
+  EXPECT_EQ(r.code, 1) << r.err;
+  EXPECT_TRUE(OneErrorLine(r)) << r.err;
+  EXPECT_TRUE(absl::StrContains(r.err, "DEADLINE_EXCEEDED")) << r.err;
+  EXPECT_GE(elapsed_s, 0.4);
+  EXPECT_LT(elapsed_s, 5.0);
 }
 
 TEST_F(MapctlTest, LocalizeWritesCsvAndGeoJson) {
