@@ -10,6 +10,7 @@
 #include <vector>
 
 #include <glog/logging.h>
+#include <spdlog/sinks/stdout_color_sinks.h>
 #include <spdlog/spdlog.h>
 
 #include "absl/strings/str_cat.h"
@@ -17,6 +18,7 @@
 #include "absl/strings/str_format.h"
 #include "absl/strings/str_split.h"
 #include "client/common/flags.h"
+#include "core/logging/log_format.h"
 #include "client/mapsim/city_experiment.h"
 #include "client/mapsim/experiment.h"
 #include "client/mapsim/localize_experiment.h"
@@ -798,6 +800,10 @@ int main(int argc, char** argv) {
   // Ceres reports rejected trial steps through glog; only errors are worth an operator's eye.
   google::InitGoogleLogging(argv[0]);
   FLAGS_minloglevel = google::GLOG_ERROR;
+  // Log lines go to stderr (stdout carries the results), in the tools' common format.
+  auto logger = spdlog::stderr_color_mt("mapsim");
+  crowdmap::UseTextLogFormat(*logger);
+  spdlog::set_default_logger(logger);
   std::vector<std::string> args(argv + 1, argv + argc);
   if (!args.empty() && args[0] == "--version") {
     std::cout << "mapsim (crowdmap) " << CROWDMAP_VERSION << "\n";
