@@ -216,7 +216,7 @@ absl::Status Upload(const Flags& flags, Context& ctx) {
 }
 
 // The passage named by a command's one argument: a server id, or VEHICLE/PASSAGE_ID.
-absl::StatusOr<PassageKey> PassageArgument(const std::string& command, const Flags& flags) {
+absl::StatusOr<PassageKey> PassageArgument(const Flags& flags) {
   if (flags.positional().size() != 1) {
     return UsageError(absl::StrCat("give one ID (number or VEHICLE/PASSAGE_ID)"));
   }
@@ -232,7 +232,7 @@ absl::StatusOr<PassageKey> PassageArgument(const std::string& command, const Fla
 }
 
 absl::Status Status(const Flags& flags, Context& ctx) {
-  absl::StatusOr<PassageKey> key = PassageArgument("status", flags);
+  absl::StatusOr<PassageKey> key = PassageArgument(flags);
   if (!key.ok()) return key.status();
   absl::StatusOr<pb::PassageStatus> status =
       key->id != 0 ? ctx.client->GetPassage(key->id) : ctx.client->GetPassage(key->vehicle_id, key->passage_id);
@@ -285,7 +285,7 @@ absl::Status LandmarkCommand(const Flags& flags, Context& ctx) {
 }
 
 absl::Status Exclude(const Flags& flags, Context& ctx) {
-  absl::StatusOr<PassageKey> key = PassageArgument("exclude", flags);
+  absl::StatusOr<PassageKey> key = PassageArgument(flags);
   if (!key.ok()) return key.status();
   absl::StatusOr<pb::ExcludePassageResponse> response = ctx.client->ExcludePassage(*key);
   if (!response.ok()) return response.status();
@@ -302,8 +302,8 @@ absl::Status Exclude(const Flags& flags, Context& ctx) {
 }
 
 // requeue ID / release ID / discard ID: an operator's decision on a failed or quarantined passage.
-absl::Status Resolve(const char* command, pb::ResolvePassageRequest::Action action, const Flags& flags, Context& ctx) {
-  absl::StatusOr<PassageKey> key = PassageArgument(command, flags);
+absl::Status Resolve(pb::ResolvePassageRequest::Action action, const Flags& flags, Context& ctx) {
+  absl::StatusOr<PassageKey> key = PassageArgument(flags);
   if (!key.ok()) return key.status();
   absl::StatusOr<pb::PassageStatus> status = ctx.client->ResolvePassage(*key, action);
   if (!status.ok()) return status.status();
@@ -317,15 +317,15 @@ absl::Status Resolve(const char* command, pb::ResolvePassageRequest::Action acti
 }
 
 absl::Status Requeue(const Flags& flags, Context& ctx) {
-  return Resolve("requeue", pb::ResolvePassageRequest::REQUEUE, flags, ctx);
+  return Resolve(pb::ResolvePassageRequest::REQUEUE, flags, ctx);
 }
 
 absl::Status Release(const Flags& flags, Context& ctx) {
-  return Resolve("release", pb::ResolvePassageRequest::RELEASE, flags, ctx);
+  return Resolve(pb::ResolvePassageRequest::RELEASE, flags, ctx);
 }
 
 absl::Status Discard(const Flags& flags, Context& ctx) {
-  return Resolve("discard", pb::ResolvePassageRequest::DISCARD, flags, ctx);
+  return Resolve(pb::ResolvePassageRequest::DISCARD, flags, ctx);
 }
 
 absl::Status Passages(const Flags& flags, Context& ctx) {
