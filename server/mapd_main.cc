@@ -9,6 +9,7 @@
 #include <spdlog/sinks/stdout_color_sinks.h>
 #include <spdlog/spdlog.h>
 
+#include "core/logging/log_format.h"
 #include "server/log_format.h"
 #include "server/map_server.h"
 #include "server/mapd_config.h"
@@ -42,7 +43,7 @@ int main(int argc, char** argv) {
   if (config->log_format == "json") {
     spdlog::set_formatter(crowdmap::MakeJsonLogFormatter());
   } else {
-    spdlog::set_pattern("%Y-%m-%dT%H:%M:%S.%e %l %v");
+    crowdmap::UseTextLogFormat(*logger);
   }
   const auto level = spdlog::level::from_str(config->log_level);
   if (level == spdlog::level::off && config->log_level != "off") {

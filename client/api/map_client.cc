@@ -5,6 +5,8 @@
 #include <Eigen/Cholesky>
 
 #include <algorithm>
+#include <condition_variable>
+#include <mutex>
 #include <random>
 #include <thread>
 
@@ -342,30 +344,79 @@ absl::StatusOr<MapState> MapClient::DownloadMap(const pb::BoundingBox& box) {
   return map;
 }
 
-absl::Status MapClient::WatchRegion(const pb::BoundingBox& box, int64_t since_version,
-                                    const std::function<bool(const pb::WatchRegionResponse&)>& on_change,
-                                    std::optional<std::chrono::milliseconds> duration) {
+absl::Status MapClient::WatchOnce(const pb::BoundingBox& box, int64_t* since, bool wait_for_server,
+                                  const std::function<bool(const pb::WatchRegionResponse&)>& on_change,
+                                  std::optional<std::chrono::system_clock::time_point> end, bool* answered,
+                                  bool* stopped) {
   grpc::ClientContext ctx;
-  if (duration) ctx.set_deadline(std::chrono::system_clock::now() + *duration);
+  if (end) ctx.set_deadline(*end);
+  ctx.set_wait_for_ready(wait_for_server);
   Authorize(&ctx);
   pb::WatchRegionRequest request;
   *request.mutable_box() = box;
-  request.set_since_version(since_version);
+  request.set_since_version(*since);
+  // A stream has no deadline of its own; a watchdog cancels the call when its first message is
+  // late by call_deadline.
+  std::mutex mu;
+  std::condition_variable cv;
+  bool first = false, done = false, first_late = false;
+  std::thread watchdog([&] {
+    std::unique_lock<std::mutex> lock(mu);
+    if (!cv.wait_for(lock, options_.call_deadline, [&] { return first || done; })) {
+      first_late = true;
+      ctx.TryCancel();
+    }
+  });
+  auto wake = [&](bool* flag) {
+    std::lock_guard<std::mutex> lock(mu);
+    *flag = true;
+    cv.notify_all();
+  };
   std::unique_ptr<grpc::ClientReader<pb::WatchRegionResponse>> reader = stub_->WatchRegion(&ctx, request);
   pb::WatchRegionResponse response;
-  bool cancelled = false;
   while (reader->Read(&response)) {
+    if (!first) wake(&first);
+    *answered = true;
+    *since = std::max(*since, response.map_version());
     if (!on_change(response)) {
+      *stopped = true;
       ctx.TryCancel();
-      cancelled = true;
       break;
     }
   }
   const grpc::Status status = reader->Finish();
-  if (cancelled || (duration && status.error_code() == grpc::StatusCode::DEADLINE_EXCEEDED)) {
-    return absl::OkStatus();
+  wake(&done);
+  watchdog.join();
+  if (*stopped || (end && status.error_code() == grpc::StatusCode::DEADLINE_EXCEEDED)) return absl::OkStatus();
+  bool late = false;
+  {
+    std::lock_guard<std::mutex> lock(mu);
+    late = first_late && !first;
+  }
+  if (late) {
+    return absl::DeadlineExceededError(absl::StrFormat("WatchRegion: no answer within the call deadline (%.3g s)",
+                                                       options_.call_deadline.count() / 1000.0));
   }
   return FromGrpcStatus(status);
+}
+
+absl::Status MapClient::WatchRegion(const pb::BoundingBox& box, int64_t since_version,
+                                    const std::function<bool(const pb::WatchRegionResponse&)>& on_change,
+                                    const WatchOptions& options) {
+  std::optional<std::chrono::system_clock::time_point> end;
+  if (options.duration) end = std::chrono::system_clock::now() + *options.duration;
+  int64_t since = since_version;
+  bool wait_for_server = false;
+  while (true) {
+    bool answered = false, stopped = false;
+    absl::Status status = WatchOnce(box, &since, wait_for_server, on_change, end, &answered, &stopped);
+    if (status.ok() || stopped) return status;
+    // Reconnect only a stream that was live: a server unreachable from the start is an error at once,
+    // and a reconnection that got no answer within call_deadline ends the watch.
+    if (!options.reconnect || !answered || status.code() != absl::StatusCode::kUnavailable) return status;
+    if (options.on_reconnect) options.on_reconnect(status, since);
+    wait_for_server = true;
+  }
 }
 
 absl::StatusOr<pb::MapInfo> MapClient::WaitUntilIdle(std::chrono::milliseconds timeout,

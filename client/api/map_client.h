@@ -92,11 +92,31 @@ class MapClient {
   absl::StatusOr<RegionMap> QueryRegion(const pb::BoundingBox& box, bool include_cross = false);
   // The region as a core map; Aborted when the map changed between pages.
   absl::StatusOr<MapState> DownloadMap(const pb::BoundingBox& box);
-  // Streams changes after `since_version` to `on_change` until it returns false, the deadline
-  // passes (OK then), or the server ends the stream.
+  // How a watch runs, beyond its box and first version.
+  struct WatchOptions {
+    // End the watch (OK) after this long; none: until on_change returns false.
+    std::optional<std::chrono::milliseconds> duration;
+    // When a stream that had answered breaks (UNAVAILABLE: the server restarted, the connection
+    // dropped), call again from the last map version received, waiting up to call_deadline for
+    // the server to answer; a server not back by then ends the watch with that error.
+    bool reconnect = false;
+    // Told before each reconnection: the error that broke the stream and the version resumed from.
+    std::function<void(const absl::Status&, int64_t)> on_reconnect;
+  };
+  // Streams changes after `since_version` to `on_change` until it returns false, the duration
+  // passes (OK then), or the server ends the stream. Each call's first message (the server sends
+  // the current version at once) must come within call_deadline, else DEADLINE_EXCEEDED; later
+  // messages come when the map changes and have no deadline.
   absl::Status WatchRegion(const pb::BoundingBox& box, int64_t since_version,
                            const std::function<bool(const pb::WatchRegionResponse&)>& on_change,
-                           std::optional<std::chrono::milliseconds> duration);
+                           const WatchOptions& options);
+  absl::Status WatchRegion(const pb::BoundingBox& box, int64_t since_version,
+                           const std::function<bool(const pb::WatchRegionResponse&)>& on_change,
+                           std::optional<std::chrono::milliseconds> duration) {
+    WatchOptions options;
+    options.duration = duration;
+    return WatchRegion(box, since_version, on_change, options);
+  }
   // Polls GetMapInfo until nothing is queued or processing; DeadlineExceeded after `timeout`.
   absl::StatusOr<pb::MapInfo> WaitUntilIdle(std::chrono::milliseconds timeout,
                                             const std::function<void(const pb::MapInfo&)>& on_poll = nullptr);
@@ -105,6 +125,11 @@ class MapClient {
   const std::shared_ptr<grpc::Channel>& channel() const { return channel_; }
 
  private:
+  // One WatchRegion call from `*since` (advanced as messages arrive) until `end`.
+  absl::Status WatchOnce(const pb::BoundingBox& box, int64_t* since, bool wait_for_server,
+                         const std::function<bool(const pb::WatchRegionResponse&)>& on_change,
+                         std::optional<std::chrono::system_clock::time_point> end, bool* answered, bool* stopped);
+
   MapClient(const MapClientOptions& options, std::shared_ptr<grpc::ChannelCredentials> credentials);
   // The call deadline and the bearer token.
   void SetDeadline(grpc::ClientContext* ctx) const;

@@ -3,9 +3,28 @@
 #include <cerrno>
 #include <cstdlib>
 
+#include "absl/strings/cord.h"
+
 #include "absl/strings/str_cat.h"
 
 namespace crowdmap {
+namespace {
+constexpr char kUsagePayload[] = "type.crowdmap/cli.usage_error";
+}  // namespace
+
+absl::Status UsageError(absl::string_view message) { return AsUsageError(absl::InvalidArgumentError(message)); }
+
+absl::Status AsUsageError(absl::Status status) {
+  if (!status.ok()) status.SetPayload(kUsagePayload, absl::Cord("1"));
+  return status;
+}
+
+bool IsUsageError(const absl::Status& status) { return status.GetPayload(kUsagePayload).has_value(); }
+
+int ExitCodeFor(const absl::Status& status) {
+  if (status.ok()) return kExitOk;
+  return IsUsageError(status) ? kExitUsage : kExitFailure;
+}
 
 absl::StatusOr<Flags> Flags::Parse(const std::vector<std::string>& args, const std::map<std::string, bool>& known) {
   Flags flags;
@@ -23,9 +42,12 @@ absl::StatusOr<Flags> Flags::Parse(const std::vector<std::string>& args, const s
       name = name.substr(0, eq);
     }
     auto it = known.find(name);
-    if (it == known.end()) return absl::InvalidArgumentError(absl::StrCat("unknown flag --", name));
+    if (it == known.end()) return UsageError(absl::StrCat("unknown flag --", name));
     if (it->second && !inline_value) {
-      if (i + 1 >= args.size()) return absl::InvalidArgumentError(absl::StrCat("flag --", name, " needs a value"));
+      // "--bbox --json" is a forgotten value, not a value "--json" (use --bbox=VALUE for such a value).
+      if (i + 1 >= args.size() || args[i + 1].rfind("--", 0) == 0) {
+        return UsageError(absl::StrCat("flag --", name, " needs a value"));
+      }
       value = args[++i];
     } else if (!it->second && !inline_value) {
       value = "true";
@@ -47,7 +69,7 @@ absl::StatusOr<long long> Flags::GetInt(const std::string& name, long long fallb
   errno = 0;
   const long long v = std::strtoll(it->second.c_str(), &end, 10);
   if (errno != 0 || end == it->second.c_str() || *end != '\0') {
-    return absl::InvalidArgumentError(absl::StrCat("--", name, ": expected an integer, got '", it->second, "'"));
+    return UsageError(absl::StrCat("--", name, ": expected an integer, got '", it->second, "'"));
   }
   return v;
 }
@@ -59,7 +81,7 @@ absl::StatusOr<double> Flags::GetDouble(const std::string& name, double fallback
   errno = 0;
   const double v = std::strtod(it->second.c_str(), &end);
   if (errno != 0 || end == it->second.c_str() || *end != '\0') {
-    return absl::InvalidArgumentError(absl::StrCat("--", name, ": expected a number, got '", it->second, "'"));
+    return UsageError(absl::StrCat("--", name, ": expected a number, got '", it->second, "'"));
   }
   return v;
 }

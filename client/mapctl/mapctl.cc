@@ -16,11 +16,13 @@
 #include "absl/strings/str_split.h"
 #include "absl/time/clock.h"
 #include "absl/time/time.h"
+#include "core/geo/tiles.h"
 #include "server/geojson.h"
 #include "client/api/localization_export.h"
 #include "client/api/map_client.h"
 #include "client/api/passage_files.h"
 #include "client/common/flags.h"
+#include "client/mapctl/table_cell.h"
 
 namespace crowdmap {
 namespace {
@@ -45,10 +47,15 @@ Commands:
   discard ID                     mark a failed or quarantined passage discarded: never applied
   info                           map version, landmark and queue counts, strategy
   tile Z X Y                     landmarks of one z16 tile
+  tile --at LAT,LON              the z16 tile containing a point, printed as Z X Y (no call)
   region --bbox MINLON,MINLAT,MAXLON,MAXLAT
-                                 landmarks inside a bounding box
+                                 landmarks inside a bounding box (a box valid only with lat and
+                                 lon swapped is read swapped, with a warning)
   watch --bbox ... [--since V] [--seconds S] [--updates N]
-                                 follow changes in a bounding box (until Ctrl-C, S seconds or N updates)
+                                 follow changes in a bounding box (until Ctrl-C, S seconds or N updates);
+                                 each call's first answer must come within --deadline-s; when the
+                                 server restarts, it reconnects from the last version received
+                                 (waiting up to --deadline-s for the server, a warning on stderr)
   export --bbox ... --format geojson [--ellipses] [--out FILE]
                                  RFC 7946 FeatureCollection of the landmarks (stdout unless --out)
   localize FILE [--format csv|geojson] [--out FILE]
@@ -57,20 +64,26 @@ Commands:
 
 Common flags:
   --server HOST:PORT             mapd address (default $MAPCTL_SERVER or 127.0.0.1:50051)
-  --json                         machine-readable output (protobuf JSON) instead of tables
+  --json                         machine-readable output (protobuf JSON, zero-valued fields
+                                 included) instead of tables
   --deadline-s S                 deadline of each call, seconds (default 10)
   --tls-ca PATH                  TLS: the PEM CA that signed mapd's certificate (default plaintext)
   --tls-cert PATH --tls-key PATH mTLS: this client's PEM certificate and key
   --tls-server-name NAME         the name in mapd's certificate, if not the --server host
   --token-file PATH              bearer token (default $CROWDMAP_TOKEN_FILE; none)
 
-Exit codes: 0 success, 1 failure (unreachable server, malformed file, unknown id, ...), 2 usage error.
+Exit codes: 0 success, 1 failure (unreachable server, malformed file, unknown id, ...), 2 usage error
+(unknown command or flag, missing argument, bad value), reported before any call is made.
 )";
 
 struct Context {
   std::unique_ptr<MapClient> client;
   bool json = false;
   std::ostream* out = nullptr;
+  std::ostream* err = nullptr;  // warnings, one line each, prefixed with the command
+  std::string command;
+
+  std::ostream& Warn() { return *err << "mapctl " << command << ": "; }
 };
 
 std::string OneLine(absl::string_view message) {
@@ -82,6 +95,7 @@ std::string ToJson(const google::protobuf::Message& message) {
   google::protobuf::util::JsonPrintOptions options;
   options.add_whitespace = true;
   options.preserve_proto_field_names = true;
+  options.always_print_primitive_fields = true;  // a zero count or version is printed, not left out
   (void)google::protobuf::util::MessageToJsonString(message, &text, options);
   return text;
 }
@@ -106,7 +120,7 @@ absl::StatusOr<pb::PassageState> ParseState(const std::string& name) {
                              pb::PASSAGE_STATE_QUARANTINED, pb::PASSAGE_STATE_DISCARDED}) {
     if (StateName(s) == name) return s;
   }
-  return absl::InvalidArgumentError(absl::StrCat(
+  return UsageError(absl::StrCat(
       "--state: '", name,
       "' is not queued, processing, applied, rejected, failed, excluded, quarantined or discarded"));
 }
@@ -116,27 +130,47 @@ std::string FormatTime(int64_t unix_ms) {
   return absl::FormatTime("%Y-%m-%d %H:%M:%S", absl::FromUnixMillis(unix_ms), absl::UTCTimeZone());
 }
 
-absl::StatusOr<pb::BoundingBox> ParseBbox(const Flags& flags) {
-  if (!flags.Has("bbox")) return absl::InvalidArgumentError("--bbox MINLON,MINLAT,MAXLON,MAXLAT is required");
+bool InBboxRange(double min_lon, double min_lat, double max_lon, double max_lat) {
+  return min_lon <= max_lon && min_lat <= max_lat && min_lon >= -180 && max_lon <= 180 && min_lat >= -90 &&
+         max_lat <= 90;
+}
+
+// --bbox MINLON,MINLAT,MAXLON,MAXLAT. A box valid only with lat and lon swapped (a latitude beyond
+// +-90 that is a valid longitude) is read swapped, with a warning; a box valid neither way
+// is a usage error.
+absl::StatusOr<pb::BoundingBox> ParseBbox(const Flags& flags, Context& ctx) {
+  if (!flags.Has("bbox")) return UsageError("--bbox MINLON,MINLAT,MAXLON,MAXLAT is required");
   const std::string text = flags.GetString("bbox", "");
   std::vector<std::string> parts = absl::StrSplit(text, ',');
   double v[4];
-  if (parts.size() != 4) return absl::InvalidArgumentError(absl::StrCat("--bbox: '", text, "' is not MINLON,MINLAT,MAXLON,MAXLAT"));
+  if (parts.size() != 4) return UsageError(absl::StrCat("--bbox: '", text, "' is not MINLON,MINLAT,MAXLON,MAXLAT"));
   for (int i = 0; i < 4; ++i) {
-    if (!absl::SimpleAtod(parts[i], &v[i])) {
-      return absl::InvalidArgumentError(absl::StrCat("--bbox: '", parts[i], "' is not a number"));
+    if (!absl::SimpleAtod(parts[i], &v[i]) || !std::isfinite(v[i])) {
+      return UsageError(absl::StrCat("--bbox: '", parts[i], "' is not a number"));
     }
   }
-  if (v[0] > v[2] || v[1] > v[3]) return absl::InvalidArgumentError("--bbox: need MINLON <= MAXLON and MINLAT <= MAXLAT");
-  if (v[0] < -180 || v[2] > 180 || v[1] < -90 || v[3] > 90) {
-    return absl::InvalidArgumentError("--bbox: longitudes must lie in [-180, 180], latitudes in [-90, 90]");
-  }
   pb::BoundingBox box;
-  box.set_min_lon_deg(v[0]);
-  box.set_min_lat_deg(v[1]);
-  box.set_max_lon_deg(v[2]);
-  box.set_max_lat_deg(v[3]);
-  return box;
+  if (InBboxRange(v[0], v[1], v[2], v[3])) {
+    box.set_min_lon_deg(v[0]);
+    box.set_min_lat_deg(v[1]);
+    box.set_max_lon_deg(v[2]);
+    box.set_max_lat_deg(v[3]);
+    return box;
+  }
+  const bool lat_out_of_range = std::abs(v[1]) > 90 || std::abs(v[3]) > 90;
+  if (lat_out_of_range && InBboxRange(v[1], v[0], v[3], v[2])) {
+    ctx.Warn() << absl::StrFormat("warning: --bbox %s has a latitude beyond +-90 and reads as a box only with lat and lon "
+                            "swapped; using MINLON,MINLAT,MAXLON,MAXLAT = %s,%s,%s,%s\n",
+                            text, parts[1], parts[0], parts[3], parts[2]);
+    box.set_min_lon_deg(v[1]);
+    box.set_min_lat_deg(v[0]);
+    box.set_max_lon_deg(v[3]);
+    box.set_max_lat_deg(v[2]);
+    return box;
+  }
+  if (v[0] > v[2] || v[1] > v[3]) return UsageError("--bbox: need MINLON <= MAXLON and MINLAT <= MAXLAT");
+  return UsageError(absl::StrCat("--bbox: '", text, "' cannot be a box, either way round: longitudes must lie in "
+                                 "[-180, 180], latitudes in [-90, 90]"));
 }
 
 void PrintLandmarkTable(const std::vector<pb::Landmark>& landmarks, std::ostream& out) {
@@ -152,12 +186,13 @@ void PrintLandmarkTable(const std::vector<pb::Landmark>& landmarks, std::ostream
 }
 
 void PrintPassageRow(const pb::PassageStatus& p, std::ostream& out) {
-  out << absl::StrFormat("%8d  %-14s %-16s %-10s %8d  %-19s  %s\n", p.id(), p.vehicle_id(), p.passage_id(),
-                         StateName(p.state()), p.attempts(), FormatTime(p.received_unix_ms()), OneLine(p.error()));
+  out << absl::StrFormat("%8d  %s %s %-10s %8d  %-19s  %s\n", p.id(), TableCell(p.vehicle_id(), 14),
+                         TableCell(p.passage_id(), 16), StateName(p.state()), p.attempts(),
+                         FormatTime(p.received_unix_ms()), EscapeForTerminal(OneLine(p.error())));
 }
 
 absl::Status Upload(const Flags& flags, Context& ctx) {
-  if (flags.positional().empty()) return absl::InvalidArgumentError("upload: give at least one passage file");
+  if (flags.positional().empty()) return UsageError("give at least one passage file");
   std::vector<std::pair<std::string, pb::Passage>> files;
   for (const std::string& path : flags.positional()) {
     absl::StatusOr<pb::Passage> passage = ReadPassageFile(path);
@@ -172,17 +207,18 @@ absl::Status Upload(const Flags& flags, Context& ctx) {
       *ctx.out << ToJson(*response);
     } else {
       const pb::PassageStatus& s = response->status();
-      *ctx.out << absl::StrFormat("%-32s %8d  %-14s %-16s %-10s %s\n", path, s.id(), s.vehicle_id(), s.passage_id(),
-                                  StateName(s.state()), response->duplicate() ? "yes" : "no");
+      *ctx.out << absl::StrFormat("%s %8d  %s %s %-10s %s\n", TableCell(path, 32), s.id(), TableCell(s.vehicle_id(), 14),
+                                  TableCell(s.passage_id(), 16), StateName(s.state()),
+                                  response->duplicate() ? "yes" : "no");
     }
   }
   return absl::OkStatus();
 }
 
 // The passage named by a command's one argument: a server id, or VEHICLE/PASSAGE_ID.
-absl::StatusOr<PassageKey> PassageArgument(const std::string& command, const Flags& flags) {
+absl::StatusOr<PassageKey> PassageArgument(const Flags& flags) {
   if (flags.positional().size() != 1) {
-    return absl::InvalidArgumentError(absl::StrCat(command, ": give one ID (number or VEHICLE/PASSAGE_ID)"));
+    return UsageError(absl::StrCat("give one ID (number or VEHICLE/PASSAGE_ID)"));
   }
   const std::string& arg = flags.positional()[0];
   PassageKey key;
@@ -192,11 +228,11 @@ absl::StatusOr<PassageKey> PassageArgument(const std::string& command, const Fla
     key.passage_id = arg.substr(slash + 1);
     return key;
   }
-  return absl::InvalidArgumentError(absl::StrCat(command, ": '", arg, "' is neither a number nor VEHICLE/PASSAGE_ID"));
+  return UsageError(absl::StrCat("'", arg, "' is neither a number nor VEHICLE/PASSAGE_ID"));
 }
 
 absl::Status Status(const Flags& flags, Context& ctx) {
-  absl::StatusOr<PassageKey> key = PassageArgument("status", flags);
+  absl::StatusOr<PassageKey> key = PassageArgument(flags);
   if (!key.ok()) return key.status();
   absl::StatusOr<pb::PassageStatus> status =
       key->id != 0 ? ctx.client->GetPassage(key->id) : ctx.client->GetPassage(key->vehicle_id, key->passage_id);
@@ -208,10 +244,11 @@ absl::Status Status(const Flags& flags, Context& ctx) {
   std::ostream& out = *ctx.out;
   out << absl::StrFormat("id:          %d\nvehicle:     %s\npassage:     %s\nstate:       %s\nattempts:    %d\n"
                          "received:    %s\nfinished:    %s\nsize:        %d bytes\n",
-                         status->id(), status->vehicle_id(), status->passage_id(), StateName(status->state()),
+                         status->id(), EscapeForTerminal(status->vehicle_id()),
+                         EscapeForTerminal(status->passage_id()), StateName(status->state()),
                          status->attempts(), FormatTime(status->received_unix_ms()),
                          FormatTime(status->finished_unix_ms()), status->size_bytes());
-  if (!status->error().empty()) out << "error:       " << OneLine(status->error()) << "\n";
+  if (!status->error().empty()) out << "error:       " << EscapeForTerminal(OneLine(status->error())) << "\n";
   if (status->has_result()) {
     const pb::PassageResult& r = status->result();
     out << absl::StrFormat("result:      strategy=%s nodes=%d subgraphs=%d updated=%d created=%d conditioned=%d "
@@ -225,7 +262,7 @@ absl::Status Status(const Flags& flags, Context& ctx) {
 absl::Status LandmarkCommand(const Flags& flags, Context& ctx) {
   int64_t id = 0;
   if (flags.positional().size() != 1 || !absl::SimpleAtoi(flags.positional()[0], &id)) {
-    return absl::InvalidArgumentError("landmark: give one landmark id (a number)");
+    return UsageError("give one landmark id (a number)");
   }
   absl::StatusOr<pb::GetLandmarkResponse> response = ctx.client->GetLandmark(id);
   if (!response.ok()) return response.status();
@@ -241,12 +278,14 @@ absl::Status LandmarkCommand(const Flags& flags, Context& ctx) {
       l.passages_seen());
   *ctx.out << absl::StrFormat("shaped by:   %d passages retained apart (older ones are folded into the map)\n",
                               response->passages_size());
-  for (const pb::PassageKey& p : response->passages()) *ctx.out << "  " << p.vehicle_id() << "/" << p.passage_id() << "\n";
+  for (const pb::PassageKey& p : response->passages()) {
+    *ctx.out << "  " << EscapeForTerminal(p.vehicle_id()) << "/" << EscapeForTerminal(p.passage_id()) << "\n";
+  }
   return absl::OkStatus();
 }
 
 absl::Status Exclude(const Flags& flags, Context& ctx) {
-  absl::StatusOr<PassageKey> key = PassageArgument("exclude", flags);
+  absl::StatusOr<PassageKey> key = PassageArgument(flags);
   if (!key.ok()) return key.status();
   absl::StatusOr<pb::ExcludePassageResponse> response = ctx.client->ExcludePassage(*key);
   if (!response.ok()) return response.status();
@@ -256,15 +295,15 @@ absl::Status Exclude(const Flags& flags, Context& ctx) {
   }
   *ctx.out << absl::StrFormat("passage %d (%s/%s) excluded: map version %d, %d landmarks re-estimated, %d removed, "
                               "%d moved through their correlation\n",
-                              response->status().id(), response->status().vehicle_id(),
-                              response->status().passage_id(), response->map_version(), response->landmarks_updated(),
+                              response->status().id(), EscapeForTerminal(response->status().vehicle_id()),
+                              EscapeForTerminal(response->status().passage_id()), response->map_version(), response->landmarks_updated(),
                               response->landmarks_removed(), response->landmarks_conditioned());
   return absl::OkStatus();
 }
 
 // requeue ID / release ID / discard ID: an operator's decision on a failed or quarantined passage.
-absl::Status Resolve(const char* command, pb::ResolvePassageRequest::Action action, const Flags& flags, Context& ctx) {
-  absl::StatusOr<PassageKey> key = PassageArgument(command, flags);
+absl::Status Resolve(pb::ResolvePassageRequest::Action action, const Flags& flags, Context& ctx) {
+  absl::StatusOr<PassageKey> key = PassageArgument(flags);
   if (!key.ok()) return key.status();
   absl::StatusOr<pb::PassageStatus> status = ctx.client->ResolvePassage(*key, action);
   if (!status.ok()) return status.status();
@@ -272,21 +311,21 @@ absl::Status Resolve(const char* command, pb::ResolvePassageRequest::Action acti
     *ctx.out << ToJson(*status);
     return absl::OkStatus();
   }
-  *ctx.out << absl::StrFormat("passage %d (%s/%s) is now %s\n", status->id(), status->vehicle_id(), status->passage_id(),
-                              StateName(status->state()));
+  *ctx.out << absl::StrFormat("passage %d (%s/%s) is now %s\n", status->id(), EscapeForTerminal(status->vehicle_id()),
+                              EscapeForTerminal(status->passage_id()), StateName(status->state()));
   return absl::OkStatus();
 }
 
 absl::Status Requeue(const Flags& flags, Context& ctx) {
-  return Resolve("requeue", pb::ResolvePassageRequest::REQUEUE, flags, ctx);
+  return Resolve(pb::ResolvePassageRequest::REQUEUE, flags, ctx);
 }
 
 absl::Status Release(const Flags& flags, Context& ctx) {
-  return Resolve("release", pb::ResolvePassageRequest::RELEASE, flags, ctx);
+  return Resolve(pb::ResolvePassageRequest::RELEASE, flags, ctx);
 }
 
 absl::Status Discard(const Flags& flags, Context& ctx) {
-  return Resolve("discard", pb::ResolvePassageRequest::DISCARD, flags, ctx);
+  return Resolve(pb::ResolvePassageRequest::DISCARD, flags, ctx);
 }
 
 absl::Status Passages(const Flags& flags, Context& ctx) {
@@ -332,12 +371,36 @@ absl::Status Info(const Flags& flags, Context& ctx) {
   return absl::OkStatus();
 }
 
+// tile --at LAT,LON: the address of the storage (z16) tile containing the point; no call.
+absl::Status TileAt(const Flags& flags, Context& ctx) {
+  if (!flags.positional().empty()) return UsageError("give either Z X Y or --at LAT,LON");
+  const std::string text = flags.GetString("at", "");
+  std::vector<std::string> parts = absl::StrSplit(text, ',');
+  LatLon p;
+  if (parts.size() != 2 || !absl::SimpleAtod(parts[0], &p.lat_deg) || !absl::SimpleAtod(parts[1], &p.lon_deg) ||
+      !std::isfinite(p.lat_deg) || !std::isfinite(p.lon_deg)) {
+    return UsageError(absl::StrCat("--at: '", text, "' is not LAT,LON (degrees)"));
+  }
+  if (std::abs(p.lat_deg) > kMaxMercatorLatDeg || std::abs(p.lon_deg) > 180) {
+    return UsageError(absl::StrFormat("--at: need |LAT| <= %.4f (Web-Mercator) and |LON| <= 180, got %s", kMaxMercatorLatDeg,
+                                      text));
+  }
+  const TileId tile = TileContaining(p, kStorageZoom);
+  if (ctx.json) {
+    *ctx.out << absl::StrFormat("{\n  \"z\": %d,\n  \"x\": %d,\n  \"y\": %d\n}\n", tile.z, tile.x, tile.y);
+  } else {
+    *ctx.out << absl::StrFormat("%d %d %d\n", tile.z, tile.x, tile.y);
+  }
+  return absl::OkStatus();
+}
+
 absl::Status Tile(const Flags& flags, Context& ctx) {
-  if (flags.positional().size() != 3) return absl::InvalidArgumentError("tile: give Z X Y");
+  if (flags.Has("at")) return TileAt(flags, ctx);
+  if (flags.positional().size() != 3) return UsageError("give Z X Y or --at LAT,LON");
   int zxy[3];
   for (int i = 0; i < 3; ++i) {
     if (!absl::SimpleAtoi(flags.positional()[i], &zxy[i])) {
-      return absl::InvalidArgumentError(absl::StrCat("tile: '", flags.positional()[i], "' is not an integer"));
+      return UsageError(absl::StrCat("'", flags.positional()[i], "' is not an integer"));
     }
   }
   absl::StatusOr<pb::GetTileResponse> tile = ctx.client->GetTile(zxy[0], zxy[1], zxy[2]);
@@ -353,7 +416,7 @@ absl::Status Tile(const Flags& flags, Context& ctx) {
 }
 
 absl::Status Region(const Flags& flags, Context& ctx) {
-  absl::StatusOr<pb::BoundingBox> box = ParseBbox(flags);
+  absl::StatusOr<pb::BoundingBox> box = ParseBbox(flags, ctx);
   if (!box.ok()) return box.status();
   absl::StatusOr<RegionMap> region = ctx.client->QueryRegion(*box);
   if (!region.ok()) return region.status();
@@ -370,20 +433,29 @@ absl::Status Region(const Flags& flags, Context& ctx) {
 }
 
 absl::Status Watch(const Flags& flags, Context& ctx) {
-  absl::StatusOr<pb::BoundingBox> box = ParseBbox(flags);
+  absl::StatusOr<pb::BoundingBox> box = ParseBbox(flags, ctx);
   if (!box.ok()) return box.status();
   absl::StatusOr<long long> since = flags.GetInt("since", 0), updates = flags.GetInt("updates", 0);
   absl::StatusOr<double> seconds = flags.GetDouble("seconds", 0.0);
   for (const absl::Status& s : {since.status(), updates.status(), seconds.status()}) {
     if (!s.ok()) return s;
   }
-  std::optional<std::chrono::milliseconds> duration;
-  if (*seconds > 0) duration = std::chrono::milliseconds(static_cast<int64_t>(*seconds * 1000));
+  if (*since < 0) return UsageError("--since: must be >= 0");
+  if (!(*seconds >= 0)) return UsageError("--seconds: must be >= 0 (0 = until Ctrl-C or --updates)");
+  MapClient::WatchOptions options;
+  if (*seconds > 0) options.duration = std::chrono::milliseconds(static_cast<int64_t>(*seconds * 1000));
+  options.reconnect = true;
+  options.on_reconnect = [&](const absl::Status& lost, int64_t version) {
+    ctx.Warn() << "connection lost (" << absl::StatusCodeToString(lost.code()) << ": " << OneLine(lost.message())
+               << "); reconnecting from map version " << version << "\n";
+  };
   long long received = 0;
   return ctx.client->WatchRegion(*box, *since, [&](const pb::WatchRegionResponse& change) {
     if (ctx.json) {
       std::string line;
-      (void)google::protobuf::util::MessageToJsonString(change, &line);
+      google::protobuf::util::JsonPrintOptions options;
+      options.always_print_primitive_fields = true;
+      (void)google::protobuf::util::MessageToJsonString(change, &line, options);
       *ctx.out << line << "\n";
     } else {
       *ctx.out << absl::StrFormat("map version %d: %d landmarks changed\n", change.map_version(),
@@ -395,7 +467,7 @@ absl::Status Watch(const Flags& flags, Context& ctx) {
     }
     ctx.out->flush();
     return *updates <= 0 || ++received < *updates;
-  }, duration);
+  }, options);
 }
 
 absl::Status WriteTextFile(const std::string& path, const std::string& text) {
@@ -407,10 +479,10 @@ absl::Status WriteTextFile(const std::string& path, const std::string& text) {
 }
 
 absl::Status Export(const Flags& flags, Context& ctx) {
-  absl::StatusOr<pb::BoundingBox> box = ParseBbox(flags);
+  absl::StatusOr<pb::BoundingBox> box = ParseBbox(flags, ctx);
   if (!box.ok()) return box.status();
   const std::string format = flags.GetString("format", "geojson");
-  if (format != "geojson") return absl::InvalidArgumentError(absl::StrCat("--format: '", format, "' is not geojson"));
+  if (format != "geojson") return UsageError(absl::StrCat("--format: '", format, "' is not geojson"));
   absl::StatusOr<RegionMap> region = ctx.client->QueryRegion(*box);
   if (!region.ok()) return region.status();
   GeoJsonOptions options;
@@ -427,10 +499,10 @@ absl::Status Export(const Flags& flags, Context& ctx) {
 }
 
 absl::Status Localize(const Flags& flags, Context& ctx) {
-  if (flags.positional().size() != 1) return absl::InvalidArgumentError("localize: give one passage file");
+  if (flags.positional().size() != 1) return UsageError("give one passage file");
   const std::string format = flags.GetString("format", "csv");
   if (format != "csv" && format != "geojson") {
-    return absl::InvalidArgumentError(absl::StrCat("--format: '", format, "' is not csv or geojson"));
+    return UsageError(absl::StrCat("--format: '", format, "' is not csv or geojson"));
   }
   absl::StatusOr<pb::Passage> passage = ReadPassageFile(flags.positional()[0]);
   if (!passage.ok()) return passage.status();
@@ -459,6 +531,7 @@ using Command = absl::Status (*)(const Flags&, Context&);
 struct CommandSpec {
   Command run;
   std::map<std::string, bool> flags;  // besides the common ones
+  bool no_arguments = false;          // takes flags only
 };
 
 const std::map<std::string, CommandSpec>& Commands() {
@@ -470,12 +543,12 @@ const std::map<std::string, CommandSpec>& Commands() {
       {"release", {&Release, {}}},
       {"discard", {&Discard, {}}},
       {"landmark", {&LandmarkCommand, {}}},
-      {"passages", {&Passages, {{"state", true}}}},
-      {"info", {&Info, {}}},
-      {"tile", {&Tile, {}}},
-      {"region", {&Region, {{"bbox", true}}}},
-      {"watch", {&Watch, {{"bbox", true}, {"since", true}, {"seconds", true}, {"updates", true}}}},
-      {"export", {&Export, {{"bbox", true}, {"format", true}, {"ellipses", false}, {"out", true}}}},
+      {"passages", {&Passages, {{"state", true}}, true}},
+      {"info", {&Info, {}, true}},
+      {"tile", {&Tile, {{"at", true}}}},
+      {"region", {&Region, {{"bbox", true}}, true}},
+      {"watch", {&Watch, {{"bbox", true}, {"since", true}, {"seconds", true}, {"updates", true}}, true}},
+      {"export", {&Export, {{"bbox", true}, {"format", true}, {"ellipses", false}, {"out", true}}, true}},
       {"localize", {&Localize, {{"format", true}, {"out", true}}}},
   };
   return *commands;
@@ -488,60 +561,65 @@ const char* MapctlUsage() { return kUsage; }
 int RunMapctl(const std::vector<std::string>& args, std::ostream& out, std::ostream& err) {
   if (args.empty()) {
     err << kUsage;
-    return 2;
+    return kExitUsage;
   }
   if (args[0] == "--version") {
     out << "mapctl (crowdmap) " << CROWDMAP_VERSION << "\n";
-    return 0;
+    return kExitOk;
   }
   if (args[0] == "--help" || args[0] == "-h" || args[0] == "help") {
     out << kUsage;
-    return 0;
+    return kExitOk;
   }
   const std::string& name = args[0];
   auto it = Commands().find(name);
   if (it == Commands().end()) {
     err << "mapctl: unknown command '" << name << "' (see mapctl --help)\n";
-    return 2;
+    return kExitUsage;
   }
   std::map<std::string, bool> known = it->second.flags;
   known.insert({{"server", true}, {"json", false}, {"deadline-s", true}, {"help", false}});
   for (const auto& flag : ClientSecurityFlags()) known.insert(flag);
   absl::StatusOr<Flags> flags = Flags::Parse({args.begin() + 1, args.end()}, known);
   if (!flags.ok()) {
-    err << "mapctl " << name << ": " << OneLine(flags.status().message()) << "\n";
-    return 2;
+    err << "mapctl " << name << ": " << OneLine(flags.status().message()) << " (see mapctl --help)\n";
+    return kExitUsage;
   }
   if (flags->Has("help")) {
     out << kUsage;
-    return 0;
+    return kExitOk;
+  }
+  if (it->second.no_arguments && !flags->positional().empty()) {
+    err << "mapctl " << name << ": unexpected argument '" << flags->positional()[0] << "' (see mapctl --help)\n";
+    return kExitUsage;
   }
   MapClientOptions options;
   const char* env_server = std::getenv("MAPCTL_SERVER");
   options.server = flags->GetString("server", env_server && *env_server ? env_server : options.server);
   absl::StatusOr<double> deadline_s = flags->GetDouble("deadline-s", 10.0);
-  if (!deadline_s.ok() || *deadline_s <= 0) {
+  if (!deadline_s.ok() || !(*deadline_s > 0)) {
     err << "mapctl " << name << ": --deadline-s: need a positive number of seconds\n";
-    return 2;
+    return kExitUsage;
   }
   options.call_deadline = std::chrono::milliseconds(static_cast<int64_t>(*deadline_s * 1000));
   if (absl::Status s = ApplyClientSecurityFlags(*flags, &options.security); !s.ok()) {
     err << "mapctl " << name << ": " << OneLine(s.message()) << "\n";
-    return 2;
+    return kExitUsage;
   }
   absl::StatusOr<std::unique_ptr<MapClient>> client = MapClient::Create(options);
   if (!client.ok()) {
     err << "mapctl " << name << ": " << OneLine(client.status().message()) << "\n";
-    return 2;
+    return kExitUsage;
   }
-  Context ctx{*std::move(client), flags->Has("json"), &out};
+  Context ctx{*std::move(client), flags->Has("json"), &out, &err, name};
   const absl::Status status = it->second.run(*flags, ctx);
-  if (!status.ok()) {
+  if (IsUsageError(status)) {
+    err << "mapctl " << name << ": " << OneLine(status.message()) << " (see mapctl --help)\n";
+  } else if (!status.ok()) {
     err << "mapctl " << name << ": " << absl::StatusCodeToString(status.code()) << ": "
         << OneLine(status.message()) << "\n";
-    return 1;
   }
-  return 0;
+  return ExitCodeFor(status);
 }
 
 }  // namespace crowdmap

@@ -1,12 +1,21 @@
 // mapctl against a real in-process mapd on an ephemeral port with a temporary database.
 #include "client/mapctl/mapctl.h"
 
+#include <arpa/inet.h>
+#include <netinet/in.h>
+#include <sys/socket.h>
+#include <unistd.h>
+
 #include <fstream>
+#include <thread>
 #include <sstream>
 
+#include "absl/strings/ascii.h"
 #include "absl/strings/match.h"
+#include "absl/strings/str_split.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
+#include "absl/strings/str_replace.h"
 #include "client/api/map_client.h"
 #include "client/mapsim/fleet.h"
 #include "core/geo/tiles.h"
@@ -90,6 +99,10 @@ TEST_F(MapctlTest, InfoShowsTheEmptyMapAndItsStrategy) {
   EXPECT_TRUE(absl::StrContains(j.out, "\"strategy\": \"cc-gsd\"")) << j.out;
   EXPECT_TRUE(absl::StrContains(j.out, "\"warmup_passages\": 8")) << j.out;
   EXPECT_TRUE(absl::StrContains(j.out, "\"relinearize_until_passages\": 128")) << j.out;
+  // Zero-valued fields are printed, not left out (int64 prints as a JSON string).
+  EXPECT_TRUE(absl::StrContains(j.out, "\"landmark_count\": \"0\"")) << j.out;
+  EXPECT_TRUE(absl::StrContains(j.out, "\"map_version\": \"0\"")) << j.out;
+  EXPECT_TRUE(absl::StrContains(j.out, "\"passages_failed\": \"0\"")) << j.out;
 }
 
 TEST_F(MapctlTest, UploadedFilesAreAppliedAndListed) {
@@ -201,13 +214,19 @@ TEST_F(MapctlTest, BadInputGivesOneLineAndNonZeroExit) {
   CliRun missing = Mapctl({"upload", dir_.File("nowhere.json")}, address_);
   EXPECT_TRUE(OneErrorLine(missing)) << missing.err;
 
+  for (const CliRun& failed : {unknown_id, malformed, binary, missing}) EXPECT_EQ(failed.code, 1) << failed.err;
+
   CliRun bbox = Mapctl({"region", "--bbox", "1,2,3"}, address_);
   EXPECT_TRUE(OneErrorLine(bbox)) << bbox.err;
+  EXPECT_EQ(bbox.code, 2);
   CliRun state = Mapctl({"passages", "--state", "sleeping"}, address_);
   EXPECT_TRUE(OneErrorLine(state)) << state.err;
+  EXPECT_EQ(state.code, 2);
+  // The server refuses the zoom: a failed call, not a usage error.
   CliRun tile = Mapctl({"tile", "3", "1", "1"}, address_);
   EXPECT_TRUE(OneErrorLine(tile)) << tile.err;
   EXPECT_TRUE(absl::StrContains(tile.err, "INVALID_ARGUMENT")) << tile.err;
+  EXPECT_EQ(tile.code, 1);
 
   CliRun command = Mapctl({"frobnicate"}, address_);
   EXPECT_EQ(command.code, 2);
@@ -227,8 +246,223 @@ TEST(Mapctl, UnreachableServerGivesOneLineAndNonZeroExit) {
         {"region", "--bbox", "0,0,1,1"}, {"export", "--bbox", "0,0,1,1"}, {"watch", "--bbox", "0,0,1,1", "--seconds", "1"}}) {
     CliRun r = Mapctl(args, address);
     EXPECT_TRUE(OneErrorLine(r)) << args[0] << ": " << r.err;
+    EXPECT_EQ(r.code, 1) << args[0] << ": " << r.err;
     EXPECT_TRUE(absl::StrContains(r.err, "UNAVAILABLE")) << args[0] << ": " << r.err;
   }
+}
+
+// Every usage error exits with 2 and one line naming the problem, before any call: the server
+// here is unreachable, so a call would exit with 1.
+TEST(Mapctl, UsageErrorsExitWithTwoBeforeAnyCall) {
+  const std::string nowhere = "127.0.0.1:1";
+  const std::vector<std::pair<std::vector<std::string>, std::string>> cases = {
+      {{"frobnicate"}, "unknown command"},
+      {{"info", "--colour"}, "unknown flag --colour"},
+      {{"info", "extra"}, "unexpected argument 'extra'"},
+      {{"region", "--bbox"}, "--bbox needs a value"},
+      {{"region"}, "--bbox MINLON,MINLAT,MAXLON,MAXLAT is required"},
+      {{"region", "--bbox", "0,0,x,1"}, "'x' is not a number"},
+      {{"region", "--bbox", "0,0,200,100"}, "--bbox: '0,0,200,100' cannot be a box"},
+      {{"region", "--bbox", "2,0,1,1"}, "--bbox: need MINLON <= MAXLON"},
+      {{"watch", "--bbox", "0,0,1,1", "--seconds", "soon"}, "--seconds: expected a number"},
+      {{"watch", "--bbox", "0,0,1,1", "--since", "1.5"}, "--since: expected an integer"},
+      {{"info", "--deadline-s", "-1"}, "--deadline-s"},
+      {{"status"}, "give one ID"},
+      {{"status", "abc"}, "neither a number nor VEHICLE/PASSAGE_ID"},
+      {{"landmark", "x"}, "give one landmark id"},
+      {{"upload"}, "give at least one passage file"},
+      {{"passages", "--state", "sleeping"}, "--state: 'sleeping'"},
+      {{"tile", "16", "1"}, "give Z X Y or --at LAT,LON"},
+      {{"tile", "--at", "48.1"}, "--at: '48.1' is not LAT,LON"},
+      {{"tile", "--at", "89,11"}, "--at: need |LAT| <= 85.0511"},
+      {{"export", "--bbox", "0,0,1,1", "--format", "kml"}, "--format: 'kml' is not geojson"},
+      {{"localize", "x.json", "--format", "kml"}, "--format: 'kml' is not csv or geojson"},
+  };
+  for (const auto& [args, message] : cases) {
+    CliRun r = Mapctl(args, nowhere);
+    EXPECT_EQ(r.code, 2) << args[0] << ": " << r.err;
+    EXPECT_TRUE(OneErrorLine(r)) << args[0] << ": " << r.err;
+    EXPECT_TRUE(absl::StrContains(r.err, message)) << r.err;
+    EXPECT_FALSE(absl::StrContains(r.err, "UNAVAILABLE")) << r.err;
+  }
+  CliRun none = Mapctl({}, "");
+  EXPECT_EQ(none.code, 2);
+  EXPECT_TRUE(absl::StrContains(none.err, "Usage:")) << none.err;
+  CliRun help = Mapctl({"region", "--help"}, "");
+  EXPECT_EQ(help.code, 0);
+  EXPECT_TRUE(absl::StrContains(help.out, "Exit codes: 0 success, 1 failure")) << help.out;
+}
+
+TEST(Mapctl, TileAtPrintsTheStorageTileOfAPoint) {
+  const LatLon munich{48.137154, 11.576124};
+  const TileId expected = TileContaining(munich, kStorageZoom);
+  CliRun r = Mapctl({"tile", "--at", "48.137154,11.576124"}, "127.0.0.1:1");  // no call is made
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_EQ(r.out, absl::StrFormat("16 %d %d\n", expected.x, expected.y));
+  EXPECT_EQ(expected.x, 34875);  // OpenStreetMap's z16 tile of Munich's Marienplatz
+  EXPECT_EQ(expected.y, 22743);
+  CliRun json = Mapctl({"tile", "--at=48.137154,11.576124", "--json"}, "127.0.0.1:1");
+  ASSERT_EQ(json.code, 0) << json.err;
+  EXPECT_EQ(json.out, absl::StrFormat("{\n  \"z\": 16,\n  \"x\": %d,\n  \"y\": %d\n}\n", expected.x, expected.y));
+  CliRun south_west = Mapctl({"tile", "--at", "-33.8568,151.2153"}, "127.0.0.1:1");
+  ASSERT_EQ(south_west.code, 0) << south_west.err;
+  EXPECT_EQ(south_west.out, "16 60295 39325\n");
+}
+
+TEST_F(MapctlTest, TileAtNamesTheTileThatHoldsALandmark) {
+  UploadAndApply(1);
+  auto scenario = Scenario::Create(scenario_);
+  ASSERT_TRUE(scenario.ok());
+  const LatLon p = scenario->landmarks()[0].position;
+  CliRun at = Mapctl({"tile", "--at", absl::StrFormat("%.9f,%.9f", p.lat_deg, p.lon_deg)}, address_);
+  ASSERT_EQ(at.code, 0) << at.err;
+  std::vector<std::string> zxy = absl::StrSplit(absl::StripAsciiWhitespace(at.out), ' ');
+  ASSERT_EQ(zxy.size(), 3u) << at.out;
+  CliRun tile = Mapctl({"tile", zxy[0], zxy[1], zxy[2], "--json"}, address_);
+  ASSERT_EQ(tile.code, 0) << tile.err;
+  EXPECT_TRUE(absl::StrContains(tile.out, absl::StrCat("\"id\": \"", scenario->landmarks()[0].id, "\""))) << tile.out;
+}
+
+TEST_F(MapctlTest, SwappedBboxIsReadSwappedWithAWarning) {
+  // West of -90 degrees a box written MINLAT,MINLON,MAXLAT,MAXLON has "latitudes" beyond -90.
+  scenario_.origin = LatLon{37.7749, -122.4194};
+  UploadAndApply(1);
+  const double lat = scenario_.origin.lat_deg, lon = scenario_.origin.lon_deg;
+  CliRun right = Mapctl({"region", "--bbox", RouteBbox()}, address_);
+  ASSERT_EQ(right.code, 0) << right.err;
+  EXPECT_TRUE(right.err.empty()) << right.err;
+  EXPECT_TRUE(absl::StrContains(right.out, absl::StrCat(scenario_.landmarks, " landmarks"))) << right.out;
+
+  const std::string swapped =
+      absl::StrFormat("%.6f,%.6f,%.6f,%.6f", lat - 0.05, lon - 0.05, lat + 0.05, lon + 0.05);
+  CliRun r = Mapctl({"region", "--bbox", swapped}, address_);
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_EQ(Count(r.err, "\n"), 1) << r.err;
+  EXPECT_TRUE(absl::StrContains(r.err, "mapctl region: warning: --bbox")) << r.err;
+  EXPECT_TRUE(absl::StrContains(r.err, "swapped")) << r.err;
+  EXPECT_EQ(r.out, right.out);
+
+  // Swapped or not, latitudes beyond 90 cannot make a box.
+  CliRun neither = Mapctl({"region", "--bbox", "-122.5,95,-122.3,97"}, address_);
+  EXPECT_EQ(neither.code, 2);
+  EXPECT_TRUE(OneErrorLine(neither)) << neither.err;
+  EXPECT_TRUE(absl::StrContains(neither.err, "--bbox")) << neither.err;
+}
+
+// Every row of the table has its columns where the header has them, whatever the ids' length.
+TEST_F(MapctlTest, TablesKeepTheirColumnsWithLongIds) {
+  ASSERT_TRUE(ExportPassages(scenario_, 2, /*binary=*/false, dir_.File("json")).ok());
+  const std::string long_vehicle(100, 'v');
+  const std::string long_passage = "passage-" + std::string(110, 'p');
+  std::vector<std::string> files;
+  for (int i = 0; i < 2; ++i) {
+    std::ifstream in(dir_.File(absl::StrFormat("json/passage-%05d.json", i)));
+    std::stringstream text;
+    text << in.rdbuf();
+    std::string json = text.str();
+    const Passage original = Scenario::Create(scenario_)->MakePassage(i);
+    json = absl::StrReplaceAll(json, {{"\"" + original.vehicle_id + "\"", "\"" + long_vehicle + "\""}});
+    if (i == 1) json = absl::StrReplaceAll(json, {{"\"" + original.passage_id + "\"", "\"" + long_passage + "\""}});
+    files.push_back(dir_.File(absl::StrFormat("long-%d-%s.json", i, std::string(40, 'f'))));
+    std::ofstream(files.back()) << json;
+  }
+  CliRun upload = Mapctl({"upload", files[0], files[1]}, address_);
+  ASSERT_EQ(upload.code, 0) << upload.err;
+  CliRun list = Mapctl({"passages"}, address_);
+  ASSERT_EQ(list.code, 0) << list.err;
+  for (const CliRun* table : {&upload, &list}) {
+    std::vector<std::string> lines = absl::StrSplit(table->out, '\n', absl::SkipEmpty());
+    ASSERT_GE(lines.size(), 3u) << table->out;
+    // The column after PASSAGE starts at the same character in the header and both rows.
+    const size_t state_column = lines[0].find("STATE");
+    ASSERT_NE(state_column, std::string::npos) << lines[0];
+    for (size_t k = 1; k < 3; ++k) {
+      EXPECT_NE(lines[k].find("\u2026"), std::string::npos) << lines[k];
+      EXPECT_FALSE(absl::StrContains(lines[k], long_vehicle)) << lines[k];
+      // Count characters (code points), not bytes: the ellipsis is 3 bytes.
+      size_t chars = 0, byte = 0;
+      for (; byte < lines[k].size() && chars < state_column; ++byte) {
+        if ((static_cast<unsigned char>(lines[k][byte]) & 0xc0) != 0x80) ++chars;
+      }
+      while (byte < lines[k].size() && (static_cast<unsigned char>(lines[k][byte]) & 0xc0) == 0x80) ++byte;
+      EXPECT_TRUE(absl::StartsWith(lines[k].substr(byte), "queued") ||
+                  absl::StartsWith(lines[k].substr(byte), "processing") ||
+                  absl::StartsWith(lines[k].substr(byte), "applied"))
+          << "\n" << lines[0] << "\n" << lines[k];
+    }
+  }
+  // The detail view shows the whole id.
+  CliRun status = Mapctl({"status", "2"}, address_);
+  ASSERT_EQ(status.code, 0) << status.err;
+  EXPECT_TRUE(absl::StrContains(status.out, long_passage)) << status.out;
+}
+
+TEST_F(MapctlTest, WatchReconnectsFromItsLastVersionWhenTheServerRestarts) {
+  UploadAndApply(1);
+  MapClientOptions client_options;
+  client_options.server = address_;
+  auto client = MapClient::Create(client_options);
+  ASSERT_TRUE(client.ok());
+  const int64_t first_version = (*client)->GetMapInfo()->map_version();
+  ASSERT_GT(first_version, 0);
+
+  // The watch runs a fixed time: whether it reconnects before or after the next upload lands, it
+  // must print the first passage's changes once and the next passage's changes once.
+  CliRun w;
+  std::thread watch([&] {
+    w = Mapctl({"watch", "--bbox", RouteBbox(), "--since", "0", "--seconds", "6", "--deadline-s", "20"}, address_);
+  });
+  // Give the watch its first answer before the restart, so that it has a version to resume from.
+  std::this_thread::sleep_for(std::chrono::milliseconds(1000));
+  server_->Shutdown();
+  server_.reset();
+  std::this_thread::sleep_for(std::chrono::milliseconds(300));
+  MapServerOptions again = TestServerOptions(dir_.File("map.db"));
+  again.listen = address_;
+  server_ = StartTestServer(again);
+  ASSERT_NE(server_, nullptr);
+  // The second passage of the scenario, uploaded to the restarted server.
+  ASSERT_TRUE(ExportPassages(scenario_, 2, /*binary=*/false, dir_.File("more")).ok());
+  CliRun upload = Mapctl({"upload", dir_.File("more/passage-00001.json")}, address_);
+  ASSERT_EQ(upload.code, 0) << upload.err;
+  watch.join();
+
+  ASSERT_EQ(w.code, 0) << w.err;
+  EXPECT_TRUE(absl::StrContains(w.err, "mapctl watch: connection lost (UNAVAILABLE")) << w.err;
+  EXPECT_TRUE(absl::StrContains(w.err, absl::StrCat("reconnecting from map version ", first_version))) << w.err;
+  EXPECT_EQ(Count(w.err, "\n"), 1) << w.err;
+  std::vector<std::string> with_changes;
+  for (absl::string_view line : absl::StrSplit(w.out, '\n')) {
+    if (absl::StartsWith(line, "map version ") && !absl::StrContains(line, ": 0 landmarks")) {
+      with_changes.emplace_back(line);
+    }
+  }
+  ASSERT_EQ(with_changes.size(), 2u) << w.out;
+  EXPECT_TRUE(absl::StartsWith(with_changes[0], absl::StrCat("map version ", first_version, ": "))) << w.out;
+  EXPECT_TRUE(absl::StartsWith(with_changes[1], absl::StrCat("map version ", first_version + 1, ": "))) << w.out;
+}
+
+// A server that accepts the connection but never answers: the watch gives up after --deadline-s.
+TEST(Mapctl, WatchHonoursTheDeadlineForItsFirstAnswer) {
+  const int listener = socket(AF_INET, SOCK_STREAM, 0);
+  ASSERT_GE(listener, 0);
+  sockaddr_in addr{};
+  addr.sin_family = AF_INET;
+  addr.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
+  ASSERT_EQ(bind(listener, reinterpret_cast<sockaddr*>(&addr), sizeof(addr)), 0);
+  ASSERT_EQ(listen(listener, 4), 0);
+  socklen_t len = sizeof(addr);
+  ASSERT_EQ(getsockname(listener, reinterpret_cast<sockaddr*>(&addr), &len), 0);
+  const std::string address = absl::StrCat("127.0.0.1:", ntohs(addr.sin_port));
+  const auto start = std::chrono::steady_clock::now();
+  CliRun r = Mapctl({"watch", "--bbox", "0,0,1,1", "--deadline-s", "0.5"}, address);
+  const double elapsed_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  close(listener);
+  EXPECT_EQ(r.code, 1) << r.err;
+  EXPECT_TRUE(OneErrorLine(r)) << r.err;
+  EXPECT_TRUE(absl::StrContains(r.err, "DEADLINE_EXCEEDED")) << r.err;
+  EXPECT_GE(elapsed_s, 0.4);
+  EXPECT_LT(elapsed_s, 5.0);
 }
 
 TEST_F(MapctlTest, LocalizeWritesCsvAndGeoJson) {

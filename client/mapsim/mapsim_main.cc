@@ -1,6 +1,7 @@
 // mapsim: simulation front end. `experiment` runs simulated passages through the estimation core
 // in-process; `reproduce` runs the thesis's result grids; `fleet`, `export-passages` and `bench`
 // drive a running mapd.
+#include <cstdlib>
 #include <filesystem>
 #include <fstream>
 #include <iostream>
@@ -9,6 +10,7 @@
 #include <vector>
 
 #include <glog/logging.h>
+#include <spdlog/sinks/stdout_color_sinks.h>
 #include <spdlog/spdlog.h>
 
 #include "absl/strings/str_cat.h"
@@ -16,6 +18,7 @@
 #include "absl/strings/str_format.h"
 #include "absl/strings/str_split.h"
 #include "client/common/flags.h"
+#include "core/logging/log_format.h"
 #include "client/mapsim/city_experiment.h"
 #include "client/mapsim/experiment.h"
 #include "client/mapsim/localize_experiment.h"
@@ -53,6 +56,9 @@ Usage:
   mapsim export-passages [flags]  write simulated passages as files for `mapctl upload`
   mapsim bench      [flags]   load-test a running mapd (use a scratch database)
   mapsim --version            print the version
+
+Exit codes: 0 success, 1 failure (unreachable server, failed run, unwritable output, ...),
+2 usage error (unknown command or flag, missing value, bad value), reported before any work.
 
 experiment flags:
   --landmarks N               landmarks along the 2 km route (default 25)
@@ -131,7 +137,7 @@ city flags:
   --quiet                     no progress lines
 
 fleet flags (and --landmarks, --noise, --seed, --quiet as for experiment):
-  --server HOST:PORT          mapd address (default 127.0.0.1:50051)
+  --server HOST:PORT          mapd address (default $MAPCTL_SERVER or 127.0.0.1:50051)
   --passages P                passages 0..P-1 of the scenario (default 40)
   --vehicles V                concurrent vehicles; vehicle v uploads passages v, v+V, ... (default 4)
   --strategy S                fail unless the server runs strategy S (default: accept the server's)
@@ -152,7 +158,7 @@ export-passages flags (and --landmarks, --noise, --seed):
   --out DIR                   output folder (default out/passages): passage-00000.json, ...
 
 bench flags (and --landmarks, --seed):
-  --server HOST:PORT          mapd address (default 127.0.0.1:50051)
+  --server HOST:PORT          mapd address (default $MAPCTL_SERVER or 127.0.0.1:50051)
   --clients K                 concurrent uploading clients (default 8)
   --passages P                passages uploaded (default 400)
   --readers R                 concurrent QueryRegion / GetTile readers (default 8)
@@ -214,6 +220,15 @@ reproduce flags:
   --max-seeds M               at most M seeds per cell (default 20)
 )";
 
+// A mapsim command's flags; it takes no positional arguments. Errors are usage errors.
+absl::StatusOr<Flags> ParseFlags(const std::vector<std::string>& args, const std::map<std::string, bool>& known) {
+  absl::StatusOr<Flags> flags = Flags::Parse(args, known);
+  if (flags.ok() && !flags->positional().empty()) {
+    return UsageError(absl::StrCat("unexpected argument '", flags->positional()[0], "'"));
+  }
+  return flags;
+}
+
 // --steering-noise-scale, --speed-noise-scale, --gnss-noise-scale and --pixel-noise-scale scale
 // a sensor's noise, both as drawn and as declared in the passages.
 absl::Status ScaleNoise(const Flags& flags, NoiseModel* sensors, double* gnss_sigma_m) {
@@ -224,7 +239,7 @@ absl::Status ScaleNoise(const Flags& flags, NoiseModel* sensors, double* gnss_si
   for (const auto& [name, sigma] : sigmas) {
     absl::StatusOr<double> scale = flags.GetDouble(name, 1.0);
     if (!scale.ok()) return scale.status();
-    if (!(*scale > 0.0)) return absl::InvalidArgumentError(absl::StrCat(name, ": must be > 0, got ", *scale));
+    if (!(*scale > 0.0)) return UsageError(absl::StrCat(name, ": must be > 0, got ", *scale));
     *sigma *= *scale;
   }
   return absl::OkStatus();
@@ -262,11 +277,11 @@ absl::Status ParseFaults(const Flags& flags, FaultOptions* faults) {
   faults->overconfident_rate = *overconfident;
   faults->bad_calibration_rate = *bad_calibration;
   faults->seed = static_cast<uint64_t>(*seed);
-  return faults->Validate();
+  return AsUsageError(faults->Validate());
 }
 
 absl::Status RunExperimentCommand(const std::vector<std::string>& args) {
-  absl::StatusOr<Flags> flags = Flags::Parse(args, {{"landmarks", true}, {"passages", true}, {"strategy", true},
+  absl::StatusOr<Flags> flags = ParseFlags(args, {{"landmarks", true}, {"passages", true}, {"strategy", true},
                                                     {"noise", true}, {"seed", true}, {"out", true},
                                                     {"max-subgraph-dim", true}, {"detections-per-landmark", true},
                                                     {"window-hops", true}, {"warmup-passages", true},
@@ -300,7 +315,7 @@ absl::Status RunExperimentCommand(const std::vector<std::string>& args) {
     if (!s.ok()) return s;
   }
   absl::StatusOr<NoiseConfig> noise = ParseNoiseConfig(flags->GetString("noise", "white"));
-  if (!noise.ok()) return noise.status();
+  if (!noise.ok()) return AsUsageError(noise.status());
   options.scenario.landmarks = static_cast<int>(*landmarks);
   options.scenario.noise = *noise;
   options.scenario.seed = static_cast<uint64_t>(*seed);
@@ -319,11 +334,11 @@ absl::Status RunExperimentCommand(const std::vector<std::string>& args) {
   options.crlb = !flags->Has("no-crlb");
   options.assume_white_gnss = flags->Has("assume-white-gnss");
   if (absl::Status s = ParseLocalRelinearization(*flags, &options.update); !s.ok()) return s;
-  if (*shuffle_window < 0) return absl::InvalidArgumentError("shuffle-window: must be >= 0");
-  if (*shuffle_from < 0) return absl::InvalidArgumentError("shuffle-from: must be >= 0");
+  if (*shuffle_window < 0) return UsageError("shuffle-window: must be >= 0");
+  if (*shuffle_from < 0) return UsageError("shuffle-from: must be >= 0");
   if (flags->Has("order-file")) {
     if (flags->Has("shuffle-window")) {
-      return absl::InvalidArgumentError("order-file: cannot be used with --shuffle-window");
+      return UsageError("order-file: cannot be used with --shuffle-window");
     }
     absl::StatusOr<std::vector<int>> order = ReadOrderFile(flags->GetString("order-file", ""));
     if (!order.ok()) return order.status();
@@ -332,6 +347,7 @@ absl::Status RunExperimentCommand(const std::vector<std::string>& args) {
     options.order = ShuffledOrder(options.passages, static_cast<int>(*shuffle_window), static_cast<int>(*shuffle_from),
                                   static_cast<uint64_t>(*shuffle_seed));
   }
+  if (absl::Status s = options.Validate(); !s.ok()) return AsUsageError(s);
   const std::string out = flags->GetString("out", "out/experiment");
   const bool quiet = flags->Has("quiet");
 
@@ -359,7 +375,7 @@ absl::Status RunExperimentCommand(const std::vector<std::string>& args) {
 }
 
 absl::Status RunCityCommand(const std::vector<std::string>& args) {
-  absl::StatusOr<Flags> flags = Flags::Parse(
+  absl::StatusOr<Flags> flags = ParseFlags(
       args, {{"blocks-x", true}, {"blocks-y", true}, {"block-m", true}, {"passages", true}, {"route-m", true},
              {"vehicles", true}, {"seed", true}, {"layout-seed", true}, {"noise", true},
              {"vehicle-yaw-bias-sigma-rad", true}, {"rate-variation", true}, {"no-occlusion", false},
@@ -394,9 +410,9 @@ absl::Status RunCityCommand(const std::vector<std::string>& args) {
     if (!s.ok()) return s;
   }
   absl::StatusOr<NoiseConfig> noise = ParseNoiseConfig(flags->GetString("noise", "white"));
-  if (!noise.ok()) return noise.status();
+  if (!noise.ok()) return AsUsageError(noise.status());
   absl::StatusOr<UpdateStrategy> strategy = ParseUpdateStrategy(flags->GetString("strategy", "cc-gsd"));
-  if (!strategy.ok()) return strategy.status();
+  if (!strategy.ok()) return AsUsageError(strategy.status());
   city.blocks_x = static_cast<int>(*blocks_x);
   city.blocks_y = static_cast<int>(*blocks_y);
   city.block_m = *block_m;
@@ -417,7 +433,7 @@ absl::Status RunCityCommand(const std::vector<std::string>& args) {
   if (absl::Status s = ParseFaults(*flags, &options.faults); !s.ok()) return s;
   options.update.warmup_passages = static_cast<int>(*warmup);
   options.update.relinearize_until_passages = static_cast<int>(*relinearize);
-  if (absl::Status s = options.Validate(); !s.ok()) return s;
+  if (absl::Status s = options.Validate(); !s.ok()) return AsUsageError(s);
   const std::string out = flags->GetString("out", "out/city");
   const bool quiet = flags->Has("quiet");
 
@@ -425,7 +441,7 @@ absl::Status RunCityCommand(const std::vector<std::string>& args) {
 #if CROWDMAP_MAPSIM_SERVICE
     const std::string format = flags->GetString("export-format", "json");
     if (format != "json" && format != "binary") {
-      return absl::InvalidArgumentError(absl::StrCat("--export-format: '", format, "' is not json or binary"));
+      return UsageError(absl::StrCat("--export-format: '", format, "' is not json or binary"));
     }
     absl::StatusOr<CityScenario> scenario = CityScenario::Create(city);
     if (!scenario.ok()) return scenario.status();
@@ -460,7 +476,7 @@ absl::StatusOr<ScenarioOptions> ScenarioFromFlags(const Flags& flags) {
   if (!landmarks.ok()) return landmarks.status();
   if (!seed.ok()) return seed.status();
   absl::StatusOr<NoiseConfig> noise = ParseNoiseConfig(flags.GetString("noise", "white"));
-  if (!noise.ok()) return noise.status();
+  if (!noise.ok()) return AsUsageError(noise.status());
   scenario.landmarks = static_cast<int>(*landmarks);
   scenario.seed = static_cast<uint64_t>(*seed);
   scenario.noise = *noise;
@@ -468,6 +484,12 @@ absl::StatusOr<ScenarioOptions> ScenarioFromFlags(const Flags& flags) {
 }
 
 #if CROWDMAP_MAPSIM_SERVICE
+// --server's default: $MAPCTL_SERVER when set (as for mapctl), else `fallback`.
+std::string ServerDefault(const std::string& fallback) {
+  const char* env = std::getenv("MAPCTL_SERVER");
+  return env != nullptr && *env != '\0' ? env : fallback;
+}
+
 // The command's flags and the client security flags (--tls-ca, --token-file, ...).
 std::map<std::string, bool> WithSecurityFlags(std::map<std::string, bool> known) {
   for (const auto& flag : ClientSecurityFlags()) known.insert(flag);
@@ -475,7 +497,7 @@ std::map<std::string, bool> WithSecurityFlags(std::map<std::string, bool> known)
 }
 
 absl::Status RunFleetCommand(const std::vector<std::string>& args) {
-  absl::StatusOr<Flags> flags = Flags::Parse(args, WithSecurityFlags({{"server", true}, {"landmarks", true}, {"passages", true},
+  absl::StatusOr<Flags> flags = ParseFlags(args, WithSecurityFlags({{"server", true}, {"landmarks", true}, {"passages", true},
                                                     {"noise", true}, {"seed", true}, {"vehicles", true},
                                                     {"strategy", true}, {"sample-ms", true}, {"out", true},
                                                     {"quiet", false}, {"no-replay", false}}));
@@ -488,14 +510,15 @@ absl::Status RunFleetCommand(const std::vector<std::string>& args) {
     if (!s.ok()) return s;
   }
   FleetOptions options;
-  options.server = flags->GetString("server", options.server);
-  if (absl::Status s = ApplyClientSecurityFlags(*flags, &options.client.security); !s.ok()) return s;
+  options.server = flags->GetString("server", ServerDefault(options.server));
+  if (absl::Status s = ApplyClientSecurityFlags(*flags, &options.client.security); !s.ok()) return AsUsageError(s);
   options.scenario = *scenario;
   options.passages = static_cast<int>(*passages);
   options.vehicles = static_cast<int>(*vehicles);
   options.strategy = flags->GetString("strategy", "");
   options.sample_interval = std::chrono::milliseconds(*sample_ms);
   options.replay = !flags->Has("no-replay");
+  if (absl::Status s = options.Validate(); !s.ok()) return AsUsageError(s);
   const std::string out = flags->GetString("out", "out/fleet");
   const bool quiet = flags->Has("quiet");
   auto progress = [&](const FleetProgress& p) {
@@ -513,7 +536,7 @@ absl::Status RunFleetCommand(const std::vector<std::string>& args) {
 }
 
 absl::Status RunExportPassagesCommand(const std::vector<std::string>& args) {
-  absl::StatusOr<Flags> flags = Flags::Parse(args, {{"landmarks", true}, {"passages", true}, {"noise", true},
+  absl::StatusOr<Flags> flags = ParseFlags(args, {{"landmarks", true}, {"passages", true}, {"noise", true},
                                                     {"seed", true}, {"format", true}, {"out", true}});
   if (!flags.ok()) return flags.status();
   absl::StatusOr<ScenarioOptions> scenario = ScenarioFromFlags(*flags);
@@ -522,7 +545,7 @@ absl::Status RunExportPassagesCommand(const std::vector<std::string>& args) {
   if (!passages.ok()) return passages.status();
   const std::string format = flags->GetString("format", "json");
   if (format != "json" && format != "binary") {
-    return absl::InvalidArgumentError(absl::StrCat("--format: '", format, "' is not json or binary"));
+    return UsageError(absl::StrCat("--format: '", format, "' is not json or binary"));
   }
   const std::string out = flags->GetString("out", "out/passages");
   if (absl::Status s = ExportPassages(*scenario, static_cast<int>(*passages), format == "binary", out); !s.ok()) return s;
@@ -531,7 +554,7 @@ absl::Status RunExportPassagesCommand(const std::vector<std::string>& args) {
 }
 
 absl::Status RunBenchCommand(const std::vector<std::string>& args) {
-  absl::StatusOr<Flags> flags = Flags::Parse(args, WithSecurityFlags({{"server", true}, {"landmarks", true}, {"seed", true},
+  absl::StatusOr<Flags> flags = ParseFlags(args, WithSecurityFlags({{"server", true}, {"landmarks", true}, {"seed", true},
                                                     {"clients", true}, {"passages", true}, {"readers", true},
                                                     {"seconds", true}, {"city", false}, {"route-m", true},
                                                     {"upload-rate", true}}));
@@ -553,13 +576,14 @@ absl::Status RunBenchCommand(const std::vector<std::string>& args) {
   options.city_scenario.seed = scenario->seed;
   options.city_scenario.route_length_m = *route_m;
   options.upload_rate_per_s = *upload_rate;
-  options.server = flags->GetString("server", options.server);
-  if (absl::Status s = ApplyClientSecurityFlags(*flags, &options.security); !s.ok()) return s;
+  options.server = flags->GetString("server", ServerDefault(options.server));
+  if (absl::Status s = ApplyClientSecurityFlags(*flags, &options.security); !s.ok()) return AsUsageError(s);
   options.scenario = *scenario;
   options.clients = static_cast<int>(*clients);
   options.passages = static_cast<int>(*passages);
   options.readers = static_cast<int>(*readers);
   options.read_seconds = *seconds;
+  if (absl::Status s = options.Validate(); !s.ok()) return AsUsageError(s);
   absl::StatusOr<BenchResult> result = RunBench(options);
   if (!result.ok()) return result.status();
   std::cout << absl::StrFormat(
@@ -583,7 +607,7 @@ absl::StatusOr<std::vector<int>> ParseIntList(const std::string& flag, const std
   for (absl::string_view part : absl::StrSplit(text, ',', absl::SkipEmpty())) {
     int value = 0;
     if (!absl::SimpleAtoi(part, &value)) {
-      return absl::InvalidArgumentError(absl::StrCat(flag, ": '", text, "' is not a comma-separated list of integers"));
+      return UsageError(absl::StrCat(flag, ": '", text, "' is not a comma-separated list of integers"));
     }
     out.push_back(value);
   }
@@ -592,7 +616,7 @@ absl::StatusOr<std::vector<int>> ParseIntList(const std::string& flag, const std
 
 absl::Status RunLocalizeCommand(const std::vector<std::string>& args) {
   absl::StatusOr<Flags> flags =
-      Flags::Parse(args, {{"landmarks", true}, {"runs", true}, {"duration-s", true}, {"own-map-passages", true}, {"gnss-fixes", true},
+      ParseFlags(args, {{"landmarks", true}, {"runs", true}, {"duration-s", true}, {"own-map-passages", true}, {"gnss-fixes", true},
                           {"seed", true}, {"out", true}, {"quiet", false}});
   if (!flags.ok()) return flags.status();
   LocalizeExperimentOptions options;
@@ -613,6 +637,7 @@ absl::Status RunLocalizeCommand(const std::vector<std::string>& args) {
   options.gnss_fixes = static_cast<int>(*gnss_fixes);
   const bool quiet = flags->Has("quiet");
   if (quiet) spdlog::set_level(spdlog::level::warn);
+  if (absl::Status s = options.Validate(); !s.ok()) return AsUsageError(s);
   absl::StatusOr<std::vector<LocalizeRow>> rows = RunLocalizeExperiment(options, [&](const std::string& what) {
     if (!quiet) std::cerr << "\r" << what << "        " << std::flush;
   });
@@ -630,7 +655,7 @@ absl::Status RunLocalizeCommand(const std::vector<std::string>& args) {
 }
 
 absl::Status RunCrlbCommand(const std::vector<std::string>& args) {
-  absl::StatusOr<Flags> flags = Flags::Parse(args, {{"landmarks", true}, {"passages", true}, {"noise", true},
+  absl::StatusOr<Flags> flags = ParseFlags(args, {{"landmarks", true}, {"passages", true}, {"noise", true},
                                                     {"seed", true}, {"detections-per-landmark", true}});
   if (!flags.ok()) return flags.status();
   absl::StatusOr<ScenarioOptions> options = ScenarioFromFlags(*flags);
@@ -639,7 +664,7 @@ absl::Status RunCrlbCommand(const std::vector<std::string>& args) {
                             per_landmark = flags->GetInt("detections-per-landmark", 5);
   if (!passages.ok()) return passages.status();
   if (!per_landmark.ok()) return per_landmark.status();
-  if (*passages < 1) return absl::InvalidArgumentError("passages: must be >= 1");
+  if (*passages < 1) return UsageError("passages: must be >= 1");
   absl::StatusOr<Scenario> scenario = Scenario::Create(*options);
   if (!scenario.ok()) return scenario.status();
   std::vector<int> indices(*passages);
@@ -658,7 +683,7 @@ absl::Status RunCrlbCommand(const std::vector<std::string>& args) {
 
 absl::Status RunPoseBiasCommand(const std::vector<std::string>& args) {
   absl::StatusOr<Flags> flags =
-      Flags::Parse(args, {{"passages", true}, {"seed", true}, {"bin-s", true}, {"steering-noise-scale", true},
+      ParseFlags(args, {{"passages", true}, {"seed", true}, {"bin-s", true}, {"steering-noise-scale", true},
                           {"speed-noise-scale", true}, {"gnss-noise-scale", true}, {"pixel-noise-scale", true},
                           {"quiet", false}});
   if (!flags.ok()) return flags.status();
@@ -674,6 +699,7 @@ absl::Status RunPoseBiasCommand(const std::vector<std::string>& args) {
   options.scenario.seed = static_cast<uint64_t>(*seed);
   const bool quiet = flags->Has("quiet");
   const int every = std::max(1, options.passages / 20);
+  if (absl::Status s = options.Validate(); !s.ok()) return AsUsageError(s);
   absl::StatusOr<std::vector<PoseBiasBin>> bins = RunPoseBias(options, [&](int done) {
     if (!quiet && (done % every == 0 || done == options.passages)) {
       std::cerr << absl::StrFormat("\rpassage %d/%d   ", done, options.passages) << std::flush;
@@ -701,7 +727,7 @@ absl::Status RunPoseBiasCommand(const std::vector<std::string>& args) {
 
 absl::Status RunPassageConsistencyCommand(const std::vector<std::string>& args) {
   absl::StatusOr<Flags> flags =
-      Flags::Parse(args, {{"landmarks", true}, {"passages", true}, {"strategy", true}, {"seed", true},
+      ParseFlags(args, {{"landmarks", true}, {"passages", true}, {"strategy", true}, {"seed", true},
                           {"detections-per-landmark", true}, {"steering-noise-scale", true},
                           {"speed-noise-scale", true}, {"gnss-noise-scale", true}, {"pixel-noise-scale", true},
                           {"noise", true}, {"quiet", false}});
@@ -717,7 +743,7 @@ absl::Status RunPassageConsistencyCommand(const std::vector<std::string>& args) 
     if (!s.ok()) return s;
   }
   absl::StatusOr<UpdateStrategy> strategy = ParseUpdateStrategy(flags->GetString("strategy", "cc"));
-  if (!strategy.ok()) return strategy.status();
+  if (!strategy.ok()) return AsUsageError(strategy.status());
   if (absl::Status s = ScaleNoise(*flags, &options.scenario); !s.ok()) return s;
   options.scenario.landmarks = static_cast<int>(*landmarks);
   options.scenario.seed = static_cast<uint64_t>(*seed);
@@ -726,6 +752,7 @@ absl::Status RunPassageConsistencyCommand(const std::vector<std::string>& args) 
   options.update.detections_per_landmark = static_cast<int>(*per_landmark);
   const bool quiet = flags->Has("quiet");
   const int every = std::max(1, options.passages / 20);
+  if (absl::Status s = options.Validate(); !s.ok()) return AsUsageError(s);
   absl::StatusOr<PassageConsistency> result = RunPassageConsistency(options, [&](int done) {
     if (!quiet && (done % every == 0 || done == options.passages)) {
       std::cerr << absl::StrFormat("\rpassage %d/%d   ", done, options.passages) << std::flush;
@@ -746,7 +773,7 @@ absl::Status RunPassageConsistencyCommand(const std::vector<std::string>& args) 
 
 absl::Status RunReproduceCommand(const std::vector<std::string>& args) {
   absl::StatusOr<Flags> flags =
-      Flags::Parse(args, {{"out", true},
+      ParseFlags(args, {{"out", true},
                           {"passages", true},
                           {"jobs", true},
                           {"seed", true},
@@ -781,14 +808,22 @@ int main(int argc, char** argv) {
   // Ceres reports rejected trial steps through glog; only errors are worth an operator's eye.
   google::InitGoogleLogging(argv[0]);
   FLAGS_minloglevel = google::GLOG_ERROR;
+  // Log lines go to stderr (stdout carries the results), in the tools' common format.
+  auto logger = spdlog::stderr_color_mt("mapsim");
+  crowdmap::UseTextLogFormat(*logger);
+  spdlog::set_default_logger(logger);
   std::vector<std::string> args(argv + 1, argv + argc);
   if (!args.empty() && args[0] == "--version") {
     std::cout << "mapsim (crowdmap) " << CROWDMAP_VERSION << "\n";
     return 0;
   }
-  if (args.empty() || args[0] == "--help" || args[0] == "-h" || args[0] == "help") {
+  if (args.empty()) {
+    std::cerr << crowdmap::kUsage;
+    return crowdmap::kExitUsage;
+  }
+  if (args[0] == "--help" || args[0] == "-h" || args[0] == "help") {
     std::cout << crowdmap::kUsage;
-    return args.empty() ? 2 : 0;
+    return crowdmap::kExitOk;
   }
   const std::string command = args[0];
   args.erase(args.begin());
@@ -823,11 +858,12 @@ int main(int argc, char** argv) {
 #endif
   } else {
     std::cerr << "mapsim: unknown command '" << command << "' (see mapsim --help)\n";
-    return 2;
+    return crowdmap::kExitUsage;
   }
-  if (!status.ok()) {
+  if (crowdmap::IsUsageError(status)) {
+    std::cerr << "mapsim " << command << ": " << status.message() << " (see mapsim --help)\n";
+  } else if (!status.ok()) {
     std::cerr << "mapsim " << command << ": " << status.message() << "\n";
-    return 1;
   }
-  return 0;
+  return crowdmap::ExitCodeFor(status);
 }
