@@ -75,6 +75,7 @@ TEST(MapsimExitCodes, UsageErrorsExitWithTwoAndOneLine) {
       {{"crlb", "--passages", "0"}, "passages: must be >= 1"},
       {{"pose-bias", "--passages", "-1"}, "passages: must be >= 2"},
       {{"passage-consistency", "--strategy", "dc"}, "strategy: dc"},
+      {{"passage-consistency", "--noise", "pink"}, "unknown 'pink'"},
       {{"localize", "--landmarks", "a,b"}, "not a comma-separated list of integers"},
       {{"reproduce", "--jobs", "two"}, "--jobs: expected an integer"},
       {{"fleet", "--vehicles", "0"}, "vehicles: must be >= 1"},

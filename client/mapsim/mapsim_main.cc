@@ -734,7 +734,7 @@ absl::Status RunPassageConsistencyCommand(const std::vector<std::string>& args) 
   if (!flags.ok()) return flags.status();
   PassageConsistencyOptions options;
   absl::StatusOr<NoiseConfig> noise = ParseNoiseConfig(flags->GetString("noise", "white"));
-  if (!noise.ok()) return noise.status();
+  if (!noise.ok()) return AsUsageError(noise.status());
   options.scenario.noise = *noise;
   absl::StatusOr<long long> landmarks = flags->GetInt("landmarks", 25),
                             passages = flags->GetInt("passages", options.passages), seed = flags->GetInt("seed", 1),
