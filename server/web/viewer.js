@@ -150,12 +150,18 @@
       if (e.x + e.rx < 0 || e.x - e.rx > size.x || e.y + e.rx < 0 || e.y - e.rx > size.y) continue;
       const i = bucket(l);
       const rx = Math.max(e.rx, 0.5), ry = Math.max(e.ry, 0.5);
-      outlines[i].moveTo(e.x + rx * Math.cos(e.rotation), e.y + rx * Math.sin(e.rotation));
-      outlines[i].ellipse(e.x, e.y, rx, ry, e.rotation, 0, 2 * Math.PI);
-      // An ellipse a few pixels wide is still shown, by a dot at its centre.
-      if (rx < 3) {
-        dots[i].moveTo(e.x + 2, e.y);
-        dots[i].arc(e.x, e.y, 2, 0, 2 * Math.PI);
+      if (rx < 2) {
+        // An ellipse under 2 px would vanish under the dot that shows it (a 4 px square: far cheaper
+        // to draw than an arc, which matters with thousands of landmarks in view).
+        dots[i].rect(e.x - 2, e.y - 2, 4, 4);
+      } else {
+        outlines[i].moveTo(e.x + rx * Math.cos(e.rotation), e.y + rx * Math.sin(e.rotation));
+        outlines[i].ellipse(e.x, e.y, rx, ry, e.rotation, 0, 2 * Math.PI);
+        // An ellipse a few pixels wide is still shown, by a dot at its centre.
+        if (rx < 3) {
+          dots[i].moveTo(e.x + 2, e.y);
+          dots[i].arc(e.x, e.y, 2, 0, 2 * Math.PI);
+        }
       }
       if (l.id === viewer.selected) selected = { e, rx, ry };
       ++drawn;

@@ -11,9 +11,10 @@ checks against the gRPC API (mapctl --json), computed here independently of the 
   - new passages appear without a reload (polling by version);
   - with authentication on, the API answers 401 without a token and 403 to a vehicle asking for
     passages, and the page draws nothing until given a token.
-Optionally (--perf N) a map of N synthetic landmarks (tests/viewer/make_map.py) measures the
-first draw and a pan / zoom redraw.
-Usage: viewer_browser_test.py --build BUILD_DIR [--screenshot PNG] [--perf N]
+With --perf-url URL it measures instead a viewer already serving a large map (README, "Map
+viewer"): the first draw after navigation, and pan and zoom redraws.
+Usage: viewer_browser_test.py --build BUILD_DIR [--screenshot PNG]
+       viewer_browser_test.py --perf-url http://HOST:PORT/ [--runs N]
 """
 import argparse
 import json
@@ -278,11 +279,50 @@ def check_auth(build, workdir, driver):
         mapd.stop()
 
 
+def measure(url, runs):
+    """First draw and pan / zoom redraws of the viewer at `url`, `runs` page loads."""
+    driver = browser()
+    driver.set_script_timeout(30)
+    try:
+        first, held, pans, zooms, draws = [], 0, [], [], []
+        for _ in range(runs):
+            driver.get(url)
+            if wait_for(driver, "return window.crowdmapViewer && window.crowdmapViewer.ready", 60) is not True:
+                print("perf: the page never became ready")
+                return 1
+            v = driver.execute_script("const v = window.crowdmapViewer;"
+                                      " return {first: v.firstDrawMs, held: v.landmarks.size, drawn: v.drawn};")
+            first.append(v["first"])
+            held = v["held"]
+            for dx, dy in ((300, 0), (0, 200), (-300, -200)):
+                r = after_frames(driver, f"v.map.panBy([{dx}, {dy}], {{animate: false}})")
+                pans.append(r["ms"])
+                draws.append(r["draw_ms"])
+            for dz in (1, -1, 1, -1):
+                r = after_frames(driver, f"v.map.setZoom(v.map.getZoom() + ({dz}), {{animate: false}})")
+                zooms.append(r["ms"])
+                draws.append(r["draw_ms"])
+        pct = lambda xs, q: sorted(xs)[min(len(xs) - 1, int(q * (len(xs) - 1) + 0.5))]
+        print(f"perf: landmarks={held} runs={runs} first_draw_ms max={max(first):.0f} "
+              f"(all: {', '.join(f'{x:.0f}' for x in first)}) pan_ms p50={pct(pans, 0.5):.1f} max={max(pans):.1f} "
+              f"zoom_ms p50={pct(zooms, 0.5):.1f} max={max(zooms):.1f} canvas_draw_ms p50={pct(draws, 0.5):.1f} "
+              f"max={max(draws):.1f}")
+        return 0
+    finally:
+        driver.quit()
+
+
 def main():
     parser = argparse.ArgumentParser()
-    parser.add_argument("--build", required=True)
+    parser.add_argument("--build")
     parser.add_argument("--screenshot")
+    parser.add_argument("--perf-url")
+    parser.add_argument("--runs", type=int, default=3)
     args = parser.parse_args()
+    if args.perf_url:
+        return measure(args.perf_url, args.runs)
+    if not args.build:
+        parser.error("--build is required (or --perf-url)")
     build = os.path.abspath(args.build)
     workdir = tempfile.mkdtemp(prefix="viewer-test-")
     driver = None
