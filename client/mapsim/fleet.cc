@@ -15,6 +15,7 @@
 #include "server/geojson.h"
 #include "client/api/passage_files.h"
 #include "core/geo/local_frame.h"
+#include "core/estimation/map_updater.h"
 #include "core/sim/metrics.h"
 #include "server/wire_convert.h"
 
@@ -201,6 +202,17 @@ std::string FleetResult::Brief() const {
   return brief;
 }
 
+int64_t JointSolveUnderWay(const pb::MapInfo& info) {
+  MapUpdateOptions options;
+  absl::StatusOr<UpdateStrategy> strategy = ParseUpdateStrategy(info.strategy());
+  if (!strategy.ok()) return 0;
+  options.strategy = *strategy;
+  options.warmup_passages = info.warmup_passages();
+  options.relinearize_until_passages = info.relinearize_until_passages();
+  const int64_t next = info.passages_applied() + 1;
+  return IsJointSolvePassage(next, options) ? next : 0;
+}
+
 absl::StatusOr<FleetResult> RunFleet(const FleetOptions& options,
                                      const std::function<void(const FleetProgress&)>& progress) {
   if (absl::Status s = options.Validate(); !s.ok()) return s;
@@ -247,6 +259,7 @@ absl::StatusOr<FleetResult> RunFleet(const FleetOptions& options,
     }
     state.uploaded = uploader.uploaded();
     state.applied = static_cast<int>(FinishedCount(*info) - finished_at_start);
+    state.joint_solve_of = info->queue_depth() > 0 ? JointSolveUnderWay(*info) : 0;
     const bool idle = uploads_done && info->queue_depth() == 0;
     if (state.applied > last_sampled || (idle && result.experiment.records.empty())) {
       absl::StatusOr<MapState> map = (*client)->DownloadMap(WorldBox());

@@ -38,7 +38,14 @@ struct FleetProgress {
   int applied = 0;  // passages the server finished (applied, rejected or failed) since the start
   int total = 0;
   double mean_dist_err_m = -1.0;  // of the last sampled map; < 0 before the first sample
+  // The passage count of the joint solve the server is running (the young map's warm-up or a
+  // re-solve of all its passages, which takes seconds while the count stands still); 0 = none.
+  int64_t joint_solve_of = 0;
 };
+
+// The passage count of the joint solve the server's next passage takes (from the estimator
+// settings GetMapInfo reports), or 0 when it is a sequential update.
+int64_t JointSolveUnderWay(const pb::MapInfo& info);
 
 // The fleet's passages applied in-process in the order the server received them: the server must
 // give exactly this map; the experiment in passage order may differ (the estimator is nonlinear,

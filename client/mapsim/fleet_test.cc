@@ -105,3 +105,31 @@ TEST(Fleet, RefusesAServerRunningAnotherStrategy) {
 
 }  // namespace
 }  // namespace crowdmap
+
+namespace crowdmap {
+namespace {
+
+// The progress line names the joint solve the server is running while the count stands still.
+TEST(Fleet, TheJointSolveUnderWayFollowsTheServersSettings) {
+  pb::MapInfo info;
+  info.set_strategy("cc-gsd");
+  info.set_warmup_passages(8);
+  info.set_relinearize_until_passages(128);
+  info.set_passages_applied(3);
+  EXPECT_EQ(JointSolveUnderWay(info), 4) << "in the warm-up";
+  info.set_passages_applied(10);
+  EXPECT_EQ(JointSolveUnderWay(info), 0) << "passage 11: sequential";
+  info.set_passages_applied(31);
+  EXPECT_EQ(JointSolveUnderWay(info), 32) << "the re-solve at 32";
+  info.set_passages_applied(255);
+  EXPECT_EQ(JointSolveUnderWay(info), 0) << "past the re-solves";
+  info.set_strategy("dc");
+  info.set_passages_applied(31);
+  EXPECT_EQ(JointSolveUnderWay(info), 0) << "dc re-solves nothing";
+  info.set_strategy("bogus");
+  info.set_passages_applied(3);
+  EXPECT_EQ(JointSolveUnderWay(info), 0);
+}
+
+}  // namespace
+}  // namespace crowdmap

@@ -523,8 +523,12 @@ absl::Status RunFleetCommand(const std::vector<std::string>& args) {
   const bool quiet = flags->Has("quiet");
   auto progress = [&](const FleetProgress& p) {
     if (quiet) return;
-    std::cerr << absl::StrFormat("\ruploaded %d/%d  applied %d/%d  error %s   ", p.uploaded, p.total, p.applied,
-                                 p.total, p.mean_dist_err_m < 0 ? std::string("-") : absl::StrFormat("%.3f m", p.mean_dist_err_m))
+    // A joint solve holds the count for seconds: say so, so that the pause does not look like a hang.
+    const std::string joint =
+        p.joint_solve_of > 0 ? absl::StrFormat("  (server: joint solve of %d passages)", p.joint_solve_of) : "";
+    std::cerr << absl::StrFormat("\ruploaded %d/%d  applied %d/%d  error %s%s   ", p.uploaded, p.total, p.applied,
+                                 p.total, p.mean_dist_err_m < 0 ? std::string("-") : absl::StrFormat("%.3f m", p.mean_dist_err_m),
+                                 joint)
               << std::flush;
   };
   absl::StatusOr<FleetResult> result = RunFleet(options, progress);
