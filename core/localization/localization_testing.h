@@ -24,7 +24,9 @@ namespace testing_localization {
 // The passage's measurements without noise: true encoder inputs, GNSS fixes at the true antenna,
 // true pixels. The declared encoder noise is made small too: the preintegration lengthens each step
 // by exp(var / 2) to be unbiased under heading noise, which is a bias when there is none.
-inline Passage NoiseFree(const Scenario& scenario, Passage passage) {
+// `unprojected`, when given, counts the detections whose landmark does not project into the image
+// (none should: the caller checks).
+inline Passage NoiseFree(const Scenario& scenario, Passage passage, int* unprojected = nullptr) {
   const ScenarioOptions& o = scenario.options();
   passage.noise.speed_sigma_mps = 1e-4;
   passage.noise.steering_sigma_rad = 1e-6;
@@ -41,7 +43,9 @@ inline Passage NoiseFree(const Scenario& scenario, Passage passage) {
   }
   for (Detection& d : passage.detections) {
     const Pose2 pose = scenario.TruePoseAt(d.t_s);
-    ProjectLandmark(pose.data(), scenario.landmarks()[d.landmark_id - 1].position_m.data(), o.calibration, &d.u_px);
+    const bool projected =
+        ProjectLandmark(pose.data(), scenario.landmarks()[d.landmark_id - 1].position_m.data(), o.calibration, &d.u_px);
+    if (!projected && unprojected != nullptr) ++*unprojected;
   }
   return passage;
 }

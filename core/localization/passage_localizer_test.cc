@@ -5,12 +5,17 @@
 #include <gtest/gtest.h>
 
 #include "core/estimation/factors.h"
+#include "core/localization/localization_testing.h"
 #include "core/localization/pose_covariance.h"
 #include "core/sim/scenario.h"
 #include "core/sim/sensor_simulation.h"
 
 namespace crowdmap {
 namespace {
+
+using testing_localization::MakeMap;
+using testing_localization::NoiseFree;
+using testing_localization::PoseError;
 
 Scenario MakeScenario(int landmarks, NoiseConfig noise = NoiseConfig::kWhite, uint64_t seed = 1) {
   ScenarioOptions options;
@@ -22,69 +27,11 @@ Scenario MakeScenario(int landmarks, NoiseConfig noise = NoiseConfig::kWhite, ui
   return *std::move(scenario);
 }
 
-// The passage's measurements without noise: true encoder inputs, GNSS fixes at the true antenna,
-// true pixels. The declared encoder noise is made small too: the preintegration lengthens each step
-// by exp(var / 2) to be unbiased under heading noise, which is a bias when there is none.
-Passage NoiseFree(const Scenario& scenario, Passage passage) {
-  const ScenarioOptions& o = scenario.options();
-  passage.noise.speed_sigma_mps = 1e-4;
-  passage.noise.steering_sigma_rad = 1e-6;
-  passage.odometry.clear();
-  for (const OdometrySample& s : scenario.true_inputs()) {
-    if (s.t_s <= o.duration_s + 1e-9) passage.odometry.push_back(s);
-  }
-  for (GnssFix& fix : passage.gnss) {
-    const Pose2 pose = scenario.TruePoseAt(fix.t_s);
-    const Eigen::Vector2d lever = o.calibration.gnss_lever_arm_m;
-    const Eigen::Vector2d antenna =
-        pose.head<2>() + Eigen::Rotation2Dd(pose.z()) * lever;
-    const LatLon p = scenario.frame().ToGeo(antenna);
-    fix.lat_deg = p.lat_deg;
-    fix.lon_deg = p.lon_deg;
-  }
-  for (Detection& d : passage.detections) {
-    const Pose2 pose = scenario.TruePoseAt(d.t_s);
-    EXPECT_TRUE(ProjectLandmark(pose.data(), scenario.landmarks()[d.landmark_id - 1].position_m.data(),
-                                o.calibration, &d.u_px));
-  }
-  return passage;
-}
-
-// A map of the scenario's landmarks with covariance cov = common^2 (1 1^T (x) I) + own^2 I (every
-// landmark shares one offset), its estimate drawn from that covariance (seeded), or the truth.
-LocalizationMap MakeMap(const Scenario& scenario, double common_sigma_m, double own_sigma_m, uint64_t seed,
-                        bool exact) {
-  NoiseSource noise(SplitMix64(seed));
-  const Eigen::Vector2d common(noise.Normal() * common_sigma_m, noise.Normal() * common_sigma_m);
-  LocalizationMap map;
-  const int n = static_cast<int>(scenario.landmarks().size());
-  map.cov_en_m2 = Eigen::MatrixXd::Zero(2 * n, 2 * n);
-  for (int k = 0; k < n; ++k) {
-    const TruthLandmark& lm = scenario.landmarks()[k];
-    const Eigen::Vector2d own(noise.Normal() * own_sigma_m, noise.Normal() * own_sigma_m);
-    map.ids.push_back(lm.id);
-    map.positions.push_back(scenario.frame().ToGeo(exact ? lm.position_m : Eigen::Vector2d(lm.position_m + common + own)));
-    for (int l = 0; l < n; ++l) {
-      map.cov_en_m2.block<2, 2>(2 * k, 2 * l) = common_sigma_m * common_sigma_m * Eigen::Matrix2d::Identity();
-    }
-    map.cov_en_m2.block<2, 2>(2 * k, 2 * k) += own_sigma_m * own_sigma_m * Eigen::Matrix2d::Identity();
-  }
-  map.version = 7;
-  return map;
-}
-
-// Error (East, North, heading) of a localised pose against the truth, in the scenario's frame.
-Eigen::Vector3d PoseError(const Scenario& scenario, const LocalizedPose& p) {
-  const Pose2 truth = scenario.TruePoseAt(p.t_s);
-  Eigen::Vector3d e;
-  e.head<2>() = scenario.frame().ToLocal(p.position) - truth.head<2>();
-  e.z() = NormalizeAngle(p.pose_m.z() - truth.z());
-  return e;
-}
-
 TEST(PassageLocalizer, RecoversNoiseFreePassageExactly) {
   const Scenario scenario = MakeScenario(25);
-  const Passage passage = NoiseFree(scenario, scenario.MakePassage(0));
+  int unprojected = 0;
+  const Passage passage = NoiseFree(scenario, scenario.MakePassage(0), &unprojected);
+  EXPECT_EQ(unprojected, 0);
   const LocalizationMap map = MakeMap(scenario, 0.0, 0.3, 1, /*exact=*/true);
   absl::StatusOr<PassageLocalization> result = LocalizePassage(passage, map);
   ASSERT_TRUE(result.ok()) << result.status();

@@ -54,7 +54,9 @@ Replay ReplayPassage(const Passage& passage, const LocalizationMap& map, const S
 
 TEST(StreamingLocalizer, RecoversNoiseFreePassageExactly) {
   const Scenario scenario = MakeScenario(25);
-  const Passage passage = NoiseFree(scenario, scenario.MakePassage(0));
+  int unprojected = 0;
+  const Passage passage = NoiseFree(scenario, scenario.MakePassage(0), &unprojected);
+  EXPECT_EQ(unprojected, 0);
   const LocalizationMap map = MakeMap(scenario, 0.0, 0.3, 1, /*exact=*/true);
   const Replay replay = ReplayPassage(passage, map);
   EXPECT_EQ(replay.rejected, 0);

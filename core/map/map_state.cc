@@ -2,7 +2,6 @@
 
 #include <algorithm>
 #include <cmath>
-#include <limits>
 
 #include <Eigen/Cholesky>
 #include <Eigen/Eigenvalues>
@@ -220,28 +219,22 @@ void MapOverlay::ForEachLink(LandmarkId id,
                              const std::function<void(LandmarkId, const InformationBlock&)>& fn) const {
   // The base's links and the change's row, both in increasing id, merged.
   const InformationRow* change = change_.Row(id);
+  const size_t changes = change == nullptr ? 0 : change->size();
   size_t c = 0;
-  const auto changes_before = [&](LandmarkId limit) {  // links only the change has
-    for (; change != nullptr && c < change->size() && (*change)[c].id < limit; ++c) {
-      const LinkedBlock& e = (*change)[c];
-      if (e.id != id && e.block.factors > 0) fn(e.id, e.block);
-    }
+  const auto change_only = [&](const LinkedBlock& e) {  // a link only the change has
+    if (e.id != id && e.block.factors > 0) fn(e.id, e.block);
   };
   base_.ForEachLink(id, [&](LandmarkId b, const InformationBlock& base) {
-    changes_before(b);
+    for (; c < changes && (*change)[c].id < b; ++c) change_only((*change)[c]);
     InformationBlock block = base;
-    if (change != nullptr && c < change->size() && (*change)[c].id == b) {
+    if (c < changes && (*change)[c].id == b) {
       block.value += (*change)[c].block.value;
       block.factors += (*change)[c].block.factors;
       ++c;
     }
     if (block.factors > 0) fn(b, block);
   });
-  changes_before(std::numeric_limits<LandmarkId>::max());
-  if (change != nullptr && c < change->size()) {  // the largest id itself
-    const LinkedBlock& e = (*change)[c];
-    if (e.id != id && e.block.factors > 0) fn(e.id, e.block);
-  }
+  for (; c < changes; ++c) change_only((*change)[c]);
 }
 
 const MapFactor* MapOverlay::FindFactor(int64_t id) const {
