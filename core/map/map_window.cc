@@ -16,16 +16,24 @@ namespace crowdmap {
 // more than the factorisation.
 constexpr int kDenseWindowDims = 600;
 
+// CHOLMOD's supernodal factor, which Eigen's wrapper keeps to itself.
+class SupernodalLLT : public Eigen::CholmodSupernodalLLT<Eigen::SparseMatrix<double>, Eigen::Lower> {
+ public:
+  explicit SupernodalLLT(const Eigen::SparseMatrix<double>& a) : CholmodSupernodalLLT(a) {}
+  const cholmod_factor& factor() const { return *m_cholmodFactor; }
+};
+
 class MapWindow::Factor {
  public:
   explicit Factor(const Eigen::SparseMatrix<double>& a) {
     if (a.rows() <= kDenseWindowDims) {
       dense_.compute(Eigen::MatrixXd(a));
       ok_ = dense_.info() == Eigen::Success;
-    } else {
-      sparse_ = std::make_unique<Eigen::CholmodSupernodalLLT<Eigen::SparseMatrix<double>, Eigen::Lower>>(a);
-      ok_ = sparse_->info() == Eigen::Success;
+      return;
     }
+    sparse_ = std::make_unique<SupernodalLLT>(a);
+    ok_ = sparse_->info() == Eigen::Success;
+    if (ok_) IndexSupernodes();
   }
   Eigen::ComputationInfo info() const { return ok_ ? Eigen::Success : Eigen::NumericalIssue; }
   template <typename Rhs>
@@ -33,10 +41,99 @@ class MapWindow::Factor {
     return sparse_ ? Eigen::MatrixXd(sparse_->solve(b)) : Eigen::MatrixXd(dense_.solve(b));
   }
 
+  // The inverse's block over `rows` (rows of the factorised matrix): X^T X with X = L^-1 P E,
+  // E the unit columns of `rows`. A column of X is non-zero only on the columns of L that are
+  // ancestors of its row in the elimination tree, so the forward solve visits only the supernodes
+  // on the paths from `rows` to the roots; the backward solve is never needed.
+  Eigen::MatrixXd InverseBlock(const std::vector<int>& rows) const {
+    const int m = static_cast<int>(rows.size());
+    if (sparse_ && column_super_.empty()) {  // not a supernodal factor CHOLMOD could be read from
+      Eigen::MatrixXd unit = Eigen::MatrixXd::Zero(sparse_->rows(), m);
+      for (int c = 0; c < m; ++c) unit(rows[c], c) = 1.0;
+      const Eigen::MatrixXd columns = sparse_->solve(unit);
+      const Eigen::MatrixXd cov = columns(rows, Eigen::all);
+      return 0.5 * (cov + cov.transpose());
+    }
+    if (!sparse_) {
+      Eigen::MatrixXd x = Eigen::MatrixXd::Zero(dense_.rows(), m);
+      for (int c = 0; c < m; ++c) x(rows[c], c) = 1.0;
+      dense_.matrixL().solveInPlace(x);
+      return Gram(x);
+    }
+    const cholmod_factor& l = sparse_->factor();
+    const int* super = static_cast<const int*>(l.super);
+    const int* pi = static_cast<const int*>(l.pi);
+    const int* px = static_cast<const int*>(l.px);
+    const int* ls = static_cast<const int*>(l.s);
+    const double* lx = static_cast<const double*>(l.x);
+    // The supernodes on the paths to the roots, in increasing order (a parent follows its
+    // children), and the position of each of their columns in X.
+    std::vector<int> reach;
+    std::vector<char> seen(l.nsuper, 0);
+    for (int r : rows) {
+      for (int s = column_super_[permuted_[r]]; s >= 0 && !seen[s]; s = parent_[s]) {
+        seen[s] = 1;
+        reach.push_back(s);
+      }
+    }
+    std::sort(reach.begin(), reach.end());
+    std::vector<int> start(l.nsuper, -1);  // supernode -> its first row in X
+    int total = 0;
+    for (int s : reach) {
+      start[s] = total;
+      total += super[s + 1] - super[s];
+    }
+    auto position = [&](int column) {
+      const int s = column_super_[column];
+      return start[s] + column - super[s];
+    };
+    Eigen::MatrixXd x = Eigen::MatrixXd::Zero(total, m);
+    for (int c = 0; c < m; ++c) x(position(permuted_[rows[c]]), c) = 1.0;
+    Eigen::MatrixXd below;
+    for (int s : reach) {
+      const int ncols = super[s + 1] - super[s], nrows = pi[s + 1] - pi[s];
+      const Eigen::Map<const Eigen::MatrixXd> block(lx + px[s], nrows, ncols);
+      auto xs = x.middleRows(start[s], ncols);
+      block.topRows(ncols).triangularView<Eigen::Lower>().solveInPlace(xs);
+      if (nrows == ncols) continue;
+      below.noalias() = block.bottomRows(nrows - ncols) * xs;
+      for (int t = 0; t < nrows - ncols; ++t) x.row(position(ls[pi[s] + ncols + t])) -= below.row(t);
+    }
+    return Gram(x);
+  }
+
  private:
+  static Eigen::MatrixXd Gram(const Eigen::MatrixXd& x) {
+    Eigen::MatrixXd g = Eigen::MatrixXd::Zero(x.cols(), x.cols());
+    g.selfadjointView<Eigen::Lower>().rankUpdate(x.transpose());
+    return g.selfadjointView<Eigen::Lower>();
+  }
+
+  // The supernode of each column of L, each supernode's parent in the elimination tree (-1 for
+  // a root) and the inverse of the fill-reducing permutation.
+  void IndexSupernodes() {
+    const cholmod_factor& l = sparse_->factor();
+    if (!l.is_super || l.itype != CHOLMOD_INT || l.xtype != CHOLMOD_REAL) return;
+    const int n = static_cast<int>(l.n), nsuper = static_cast<int>(l.nsuper);
+    const int* super = static_cast<const int*>(l.super);
+    const int* pi = static_cast<const int*>(l.pi);
+    const int* ls = static_cast<const int*>(l.s);
+    const int* perm = static_cast<const int*>(l.Perm);
+    column_super_.resize(n);
+    for (int s = 0; s < nsuper; ++s) std::fill(&column_super_[super[s]], &column_super_[super[s + 1]], s);
+    parent_.assign(nsuper, -1);
+    for (int s = 0; s < nsuper; ++s) {
+      const int ncols = super[s + 1] - super[s];
+      if (pi[s + 1] - pi[s] > ncols) parent_[s] = column_super_[ls[pi[s] + ncols]];
+    }
+    permuted_.resize(n);
+    for (int k = 0; k < n; ++k) permuted_[perm[k]] = k;
+  }
+
   Eigen::LLT<Eigen::MatrixXd> dense_;
-  std::unique_ptr<Eigen::CholmodSupernodalLLT<Eigen::SparseMatrix<double>, Eigen::Lower>> sparse_;
+  std::unique_ptr<SupernodalLLT> sparse_;
   bool ok_ = false;
+  std::vector<int> column_super_, parent_, permuted_;
 };
 
 namespace {
@@ -207,12 +304,18 @@ absl::StatusOr<Eigen::MatrixXd> MapWindow::CovarianceColumns(const std::vector<L
 }
 
 absl::StatusOr<Eigen::MatrixXd> MapWindow::Covariance(const std::vector<LandmarkId>& ids) const {
-  absl::StatusOr<Eigen::MatrixXd> columns = CovarianceColumns(ids);
-  if (!columns.ok()) return columns.status();
-  const int m = static_cast<int>(ids.size());
-  Eigen::MatrixXd cov(2 * m, 2 * m);
-  for (int k = 0; k < m; ++k) cov.middleRows<2>(2 * k) = columns->middleRows<2>(2 * index(ids[k]));
-  return Eigen::MatrixXd(0.5 * (cov + cov.transpose()));
+  std::vector<int> rows;
+  rows.reserve(2 * ids.size());
+  for (LandmarkId id : ids) {
+    const int at = index(id);
+    if (at < 0) return absl::InvalidArgumentError(absl::StrCat("landmark ", id, ": outside the window"));
+    rows.push_back(2 * at);
+    rows.push_back(2 * at + 1);
+  }
+  if (rows.empty()) return Eigen::MatrixXd(0, 0);
+  Eigen::MatrixXd cov = covariance_factor_->InverseBlock(rows);
+  if (!cov.allFinite()) return absl::InternalError("map covariance is not finite");
+  return cov;
 }
 
 std::vector<Eigen::Matrix2d> MapWindow::Marginals() const {

@@ -107,6 +107,72 @@ TEST(MapWindow, BoundedWindowIsConservativeAndConditionsOnTheRest) {
   }
 }
 
+// A side x side grid of landmarks; each factor links a random 3 x 3 patch of neighbours, as a
+// subgraph links the landmarks it saw along a stretch of street. Large enough for the sparse
+// (supernodal) factorisation.
+MapState Grid(int side, int factors, uint64_t seed) {
+  std::mt19937_64 rng(seed);
+  std::normal_distribution<double> g(0.0, 1.0);
+  std::uniform_int_distribution<int> corner(0, side - 3);
+  MapState map;
+  for (int i = 0; i < side * side; ++i) {
+    Landmark l;
+    l.id = i + 1;
+    l.anchor = {45.0 + 1e-4 * (i / side), 4.0 + 1e-4 * (i % side)};
+    l.position = l.anchor;
+    map.PutLandmark(l);
+  }
+  auto add = [&](int64_t id, std::vector<LandmarkId> landmarks) {
+    const int dims = 2 * static_cast<int>(landmarks.size());
+    Eigen::MatrixXd a(dims + 2, dims);
+    for (int r = 0; r < a.rows(); ++r) {
+      for (int c = 0; c < dims; ++c) a(r, c) = g(rng);
+    }
+    MapFactor f;
+    f.id = id;
+    f.landmarks = std::move(landmarks);
+    f.information = a.transpose() * a;
+    f.information_vector = Eigen::VectorXd::NullaryExpr(dims, [&] { return g(rng); });
+    map.PutFactor(f);
+  };
+  for (int k = 0; k < side * side; ++k) add(k + 1, {k + 1});  // every landmark observed
+  for (int k = 0; k < factors; ++k) {
+    const int r0 = corner(rng), c0 = corner(rng);
+    std::vector<LandmarkId> patch;
+    for (int r = r0; r < r0 + 3; ++r) {
+      for (int c = c0; c < c0 + 3; ++c) patch.push_back(r * side + c + 1);
+    }
+    add(side * side + k + 1, patch);
+  }
+  return map;
+}
+
+TEST(MapWindow, CovarianceOfAnySubsetIsTheInverseBlock) {
+  for (const int side : {6, 20}) {  // 72 and 800 dimensions: the dense and the supernodal factor
+    const int n = side * side;
+    const MapState map = Grid(side, n / 2, 7);
+    Eigen::VectorXd eta;
+    const Eigen::MatrixXd cov = DenseInformation(map, n, &eta).inverse();
+    absl::StatusOr<MapWindow> w = MapWindow::Build(map, map.LandmarkIds(), MapWindowOptions{});
+    ASSERT_TRUE(w.ok()) << w.status();
+    // Neighbours, far apart, out of order and repeated.
+    const std::vector<LandmarkId> ids = {5, 6, static_cast<LandmarkId>(n), 1, static_cast<LandmarkId>(n / 2), 6};
+    absl::StatusOr<Eigen::MatrixXd> joint = w->Covariance(ids);
+    ASSERT_TRUE(joint.ok()) << joint.status();
+    ASSERT_EQ(joint->rows(), 12);
+    for (size_t a = 0; a < ids.size(); ++a) {
+      for (size_t b = 0; b < ids.size(); ++b) {
+        const Eigen::Matrix2d expected = cov.block<2, 2>(2 * (ids[a] - 1), 2 * (ids[b] - 1));
+        EXPECT_LT((joint->block<2, 2>(2 * a, 2 * b) - expected).cwiseAbs().maxCoeff(),
+                  1e-9 * cov.diagonal().maxCoeff())
+            << "side " << side << ", landmarks " << ids[a] << " and " << ids[b];
+      }
+    }
+    EXPECT_EQ(w->Covariance({}).value().size(), 0);
+    EXPECT_EQ(w->Covariance({static_cast<LandmarkId>(n + 1)}).status().code(), absl::StatusCode::kInvalidArgument);
+  }
+}
+
 TEST(MapWindow, UnknownSeedAndSingularInformationFailCleanly) {
   MapState map = Chain(3, 3);
   EXPECT_EQ(MapWindow::Build(map, {99}, {}).status().code(), absl::StatusCode::kNotFound);

@@ -1,0 +1,163 @@
+// Covariance reads of a city map: the joint covariance (cross-covariances included) of the
+// landmarks in a 500 m box, as QueryRegion serves it, from the whole map's factorisation.
+//   build/core/map_covariance_benchmark [--blocks N] [--passages P] [benchmark flags]
+// builds an N x N block city map (mapsim city's layout, default 10 x 10, about 2,500 landmarks)
+// from P passages (default 100) in process first (printing its size), then times:
+//   BM_Factorise              the whole map's factorisation (once per map version)
+//   BM_BoxCovariance/forward  the box's block of the inverse by forward solves from the box
+//                             (MapWindow::Covariance)
+//   BM_BoxCovariance/columns  the same block from full columns of the inverse (both triangular
+//                             solves over the whole map), for comparison
+//   BM_BoxCovarianceBounded   a bounded window (2 links) around the box: conservative, not exact
+#include <benchmark/benchmark.h>
+
+#include <cstdio>
+#include <cstdlib>
+#include <cstring>
+#include <memory>
+#include <random>
+#include <string>
+#include <vector>
+
+#include "core/estimation/map_updater.h"
+#include "core/map/map_window.h"
+#include "core/sim/city_scenario.h"
+
+namespace crowdmap {
+namespace {
+
+int g_blocks = 10;
+int g_passages = 100;
+constexpr double kBoxHalfWidthM = 250.0;
+constexpr int kBoxes = 40;
+
+struct CityMap {
+  MapState map;
+  std::vector<std::vector<LandmarkId>> boxes;  // the mapped landmarks of kBoxes 500 m boxes
+};
+
+const CityMap& TheMap() {
+  static const CityMap* city_map = [] {
+    auto* out = new CityMap;
+    CityScenarioOptions options;
+    options.blocks_x = options.blocks_y = g_blocks;
+    const CityScenario city = *CityScenario::Create(options);
+    MapUpdateOptions update;
+    update.warmup_passages = 0;
+    update.relinearize_until_passages = 0;
+    update.window_hops = 2;  // building the map is not what is measured
+    MapUpdater updater(update);
+    for (int i = 0; i < g_passages; ++i) {
+      const Passage passage = city.MakePassage(i);
+      absl::StatusOr<PassageUpdate> u = updater.Compute(passage, out->map);
+      if (!u.ok()) continue;
+      out->map.Apply(u->delta);
+      updater.Applied(passage, u->delta);
+      if ((i + 1) % 20 == 0) std::fprintf(stderr, "built %d of %d passages\n", i + 1, g_passages);
+    }
+    std::vector<const Landmark*> all;
+    out->map.ForEachLandmark([&](const Landmark& l) { all.push_back(&l); });
+    std::mt19937_64 rng(1);
+    std::uniform_int_distribution<size_t> pick(0, all.size() - 1);
+    size_t total = 0;
+    for (int b = 0; b < kBoxes; ++b) {
+      const LatLon centre = all[pick(rng)]->position;
+      std::vector<LandmarkId> ids;
+      for (const Landmark* l : all) {
+        const Eigen::Vector2d d = EastNorthOffset(centre, l->position);
+        if (std::abs(d.x()) <= kBoxHalfWidthM && std::abs(d.y()) <= kBoxHalfWidthM) ids.push_back(l->id);
+      }
+      std::sort(ids.begin(), ids.end());
+      total += ids.size();
+      out->boxes.push_back(std::move(ids));
+    }
+    std::fprintf(stderr, "map: %zu landmarks, %zu factors, version %lld; %d boxes of 500 m, %.1f landmarks each\n",
+                 out->map.landmark_count(), out->map.factor_count(), static_cast<long long>(out->map.version()),
+                 kBoxes, static_cast<double>(total) / kBoxes);
+    return out;
+  }();
+  return *city_map;
+}
+
+std::shared_ptr<const MapWindow> WholeWindow() {
+  static std::shared_ptr<const MapWindow> window = [] {
+    const MapState& map = TheMap().map;
+    return std::make_shared<const MapWindow>(*MapWindow::Build(map, map.LandmarkIds(), MapWindowOptions{}));
+  }();
+  return window;
+}
+
+void BM_Factorise(benchmark::State& state) {
+  const MapState& map = TheMap().map;
+  for (auto _ : state) {
+    absl::StatusOr<MapWindow> w = MapWindow::Build(map, map.LandmarkIds(), MapWindowOptions{});
+    if (!w.ok()) state.SkipWithError(w.status().ToString().c_str());
+    benchmark::DoNotOptimize(w);
+  }
+  state.counters["landmarks"] = static_cast<double>(map.landmark_count());
+}
+
+void BM_BoxCovariance(benchmark::State& state) {
+  const CityMap& city = TheMap();
+  const std::shared_ptr<const MapWindow> window = WholeWindow();
+  const bool forward = state.range(0) == 0;
+  size_t next = 0;
+  for (auto _ : state) {
+    const std::vector<LandmarkId>& ids = city.boxes[next++ % city.boxes.size()];
+    if (forward) {
+      absl::StatusOr<Eigen::MatrixXd> cov = window->Covariance(ids);
+      if (!cov.ok()) state.SkipWithError(cov.status().ToString().c_str());
+      benchmark::DoNotOptimize(cov);
+    } else {
+      absl::StatusOr<Eigen::MatrixXd> columns = window->CovarianceColumns(ids);
+      if (!columns.ok()) state.SkipWithError(columns.status().ToString().c_str());
+      Eigen::MatrixXd cov(2 * ids.size(), 2 * ids.size());
+      for (size_t k = 0; k < ids.size(); ++k) cov.middleRows<2>(2 * k) = columns->middleRows<2>(2 * window->index(ids[k]));
+      benchmark::DoNotOptimize(cov);
+    }
+  }
+  state.SetLabel(forward ? "forward" : "columns");
+}
+
+void BM_BoxCovarianceBounded(benchmark::State& state) {
+  const CityMap& city = TheMap();
+  MapWindowOptions options;
+  options.hops = 2;
+  size_t next = 0;
+  for (auto _ : state) {
+    absl::StatusOr<Eigen::MatrixXd> cov = JointCovariance(city.map, city.boxes[next++ % city.boxes.size()], options);
+    if (!cov.ok()) state.SkipWithError(cov.status().ToString().c_str());
+    benchmark::DoNotOptimize(cov);
+  }
+}
+
+BENCHMARK(BM_Factorise)->Unit(benchmark::kMillisecond);
+BENCHMARK(BM_BoxCovariance)->Arg(0)->Arg(1)->Unit(benchmark::kMillisecond);
+BENCHMARK(BM_BoxCovarianceBounded)->Unit(benchmark::kMillisecond);
+
+}  // namespace
+}  // namespace crowdmap
+
+int main(int argc, char** argv) {
+  std::vector<char*> rest = {argv[0]};
+  for (int i = 1; i < argc; ++i) {
+    const bool has_value = i + 1 < argc;
+    if (std::strcmp(argv[i], "--blocks") == 0 && has_value) {
+      crowdmap::g_blocks = std::atoi(argv[++i]);
+    } else if (std::strcmp(argv[i], "--passages") == 0 && has_value) {
+      crowdmap::g_passages = std::atoi(argv[++i]);
+    } else {
+      rest.push_back(argv[i]);
+    }
+  }
+  if (crowdmap::g_blocks < 1 || crowdmap::g_passages < 1) {
+    std::fprintf(stderr, "--blocks and --passages must be positive\n");
+    return 2;
+  }
+  int rest_argc = static_cast<int>(rest.size());
+  benchmark::Initialize(&rest_argc, rest.data());
+  if (benchmark::ReportUnrecognizedArguments(rest_argc, rest.data())) return 2;
+  benchmark::RunSpecifiedBenchmarks();
+  benchmark::Shutdown();
+  return 0;
+}
