@@ -6,6 +6,7 @@
 #include <unistd.h>
 
 #include <chrono>
+#include <set>
 #include <thread>
 
 #include <spdlog/spdlog.h>
@@ -206,6 +207,37 @@ bool IsTransientStorageError(const absl::Status& s) {
 
 }  // namespace
 
+namespace {
+
+// The passages (vehicle_id, passage_id) that `factors` of `map` came from, each once.
+std::vector<MapUpdater::PassageKey> PassagesOf(const MapReaderInterface& map, const std::vector<int64_t>& factors) {
+  std::set<MapUpdater::PassageKey> keys;
+  for (int64_t id : factors) {
+    if (const MapFactor* f = map.FindFactor(id); f != nullptr) keys.insert({f->vehicle_id, f->passage_id});
+  }
+  return {keys.begin(), keys.end()};
+}
+
+}  // namespace
+
+void MapWorker::PrunePayloadsOfFolded(const std::vector<MapUpdater::PassageKey>& folding) {
+  // Only passages with no factor left apart: wholly folded into the base.
+  std::vector<MapUpdater::PassageKey> folded;
+  std::vector<int64_t> left;
+  for (const MapUpdater::PassageKey& key : folding) {
+    left.clear();
+    map_.AppendPassageFactorIds(key.first, key.second, &left);
+    if (left.empty()) folded.push_back(key);
+  }
+  if (folded.empty()) return;
+  absl::StatusOr<int> pruned = store_->PrunePassagePayloads(folded);
+  if (!pruned.ok()) {  // the uploads stay: nothing is lost, the queue file is only larger
+    spdlog::warn("event=payload_prune_failed passages={} error=\"{}\"", folded.size(), pruned.status().ToString());
+    return;
+  }
+  spdlog::info("event=payloads_pruned passages={} reason=\"factors folded into the map's base\"", *pruned);
+}
+
 void MapWorker::Apply(const ClaimedPassage& claimed, const Passage& passage) {
   const StoredPassage& record = claimed.record;
   int attempts = record.attempts;
@@ -225,10 +257,12 @@ void MapWorker::Apply(const ClaimedPassage& claimed, const Passage& passage) {
       const double commit_ms =
           std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - commit_start).count();
       if (committed.ok()) {
+        const std::vector<MapUpdater::PassageKey> folding = PassagesOf(map_, update->delta.folded_factors);
         map_.Apply(update->delta);
         updater_->Applied(passage, update->delta);
         Yield();
         notifier_->Publish(map_.version());
+        PrunePayloadsOfFolded(folding);
         if (options_.on_applied) {
           const auto ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - apply_start);
           options_.on_applied({ms.count(), result.solve_ms, result.covariance_ms, commit_ms});

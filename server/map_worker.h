@@ -91,6 +91,9 @@ class MapWorker {
   bool WaitForWork();
   void Process(ClaimedPassage claimed, uint64_t ticket);
   void Apply(const ClaimedPassage& claimed, const Passage& passage);
+  // Deletes the stored uploads of those of `folding` whose factors are now all folded into the
+  // map's base (MapStoreInterface::PrunePassagePayloads); a failure is logged, never fatal.
+  void PrunePayloadsOfFolded(const std::vector<MapUpdater::PassageKey>& folding);
   void Finish(const StoredPassage& record, PassageState state, const std::string& reason);
   // sched_yield() when options_.yield.
   void Yield() const;

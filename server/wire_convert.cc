@@ -215,6 +215,7 @@ void StoredPassageToProto(const StoredPassage& r, pb::PassageStatus* wire) {
   wire->set_received_unix_ms(r.received_unix_ms);
   wire->set_finished_unix_ms(r.finished_unix_ms);
   wire->set_size_bytes(r.size_bytes);
+  wire->set_payload_pruned_unix_ms(r.payload_pruned_unix_ms);
   if (!r.result) return;
   const PassageResult& s = *r.result;
   pb::PassageResult* out = wire->mutable_result();

@@ -311,6 +311,15 @@ TEST_F(ServiceRpc, PassagesBeyondTheRetentionAreFoldedIntoTheBase) {
     last_two += status->result().subgraphs();
   }
   EXPECT_EQ(info->factor_count(), last_two);
+  // The stored uploads of the folded passages are deleted; the retained ones' are kept.
+  for (int i = 0; i < 5; ++i) {
+    const Passage p = scenario_.MakePassage(i);
+    absl::StatusOr<pb::PassageStatus> status = client_->GetPassage(p.vehicle_id, p.passage_id);
+    ASSERT_TRUE(status.ok()) << status.status();
+    EXPECT_EQ(status->state(), pb::PASSAGE_STATE_APPLIED);
+    EXPECT_EQ(status->payload_pruned_unix_ms() > 0, i < 3) << "passage " << i;
+    EXPECT_EQ(server_->store()->GetPassagePayload(status->id()).ok(), i >= 3) << "passage " << i;
+  }
   // Folding changes nothing in the map.
   absl::StatusOr<MapState> served = client_->DownloadMap(MockVehicle::World());
   ASSERT_TRUE(served.ok()) << served.status();

@@ -249,6 +249,10 @@ absl::Status Status(const Flags& flags, Context& ctx) {
                          status->attempts(), FormatTime(status->received_unix_ms()),
                          FormatTime(status->finished_unix_ms()), status->size_bytes());
   if (!status->error().empty()) out << "error:       " << EscapeForTerminal(OneLine(status->error())) << "\n";
+  if (status->payload_pruned_unix_ms() > 0) {
+    out << "upload:      deleted " << FormatTime(status->payload_pruned_unix_ms())
+        << " (its factors were folded into the map's base)\n";
+  }
   if (status->has_result()) {
     const pb::PassageResult& r = status->result();
     out << absl::StrFormat("result:      strategy=%s nodes=%d subgraphs=%d updated=%d created=%d conditioned=%d "

@@ -41,6 +41,9 @@ class CachedMapStore : public MapStoreInterface {
     return inner_->ListPassages(query);
   }
   absl::StatusOr<std::string> GetPassagePayload(int64_t id) override { return inner_->GetPassagePayload(id); }
+  absl::StatusOr<int> PrunePassagePayloads(const std::vector<std::pair<std::string, std::string>>& passages) override {
+    return inner_->PrunePassagePayloads(passages);
+  }
   absl::StatusOr<std::optional<ClaimedPassage>> ClaimNextPassage() override { return inner_->ClaimNextPassage(); }
   absl::Status FinishPassageWithoutChange(int64_t id, PassageState state, const std::string& reason) override {
     return inner_->FinishPassageWithoutChange(id, state, reason);

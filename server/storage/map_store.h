@@ -57,6 +57,9 @@ struct StoredPassage {
   int attempts = 0;       // times the worker started applying it, less those a restart interrupted
   int interruptions = 0;  // times a restart or crash interrupted it (RequeueProcessingPassages)
   bool released = false;  // an operator released it from quarantine: applied with the map's checks off
+  // When its upload was deleted, its factors folded into the map's base (PrunePassagePayloads);
+  // 0 while the store holds it.
+  int64_t payload_pruned_unix_ms = 0;
   std::string error;
   int64_t received_unix_ms = 0;
   int64_t finished_unix_ms = 0;
@@ -134,7 +137,12 @@ class MapStoreInterface {
   virtual absl::StatusOr<StoredPassage> GetPassage(int64_t id) = 0;
   virtual absl::StatusOr<StoredPassage> FindPassage(const std::string& vehicle_id, const std::string& passage_id) = 0;
   virtual absl::StatusOr<std::vector<StoredPassage>> ListPassages(const PassageQuery& query) = 0;
+  // NotFound for an unknown id and for a pruned payload (saying so).
   virtual absl::StatusOr<std::string> GetPassagePayload(int64_t id) = 0;
+  // Deletes the uploads of applied passages (vehicle_id, passage_id) whose factors were all folded
+  // into the map's base: nothing takes them again. Other passages are left as they are. Returns
+  // how many were deleted.
+  virtual absl::StatusOr<int> PrunePassagePayloads(const std::vector<std::pair<std::string, std::string>>& passages) = 0;
 
   // Takes the oldest queued passage: state processing, attempts + 1. nullopt when none is queued.
   virtual absl::StatusOr<std::optional<ClaimedPassage>> ClaimNextPassage() = 0;

@@ -28,6 +28,7 @@ class SqliteMapStore : public MapStoreInterface {
   absl::StatusOr<StoredPassage> FindPassage(const std::string& vehicle_id, const std::string& passage_id) override;
   absl::StatusOr<std::vector<StoredPassage>> ListPassages(const PassageQuery& query) override;
   absl::StatusOr<std::string> GetPassagePayload(int64_t id) override;
+  absl::StatusOr<int> PrunePassagePayloads(const std::vector<std::pair<std::string, std::string>>& passages) override;
   absl::StatusOr<std::optional<ClaimedPassage>> ClaimNextPassage() override;
   absl::Status CommitPassageApplied(int64_t id, const MapDelta& delta, const PassageResult& result) override;
   absl::Status CommitPassageExcluded(int64_t id, const MapDelta& delta) override;

@@ -646,6 +646,56 @@ TEST(SqliteMapStore, AMapRestoredFromAnOlderBackupHasItsMissingPassagesAppliedAg
   ExpectStatsEqualTableCounts(store.get(), path);
 }
 
+TEST(SqliteMapStore, PruningDeletesOnlyTheUploadsOfAppliedPassages) {
+  TempDir dir;
+  const std::string path = dir.File("map.db");
+  const std::string queue = SqliteQueuePath(path);
+  auto store = OpenStore(path);
+  const int64_t applied = EnqueueAndClaim(store.get(), "applied");
+  ASSERT_TRUE(store->CommitPassageApplied(applied, OneLandmarkDelta(0), SomeResult()).ok());
+  ASSERT_TRUE(store->EnqueuePassages({MakeUpload("v", "queued")}, 0).ok());
+  const int64_t queued = store->FindPassage("v", "queued")->id;
+
+  auto pruned = store->PrunePassagePayloads({{"v", "applied"}, {"v", "queued"}, {"v", "unknown"}});
+  ASSERT_TRUE(pruned.ok()) << pruned.status();
+  EXPECT_EQ(*pruned, 1);
+  EXPECT_GT(store->GetPassage(applied)->payload_pruned_unix_ms, 0);
+  EXPECT_EQ(store->GetPassage(applied)->state, PassageState::kApplied) << "the record stays";
+  const absl::StatusOr<std::string> gone = store->GetPassagePayload(applied);
+  EXPECT_EQ(gone.status().code(), absl::StatusCode::kNotFound);
+  EXPECT_NE(gone.status().message().find("folded into the map's base"), std::string::npos) << gone.status();
+  EXPECT_EQ(store->GetPassage(queued)->payload_pruned_unix_ms, 0);
+  EXPECT_EQ(*store->GetPassagePayload(queued), "bytes");
+  EXPECT_EQ(SqlInt(queue, "SELECT COUNT(*) FROM passage_payloads"), 1);
+  EXPECT_EQ(*store->PrunePassagePayloads({{"v", "applied"}}), 0) << "once";
+  EXPECT_EQ(*store->PrunePassagePayloads({}), 0);
+  ExpectStatsEqualTableCounts(store.get(), path);
+}
+
+TEST(SqliteMapStore, APrunedPassageAMapRestoredFromAnOlderBackupLacksFailsWithTheReason) {
+  TempDir dir;
+  const std::string path = dir.File("map.db");
+  int64_t applied = 0;
+  {
+    auto store = OpenStore(path);
+    applied = EnqueueAndClaim(store.get(), "applied");
+    ASSERT_TRUE(store->CommitPassageApplied(applied, OneLandmarkDelta(0), SomeResult()).ok());
+    ASSERT_EQ(*store->PrunePassagePayloads({{"v", "applied"}}), 1);
+  }
+  sqlite3* db = nullptr;
+  sqlite3_open(path.c_str(), &db);
+  ASSERT_EQ(sqlite3_exec(db, ("DELETE FROM map_passages WHERE id = " + std::to_string(applied)).c_str(), nullptr,
+                         nullptr, nullptr),
+            SQLITE_OK);
+  sqlite3_close(db);
+  auto store = OpenStore(path);
+  const StoredPassage record = *store->GetPassage(applied);
+  EXPECT_EQ(record.state, PassageState::kFailed) << "not queued: its upload is gone";
+  EXPECT_NE(record.error.find("upload it again"), std::string::npos) << record.error;
+  EXPECT_FALSE(store->ClaimNextPassage()->has_value());
+  ExpectStatsEqualTableCounts(store.get(), path);
+}
+
 TEST(SqliteMapStore, AMapWithoutItsQueueFileIsRefused) {
   TempDir dir;
   const std::string path = dir.File("map.db");

@@ -12,7 +12,7 @@ constexpr char kPassageColumns[] =
     "SELECT p.id, p.vehicle_id, p.passage_id, p.state, p.attempts, p.error, p.received_unix_ms, "
     "p.finished_unix_ms, p.size_bytes, r.nodes, r.subgraphs, r.landmarks_updated, r.landmarks_created, "
     "r.landmarks_conditioned, r.detections_used, r.detections_dropped, r.solver_iterations, r.final_cost, "
-    "r.solve_ms, r.covariance_ms, r.total_ms, r.map_version, r.strategy, p.interruptions, p.released "
+    "r.solve_ms, r.covariance_ms, r.total_ms, r.map_version, r.strategy, p.interruptions, p.released, p.payload_pruned_unix_ms "
     "FROM passages p LEFT JOIN passage_results r ON r.id = p.id ";
 
 StoredPassage PassageFromRow(const SqliteStatement& s) {
@@ -28,6 +28,7 @@ StoredPassage PassageFromRow(const SqliteStatement& s) {
   p.size_bytes = s.Int(8);
   p.interruptions = static_cast<int>(s.Int(23));
   p.released = s.Int(24) != 0;
+  p.payload_pruned_unix_ms = s.Int(25);
   if (!s.IsNull(9)) {
     PassageResult r;
     r.nodes = static_cast<int>(s.Int(9));
@@ -200,8 +201,47 @@ absl::StatusOr<std::string> SqliteMapStore::GetPassagePayload(int64_t id) {
   stmt->Bind(1, id);
   auto row = stmt->Step();
   if (!row.ok()) return row.status();
-  if (!*row) return absl::NotFoundError(absl::StrCat("payload of passage id ", id, " not found"));
-  return stmt->Blob(0);
+  if (*row) return stmt->Blob(0);
+  auto record = ReadPassage(db->get(), id);
+  if (!record.ok()) return record.status();
+  if (record->has_value() && (*record)->payload_pruned_unix_ms > 0) {
+    return absl::NotFoundError(absl::StrCat("payload of passage id ", id,
+                                            " was deleted once its factors were folded into the map's base"));
+  }
+  return absl::NotFoundError(absl::StrCat("payload of passage id ", id, " not found"));
+}
+
+absl::StatusOr<int> SqliteMapStore::PrunePassagePayloads(
+    const std::vector<std::pair<std::string, std::string>>& passages) {
+  if (passages.empty()) return 0;
+  SqliteFile::Writer writer = queue_->LockWriter();
+  SqliteConnection* db = writer.db;
+  auto txn = SqliteWriteTransaction::Begin(db);
+  if (!txn.ok()) return txn.status();
+  const int64_t now = NowUnixMs();
+  int pruned = 0;
+  for (const auto& [vehicle_id, passage_id] : passages) {
+    int64_t id = 0;
+    {
+      auto mark = db->Prepare(
+          "UPDATE passages SET payload_pruned_unix_ms = ?3 "
+          "WHERE vehicle_id = ?1 AND passage_id = ?2 AND state = 3 AND payload_pruned_unix_ms = 0 RETURNING id");
+      if (!mark.ok()) return mark.status();
+      mark->Bind(1, std::string_view(vehicle_id)).Bind(2, std::string_view(passage_id)).Bind(3, now);
+      auto row = mark->Step();
+      if (!row.ok()) return row.status();
+      if (!*row) continue;  // not applied, or pruned already
+      id = mark->Int(0);
+      if (auto done = mark->Step(); !done.ok()) return done.status();
+    }
+    auto erase = db->Prepare("DELETE FROM passage_payloads WHERE id = ?1");
+    if (!erase.ok()) return erase.status();
+    erase->Bind(1, id);
+    if (auto s = erase->Run(); !s.ok()) return s;
+    ++pruned;
+  }
+  if (auto s = txn->Commit(); !s.ok()) return s;
+  return pruned;
 }
 
 absl::StatusOr<std::optional<ClaimedPassage>> SqliteMapStore::ClaimNextPassage() {

@@ -377,6 +377,10 @@ const std::vector<Migration>& QueueMigrations() {
       // 1 -> 2: an operator can release a quarantined passage (ResolvePassage RELEASE): it is
       // queued again and applied once with the map's consistency checks off.
       {"ALTER TABLE passages ADD COLUMN released INTEGER NOT NULL DEFAULT 0;", nullptr},
+      // 2 -> 3: the upload of a passage whose factors were folded into the map's base is deleted
+      // (nothing can take it again: it can no longer be excluded, and the young map's joint solves
+      // are over by then); the record stays, with the time.
+      {"ALTER TABLE passages ADD COLUMN payload_pruned_unix_ms INTEGER NOT NULL DEFAULT 0;", nullptr},
   };
   return kMigrations;
 }
@@ -484,6 +488,17 @@ absl::StatusOr<int> ReconcileQueueWithMap(SqliteConnection* queue, const std::st
     // The other way round, the map is behind the queue: it was restored from a backup taken
     // before the queue's (back up the map first, then the queue). Its missing passages are applied
     // again; a passage excluded after the backup is applied in it again and must be excluded again.
+    // Unless its upload was deleted after its factors were folded into the base (the backup is
+    // older than the retention window): then it cannot be applied again.
+    if (auto s = queue->Exec(
+            "UPDATE passages SET state = 5, "
+            "error = 'the map (restored from an earlier backup) does not contain it, and its upload was deleted "
+            "when its factors were folded into the base: upload it again' "
+            "WHERE state = 3 AND payload_pruned_unix_ms > 0 AND id NOT IN (SELECT id FROM m.map_passages)");
+        !s.ok()) {
+      return s;
+    }
+    reconciled += queue->Changes();
     if (auto s = queue->Exec(
             "UPDATE passages SET state = 1, attempts = 0, finished_unix_ms = 0, "
             "error = 'queued again at start: the map does not contain it (restored from an earlier backup)' "
