@@ -265,6 +265,8 @@ absl::Status WriteExperimentOutputs(const ExperimentOptions& options, const Expe
        << absl::StrFormat("  \"noise\": \"%s\",\n", NoiseConfigName(options.scenario.noise))
        << absl::StrFormat("  \"seed\": %d,\n", options.scenario.seed)
        << absl::StrFormat("  \"landmarks\": %d,\n", options.scenario.landmarks)
+       << absl::StrFormat("  \"piece_min_m\": %g,\n  \"piece_max_m\": %g,\n", options.scenario.piece_min_m,
+                          options.scenario.piece_max_m)
        << absl::StrFormat("  \"passages\": %d,\n", options.passages)
        << absl::StrFormat("  \"failed_passages\": %d,\n", result.failed_passages)
        << absl::StrFormat("  \"relinearized_passages\": %d,\n", result.relinearized_passages)

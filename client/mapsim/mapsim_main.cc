@@ -98,6 +98,8 @@ experiment flags:
   --no-bias-correction        skip the second-order bias correction of each solution
   --no-crlb                   skip the Cramer-Rao bound of the same passages (summary.json:
                               crlb_mean_dist_err_m, error_over_crlb)
+  --piece-m MIN,MAX           partial drives: each passage keeps one piece of the route, MIN to
+                              MAX metres long (uniform), from a random start (default: whole)
   --assume-white-gnss         the estimator ignores the coloured GNSS process the passages declare
                               (gnss-ar1, ar1+yaw) and assumes white noise, as before it modelled
                               it; the bound still models it
@@ -293,7 +295,7 @@ absl::Status RunExperimentCommand(const std::vector<std::string>& args) {
                                                     {"speed-noise-scale", true}, {"gnss-noise-scale", true},
                                                     {"pixel-noise-scale", true}, {"no-bias-correction", false},
                                                     {"no-crlb", false}, {"assume-white-gnss", false},
-                                                    {"quiet", false}});
+                                                    {"piece-m", true}, {"quiet", false}});
   if (!flags.ok()) return flags.status();
   ExperimentOptions options;
   absl::StatusOr<long long> landmarks = flags->GetInt("landmarks", 25), passages = flags->GetInt("passages", 100),
@@ -333,6 +335,14 @@ absl::Status RunExperimentCommand(const std::vector<std::string>& args) {
   options.update.bias_correction = !flags->Has("no-bias-correction");
   options.crlb = !flags->Has("no-crlb");
   options.assume_white_gnss = flags->Has("assume-white-gnss");
+  if (flags->Has("piece-m")) {
+    const std::vector<std::string> parts = absl::StrSplit(flags->GetString("piece-m", ""), ',');
+    if (parts.size() != 2 || !absl::SimpleAtod(parts[0], &options.scenario.piece_min_m) ||
+        !absl::SimpleAtod(parts[1], &options.scenario.piece_max_m)) {
+      return UsageError("piece-m: expected MIN,MAX in metres, e.g. 300,1500");
+    }
+    if (absl::Status s = options.scenario.Validate(); !s.ok()) return AsUsageError(s);
+  }
   if (absl::Status s = ParseLocalRelinearization(*flags, &options.update); !s.ok()) return s;
   if (*shuffle_window < 0) return UsageError("shuffle-window: must be >= 0");
   if (*shuffle_from < 0) return UsageError("shuffle-from: must be >= 0");

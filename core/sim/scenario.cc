@@ -96,6 +96,10 @@ absl::Status ScenarioOptions::Validate() const {
   if (!(gnss_ar1_alpha >= 0.0 && gnss_ar1_alpha < 1.0)) {
     return absl::InvalidArgumentError("gnss_ar1_alpha: must lie in [0, 1)");
   }
+  if (!(piece_min_m == 0.0 && piece_max_m == 0.0) && !(piece_min_m > 0.0 && piece_max_m >= piece_min_m)) {
+    return absl::InvalidArgumentError(absl::StrCat("piece_min_m, piece_max_m: must be both 0 (whole passages) or 0 < min <= max, got ",
+                                                   piece_min_m, ", ", piece_max_m));
+  }
   if (std::abs(origin.lat_deg) > 85.0 || std::abs(origin.lon_deg) > 180.0) {
     return absl::InvalidArgumentError("origin: latitude must lie in [-85, 85] and longitude in [-180, 180]");
   }
@@ -123,6 +127,7 @@ absl::StatusOr<Scenario> Scenario::Create(const ScenarioOptions& options) {
     pose = BicycleStep(pose, v, steering, dt, wheelbase);
   }
   sc.route_length_m_ = arc.back();
+  sc.arc_m_ = arc;
 
   for (int k = 0; k < options.landmarks; ++k) {
     const LandmarkPlacement place = k < static_cast<int>(std::size(kFixedLandmarks)) ? kFixedLandmarks[k]
@@ -181,7 +186,28 @@ Passage Scenario::MakePassage(int index) const {
       }
     }
   }
+  if (o.piece_max_m > 0.0) {  // drawn apart from the noise: a piece keeps the whole passage's values
+    const auto [first, last] = PieceOf(index);
+    const auto outside = [first = first, last = last](const auto& m) { return m.t_s < first || m.t_s > last; };
+    p.odometry.erase(std::remove_if(p.odometry.begin(), p.odometry.end(), outside), p.odometry.end());
+    p.gnss.erase(std::remove_if(p.gnss.begin(), p.gnss.end(), outside), p.gnss.end());
+    p.detections.erase(std::remove_if(p.detections.begin(), p.detections.end(), outside), p.detections.end());
+    absl::StrAppend(&p.passage_id, "-piece", o.piece_min_m, "-", o.piece_max_m);
+  }
   return p;
+}
+
+std::pair<double, double> Scenario::PieceOf(int index) const {
+  const ScenarioOptions& o = options_;
+  if (o.piece_max_m <= 0.0) return {0.0, o.duration_s};
+  std::mt19937_64 rng(SplitMix64(SplitMix64(o.seed ^ 0x5049454345ull) ^ static_cast<uint64_t>(index)));
+  const double length = std::min(route_length_m_, std::uniform_real_distribution<double>(o.piece_min_m, o.piece_max_m)(rng));
+  const double start = std::uniform_real_distribution<double>(0.0, route_length_m_ - length)(rng);
+  const double dt = 1.0 / o.odometry_rate_hz;
+  const auto time_at = [&](double s) {
+    return dt * static_cast<double>(std::lower_bound(arc_m_.begin(), arc_m_.end(), s) - arc_m_.begin());
+  };
+  return {time_at(start), std::min(o.duration_s, time_at(start + length))};
 }
 
 }  // namespace crowdmap

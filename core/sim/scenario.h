@@ -4,6 +4,7 @@
 #include <cstdint>
 #include <string>
 #include <string_view>
+#include <utility>
 #include <vector>
 
 #include "absl/status/statusor.h"
@@ -44,6 +45,11 @@ struct ScenarioOptions {
   double max_detection_range_m = 50.0;
   Calibration calibration;         // true calibration (and what the vehicle reports)
   NoiseModel noise_model;          // sigmas used both to draw noise and in the uploaded passage
+  // Partial drives: each passage keeps one piece of the route (its measurements within it), of a
+  // length uniform in [piece_min_m, piece_max_m] (at most the route) starting uniformly along the
+  // rest, drawn from (seed, index). Both 0 = the whole route.
+  double piece_min_m = 0.0;
+  double piece_max_m = 0.0;
 
   absl::Status Validate() const;
 };
@@ -79,6 +85,9 @@ class Scenario {
 
   // True pose at time t (seconds since start), by the same bicycle steps as the route.
   Pose2 TruePoseAt(double t_s) const;
+  // The time span [first, second] (seconds since start) passage `index` keeps: its piece of the
+  // route (options.piece_min_m), or the whole passage.
+  std::pair<double, double> PieceOf(int index) const;
 
  private:
   explicit Scenario(const ScenarioOptions& options);
@@ -88,6 +97,7 @@ class Scenario {
   std::vector<TruthLandmark> landmarks_;
   std::vector<Pose2> true_poses_;
   std::vector<OdometrySample> true_inputs_;
+  std::vector<double> arc_m_;  // distance driven at each true pose
   double route_length_m_ = 0.0;
 };
 

@@ -295,3 +295,46 @@ TEST(NoiseConfig, NamesRoundTrip) {
 
 }  // namespace
 }  // namespace crowdmap
+
+namespace crowdmap {
+namespace {
+
+TEST(Scenario, PartialDrivesKeepOnePieceOfTheRouteOfTheDrawnLength) {
+  ScenarioOptions options;
+  options.piece_min_m = 300.0;
+  options.piece_max_m = 1500.0;
+  const Scenario pieces = *Scenario::Create(options);
+  const Scenario whole = *Scenario::Create(ScenarioOptions());
+  for (int i = 0; i < 20; ++i) {
+    const Passage p = pieces.MakePassage(i);
+    ASSERT_TRUE(ValidatePassage(p).ok()) << ValidatePassage(p);
+    const auto [first, last] = pieces.PieceOf(i);
+    ASSERT_FALSE(p.odometry.empty());
+    EXPECT_GE(p.odometry.front().t_s, first);
+    EXPECT_LE(p.odometry.back().t_s, last);
+    EXPECT_GE(p.gnss.front().t_s, first);
+    EXPECT_LE(p.gnss.back().t_s, last);
+    double driven = 0.0;
+    for (size_t k = 1; k < p.odometry.size(); ++k) {
+      driven += p.odometry[k - 1].speed_mps * (p.odometry[k].t_s - p.odometry[k - 1].t_s);
+    }
+    EXPECT_GT(driven, 300.0 * 0.8) << i;  // measured speeds: within their noise of the truth
+    EXPECT_LT(driven, 1500.0 * 1.2) << i;
+    // The same values as the whole passage, within the piece.
+    const Passage full = whole.MakePassage(i);
+    const auto it = std::find_if(full.odometry.begin(), full.odometry.end(),
+                                 [&](const OdometrySample& o) { return o.t_s == p.odometry.front().t_s; });
+    ASSERT_NE(it, full.odometry.end());
+    EXPECT_EQ(it->speed_mps, p.odometry.front().speed_mps);
+    EXPECT_NE(p.passage_id, full.passage_id);
+  }
+  EXPECT_NE(pieces.PieceOf(1), pieces.PieceOf(2));
+  EXPECT_EQ(pieces.PieceOf(3), Scenario::Create(options)->PieceOf(3)) << "deterministic";
+  ScenarioOptions bad;
+  bad.piece_min_m = 500.0;
+  bad.piece_max_m = 100.0;
+  EXPECT_NE(bad.Validate().message().find("piece_min_m"), std::string::npos);
+}
+
+}  // namespace
+}  // namespace crowdmap
