@@ -699,3 +699,34 @@ TEST(MapUpdater, RelinearizesTheStalestPassageOnceTheMapHasMovedAwayFromIt) {
 
 }  // namespace
 }  // namespace crowdmap
+
+namespace crowdmap {
+namespace {
+
+// Partial drives (300 to 1500 m pieces of the loop) from the map's first passage on, with the
+// updater's defaults (warm-up and re-solves): none fails, and the map is as consistent as whole
+// passages make it.
+TEST(MapUpdater, PartialDrivesFromTheFirstPassageOnBuildAConsistentMap) {
+  ScenarioOptions options;
+  options.piece_min_m = 300.0;
+  options.piece_max_m = 1500.0;
+  const Scenario scenario = *Scenario::Create(options);
+  MapUpdater updater(MapUpdateOptions(), {}, 0);
+  MapState map;
+  for (int i = 0; i < 24; ++i) {
+    const Passage passage = scenario.MakePassage(i);
+    absl::StatusOr<PassageUpdate> update = updater.Compute(passage, map);
+    ASSERT_TRUE(update.ok()) << "passage " << i << ": " << update.status();
+    map.Apply(update->delta);
+    updater.Applied(passage, update->delta);
+  }
+  const MapErrorMetrics metrics = EvaluateMap(map, scenario.landmarks());
+  std::printf("partial drives, 24 passages: %zu landmarks, mean error %.3f m, NEES/dof %.2f, joint %.2f\n",
+              map.landmark_count(), metrics.mean_dist_err_m, metrics.nees_per_dof, metrics.joint_nees_per_dof);
+  EXPECT_EQ(map.landmark_count(), scenario.landmarks().size());
+  EXPECT_LT(metrics.nees_per_dof, 1.5);
+  EXPECT_LT(metrics.joint_nees_per_dof, 1.5);
+}
+
+}  // namespace
+}  // namespace crowdmap
