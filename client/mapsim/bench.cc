@@ -11,6 +11,7 @@
 #include "absl/strings/str_format.h"
 #include "absl/time/clock.h"
 #include "client/api/map_client.h"
+#include "client/mapsim/simulated_passages.h"
 #include "core/geo/tiles.h"
 #include "server/wire_convert.h"
 
@@ -81,31 +82,10 @@ std::string BenchResult::Brief() const {
       get_tile.p50_ms, get_tile.p99_ms, get_tile.calls, landmarks_in_box);
 }
 
-// The benchmark's passages and the landmarks they see: the loop's or the city's.
-struct BenchScenario {
-  std::vector<Passage> passages;
-  std::vector<TruthLandmark> landmarks;
-};
-
-absl::StatusOr<BenchScenario> MakeBenchScenario(const BenchOptions& options) {
-  BenchScenario out;
-  if (options.city) {
-    absl::StatusOr<CityScenario> city = CityScenario::Create(options.city_scenario);
-    if (!city.ok()) return city.status();
-    for (int i = 0; i < options.passages; ++i) out.passages.push_back(city->MakePassage(i));
-    out.landmarks = city->landmarks();
-    return out;
-  }
-  absl::StatusOr<Scenario> loop = Scenario::Create(options.scenario);
-  if (!loop.ok()) return loop.status();
-  for (int i = 0; i < options.passages; ++i) out.passages.push_back(loop->MakePassage(i));
-  out.landmarks = loop->landmarks();
-  return out;
-}
-
 absl::StatusOr<BenchResult> RunBench(const BenchOptions& options) {
   if (absl::Status s = options.Validate(); !s.ok()) return s;
-  absl::StatusOr<BenchScenario> scenario = MakeBenchScenario(options);
+  absl::StatusOr<SimulatedPassages> scenario =
+      MakeSimulatedPassages(options.scenario, options.city ? &options.city_scenario : nullptr, options.passages);
   if (!scenario.ok()) return scenario.status();
   absl::StatusOr<std::unique_ptr<MapClient>> control = Connect(options.server, options.security);
   if (!control.ok()) return control.status();

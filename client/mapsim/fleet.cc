@@ -14,6 +14,7 @@
 #include "absl/strings/str_format.h"
 #include "server/geojson.h"
 #include "client/api/passage_files.h"
+#include "client/mapsim/simulated_passages.h"
 #include "core/geo/local_frame.h"
 #include "core/estimation/map_updater.h"
 #include "core/sim/metrics.h"
@@ -44,7 +45,8 @@ int64_t FinishedCount(const pb::MapInfo& info) {
 // Uploads of all vehicles; vehicle v sends passages v, v+V, ... in order.
 class FleetUploader {
  public:
-  FleetUploader(const FleetOptions& options, const Scenario& scenario) : options_(options), scenario_(scenario) {}
+  FleetUploader(const FleetOptions& options, const std::vector<Passage>& passages)
+      : options_(options), passages_(passages) {}
 
   void Start() {
     for (int v = 0; v < options_.vehicles; ++v) threads_.emplace_back([this, v] { RunVehicle(v); });
@@ -73,7 +75,7 @@ class FleetUploader {
     absl::StatusOr<std::unique_ptr<MapClient>> client = MapClient::Create(client_options);
     for (int i = vehicle; client.ok() && i < options_.passages && !failed_.load(); i += options_.vehicles) {
       pb::Passage wire;
-      PassageToProto(scenario_.MakePassage(i), &wire);
+      PassageToProto(passages_[i], &wire);
       absl::StatusOr<pb::UploadPassageResponse> response = (*client)->Upload(wire);
       if (!response.ok()) {
         Fail(absl::Status(response.status().code(), absl::StrCat("passage ", i, ": ", response.status().message())));
@@ -96,7 +98,7 @@ class FleetUploader {
   }
 
   const FleetOptions& options_;
-  const Scenario& scenario_;
+  const std::vector<Passage>& passages_;
   std::vector<std::thread> threads_;
   std::atomic<int> uploaded_{0}, duplicates_{0}, finished_vehicles_{0};
   std::atomic<bool> failed_{false};
@@ -173,7 +175,10 @@ absl::Status Replay(const FleetOptions& options, FleetResult* result) {
 }  // namespace
 
 absl::Status FleetOptions::Validate() const {
-  if (absl::Status s = scenario.Validate(); !s.ok()) return s;
+  if (absl::Status s = city ? city_scenario.Validate() : scenario.Validate(); !s.ok()) return s;
+  if (city && replay) {
+    return absl::InvalidArgumentError("replay: the in-process replay takes the loop's passages only; turn it off with city");
+  }
   if (passages < 1) return absl::InvalidArgumentError("passages: must be >= 1");
   if (vehicles < 1) return absl::InvalidArgumentError("vehicles: must be >= 1");
   if (!strategy.empty() && strategy != "cc" && strategy != "dc" && strategy != "cc-gsd") {
@@ -216,7 +221,8 @@ int64_t JointSolveUnderWay(const pb::MapInfo& info) {
 absl::StatusOr<FleetResult> RunFleet(const FleetOptions& options,
                                      const std::function<void(const FleetProgress&)>& progress) {
   if (absl::Status s = options.Validate(); !s.ok()) return s;
-  absl::StatusOr<Scenario> scenario = Scenario::Create(options.scenario);
+  absl::StatusOr<SimulatedPassages> scenario =
+      MakeSimulatedPassages(options.scenario, options.city ? &options.city_scenario : nullptr, options.passages);
   if (!scenario.ok()) return scenario.status();
   MapClientOptions client_options = options.client;
   client_options.server = options.server;
@@ -241,7 +247,7 @@ absl::StatusOr<FleetResult> RunFleet(const FleetOptions& options,
   const int64_t finished_at_start = FinishedCount(*start_info);
 
   const Clock::time_point t0 = Clock::now();
-  FleetUploader uploader(options, *scenario);
+  FleetUploader uploader(options, scenario->passages);
   uploader.Start();
   FleetProgress state;
   state.total = options.passages;
@@ -266,7 +272,7 @@ absl::StatusOr<FleetResult> RunFleet(const FleetOptions& options,
       if (map.ok()) {
         PassageRecord record;
         record.passage = state.applied;
-        record.metrics = EvaluateMap(*map, scenario->landmarks());
+        record.metrics = EvaluateMap(*map, scenario->landmarks);
         result.experiment.records.push_back(record);
         state.mean_dist_err_m = record.metrics.mean_dist_err_m;
         last_sampled = state.applied;
@@ -313,6 +319,11 @@ absl::Status WriteFleetOutputs(const FleetOptions& options, const FleetResult& r
   experiment.passages = options.passages;
   experiment.strategy = result.server_strategy;
   std::vector<std::pair<std::string, double>> extra = {{"vehicles", options.vehicles}};
+  if (options.city) {  // the summary's scenario fields are the loop's: say which passages these were
+    extra.push_back({"city_blocks_x", options.city_scenario.blocks_x});
+    extra.push_back({"city_blocks_y", options.city_scenario.blocks_y});
+    extra.push_back({"city_route_m", options.city_scenario.route_length_m});
+  }
   if (result.replay) {
     extra.push_back({"arrival_order_experiment_final_mean_dist_err_m", result.replay->final_mean_dist_err_m});
     extra.push_back({"max_position_diff_vs_arrival_order_experiment_m", result.replay->max_position_diff_m});

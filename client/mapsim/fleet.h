@@ -10,6 +10,7 @@
 #include "absl/status/statusor.h"
 #include "client/api/map_client.h"
 #include "client/mapsim/experiment.h"
+#include "core/sim/city_scenario.h"
 #include "core/sim/scenario.h"
 
 namespace crowdmap {
@@ -26,8 +27,11 @@ struct FleetOptions {
   std::chrono::seconds apply_timeout{1800};
   MapClientOptions client;  // `server` above overrides client.server
   // After the run, apply the passages in-process in the server's arrival order and compare the
-  // maps (needs a server whose map started empty).
+  // maps (needs a server whose map started empty; the loop's passages only).
   bool replay = true;
+  // City passages (CityScenario, `city_scenario`) instead of the loop's (`scenario`).
+  bool city = false;
+  CityScenarioOptions city_scenario;
 
   absl::Status Validate() const;
 };

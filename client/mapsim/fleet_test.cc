@@ -93,6 +93,28 @@ TEST(Fleet, ConcurrentVehiclesGetEveryPassageAppliedAndWriteTheOutputs) {
   EXPECT_FALSE(again->replay.has_value());  // the map did not start empty
 }
 
+TEST(Fleet, CityPassagesAreUploadedAndTheMapMeasuredAgainstTheCitysLandmarks) {
+  TempDir dir;
+  auto server = StartTestServer(TestServerOptions(dir.File("map.db")));
+  ASSERT_NE(server, nullptr);
+  FleetOptions options = SmallFleet(server->address(), 2);
+  options.city = true;
+  options.city_scenario.blocks_x = options.city_scenario.blocks_y = 2;
+  options.city_scenario.route_length_m = 600.0;
+  options.passages = 6;
+  EXPECT_NE(options.Validate().message().find("replay"), std::string::npos) << "no replay of city passages";
+  options.replay = false;
+  auto fleet = RunFleet(options);
+  ASSERT_TRUE(fleet.ok()) << fleet.status();
+  EXPECT_EQ(fleet->experiment.records.back().passage, options.passages);
+  EXPECT_EQ(fleet->experiment.failed_passages, 0);
+  EXPECT_GT(fleet->landmarks.size(), 10u);
+  // Evaluated against the city's landmarks: the loop's would be kilometres away.
+  EXPECT_LT(fleet->experiment.final_mean_dist_err_m, 5.0);
+  EXPECT_GT(fleet->experiment.records.back().metrics.landmarks_evaluated, 10);
+  ASSERT_TRUE(WriteFleetOutputs(options, *fleet, dir.File("out")).ok());
+}
+
 TEST(Fleet, RefusesAServerRunningAnotherStrategy) {
   TempDir dir;
   auto server = StartTestServer(TestServerOptions(dir.File("map.db")));

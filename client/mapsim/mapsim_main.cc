@@ -145,6 +145,10 @@ fleet flags (and --landmarks, --noise, --seed, --quiet as for experiment):
   --strategy S                fail unless the server runs strategy S (default: accept the server's)
   --sample-ms MS              read the map back and evaluate it this often while applying (default 250)
   --no-replay                 skip the check below
+  --city                      upload city passages (mapsim city's default grid, --seed its fleet
+                              seed) instead of the loop's; errors against the city's landmarks; no
+                              replay
+  --route-m M                 with --city: distance driven per passage (default 2000)
   --out DIR                   output folder (default out/fleet): passages.csv (one row per sampled
                               map; the last row is the final map), summary.json, errors.svg, map.geojson,
                               arrival_order.txt (the scenario passage index of each applied passage,
@@ -510,16 +514,23 @@ absl::Status RunFleetCommand(const std::vector<std::string>& args) {
   absl::StatusOr<Flags> flags = ParseFlags(args, WithSecurityFlags({{"server", true}, {"landmarks", true}, {"passages", true},
                                                     {"noise", true}, {"seed", true}, {"vehicles", true},
                                                     {"strategy", true}, {"sample-ms", true}, {"out", true},
-                                                    {"quiet", false}, {"no-replay", false}}));
+                                                    {"quiet", false}, {"no-replay", false}, {"city", false},
+                                                    {"route-m", true}}));
   if (!flags.ok()) return flags.status();
   absl::StatusOr<ScenarioOptions> scenario = ScenarioFromFlags(*flags);
   if (!scenario.ok()) return scenario.status();
+  FleetOptions options;
   absl::StatusOr<long long> passages = flags->GetInt("passages", 40), vehicles = flags->GetInt("vehicles", 4),
                             sample_ms = flags->GetInt("sample-ms", 250);
-  for (const absl::Status& s : {passages.status(), vehicles.status(), sample_ms.status()}) {
+  absl::StatusOr<double> route_m = flags->GetDouble("route-m", options.city_scenario.route_length_m);
+  for (const absl::Status& s : {passages.status(), vehicles.status(), sample_ms.status(), route_m.status()}) {
     if (!s.ok()) return s;
   }
-  FleetOptions options;
+  if (flags->Has("route-m") && !flags->Has("city")) return UsageError("route-m: only with --city");
+  options.city = flags->Has("city");
+  options.city_scenario.seed = scenario->seed;
+  options.city_scenario.noise = scenario->noise;
+  options.city_scenario.route_length_m = *route_m;
   options.server = flags->GetString("server", ServerDefault(options.server));
   if (absl::Status s = ApplyClientSecurityFlags(*flags, &options.client.security); !s.ok()) return AsUsageError(s);
   options.scenario = *scenario;
@@ -527,7 +538,7 @@ absl::Status RunFleetCommand(const std::vector<std::string>& args) {
   options.vehicles = static_cast<int>(*vehicles);
   options.strategy = flags->GetString("strategy", "");
   options.sample_interval = std::chrono::milliseconds(*sample_ms);
-  options.replay = !flags->Has("no-replay");
+  options.replay = !flags->Has("no-replay") && !options.city;
   if (absl::Status s = options.Validate(); !s.ok()) return AsUsageError(s);
   const std::string out = flags->GetString("out", "out/fleet");
   const bool quiet = flags->Has("quiet");
