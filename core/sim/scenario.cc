@@ -184,4 +184,14 @@ Passage Scenario::MakePassage(int index) const {
   return p;
 }
 
+Passage FirstSeconds(Passage passage, double end_s) {
+  auto after = [end_s](const auto& m) { return m.t_s > end_s; };
+  passage.odometry.erase(std::remove_if(passage.odometry.begin(), passage.odometry.end(), after),
+                         passage.odometry.end());
+  passage.gnss.erase(std::remove_if(passage.gnss.begin(), passage.gnss.end(), after), passage.gnss.end());
+  passage.detections.erase(std::remove_if(passage.detections.begin(), passage.detections.end(), after),
+                           passage.detections.end());
+  return passage;
+}
+
 }  // namespace crowdmap

@@ -91,6 +91,9 @@ class Scenario {
   double route_length_m_ = 0.0;
 };
 
+// `passage` without its measurements after `end_s` (seconds since its start): its first minutes.
+Passage FirstSeconds(Passage passage, double end_s);
+
 }  // namespace crowdmap
 
 #endif  // CROWDMAP_CORE_SIM_SCENARIO_H_
