@@ -2,7 +2,6 @@
 
 #include <cmath>
 #include <limits>
-#include <memory>
 
 #if defined(__SSE2__)
 #include <xmmintrin.h>
@@ -70,11 +69,7 @@ class Linearization {
     const SparseMatrix jp = jacobian.leftCols(np), jl = jacobian.rightCols(nl);
     const SparseMatrix jpt = jp.transpose();
     const SparseMatrix a = jpt * jp;
-    if (!analyzed_) {
-      a_llt_.analyzePattern(a);
-      analyzed_ = true;
-    }
-    a_llt_.factorize(a);
+    a_llt_.compute(a);
     if (a_llt_.info() != Eigen::Success) {
       return absl::FailedPreconditionError("localization: the pose chain's information is rank deficient");
     }
@@ -121,7 +116,6 @@ class Linearization {
   }
 
  private:
-  bool analyzed_ = false;
   Eigen::SimplicialLLT<SparseMatrix> a_llt_;
   SparseMatrix l_;  // a_llt_'s factor
   SparseMatrix pb_;
@@ -132,6 +126,12 @@ class Linearization {
 
 }  // namespace
 
+absl::Status DensePriorSolverOptions::Validate() const {
+  if (max_iterations < 1) return absl::InvalidArgumentError("max_iterations: must be >= 1");
+  if (!(step_tolerance > 0.0)) return absl::InvalidArgumentError("step_tolerance: must be > 0");
+  return absl::OkStatus();
+}
+
 std::string DensePriorSolution::Brief() const {
   return absl::StrFormat("cost=%.6g iterations=%d factorizations=%d", cost, iterations, factorizations);
 }
@@ -140,6 +140,7 @@ absl::StatusOr<DensePriorSolution> SolveWithDensePrior(ceres::Problem* problem, 
                                                        const std::vector<double*>& landmarks,
                                                        const DenseLandmarkPrior& prior,
                                                        const DensePriorSolverOptions& options) {
+  if (absl::Status s = options.Validate(); !s.ok()) return s;
   const int np = 3 * static_cast<int>(poses->size()), nl = 2 * static_cast<int>(landmarks.size());
   if (prior.mean.size() != nl || prior.cov.rows() != nl || prior.cov.cols() != nl) {
     return absl::InvalidArgumentError(absl::StrCat("dense prior: mean and covariance must have ", nl, " entries"));
@@ -225,7 +226,8 @@ absl::StatusOr<DensePriorSolution> SolveWithDensePrior(ceres::Problem* problem, 
       set_state(x + scale * step);
       // A step that takes a landmark behind a camera cannot be evaluated: as if the cost rose.
       if (!evaluate_at(&new_cost, &new_gradient, nullptr).ok()) new_cost = std::numeric_limits<double>::infinity();
-      decreased = new_cost <= cost + 1e-12 * std::abs(cost) || step_size <= options.step_tolerance;
+      decreased = std::isfinite(new_cost) &&
+                  (new_cost <= cost + 1e-12 * std::abs(cost) || step_size <= options.step_tolerance);
       if (!fresh) break;
     }
     if (!decreased) {

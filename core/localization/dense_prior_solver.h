@@ -7,6 +7,7 @@
 #include <Eigen/Core>
 #include <ceres/ceres.h>
 
+#include "absl/status/status.h"
 #include "absl/status/statusor.h"
 #include "core/model/motion_model.h"
 
@@ -23,6 +24,8 @@ struct DensePriorSolverOptions {
   int max_iterations = 100;
   // Converged when no pose or landmark coordinate moves by more than this (m, rad).
   double step_tolerance = 1e-9;
+
+  absl::Status Validate() const;
 };
 
 struct DensePriorSolution {

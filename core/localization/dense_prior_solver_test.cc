@@ -116,5 +116,15 @@ TEST(SolveWithDensePrior, RefusesAPriorOfTheWrongSize) {
   EXPECT_EQ(solution.status().code(), absl::StatusCode::kInvalidArgument);
 }
 
+TEST(DensePriorSolverOptions, RejectsInvalidValues) {
+  DensePriorSolverOptions options;
+  EXPECT_TRUE(options.Validate().ok());
+  options.max_iterations = 0;
+  EXPECT_FALSE(options.Validate().ok());
+  options = {};
+  options.step_tolerance = 0.0;
+  EXPECT_FALSE(options.Validate().ok());
+}
+
 }  // namespace
 }  // namespace crowdmap
