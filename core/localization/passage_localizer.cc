@@ -3,9 +3,7 @@
 #include <algorithm>
 #include <chrono>
 #include <cmath>
-#include <functional>
 #include <limits>
-#include <map>
 #include <memory>
 #include <unordered_map>
 
@@ -16,11 +14,16 @@
 #include "absl/strings/str_format.h"
 #include "core/estimation/factors.h"
 #include "core/estimation/graph_builder.h"
+#include "core/localization/dense_prior_solver.h"
 #include "core/localization/pose_covariance.h"
 #include "core/model/camera_model.h"
 
 namespace crowdmap {
 namespace {
+
+// Relative cost decrease at which the robust (gating) and the final solves stop.
+constexpr double kGatingTolerance = 1e-6;
+constexpr double kFinalTolerance = 1e-12;
 
 // One detection of a map landmark: its graph observation and the landmark's index in the map.
 struct MappedDetection {
@@ -29,13 +32,26 @@ struct MappedDetection {
   bool active = true;
 };
 
-// The map landmarks in the passage frame: means, joint covariance, and the groups of landmarks
-// whose covariance is linked (one prior factor each).
+// The map landmarks in the passage frame: means and joint covariance.
 struct LocalPrior {
   std::vector<Eigen::Vector2d> mean;
   Eigen::MatrixXd cov;
-  std::vector<std::vector<int>> groups;
+  bool correlated = false;  // some cross-covariance is not zero
 };
+
+// The landmarks `keep` (indices into `map`, in order) with their joint covariance.
+LocalizationMap Restrict(const LocalizationMap& map, const std::vector<int>& keep) {
+  LocalizationMap out;
+  out.version = map.version;
+  const int n = static_cast<int>(keep.size());
+  out.cov_en_m2.resize(2 * n, 2 * n);
+  for (int a = 0; a < n; ++a) {
+    out.ids.push_back(map.ids[keep[a]]);
+    out.positions.push_back(map.positions[keep[a]]);
+    for (int b = 0; b < n; ++b) out.cov_en_m2.block<2, 2>(2 * a, 2 * b) = map.cov_en_m2.block<2, 2>(2 * keep[a], 2 * keep[b]);
+  }
+  return out;
+}
 
 LocalPrior ToPassageFrame(const LocalizationMap& map, const LocalFrame& frame) {
   const int n = static_cast<int>(map.ids.size());
@@ -46,19 +62,13 @@ LocalPrior ToPassageFrame(const LocalizationMap& map, const LocalFrame& frame) {
     rotation[k] = frame.EnToLocal(map.positions[k]);
   }
   prior.cov.resize(2 * n, 2 * n);
-  std::vector<int> parent(n);
-  for (int k = 0; k < n; ++k) parent[k] = k;
-  std::function<int(int)> root = [&](int k) { return parent[k] == k ? k : parent[k] = root(parent[k]); };
   for (int k = 0; k < n; ++k) {
     for (int l = 0; l < n; ++l) {
       const Eigen::Matrix2d block = map.cov_en_m2.block<2, 2>(2 * k, 2 * l);
       prior.cov.block<2, 2>(2 * k, 2 * l) = rotation[k] * block * rotation[l].transpose();
-      if (k != l && !block.isZero(0.0)) parent[root(k)] = root(l);
+      prior.correlated |= k != l && !block.isZero(0.0);
     }
   }
-  std::map<int, std::vector<int>> by_root;
-  for (int k = 0; k < n; ++k) by_root[root(k)].push_back(k);
-  for (auto& [r, members] : by_root) prior.groups.push_back(std::move(members));
   return prior;
 }
 
@@ -81,7 +91,10 @@ void InitializePoses(const PassageGraph& graph, const Passage& passage, const Lo
   ceres::Solver::Options solver;
   solver.linear_solver_type = ceres::SPARSE_NORMAL_CHOLESKY;
   solver.max_num_iterations = options.max_solver_iterations;
-  solver.function_tolerance = 1e-6;
+  // A starting point only: with the landmarks held at their map positions most bearings lie in the
+  // loss's tail and the robust solve crawls (70 iterations to 1e-6); the last 0.1% of the cost is
+  // left to the pixel solves.
+  solver.function_tolerance = 1e-3;
   solver.parameter_tolerance = 1e-6;
   solver.num_threads = 1;
   solver.logging_type = ceres::SILENT;
@@ -89,17 +102,19 @@ void InitializePoses(const PassageGraph& graph, const Passage& passage, const Lo
   ceres::Solve(solver, &problem, &summary);
 }
 
-// The joint problem: poses, the landmarks with their map prior, the active detections.
+// The joint problem: poses, the landmarks with (or without) their marginal map priors, the active
+// detections.
 struct JointProblem {
   std::unique_ptr<ceres::Problem> problem;
+  std::vector<int> seen;  // landmarks with an active detection, in map order
   int parameters = 0;
 };
 
-// The gating rounds use each landmark's marginal prior (`joint_prior` false): they only need each
-// landmark's disagreement with its own map position, and a dense prior on hundreds of correlated
-// landmarks makes every Ceres iteration cost seconds. The final solve uses the joint prior.
+// The gating rounds use each landmark's marginal prior (`marginal_priors`): they only need each
+// landmark's disagreement with its own map position. The final solve of a correlated map has no
+// prior in Ceres: SolveWithDensePrior adds the joint one.
 JointProblem BuildProblem(const PassageGraph& graph, const Passage& passage, const LocalPrior& prior,
-                          const std::vector<MappedDetection>& detections, double robust_scale, bool joint_prior,
+                          const std::vector<MappedDetection>& detections, double robust_scale, bool marginal_priors,
                           std::vector<Pose2>* poses, std::vector<Eigen::Vector2d>* landmarks) {
   JointProblem jp;
   jp.problem = std::make_unique<ceres::Problem>();
@@ -114,42 +129,38 @@ JointProblem BuildProblem(const PassageGraph& graph, const Passage& passage, con
                              loss, (*poses)[d.observation->node].data(), (*landmarks)[d.landmark].data());
     seen[d.landmark] = true;
   }
-  std::vector<std::vector<int>> groups;
-  for (const std::vector<int>& group : prior.groups) {
-    if (joint_prior) {
-      groups.push_back(group);
-    } else {
-      for (int k : group) groups.push_back({k});
-    }
-  }
-  for (const std::vector<int>& group : groups) {
-    std::vector<int> members;
-    for (int k : group) {
-      if (seen[k]) members.push_back(k);
-    }
-    if (members.empty()) continue;
-    const int m = static_cast<int>(members.size());
-    Eigen::VectorXd mean(2 * m);
-    Eigen::MatrixXd cov(2 * m, 2 * m);
-    std::vector<double*> blocks;
-    for (int a = 0; a < m; ++a) {
-      mean.segment<2>(2 * a) = prior.mean[members[a]];
-      blocks.push_back((*landmarks)[members[a]].data());
-      for (int b = 0; b < m; ++b) cov.block<2, 2>(2 * a, 2 * b) = prior.cov.block<2, 2>(2 * members[a], 2 * members[b]);
-    }
-    // The marginal of the seen landmarks: the map's joint covariance restricted to them.
-    problem.AddResidualBlock(new LandmarkPriorFactor(mean, SqrtInformation(0.5 * (cov + cov.transpose()))), nullptr,
-                             blocks);
-    jp.parameters += 2 * m;
+  for (int k = 0; k < static_cast<int>(seen.size()); ++k) {
+    if (!seen[k]) continue;
+    jp.seen.push_back(k);
+    jp.parameters += 2;
+    if (!marginal_priors) continue;
+    const Eigen::Matrix2d cov = prior.cov.block<2, 2>(2 * k, 2 * k);
+    problem.AddResidualBlock(new LandmarkPriorFactor(prior.mean[k], SqrtInformation(0.5 * (cov + cov.transpose()))),
+                             nullptr, (*landmarks)[k].data());
   }
   return jp;
 }
 
-absl::Status Solve(const PassageLocalizerOptions& options, ceres::Problem* problem, ceres::Solver::Summary* summary) {
+// The map's joint prior on `seen` (the marginal of the map's covariance on them).
+DenseLandmarkPrior JointPrior(const LocalPrior& prior, const std::vector<int>& seen) {
+  const int m = static_cast<int>(seen.size());
+  DenseLandmarkPrior out;
+  out.mean.resize(2 * m);
+  out.cov.resize(2 * m, 2 * m);
+  for (int a = 0; a < m; ++a) {
+    out.mean.segment<2>(2 * a) = prior.mean[seen[a]];
+    for (int b = 0; b < m; ++b) out.cov.block<2, 2>(2 * a, 2 * b) = prior.cov.block<2, 2>(2 * seen[a], 2 * seen[b]);
+  }
+  out.cov = 0.5 * (out.cov + out.cov.transpose());
+  return out;
+}
+
+absl::Status Solve(const PassageLocalizerOptions& options, double function_tolerance, ceres::Problem* problem,
+                   ceres::Solver::Summary* summary) {
   ceres::Solver::Options solver;
   solver.linear_solver_type = ceres::SPARSE_NORMAL_CHOLESKY;
   solver.max_num_iterations = options.max_solver_iterations;
-  solver.function_tolerance = 1e-12;
+  solver.function_tolerance = function_tolerance;
   solver.gradient_tolerance = 1e-12;
   solver.parameter_tolerance = 1e-12;
   solver.num_threads = 1;
@@ -214,16 +225,26 @@ int Gate(const PassageGraph& graph, const Passage& passage, const LocalPrior& pr
     chi2[d.landmark] += residual[i] * residual[i];
     ++count[d.landmark];
   }
+  // The quantiles by number of detections (each a bisection: computed once per count).
+  auto by_count = [](double probability) {
+    return [probability, cache = std::unordered_map<int, double>()](int dof) mutable {
+      auto [it, inserted] = cache.try_emplace(dof, 0.0);
+      if (inserted) it->second = ChiSquareUpperQuantile(dof, probability);
+      return it->second;
+    };
+  };
+  auto median_quantile = by_count(0.5);
+  auto gate_quantile = by_count(options.landmark_gate_probability);
   std::vector<double> ratios;
   for (int k = 0; k < n; ++k) {
     if (count[k] == 0) continue;
     const Eigen::Vector2d shift = landmarks[k] - prior.mean[k];
     chi2[k] += shift.dot(prior.cov.block<2, 2>(2 * k, 2 * k).ldlt().solve(shift));
-    ratios.push_back(chi2[k] / ChiSquareUpperQuantile(count[k], 0.5));
+    ratios.push_back(chi2[k] / median_quantile(count[k]));
   }
   const double landmark_scale = std::max(1.0, Median(ratios));
   for (int k = 0; k < n; ++k) {
-    if (count[k] == 0 || chi2[k] <= landmark_scale * ChiSquareUpperQuantile(count[k], options.landmark_gate_probability)) {
+    if (count[k] == 0 || chi2[k] <= landmark_scale * gate_quantile(count[k])) {
       continue;
     }
     for (size_t i = 0; i < detections->size(); ++i) {
@@ -332,13 +353,26 @@ absl::StatusOr<PassageLocalization> LocalizePassage(const Passage& passage, cons
   graph_options.detections_per_landmark = 0;
   absl::StatusOr<PassageGraph> graph = BuildPassageGraph(passage, graph_options);
   if (!graph.ok()) return graph.status();
-  const LocalPrior prior = ToPassageFrame(map, graph->frame);
 
   PassageLocalization out;
   out.frame = graph->frame;
   out.map_version = map.version;
+  // The map landmarks the passage detects, in map order (the map may hold many more).
   std::unordered_map<LandmarkId, int> index;
-  for (size_t k = 0; k < map.ids.size(); ++k) index[map.ids[k]] = static_cast<int>(k);
+  for (size_t k = 0; k < map.ids.size(); ++k) index[map.ids[k]] = -1;
+  for (const CameraObservation& o : graph->detections) {
+    const auto it = index.find(o.landmark_id);
+    if (it != index.end()) it->second = 0;
+  }
+  std::vector<int> detected;
+  for (size_t k = 0; k < map.ids.size(); ++k) {
+    int& slot = index[map.ids[k]];
+    if (slot < 0) continue;
+    slot = static_cast<int>(detected.size());
+    detected.push_back(static_cast<int>(k));
+  }
+  const LocalizationMap seen = Restrict(map, detected);
+  const LocalPrior prior = ToPassageFrame(seen, graph->frame);
   std::vector<MappedDetection> detections;
   for (const CameraObservation& o : graph->detections) {
     const auto it = index.find(o.landmark_id);
@@ -362,30 +396,51 @@ absl::StatusOr<PassageLocalization> LocalizePassage(const Passage& passage, cons
                             r, false});
   }
   // Round 0 is robust; later rounds solve the kept detections plainly, until the gates reject
-  // nothing more (or the rounds run out: then the last rejections are solved without). The last
-  // solve has the joint prior when the map's landmarks are correlated.
-  bool correlated = false;
-  for (const std::vector<int>& group : prior.groups) correlated |= group.size() > 1;
+  // nothing more (or the rounds run out: then the last rejections are solved without). A
+  // correlated map's joint prior enters the last solve.
   JointProblem problem;
   ceres::Solver::Summary summary;
   bool solved_after_gating = false;
   for (int round = 0; round < options.max_gating_rounds && !solved_after_gating; ++round) {
     problem = BuildProblem(*graph, passage, prior, detections, round == 0 ? options.robust_loss_scale_sigmas : 0.0,
-                           /*joint_prior=*/false, &poses, &landmarks);
-    if (absl::Status s = Solve(options, problem.problem.get(), &summary); !s.ok()) return s;
+                           /*marginal_priors=*/true, &poses, &landmarks);
+    // The robust round only feeds the gates: its last digits do not change a decision (its
+    // reweighting converges linearly, a dozen iterations to 1e-12).
+    if (absl::Status s = Solve(options, round == 0 ? kGatingTolerance : kFinalTolerance, problem.problem.get(), &summary);
+        !s.ok()) {
+      return s;
+    }
     const int rejected = Gate(*graph, passage, prior, poses, landmarks, options, &detections, &out.rejected);
     solved_after_gating = round > 0 && rejected == 0;
   }
-  if (!solved_after_gating || correlated) {
-    problem = BuildProblem(*graph, passage, prior, detections, 0.0, /*joint_prior=*/true, &poses, &landmarks);
-    if (absl::Status s = Solve(options, problem.problem.get(), &summary); !s.ok()) return s;
+  std::vector<Eigen::Matrix3d> covariances;
+  double cost = 0.0;
+  if (prior.correlated) {
+    problem = BuildProblem(*graph, passage, prior, detections, 0.0, /*marginal_priors=*/false, &poses, &landmarks);
+    std::vector<double*> blocks;
+    for (int k : problem.seen) blocks.push_back(landmarks[k].data());
+    DensePriorSolverOptions dense_options;
+    dense_options.max_iterations = options.max_solver_iterations;
+    absl::StatusOr<DensePriorSolution> solution =
+        SolveWithDensePrior(problem.problem.get(), &poses, blocks, JointPrior(prior, problem.seen), dense_options);
+    if (!solution.ok()) return solution.status();
+    covariances = std::move(solution->pose_covariances);
+    cost = solution->cost;
+  } else {
+    if (!solved_after_gating) {
+      problem = BuildProblem(*graph, passage, prior, detections, 0.0, /*marginal_priors=*/true, &poses, &landmarks);
+      if (absl::Status s = Solve(options, kFinalTolerance, problem.problem.get(), &summary); !s.ok()) return s;
+    }
+    absl::StatusOr<std::vector<Eigen::Matrix3d>> marginals = PoseCovariances(problem.problem.get(), &poses, &landmarks);
+    if (!marginals.ok()) return marginals.status();
+    covariances = *std::move(marginals);
+    cost = summary.final_cost;
   }
-  absl::StatusOr<std::vector<Eigen::Matrix3d>> covariances =
-      PoseCovariances(problem.problem.get(), &poses, &landmarks, correlated);
-  if (!covariances.ok()) return covariances.status();
 
-  out.chi2 = 2.0 * summary.final_cost;
-  out.dof = problem.problem->NumResiduals() - problem.parameters;
+  out.chi2 = 2.0 * cost;
+  // The joint prior's residuals are not in the Ceres problem of a correlated map.
+  out.dof = problem.problem->NumResiduals() + (prior.correlated ? 2 * static_cast<int>(problem.seen.size()) : 0) -
+            problem.parameters;
   std::vector<bool> used(landmarks.size(), false);
   for (const MappedDetection& d : detections) {
     if (!d.active) continue;
@@ -393,10 +448,10 @@ absl::StatusOr<PassageLocalization> LocalizePassage(const Passage& passage, cons
     used[d.landmark] = true;
   }
   for (size_t k = 0; k < used.size(); ++k) {
-    if (used[k]) out.landmarks_used.push_back(map.ids[k]);
+    if (used[k]) out.landmarks_used.push_back(seen.ids[k]);
   }
   for (int k = 0; k < graph->node_count(); ++k) {
-    out.poses.push_back(MakeLocalizedPose(graph->frame, graph->node_times_s[k], poses[k], (*covariances)[k]));
+    out.poses.push_back(MakeLocalizedPose(graph->frame, graph->node_times_s[k], poses[k], covariances[k]));
   }
   out.solve_ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
   return out;

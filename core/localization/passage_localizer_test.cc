@@ -127,34 +127,6 @@ TEST(PassageLocalizer, LocalizesWithoutMap) {
   EXPECT_GT(result->detections_unmapped, 0);
 }
 
-// The Schur path (dense landmark block) and one sparse selected inverse give the same marginals.
-TEST(PoseCovariances, SchurComplementMatchesSparseInverse) {
-  Calibration calib;
-  std::vector<Pose2> poses = {Pose2(0, 0, 0), Pose2(5, 0.5, 0.1), Pose2(10, 1.5, 0.2)};
-  std::vector<Eigen::Vector2d> landmarks = {Eigen::Vector2d(30, 5), Eigen::Vector2d(35, -4)};
-  ceres::Problem problem;
-  for (int k = 0; k + 1 < 3; ++k) {
-    RelativeMotion motion;
-    motion.delta = Pose2(5, 0.5, 0.1);
-    motion.cov = Eigen::Vector3d(0.01, 0.02, 0.001).asDiagonal();
-    problem.AddResidualBlock(OdometryFactor::Create(motion), nullptr, poses[k].data(), poses[k + 1].data());
-  }
-  for (Pose2& p : poses) {
-    problem.AddResidualBlock(GnssFactor::Create(p.head<2>(), 4.0 * Eigen::Matrix2d::Identity(), calib.gnss_lever_arm_m),
-                             nullptr, p.data());
-    for (Eigen::Vector2d& l : landmarks) {
-      problem.AddResidualBlock(CameraFactor::Create(900.0, 5.0, calib), nullptr, p.data(), l.data());
-    }
-  }
-  Eigen::Matrix4d cov = 0.04 * Eigen::Matrix4d::Ones() + 0.2 * Eigen::Matrix4d::Identity();
-  problem.AddResidualBlock(new LandmarkPriorFactor(Eigen::Vector4d(30, 5, 35, -4), SqrtInformation(cov)), nullptr,
-                           landmarks[0].data(), landmarks[1].data());
-  absl::StatusOr<std::vector<Eigen::Matrix3d>> schur = PoseCovariances(&problem, &poses, &landmarks, true);
-  absl::StatusOr<std::vector<Eigen::Matrix3d>> sparse = PoseCovariances(&problem, &poses, &landmarks, false);
-  ASSERT_TRUE(schur.ok() && sparse.ok());
-  for (size_t k = 0; k < poses.size(); ++k) EXPECT_LT(((*schur)[k] - (*sparse)[k]).norm(), 1e-9 * (*sparse)[k].norm());
-}
-
 TEST(ChiSquareUpperQuantile, MatchesTables) {
   EXPECT_NEAR(ChiSquareUpperQuantile(1, 1e-3), 10.83, 0.01);
   EXPECT_NEAR(ChiSquareUpperQuantile(2, 1e-3), 13.82, 0.01);

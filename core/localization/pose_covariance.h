@@ -4,6 +4,8 @@
 #include <vector>
 
 #include <Eigen/Core>
+#include <Eigen/SparseCholesky>
+#include <Eigen/SparseCore>
 #include <ceres/ceres.h>
 
 #include "absl/status/statusor.h"
@@ -12,12 +14,17 @@
 namespace crowdmap {
 
 // Marginal 3x3 covariances of `poses` in a solved `problem` whose other blocks are `landmarks`
-// (those not in the problem are skipped), from its Gauss-Newton information at the solution.
-// `dense_landmark_block`: the landmarks are linked among themselves (a correlated prior).
-// FailedPrecondition when the information is rank deficient.
+// (those not in the problem are skipped), from its Gauss-Newton information at the solution: one
+// sparse selected inverse (the landmarks are not linked among themselves, or by a few factors; a
+// correlated map's dense prior is SolveWithDensePrior's). FailedPrecondition when the
+// information is rank deficient.
 absl::StatusOr<std::vector<Eigen::Matrix3d>> PoseCovariances(ceres::Problem* problem, std::vector<Pose2>* poses,
-                                                             std::vector<Eigen::Vector2d>* landmarks,
-                                                             bool dense_landmark_block);
+                                                             std::vector<Eigen::Vector2d>* landmarks);
+
+// The 3x3 diagonal blocks of A^-1, for the first `pose_count` poses (3 rows each, first) of the
+// factorised A (a selected inverse).
+std::vector<Eigen::Matrix3d> PoseBlocksOfInverse(const Eigen::SimplicialLLT<Eigen::SparseMatrix<double>>& factor,
+                                                 int pose_count);
 
 }  // namespace crowdmap
 

@@ -334,7 +334,7 @@ absl::Status StreamingLocalizer::Start() {
   ceres::Solve(solver, &problem, &summary);
   if (!summary.IsSolutionUsable()) return absl::InternalError(absl::StrCat("start solve failed: ", summary.message));
   std::vector<Eigen::Vector2d> no_landmarks;
-  absl::StatusOr<std::vector<Eigen::Matrix3d>> covariances = PoseCovariances(&problem, &poses, &no_landmarks, false);
+  absl::StatusOr<std::vector<Eigen::Matrix3d>> covariances = PoseCovariances(&problem, &poses, &no_landmarks);
   if (!covariances.ok()) return covariances.status();
 
   x_ = poses.back();

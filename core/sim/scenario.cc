@@ -188,10 +188,7 @@ Passage Scenario::MakePassage(int index) const {
   }
   if (o.piece_max_m > 0.0) {  // drawn apart from the noise: a piece keeps the whole passage's values
     const auto [first, last] = PieceOf(index);
-    const auto outside = [first = first, last = last](const auto& m) { return m.t_s < first || m.t_s > last; };
-    p.odometry.erase(std::remove_if(p.odometry.begin(), p.odometry.end(), outside), p.odometry.end());
-    p.gnss.erase(std::remove_if(p.gnss.begin(), p.gnss.end(), outside), p.gnss.end());
-    p.detections.erase(std::remove_if(p.detections.begin(), p.detections.end(), outside), p.detections.end());
+    p = PassageBetween(std::move(p), first, last);
     absl::StrAppend(&p.passage_id, "-piece", o.piece_min_m, "-", o.piece_max_m);
   }
   return p;
@@ -208,6 +205,16 @@ std::pair<double, double> Scenario::PieceOf(int index) const {
     return dt * static_cast<double>(std::lower_bound(arc_m_.begin(), arc_m_.end(), s) - arc_m_.begin());
   };
   return {time_at(start), std::min(o.duration_s, time_at(start + length))};
+}
+
+Passage PassageBetween(Passage passage, double first_s, double last_s) {
+  const auto outside = [first_s, last_s](const auto& m) { return m.t_s < first_s || m.t_s > last_s; };
+  passage.odometry.erase(std::remove_if(passage.odometry.begin(), passage.odometry.end(), outside),
+                         passage.odometry.end());
+  passage.gnss.erase(std::remove_if(passage.gnss.begin(), passage.gnss.end(), outside), passage.gnss.end());
+  passage.detections.erase(std::remove_if(passage.detections.begin(), passage.detections.end(), outside),
+                           passage.detections.end());
+  return passage;
 }
 
 }  // namespace crowdmap

@@ -101,6 +101,10 @@ class Scenario {
   double route_length_m_ = 0.0;
 };
 
+// `passage` with only its measurements from `first_s` to `last_s` (seconds since its start), e.g.
+// its first minutes.
+Passage PassageBetween(Passage passage, double first_s, double last_s);
+
 }  // namespace crowdmap
 
 #endif  // CROWDMAP_CORE_SIM_SCENARIO_H_

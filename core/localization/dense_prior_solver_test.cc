@@ -1,0 +1,130 @@
+#include "core/localization/dense_prior_solver.h"
+
+#include <Eigen/Geometry>
+#include <gtest/gtest.h>
+
+#include "core/estimation/factors.h"
+#include "core/localization/pose_covariance.h"
+#include "core/model/camera_model.h"
+
+namespace crowdmap {
+namespace {
+
+// A short pose chain (odometry, GNSS) seeing three landmarks, without their prior: measurements
+// of a true configuration with small errors, the estimate started a little off it.
+struct SmallProblem {
+  std::vector<Pose2> poses;
+  std::vector<Eigen::Vector2d> landmarks;
+  ceres::Problem problem;
+
+  SmallProblem() {
+    const Calibration calib;
+    const std::vector<Pose2> truth = {Pose2(0, 0, 0), Pose2(5, 0.3, 0.1), Pose2(10, 1.1, 0.15), Pose2(15, 2.0, 0.2)};
+    const std::vector<Eigen::Vector2d> true_landmarks = {Eigen::Vector2d(30, 5), Eigen::Vector2d(35, -4),
+                                                         Eigen::Vector2d(42, 9)};
+    const double error[4] = {0.7, -1.1, 0.4, -0.2};  // measurement errors, in sigmas
+    for (const Pose2& pose : truth) poses.push_back(pose + Pose2(0.4, -0.3, 0.02));
+    for (size_t k = 0; k < truth.size(); ++k) {
+      if (k + 1 < truth.size()) {
+        RelativeMotion motion;
+        motion.cov = Eigen::Vector3d(0.01, 0.02, 0.001).asDiagonal();
+        const Eigen::Rotation2Dd to_k(-truth[k].z());
+        motion.delta << to_k * (truth[k + 1].head<2>() - truth[k].head<2>()), truth[k + 1].z() - truth[k].z();
+        motion.delta += 0.1 * error[k] * Pose2(0.1, 0.14, 0.03);
+        problem.AddResidualBlock(OdometryFactor::Create(motion), nullptr, poses[k].data(), poses[k + 1].data());
+      }
+    }
+    for (const Eigen::Vector2d& l : true_landmarks) landmarks.push_back(l + Eigen::Vector2d(-0.5, 0.6));
+    for (size_t k = 0; k < truth.size(); ++k) {
+      const Eigen::Rotation2Dd rotation(truth[k].z());
+      const Eigen::Vector2d antenna = truth[k].head<2>() + rotation * calib.gnss_lever_arm_m;
+      problem.AddResidualBlock(
+          GnssFactor::Create(antenna + 2.0 * error[k] * Eigen::Vector2d(1, -1), 4.0 * Eigen::Matrix2d::Identity(),
+                             calib.gnss_lever_arm_m),
+          nullptr, poses[k].data());
+      for (size_t l = 0; l < landmarks.size(); ++l) {
+        double u_px = 0.0;
+        EXPECT_TRUE(ProjectLandmark(truth[k].data(), true_landmarks[l].data(), calib, &u_px));
+        problem.AddResidualBlock(CameraFactor::Create(u_px + 2.0 * error[(k + l) % 4], 2.0, calib), nullptr,
+                                 poses[k].data(), landmarks[l].data());
+      }
+    }
+  }
+};
+
+DenseLandmarkPrior CorrelatedPrior() {
+  DenseLandmarkPrior prior;
+  prior.mean.resize(6);
+  prior.mean << 30.4, 5.2, 34.7, -4.3, 42.2, 8.6;  // the truth (see SmallProblem) with errors
+  prior.cov = 0.05 * Eigen::MatrixXd::Ones(6, 6) + 0.2 * Eigen::MatrixXd::Identity(6, 6);
+  prior.cov(0, 1) = prior.cov(1, 0) = 0.08;
+  return prior;
+}
+
+// The same problem with the prior as one Ceres factor, solved by Ceres, with its covariances by
+// a sparse selected inverse of the whole information: the same solution and marginals.
+TEST(SolveWithDensePrior, MatchesCeresWithThePriorAsAFactor) {
+  const DenseLandmarkPrior prior = CorrelatedPrior();
+  SmallProblem dense, reference;
+  std::vector<double*> blocks;
+  for (Eigen::Vector2d& l : dense.landmarks) blocks.push_back(l.data());
+  absl::StatusOr<DensePriorSolution> solution = SolveWithDensePrior(&dense.problem, &dense.poses, blocks, prior);
+  ASSERT_TRUE(solution.ok()) << solution.status();
+  EXPECT_LE(solution->factorizations, solution->iterations);
+
+  std::vector<double*> reference_blocks;
+  for (Eigen::Vector2d& l : reference.landmarks) reference_blocks.push_back(l.data());
+  reference.problem.AddResidualBlock(new LandmarkPriorFactor(prior.mean, SqrtInformation(prior.cov)), nullptr,
+                                     reference_blocks);
+  ceres::Solver::Options options;
+  options.function_tolerance = options.gradient_tolerance = options.parameter_tolerance = 1e-14;
+  options.logging_type = ceres::SILENT;
+  ceres::Solver::Summary summary;
+  ceres::Solve(options, &reference.problem, &summary);
+  ASSERT_TRUE(summary.IsSolutionUsable());
+  absl::StatusOr<std::vector<Eigen::Matrix3d>> marginals =
+      PoseCovariances(&reference.problem, &reference.poses, &reference.landmarks);
+  ASSERT_TRUE(marginals.ok()) << marginals.status();
+
+  EXPECT_NEAR(solution->cost, summary.final_cost, 1e-9 * summary.final_cost);
+  for (size_t k = 0; k < dense.poses.size(); ++k) {
+    EXPECT_LT((dense.poses[k] - reference.poses[k]).norm(), 1e-7) << "pose " << k;
+    EXPECT_LT((solution->pose_covariances[k] - (*marginals)[k]).norm(), 1e-8 * (*marginals)[k].norm()) << "pose " << k;
+  }
+  for (size_t l = 0; l < dense.landmarks.size(); ++l) {
+    EXPECT_LT((dense.landmarks[l] - reference.landmarks[l]).norm(), 1e-7) << "landmark " << l;
+  }
+}
+
+TEST(SolveWithDensePrior, RefusesAPriorThatIsNotPositiveDefinite) {
+  DenseLandmarkPrior prior = CorrelatedPrior();
+  prior.cov(2, 2) = -1.0;
+  SmallProblem dense;
+  std::vector<double*> blocks;
+  for (Eigen::Vector2d& l : dense.landmarks) blocks.push_back(l.data());
+  absl::StatusOr<DensePriorSolution> solution = SolveWithDensePrior(&dense.problem, &dense.poses, blocks, prior);
+  ASSERT_FALSE(solution.ok());
+  EXPECT_EQ(solution.status().code(), absl::StatusCode::kFailedPrecondition);
+}
+
+TEST(SolveWithDensePrior, RefusesAPriorOfTheWrongSize) {
+  DenseLandmarkPrior prior = CorrelatedPrior();
+  SmallProblem dense;
+  std::vector<double*> blocks = {dense.landmarks[0].data(), dense.landmarks[1].data()};
+  absl::StatusOr<DensePriorSolution> solution = SolveWithDensePrior(&dense.problem, &dense.poses, blocks, prior);
+  ASSERT_FALSE(solution.ok());
+  EXPECT_EQ(solution.status().code(), absl::StatusCode::kInvalidArgument);
+}
+
+TEST(DensePriorSolverOptions, RejectsInvalidValues) {
+  DensePriorSolverOptions options;
+  EXPECT_TRUE(options.Validate().ok());
+  options.max_iterations = 0;
+  EXPECT_FALSE(options.Validate().ok());
+  options = {};
+  options.step_tolerance = 0.0;
+  EXPECT_FALSE(options.Validate().ok());
+}
+
+}  // namespace
+}  // namespace crowdmap
