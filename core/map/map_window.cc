@@ -66,12 +66,27 @@ class MapWindow::Factor {
     const int* px = static_cast<const int*>(l.px);
     const int* ls = static_cast<const int*>(l.s);
     const double* lx = static_cast<const double*>(l.x);
+    // X's columns sorted by the supernode of their row: in a postordered tree the rows below a
+    // supernode s are those of supernodes first_descendant_[s]..s, so the columns non-zero at s
+    // are one contiguous range.
+    std::vector<int> order(m), seed_super(m);
+    for (int c = 0; c < m; ++c) order[c] = c;
+    for (int c = 0; c < m; ++c) seed_super[c] = column_super_[permuted_[rows[c]]];
+    std::sort(order.begin(), order.end(), [&](int a, int b) { return seed_super[a] < seed_super[b]; });
+    std::vector<int> sorted_super(m);
+    for (int k = 0; k < m; ++k) sorted_super[k] = seed_super[order[k]];
+    const auto active = [&](int s) -> std::pair<int, int> {
+      if (!postordered_) return {0, m};
+      const auto lo = std::lower_bound(sorted_super.begin(), sorted_super.end(), first_descendant_[s]);
+      const auto hi = std::upper_bound(lo, sorted_super.end(), s);
+      return {static_cast<int>(lo - sorted_super.begin()), static_cast<int>(hi - sorted_super.begin())};
+    };
     // The supernodes on the paths to the roots, in increasing order (a parent follows its
     // children), and the position of each of their columns in X.
     std::vector<int> reach;
     std::vector<char> seen(l.nsuper, 0);
-    for (int r : rows) {
-      for (int s = column_super_[permuted_[r]]; s >= 0 && !seen[s]; s = parent_[s]) {
+    for (int c = 0; c < m; ++c) {
+      for (int s = seed_super[c]; s >= 0 && !seen[s]; s = parent_[s]) {
         seen[s] = 1;
         reach.push_back(s);
       }
@@ -88,18 +103,32 @@ class MapWindow::Factor {
       return start[s] + column - super[s];
     };
     Eigen::MatrixXd x = Eigen::MatrixXd::Zero(total, m);
-    for (int c = 0; c < m; ++c) x(position(permuted_[rows[c]]), c) = 1.0;
+    for (int k = 0; k < m; ++k) x(position(permuted_[rows[order[k]]]), k) = 1.0;
     Eigen::MatrixXd below;
+    Eigen::MatrixXd gram = Eigen::MatrixXd::Zero(m, m);
     for (int s : reach) {
+      const auto [lo, hi] = active(s);
+      if (lo == hi) continue;
       const int ncols = super[s + 1] - super[s], nrows = pi[s + 1] - pi[s];
       const Eigen::Map<const Eigen::MatrixXd> block(lx + px[s], nrows, ncols);
-      auto xs = x.middleRows(start[s], ncols);
+      auto xs = x.block(start[s], lo, ncols, hi - lo);
       block.topRows(ncols).triangularView<Eigen::Lower>().solveInPlace(xs);
+      // X's rows at s are final: their share of X^T X.
+      gram.block(lo, lo, hi - lo, hi - lo).selfadjointView<Eigen::Lower>().rankUpdate(xs.transpose());
       if (nrows == ncols) continue;
       below.noalias() = block.bottomRows(nrows - ncols) * xs;
-      for (int t = 0; t < nrows - ncols; ++t) x.row(position(ls[pi[s] + ncols + t])) -= below.row(t);
+      for (int t = 0; t < nrows - ncols; ++t) {
+        x.block(position(ls[pi[s] + ncols + t]), lo, 1, hi - lo) -= below.row(t);
+      }
     }
-    return Gram(x);
+    Eigen::MatrixXd out(m, m);
+    for (int a = 0; a < m; ++a) {
+      for (int b = 0; b <= a; ++b) {
+        const int i = std::max(a, b), j = std::min(a, b);
+        out(order[a], order[b]) = out(order[b], order[a]) = gram(i, j);
+      }
+    }
+    return out;
   }
 
  private:
@@ -128,12 +157,25 @@ class MapWindow::Factor {
     }
     permuted_.resize(n);
     for (int k = 0; k < n; ++k) permuted_[perm[k]] = k;
+    // The first supernode of each subtree; the tree is postordered (CHOLMOD's default) when every
+    // subtree is the range first..itself.
+    first_descendant_.resize(nsuper);
+    std::vector<int> size(nsuper, 1);
+    for (int s = 0; s < nsuper; ++s) first_descendant_[s] = s;
+    for (int s = 0; s < nsuper; ++s) {
+      if (parent_[s] < 0) continue;
+      first_descendant_[parent_[s]] = std::min(first_descendant_[parent_[s]], first_descendant_[s]);
+      size[parent_[s]] += size[s];
+    }
+    postordered_ = true;
+    for (int s = 0; s < nsuper; ++s) postordered_ = postordered_ && size[s] == s - first_descendant_[s] + 1;
   }
 
   Eigen::LLT<Eigen::MatrixXd> dense_;
   std::unique_ptr<SupernodalLLT> sparse_;
   bool ok_ = false;
-  std::vector<int> column_super_, parent_, permuted_;
+  std::vector<int> column_super_, parent_, permuted_, first_descendant_;
+  bool postordered_ = false;
 };
 
 namespace {
