@@ -205,10 +205,6 @@ bool IsTransientStorageError(const absl::Status& s) {
   return s.code() == absl::StatusCode::kResourceExhausted || s.code() == absl::StatusCode::kUnavailable;
 }
 
-}  // namespace
-
-namespace {
-
 // The passages (vehicle_id, passage_id) that `factors` of `map` came from, each once.
 std::vector<MapUpdater::PassageKey> PassagesOf(const MapReaderInterface& map, const std::vector<int64_t>& factors) {
   std::set<MapUpdater::PassageKey> keys;
