@@ -32,11 +32,7 @@ LocalizationMap RouteMap(const Scenario& scenario, bool correlated) {
 // The route, both maps and four 3-minute passages, made once.
 struct Setup {
   Setup() {
-    ScenarioOptions options;
-    options.landmarks = 500;
-    options.duration_s = 340.0;
-    options.repeat_route = true;
-    const Scenario route = *Scenario::Create(options);
+    const Scenario route = *Scenario::Create(LocalizationRouteOptions());
     maps = {RouteMap(route, false), RouteMap(route, true)};
     for (int i = 0; i < 4; ++i) passages.push_back(PassageBetween(route.MakePassage(i), 0.0, kPassageS));
   }

@@ -66,11 +66,7 @@ double Percentile(std::vector<double> v, double q) {
 // range(1): which inputs are timed: 0 = GNSS and camera frames (measurement updates), 1 = all
 // (odometry predictions included).
 void BM_StreamingLocalizerUpdate(benchmark::State& state) {
-  ScenarioOptions options;
-  options.landmarks = 500;
-  options.duration_s = 340.0;
-  options.repeat_route = true;
-  const Scenario route = *Scenario::Create(options);
+  const Scenario route = *Scenario::Create(LocalizationRouteOptions());
   const bool correlated = state.range(0) != 0;
   const LocalizationMap map = MakeMap(route, correlated ? 0.3 : 0.0, 0.5, 7, /*exact=*/false);
   const bool all_inputs = state.range(1) != 0;

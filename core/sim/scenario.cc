@@ -207,6 +207,14 @@ std::pair<double, double> Scenario::PieceOf(int index) const {
   return {time_at(start), std::min(o.duration_s, time_at(start + length))};
 }
 
+ScenarioOptions LocalizationRouteOptions(int landmarks) {
+  ScenarioOptions options;
+  options.landmarks = landmarks;
+  options.duration_s = 340.0;
+  options.repeat_route = true;
+  return options;
+}
+
 Passage PassageBetween(Passage passage, double first_s, double last_s) {
   const auto outside = [first_s, last_s](const auto& m) { return m.t_s < first_s || m.t_s > last_s; };
   passage.odometry.erase(std::remove_if(passage.odometry.begin(), passage.odometry.end(), outside),

@@ -101,6 +101,10 @@ class Scenario {
   double route_length_m_ = 0.0;
 };
 
+// The thesis's localisation loop (section 5.4): the route's profile repeated over 340 s (about
+// 4 km), with `landmarks` along it (500: one every 8 m).
+ScenarioOptions LocalizationRouteOptions(int landmarks = 500);
+
 // `passage` with only its measurements from `first_s` to `last_s` (seconds since its start), e.g.
 // its first minutes.
 Passage PassageBetween(Passage passage, double first_s, double last_s);

@@ -31,11 +31,7 @@ void Die(const std::string& what, const absl::Status& status) {
 // The server with its map, the passages to localise, and the map read back, made once.
 struct Setup {
   Setup() {
-    ScenarioOptions options;
-    options.landmarks = 500;
-    options.duration_s = 340.0;
-    options.repeat_route = true;
-    const Scenario route = *Scenario::Create(options);
+    const Scenario route = *Scenario::Create(LocalizationRouteOptions());
     MapServerOptions server_options;
     server_options.listen = "127.0.0.1:0";
     server_options.db_path = dir.File("map.db");
