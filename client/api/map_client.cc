@@ -407,13 +407,16 @@ absl::Status MapClient::WatchRegion(const pb::BoundingBox& box, int64_t since_ve
   if (options.duration) end = std::chrono::system_clock::now() + *options.duration;
   int64_t since = since_version;
   bool wait_for_server = false;
+  bool answered = false;  // the watch has been live: some stream answered
   while (true) {
-    bool answered = false, stopped = false;
+    bool stopped = false;
     absl::Status status = WatchOnce(box, &since, wait_for_server, on_change, end, &answered, &stopped);
     if (status.ok() || stopped) return status;
-    // Reconnect only a stream that was live: a server unreachable from the start is an error at once,
-    // and a reconnection that got no answer within call_deadline ends the watch.
-    if (!options.reconnect || !answered || status.code() != absl::StatusCode::kUnavailable) return status;
+    // Reconnect only a watch that was live: a server unreachable from the start is an error at once,
+    // and a reconnection that got no answer within call_deadline ends the watch. A stream this
+    // client did not cancel that ends CANCELLED was cut by the server (a shutdown): lost as well.
+    const bool lost = status.code() == absl::StatusCode::kUnavailable || status.code() == absl::StatusCode::kCancelled;
+    if (!options.reconnect || !answered || !lost) return status;
     if (options.on_reconnect) options.on_reconnect(status, since);
     wait_for_server = true;
   }
