@@ -49,7 +49,7 @@ const char* RoleName(Role role);
 enum class Permission {
   kReadMap,         // GetTile, QueryRegion, WatchRegion, GetMapInfo, GetLandmark, LocalizePassage
   kUpload,          // uploads: a vehicle as its own vehicle_id only, an admin as any
-  kReadPassages,    // GetPassage, ListPassages: a vehicle its own passages only
+  kReadPassages,    // GetPassage, ListPassages, GetVehicle, ListVehicles: a vehicle its own only
   kAdministrate,    // ExcludePassage, ResolvePassage
 };
 

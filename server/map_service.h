@@ -106,6 +106,10 @@ class MapService final : public MapServiceBase {
                            pb::GetLandmarkResponse* response) override;
   grpc::Status LocalizePassage(grpc::ServerContext* ctx, const pb::LocalizePassageRequest* request,
                                pb::LocalizePassageResponse* response) override;
+  grpc::Status GetVehicle(grpc::ServerContext* ctx, const pb::GetVehicleRequest* request,
+                          pb::Vehicle* response) override;
+  grpc::Status ListVehicles(grpc::ServerContext* ctx, const pb::ListVehiclesRequest* request,
+                            pb::ListVehiclesResponse* response) override;
 
  private:
   // The record named by an id, or by vehicle_id and passage_id.

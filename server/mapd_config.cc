@@ -20,7 +20,8 @@ const std::vector<std::string>& SettingNames() {
       "listen", "db", "strategy", "max-subgraph-dim", "window-hops", "warmup-passages", "relinearize-until-passages", "workers",
       "retain-passages", "worker-nice", "max-queue", "max-message-mb", "max-passage-mb", "log-level",
       "max-detection-residual-sigmas", "max-landmark-shift-sigmas", "max-new-landmark-ray-sigma-m",
-      "max-chi2-per-dof", "metrics-listen", "http-listen", "viewer-basemap", "log-format", "create"};
+      "max-chi2-per-dof", "metrics-listen", "http-listen", "viewer-basemap", "log-format", "create",
+      "estimate-camera-yaw"};
   return kNames;
 }
 
@@ -140,6 +141,9 @@ Usage: mapd [--flag value | --flag=value]...
                               metres (default 3)
   --max-chi2-per-dof X        refuse a passage when a subgraph's solve leaves chi2 above X per
                               degree of freedom (default 0 = never; see README)
+  --estimate-camera-yaw B     estimate each vehicle's camera yaw offset in its passages' graphs,
+                              its history as the prior, and keep it (GetVehicle, mapctl vehicles;
+                              default true; false: declared calibrations are taken as exact)
   --create                    create a new, empty map when --db does not exist yet (or is an
                               empty file), with its directory; without it mapd refuses to start
                               there, so that a mistyped path cannot start an empty map
@@ -214,6 +218,7 @@ absl::StatusOr<MapdConfig> ParseMapdConfig(const std::vector<std::string>& args,
 
   MapServerOptions& o = config.server;
   o.create_db = false;  // mapd creates a map only when told to (--create)
+  o.worker.update.estimate_camera_yaw = true;
   for (const auto& [name, value] : values) {
     if (name == "listen") {
       o.listen = value;
@@ -242,6 +247,10 @@ absl::StatusOr<MapdConfig> ParseMapdConfig(const std::vector<std::string>& args,
       absl::StatusOr<bool> create = ToBool(name, value);
       if (!create.ok()) return create.status();
       o.create_db = *create;
+    } else if (name == "estimate-camera-yaw") {
+      absl::StatusOr<bool> estimate = ToBool(name, value);
+      if (!estimate.ok()) return estimate.status();
+      o.worker.update.estimate_camera_yaw = *estimate;
     } else if (absl::StatusOr<bool> rule = SetTrustRule(name, value, &o.worker.update); !rule.ok() || *rule) {
       if (!rule.ok()) return rule.status();
     } else {
@@ -276,6 +285,7 @@ std::string DescribeMapdConfig(const MapdConfig& config) {
       " max-detection-residual-sigmas=", u.max_detection_residual_sigmas,
       " max-landmark-shift-sigmas=", std::sqrt(u.max_landmark_shift_mahalanobis2),
       " max-new-landmark-ray-sigma-m=", u.max_new_landmark_ray_sigma_m, " max-chi2-per-dof=", u.max_chi2_per_dof,
+      " estimate-camera-yaw=", u.estimate_camera_yaw ? "true" : "false",
       " metrics-listen=", o.metrics_listen.empty() ? "none" : EscapeForLog(o.metrics_listen),
       " http-listen=", o.http_listen.empty() ? "none" : EscapeForLog(o.http_listen),
       " viewer-basemap=", o.viewer_basemap.empty() ? "none" : EscapeForLog(o.viewer_basemap),

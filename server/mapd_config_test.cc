@@ -126,6 +126,14 @@ TEST(MapdConfig, CreateMetricsAndLogFormatAreOffOrTextByDefaultAndSettable) {
   EXPECT_NE(described.find("create=true"), std::string::npos) << described;
   EXPECT_NE(described.find("metrics-listen=127.0.0.1:9464"), std::string::npos) << described;
   EXPECT_NE(described.find("max-landmark-shift-sigmas=5 "), std::string::npos) << described;
+  EXPECT_NE(described.find("estimate-camera-yaw=true"), std::string::npos) << described;
+  EXPECT_TRUE(set->server.worker.update.estimate_camera_yaw) << "mapd estimates camera yaw by default";
+  auto off = ParseMapdConfig({"--estimate-camera-yaw", "false"}, FakeEnv({}));
+  ASSERT_TRUE(off.ok()) << off.status();
+  EXPECT_FALSE(off->server.worker.update.estimate_camera_yaw);
+  auto bad = ParseMapdConfig({}, FakeEnv({{"MAPD_ESTIMATE_CAMERA_YAW", "sometimes"}}));
+  ASSERT_FALSE(bad.ok());
+  EXPECT_NE(bad.status().message().find("--estimate-camera-yaw"), absl::string_view::npos) << bad.status();
 }
 
 TEST(MapdConfig, BadLogFormatAndCreateValuesNameTheFlag) {

@@ -73,7 +73,7 @@ class RequestLog {
  private:
   static bool IsRead(std::string_view rpc) {
     for (std::string_view read : {"GetLandmark", "GetMapInfo", "GetPassage", "GetTile", "ListPassages",
-                                  "LocalizePassage", "QueryRegion", "WatchRegion"}) {
+                                  "LocalizePassage", "QueryRegion", "WatchRegion", "GetVehicle", "ListVehicles"}) {
       if (rpc == read) return true;
     }
     return false;

@@ -158,6 +158,26 @@ void LandmarkToProto(const Landmark& l, pb::Landmark* wire) {
   wire->mutable_tile()->set_y(tile.y);
 }
 
+void VehicleToProto(const VehicleCalibration& v, pb::Vehicle* wire) {
+  wire->set_vehicle_id(v.vehicle_id);
+  wire->set_camera_yaw_offset_rad(v.camera_yaw_offset_rad);
+  wire->set_camera_yaw_sigma_rad(std::sqrt(v.camera_yaw_variance_rad2));
+  wire->set_passages(v.passages);
+  wire->set_map_version(v.version);
+  wire->set_updated_unix_ms(v.updated_unix_ms);
+}
+
+VehicleCalibration VehicleFromProto(const pb::Vehicle& wire) {
+  VehicleCalibration v;
+  v.vehicle_id = wire.vehicle_id();
+  v.camera_yaw_offset_rad = wire.camera_yaw_offset_rad();
+  v.camera_yaw_variance_rad2 = wire.camera_yaw_sigma_rad() * wire.camera_yaw_sigma_rad();
+  v.passages = wire.passages();
+  v.version = wire.map_version();
+  v.updated_unix_ms = wire.updated_unix_ms();
+  return v;
+}
+
 Landmark LandmarkFromProto(const pb::Landmark& wire) {
   Landmark l;
   l.id = wire.id();

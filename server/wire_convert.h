@@ -36,6 +36,9 @@ void PassageToProto(const Passage& passage, pb::Passage* wire);
 
 void LandmarkToProto(const Landmark& landmark, pb::Landmark* wire);
 Landmark LandmarkFromProto(const pb::Landmark& wire);
+// The wire carries the yaw offset's standard deviation, the store its variance.
+void VehicleToProto(const VehicleCalibration& vehicle, pb::Vehicle* wire);
+VehicleCalibration VehicleFromProto(const pb::Vehicle& wire);
 void CrossToProto(const LandmarkPair& pair, const Eigen::Matrix2d& block, pb::CrossCovariance* wire);
 
 void StoredPassageToProto(const StoredPassage& record, pb::PassageStatus* wire);

@@ -148,6 +148,26 @@ TEST(WireConvert, LandmarkCovarianceTravelsAsStored) {
   EXPECT_EQ(back.passages_seen, 4);
 }
 
+TEST(WireConvert, VehicleTravelsWithItsSigmaAndRoundTrips) {
+  VehicleCalibration v;
+  v.vehicle_id = "veh-042";
+  v.camera_yaw_offset_rad = 0.0091;
+  v.camera_yaw_variance_rad2 = 0.0005 * 0.0005;
+  v.passages = 14;
+  v.version = 77;
+  v.updated_unix_ms = 1767225600000;
+  pb::Vehicle wire;
+  VehicleToProto(v, &wire);
+  EXPECT_EQ(wire.vehicle_id(), "veh-042");
+  EXPECT_DOUBLE_EQ(wire.camera_yaw_sigma_rad(), 0.0005);
+  EXPECT_EQ(wire.passages(), 14);
+  EXPECT_EQ(wire.map_version(), 77);
+  const VehicleCalibration back = VehicleFromProto(wire);
+  EXPECT_EQ(back.camera_yaw_offset_rad, v.camera_yaw_offset_rad);
+  EXPECT_NEAR(back.camera_yaw_variance_rad2, v.camera_yaw_variance_rad2, 1e-20);
+  EXPECT_EQ(back.updated_unix_ms, v.updated_unix_ms);
+}
+
 TEST(WireConvert, BoundingBoxOutOfRangeNamesTheField) {
   pb::BoundingBox box;
   box.set_min_lat_deg(10);

@@ -165,6 +165,31 @@ TEST(Auth, IsOnByDefaultOffLoopbackAndRefusesToStartWithoutIdentities) {
   EXPECT_TRUE(absl::StrContains(server.status().message(), "--auth-file")) << server.status();
 }
 
+TEST_F(Hostile, AVehicleReadsOnlyItsOwnCameraCalibrationAndOperatorsReadAll) {
+  MapServerOptions options = Options(/*worker=*/true);
+  options.worker.update.estimate_camera_yaw = true;
+  Start(options);
+  ASSERT_TRUE(Client(kV1Token)->Upload(Wire("v1", "p1", 0)).ok());
+  ASSERT_TRUE(Client(kV2Token)->Upload(Wire("v2", "p1", 1)).ok());
+  ASSERT_TRUE(Client(kOperatorToken)->WaitUntilIdle(std::chrono::seconds(60)).ok());
+  auto own = Client(kV1Token)->GetVehicle("v1");
+  ASSERT_TRUE(own.ok()) << own.status();
+  EXPECT_EQ(own->passages(), 1);
+  auto other = Client(kV1Token)->GetVehicle("v2");
+  EXPECT_EQ(other.status().code(), absl::StatusCode::kPermissionDenied);
+  EXPECT_TRUE(absl::StrContains(other.status().message(), "vehicle_id")) << other.status();
+  auto list = Client(kV1Token)->ListVehicles();
+  EXPECT_EQ(list.status().code(), absl::StatusCode::kPermissionDenied);
+  EXPECT_TRUE(absl::StrContains(list.status().message(), "GetVehicle")) << list.status();
+  for (const char* token : {kOperatorToken, kAdminToken}) {
+    EXPECT_TRUE(Client(token)->GetVehicle("v2").ok()) << token;
+    auto all = Client(token)->ListVehicles();
+    ASSERT_TRUE(all.ok()) << all.status();
+    EXPECT_EQ(all->vehicles_size(), 2) << token;
+  }
+  EXPECT_EQ(Client("")->ListVehicles().status().code(), absl::StatusCode::kUnauthenticated);
+}
+
 TEST_F(Hostile, CallsWithoutOrWithAnUnknownTokenAreUnauthenticated) {
   Start(Options());
   EXPECT_EQ(Client("")->GetMapInfo().status().code(), absl::StatusCode::kUnauthenticated);

@@ -19,9 +19,10 @@ namespace {
 
 class ServiceRpc : public ::testing::Test {
  protected:
-  void Start(bool worker, int64_t max_queue = 10000) {
+  void Start(bool worker, int64_t max_queue = 10000, bool estimate_camera_yaw = false) {
     MapServerOptions options = TestServerOptions(dir_.File("map.db"), worker);
     options.max_queue = max_queue;
+    options.worker.update.estimate_camera_yaw = estimate_camera_yaw;
     server_ = StartTestServer(options);
     ASSERT_NE(server_, nullptr);
     client_ = std::make_unique<MockVehicle>(server_->address());
@@ -164,6 +165,39 @@ TEST_F(ServiceRpc, WorkerAppliesPassagesAndMapInfoCountsThem) {
   EXPECT_GT(status->result().landmarks_updated(), 0);
   EXPECT_GT(status->result().nodes(), 0);
   EXPECT_EQ(client_->GetPassage("sim-0", scenario_.MakePassage(0).passage_id)->result().landmarks_created(), 6);
+}
+
+TEST_F(ServiceRpc, GetVehicleAndListVehiclesServeTheEstimatedCameraYaw) {
+  Start(true, 10000, /*estimate_camera_yaw=*/true);
+  ScenarioOptions fleet = scenario_.options();
+  fleet.vehicles = 2;
+  fleet.vehicle_yaw_bias_sigma_rad = 0.5 * M_PI / 180.0;
+  const Scenario scenario = *Scenario::Create(fleet);
+  for (int i = 0; i < 3; ++i) MustUpload(scenario.MakePassage(i));
+  auto info = client_->WaitUntilIdle();
+  ASSERT_TRUE(info.ok()) << info.status();
+  ASSERT_EQ(info->passages_applied(), 3);
+
+  auto v0 = client_->client()->GetVehicle("sim-v0");
+  ASSERT_TRUE(v0.ok()) << v0.status();
+  EXPECT_EQ(v0->vehicle_id(), "sim-v0");
+  EXPECT_EQ(v0->passages(), 2);
+  EXPECT_GT(v0->camera_yaw_sigma_rad(), 0.0);
+  EXPECT_LT(v0->camera_yaw_sigma_rad(), MapUpdateOptions().camera_yaw_prior_sigma_rad);
+  EXPECT_GT(v0->map_version(), 0);
+  EXPECT_LE(v0->map_version(), info->map_version());
+  EXPECT_EQ(v0->updated_unix_ms(), scenario.MakePassage(2).start_time_unix_ms);
+  auto missing = client_->client()->GetVehicle("sim-v7");
+  EXPECT_EQ(missing.status().code(), absl::StatusCode::kNotFound);
+  EXPECT_EQ(client_->client()->GetVehicle("").status().code(), absl::StatusCode::kInvalidArgument);
+
+  auto list = client_->client()->ListVehicles();
+  ASSERT_TRUE(list.ok()) << list.status();
+  ASSERT_EQ(list->vehicles_size(), 2);
+  EXPECT_EQ(list->vehicles(0).vehicle_id(), "sim-v0");
+  EXPECT_EQ(list->vehicles(0).camera_yaw_offset_rad(), v0->camera_yaw_offset_rad());
+  EXPECT_EQ(list->vehicles(1).vehicle_id(), "sim-v1");
+  EXPECT_EQ(list->vehicles(1).passages(), 1);
 }
 
 TEST_F(ServiceRpc, QueryRegionPagesCoverTheMapWithCovariances) {

@@ -183,6 +183,26 @@ absl::StatusOr<pb::GetLandmarkResponse> MapClient::GetLandmark(int64_t id) {
   return response;
 }
 
+absl::StatusOr<pb::Vehicle> MapClient::GetVehicle(const std::string& vehicle_id) {
+  grpc::ClientContext ctx;
+  SetDeadline(&ctx);
+  pb::GetVehicleRequest request;
+  request.set_vehicle_id(vehicle_id);
+  pb::Vehicle response;
+  if (absl::Status s = FromGrpcStatus(stub_->GetVehicle(&ctx, request, &response)); !s.ok()) return s;
+  return response;
+}
+
+absl::StatusOr<pb::ListVehiclesResponse> MapClient::ListVehicles() {
+  grpc::ClientContext ctx;
+  SetDeadline(&ctx);
+  pb::ListVehiclesResponse response;
+  if (absl::Status s = FromGrpcStatus(stub_->ListVehicles(&ctx, pb::ListVehiclesRequest(), &response)); !s.ok()) {
+    return s;
+  }
+  return response;
+}
+
 absl::StatusOr<pb::LocalizePassageResponse> MapClient::LocalizePassage(const pb::Passage& passage) {
   grpc::ClientContext ctx;
   SetDeadline(&ctx);

@@ -78,6 +78,9 @@ class MapClient {
   absl::StatusOr<pb::PassageStatus> GetPassage(int64_t id);
   // One landmark and the passages that shaped it.
   absl::StatusOr<pb::GetLandmarkResponse> GetLandmark(int64_t id);
+  // A vehicle's estimated camera calibration; every vehicle's (operators).
+  absl::StatusOr<pb::Vehicle> GetVehicle(const std::string& vehicle_id);
+  absl::StatusOr<pb::ListVehiclesResponse> ListVehicles();
   // Localises a passage against the map (read-only).
   absl::StatusOr<pb::LocalizePassageResponse> LocalizePassage(const pb::Passage& passage);
   // Takes an applied passage out of the map (administration).

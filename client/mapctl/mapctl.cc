@@ -61,6 +61,8 @@ Commands:
   localize FILE [--format csv|geojson] [--out FILE]
                                  localise a passage file against the map (read-only): the pose at
                                  every node with its covariance (CSV by default; stdout unless --out)
+  vehicles [ID]                  the camera yaw offset estimated for each vehicle (operators), or
+                                 for one, e.g. "camera yaw +0.52° ± 0.03° after 14 passages"
 
 Common flags:
   --server HOST:PORT             mapd address (default $MAPCTL_SERVER or 127.0.0.1:50051)
@@ -284,6 +286,36 @@ absl::Status LandmarkCommand(const Flags& flags, Context& ctx) {
                               response->passages_size());
   for (const pb::PassageKey& p : response->passages()) {
     *ctx.out << "  " << EscapeForTerminal(p.vehicle_id()) << "/" << EscapeForTerminal(p.passage_id()) << "\n";
+  }
+  return absl::OkStatus();
+}
+
+// "camera yaw +0.52° ± 0.03° after 14 passages"
+std::string DescribeVehicleYaw(const pb::Vehicle& v) {
+  constexpr double kDeg = 180.0 / M_PI;
+  return absl::StrFormat("camera yaw %+.2f° ± %.2f° after %d passage%s", v.camera_yaw_offset_rad() * kDeg,
+                         v.camera_yaw_sigma_rad() * kDeg, v.passages(), v.passages() == 1 ? "" : "s");
+}
+
+absl::Status Vehicles(const Flags& flags, Context& ctx) {
+  if (flags.positional().size() > 1) return UsageError("give at most one vehicle id");
+  if (flags.positional().size() == 1) {
+    absl::StatusOr<pb::Vehicle> vehicle = ctx.client->GetVehicle(flags.positional()[0]);
+    if (!vehicle.ok()) return vehicle.status();
+    *ctx.out << (ctx.json ? ToJson(*vehicle)
+                          : absl::StrCat(EscapeForTerminal(vehicle->vehicle_id()), ": ", DescribeVehicleYaw(*vehicle),
+                                         " (map version ", vehicle->map_version(), ")\n"));
+    return absl::OkStatus();
+  }
+  absl::StatusOr<pb::ListVehiclesResponse> list = ctx.client->ListVehicles();
+  if (!list.ok()) return list.status();
+  if (ctx.json) {
+    *ctx.out << ToJson(*list);
+    return absl::OkStatus();
+  }
+  *ctx.out << absl::StrFormat("%d vehicles\n", list->vehicles_size());
+  for (const pb::Vehicle& v : list->vehicles()) {
+    *ctx.out << EscapeForTerminal(v.vehicle_id()) << ": " << DescribeVehicleYaw(v) << "\n";
   }
   return absl::OkStatus();
 }
@@ -554,6 +586,7 @@ const std::map<std::string, CommandSpec>& Commands() {
       {"watch", {&Watch, {{"bbox", true}, {"since", true}, {"seconds", true}, {"updates", true}}, true}},
       {"export", {&Export, {{"bbox", true}, {"format", true}, {"ellipses", false}, {"out", true}}, true}},
       {"localize", {&Localize, {{"format", true}, {"out", true}}}},
+      {"vehicles", {&Vehicles, {}}},
   };
   return *commands;
 }

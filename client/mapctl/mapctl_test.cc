@@ -495,6 +495,48 @@ TEST_F(MapctlTest, LocalizeWritesCsvAndGeoJson) {
 namespace crowdmap {
 namespace {
 
+TEST(Mapctl, VehiclesPrintsEachVehiclesEstimatedCameraYaw) {
+  TempDir dir;
+  MapServerOptions options = TestServerOptions(dir.File("map.db"));
+  options.worker.update.estimate_camera_yaw = true;
+  std::unique_ptr<MapServer> server = StartTestServer(options);
+  ASSERT_NE(server, nullptr);
+  ScenarioOptions scenario = ShortScenario().options();
+  scenario.vehicles = 2;
+  ASSERT_TRUE(ExportPassages(scenario, 3, /*binary=*/true, dir.File("pb")).ok());
+  CliRun upload = Mapctl({"upload", dir.File("pb/passage-00000.pb"), dir.File("pb/passage-00001.pb"),
+                          dir.File("pb/passage-00002.pb")},
+                         server->address());
+  ASSERT_EQ(upload.code, 0) << upload.err;
+  MapClientOptions client_options;
+  client_options.server = server->address();
+  auto client = MapClient::Create(client_options);
+  ASSERT_TRUE(client.ok());
+  ASSERT_TRUE((*client)->WaitUntilIdle(std::chrono::seconds(60)).ok());
+
+  CliRun all = Mapctl({"vehicles"}, server->address());
+  ASSERT_EQ(all.code, 0) << all.err;
+  EXPECT_TRUE(absl::StrContains(all.out, "2 vehicles")) << all.out;
+  EXPECT_TRUE(absl::StrContains(all.out, "sim-v0: camera yaw ")) << all.out;
+  EXPECT_TRUE(absl::StrContains(all.out, "° after 2 passages")) << all.out;
+  EXPECT_TRUE(absl::StrContains(all.out, "sim-v1: camera yaw ")) << all.out;
+  EXPECT_TRUE(absl::StrContains(all.out, "° after 1 passage\n")) << all.out;
+  CliRun one = Mapctl({"vehicles", "sim-v1"}, server->address());
+  ASSERT_EQ(one.code, 0) << one.err;
+  EXPECT_TRUE(absl::StartsWith(one.out, "sim-v1: camera yaw ")) << one.out;
+  EXPECT_TRUE(absl::StrContains(one.out, " ± ")) << one.out;
+  CliRun json = Mapctl({"vehicles", "sim-v0", "--json"}, server->address());
+  ASSERT_EQ(json.code, 0) << json.err;
+  EXPECT_TRUE(absl::StrContains(json.out, "\"camera_yaw_sigma_rad\"")) << json.out;
+  EXPECT_TRUE(absl::StrContains(json.out, "\"passages\": \"2\"")) << json.out;
+  CliRun unknown = Mapctl({"vehicles", "sim-v9"}, server->address());
+  EXPECT_EQ(unknown.code, 1);
+  EXPECT_TRUE(OneErrorLine(unknown)) << unknown.err;
+  EXPECT_TRUE(absl::StrContains(unknown.err, "NOT_FOUND")) << unknown.err;
+  CliRun usage = Mapctl({"vehicles", "a", "b"}, server->address());
+  EXPECT_EQ(usage.code, 2) << usage.err;
+}
+
 TEST(Mapctl, VersionPrintsTheProjectVersion) {
   std::ostringstream out, err;
   EXPECT_EQ(RunMapctl({"--version"}, out, err), 0);

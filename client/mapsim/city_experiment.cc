@@ -57,11 +57,13 @@ std::string CityExperimentResult::Brief() const {
       "layout_landmarks=%d landmarks_mapped=%d passages=%d failed=%d (faulty %d, clean %d) faulty=%d "
       "quarantined=%d relinearized=%d inflated=%d held_back=%d disagreeing=%d detections_used=%d "
       "detections_outliers=%d mean_error_m=%.4f median_error_m=%.4f "
-      "p95_error_m=%.4f nees_per_dof=%.3f p50_ms=%.1f p95_ms=%.1f",
+      "p95_error_m=%.4f nees_per_dof=%.3f p50_ms=%.1f p95_ms=%.1f vehicle_yaw_within_2sigma=%.3f "
+      "vehicle_yaw_nees=%.3f",
       layout_landmarks, errors.size(), passages, failed_passages, failed_faulty_passages, failed_clean_passages,
       faulty_passages, quarantined_passages, relinearized_passages, inflated_passages, landmarks_held_back,
       landmarks_disagreeing, detections_used, detections_outliers,
-      mean_error_m, median_error_m, p95_error_m, nees_per_dof, p50_ms, p95_ms);
+      mean_error_m, median_error_m, p95_error_m, nees_per_dof, p50_ms, p95_ms, vehicle_yaw.within_2sigma_fraction,
+      vehicle_yaw.nees);
 }
 
 std::vector<CityLandmarkError> CityMapErrors(const MapState& map, const CityScenario& city) {
@@ -161,6 +163,13 @@ absl::StatusOr<CityExperimentResult> RunCityExperiment(const CityExperimentOptio
   for (const CityLandmarkError& e : result.errors) result.nees_per_dof += 0.5 * e.mahalanobis2 / result.errors.size();
   result.p50_ms = Quantile(result.passage_ms, 0.5);
   result.p95_ms = Quantile(result.passage_ms, 0.95);
+  std::vector<std::pair<std::string, double>> yaw_truth;
+  for (int v = 0; v < options.city.vehicles; ++v) {
+    const CityVehicle vehicle = city->Vehicle(v);
+    yaw_truth.emplace_back(vehicle.vehicle_id,
+                           vehicle.true_camera.camera_yaw_rad - options.city.calibration.camera_yaw_rad);
+  }
+  result.vehicle_yaw = EvaluateVehicleYaw(map, yaw_truth);
   return result;
 }
 
@@ -217,7 +226,12 @@ absl::Status WriteCityOutputs(const CityExperimentOptions& options, const CityEx
        << "  \"median_error_m\": " << JsonNumber(result.median_error_m) << ",\n"
        << "  \"p95_error_m\": " << JsonNumber(result.p95_error_m) << ",\n"
        << "  \"p50_ms_per_passage\": " << JsonNumber(result.p50_ms) << ",\n"
-       << "  \"p95_ms_per_passage\": " << JsonNumber(result.p95_ms) << "\n}\n";
+       << "  \"p95_ms_per_passage\": " << JsonNumber(result.p95_ms) << ",\n"
+       << absl::StrFormat("  \"estimate_camera_yaw\": %s,\n", options.update.estimate_camera_yaw ? "true" : "false")
+       << "  \"vehicle_yaw_bias_sigma_rad\": " << JsonNumber(c.vehicle_yaw_bias_sigma_rad) << ",\n"
+       << "  \"vehicle_yaw_within_2sigma\": " << JsonNumber(result.vehicle_yaw.within_2sigma_fraction) << ",\n"
+       << "  \"vehicle_yaw_nees\": " << JsonNumber(result.vehicle_yaw.nees) << ",\n"
+       << "  \"vehicle_yaw_rms_error_rad\": " << JsonNumber(result.vehicle_yaw.rms_error_rad) << "\n}\n";
   json.close();
   if (!json) return absl::InternalError(absl::StrCat("cannot write ", dir, "/summary.json"));
   return absl::OkStatus();

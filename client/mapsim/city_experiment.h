@@ -11,6 +11,7 @@
 #include "core/estimation/map_updater.h"
 #include "core/sim/city_scenario.h"
 #include "core/sim/faults.h"
+#include "core/sim/metrics.h"
 
 namespace crowdmap {
 
@@ -75,6 +76,9 @@ struct CityExperimentResult {
   double nees_per_dof = 0.0;  // marginal NEES per degree of freedom, mean over the mapped landmarks
   double p50_ms = 0.0;
   double p95_ms = 0.0;
+  // Each vehicle's estimated camera yaw offset against its true one (no estimates without
+  // MapUpdateOptions::estimate_camera_yaw).
+  VehicleYawMetrics vehicle_yaw;
 
   // One key=value line.
   std::string Brief() const;

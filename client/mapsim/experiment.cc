@@ -202,6 +202,7 @@ absl::StatusOr<ExperimentResult> RunExperiment(const ExperimentOptions& options,
   result.final_mean_dist_err_m = result.records.back().metrics.mean_dist_err_m;
   result.nees_per_dof_sd_if_consistent = NeesPerDofSdIfConsistent(result.final_map, scenario->landmarks());
   result.median_passage_ms = Median(times);
+  result.vehicle_yaw = EvaluateVehicleYaw(result.final_map, FleetYawTruth(*scenario));
   if (options.crlb) {
     std::vector<int> indices(options.passages);
     for (int i = 0; i < options.passages; ++i) indices[i] = options.order.empty() ? i : options.order[i];
@@ -212,6 +213,17 @@ absl::StatusOr<ExperimentResult> RunExperiment(const ExperimentOptions& options,
     result.crlb_mean_dist_err_m = *bound;
   }
   return result;
+}
+
+std::vector<std::pair<std::string, double>> FleetYawTruth(const Scenario& scenario) {
+  const ScenarioOptions& o = scenario.options();
+  const bool common = o.noise == NoiseConfig::kYawBias || o.noise == NoiseConfig::kGnssAr1YawBias;
+  std::vector<std::pair<std::string, double>> truth;
+  for (int v = 0; v < o.vehicles; ++v) {
+    // The vehicle id of its passages (MakePassage(v) is its first).
+    truth.emplace_back(absl::StrCat("sim-v", v), scenario.VehicleYawBiasRad(v) + (common ? o.camera_yaw_bias_rad : 0.0));
+  }
+  return truth;
 }
 
 absl::Status WriteExperimentOutputs(const ExperimentOptions& options, const ExperimentResult& result,
@@ -288,7 +300,22 @@ absl::Status WriteExperimentOutputs(const ExperimentOptions& options, const Expe
        << "  \"nees_per_dof_sd_if_consistent\": " << JsonNumber(result.nees_per_dof_sd_if_consistent) << ",\n"
        << "  \"crlb_mean_dist_err_m\": " << JsonNumber(result.crlb_mean_dist_err_m) << ",\n"
        << "  \"error_over_crlb\": " << JsonNumber(result.final_mean_dist_err_m / result.crlb_mean_dist_err_m) << ",\n"
-       << "  \"median_passage_ms\": " << JsonNumber(result.median_passage_ms);
+       << "  \"median_passage_ms\": " << JsonNumber(result.median_passage_ms) << ",\n"
+       << absl::StrFormat("  \"estimate_camera_yaw\": %s,\n", options.update.estimate_camera_yaw ? "true" : "false")
+       << absl::StrFormat("  \"vehicles\": %d,\n", options.scenario.vehicles)
+       << "  \"vehicle_yaw_bias_sigma_rad\": " << JsonNumber(options.scenario.vehicle_yaw_bias_sigma_rad) << ",\n"
+       << "  \"vehicle_yaw_within_2sigma\": " << JsonNumber(result.vehicle_yaw.within_2sigma_fraction) << ",\n"
+       << "  \"vehicle_yaw_nees\": " << JsonNumber(result.vehicle_yaw.nees) << ",\n"
+       << "  \"vehicle_yaw_rms_error_rad\": " << JsonNumber(result.vehicle_yaw.rms_error_rad) << ",\n"
+       << "  \"vehicle_yaw\": [";
+  for (size_t v = 0; v < result.vehicle_yaw.vehicles.size(); ++v) {
+    const VehicleYawError& e = result.vehicle_yaw.vehicles[v];
+    json << (v == 0 ? "\n" : ",\n")
+         << absl::StrFormat("    {\"vehicle_id\": \"%s\", \"truth_rad\": ", e.vehicle_id) << JsonNumber(e.truth_rad)
+         << ", \"estimate_rad\": " << JsonNumber(e.estimate_rad) << ", \"sigma_rad\": " << JsonNumber(e.sigma_rad)
+         << absl::StrFormat(", \"passages\": %d}", e.passages);
+  }
+  json << (result.vehicle_yaw.vehicles.empty() ? "]" : "\n  ]");
   for (const auto& [key, value] : extra_summary) json << ",\n  \"" << key << "\": " << JsonNumber(value);
   json << "\n}\n";
   if (!json) return absl::InternalError(absl::StrCat("cannot write ", dir, "/summary.json"));

@@ -67,7 +67,14 @@ struct ExperimentResult {
   // The Cramer-Rao bound on the mean distance error after the last passage (NaN when not computed
   // or not defined), with white noise the floor of final_mean_dist_err_m.
   double crlb_mean_dist_err_m = std::numeric_limits<double>::quiet_NaN();
+  // With a fleet (ScenarioOptions::vehicles): each vehicle's estimated camera yaw offset against
+  // its true one (empty estimates without MapUpdateOptions::estimate_camera_yaw).
+  VehicleYawMetrics vehicle_yaw;
 };
+
+// Vehicle id and true camera yaw offset (its own error and the noise configuration's common
+// bias) of each vehicle of a fleet scenario; empty without a fleet.
+std::vector<std::pair<std::string, double>> FleetYawTruth(const Scenario& scenario);
 
 // Called after each passage with the record; used for progress output.
 using ExperimentProgress = std::function<void(const PassageRecord&)>;

@@ -103,6 +103,11 @@ experiment flags:
   --assume-white-gnss         the estimator ignores the coloured GNSS process the passages declare
                               (gnss-ar1, ar1+yaw) and assumes white noise, as before it modelled
                               it; the bound still models it
+  --vehicles V                a fleet: passage i is driven by vehicle i % V (sim-v0, ...), each
+                              with its own camera yaw error (default 0: every passage its own)
+  --vehicle-yaw-bias-sigma-rad X  each fleet vehicle's own camera yaw error, Gaussian (default 0)
+  --estimate-camera-yaw       estimate each vehicle's camera yaw offset, its history the prior
+                              (summary.json: vehicle_yaw, estimate against truth per vehicle)
   --quiet                     no progress line
 
 city flags:
@@ -121,7 +126,7 @@ city flags:
                               as for experiment
   --strategy S                cc | dc | cc-gsd (default cc-gsd)
   --window-hops H, --warmup-passages B, --relinearize-until-passages R, --relinearize-sigmas X,
-  --relinearizations-per-passage K  as for experiment
+  --relinearizations-per-passage K, --estimate-camera-yaw  as for experiment
   --mislabel-rate X           faults: each detection reported under a neighbouring landmark's id
                               with probability X (default 0)
   --multipath-rate X          faults: a passage has a GNSS multipath burst (20-60 s of fixes 30-80 m
@@ -299,7 +304,9 @@ absl::Status RunExperimentCommand(const std::vector<std::string>& args) {
                                                     {"speed-noise-scale", true}, {"gnss-noise-scale", true},
                                                     {"pixel-noise-scale", true}, {"no-bias-correction", false},
                                                     {"no-crlb", false}, {"assume-white-gnss", false},
-                                                    {"piece-m", true}, {"quiet", false}});
+                                                    {"piece-m", true}, {"quiet", false}, {"vehicles", true},
+                                                    {"vehicle-yaw-bias-sigma-rad", true},
+                                                    {"estimate-camera-yaw", false}});
   if (!flags.ok()) return flags.status();
   ExperimentOptions options;
   absl::StatusOr<long long> landmarks = flags->GetInt("landmarks", 25), passages = flags->GetInt("passages", 100),
@@ -310,11 +317,14 @@ absl::Status RunExperimentCommand(const std::vector<std::string>& args) {
                                 flags->GetInt("relinearize-until-passages", options.update.relinearize_until_passages),
                             shuffle_window = flags->GetInt("shuffle-window", 0),
                             shuffle_from = flags->GetInt("shuffle-from", 0), shuffle_seed = flags->GetInt("shuffle-seed", 1),
-                            window_hops = flags->GetInt("window-hops", options.update.window_hops);
+                            window_hops = flags->GetInt("window-hops", options.update.window_hops),
+                            vehicles = flags->GetInt("vehicles", 0);
   absl::StatusOr<double> chi2 = flags->GetDouble("max-chi2-per-dof", options.update.max_chi2_per_dof),
                          inflation = flags->GetDouble("inflation-test-sigmas", options.update.inflation_test_sigmas),
-                         edge_margin = flags->GetDouble("edge-margin-sigmas", options.update.edge_margin_sigmas);
-  for (const absl::Status& s : {landmarks.status(), passages.status(), seed.status(), dim.status(),
+                         edge_margin = flags->GetDouble("edge-margin-sigmas", options.update.edge_margin_sigmas),
+                         yaw_sigma = flags->GetDouble("vehicle-yaw-bias-sigma-rad", 0.0);
+  for (const absl::Status& s : {vehicles.status(), yaw_sigma.status(), landmarks.status(), passages.status(),
+                                seed.status(), dim.status(),
                                 per_landmark.status(), warmup.status(), relinearize.status(), window_hops.status(),
                                 chi2.status(), inflation.status(), edge_margin.status(), shuffle_window.status(),
                                 shuffle_from.status(), shuffle_seed.status()}) {
@@ -325,8 +335,11 @@ absl::Status RunExperimentCommand(const std::vector<std::string>& args) {
   options.scenario.landmarks = static_cast<int>(*landmarks);
   options.scenario.noise = *noise;
   options.scenario.seed = static_cast<uint64_t>(*seed);
+  options.scenario.vehicles = static_cast<int>(*vehicles);
+  options.scenario.vehicle_yaw_bias_sigma_rad = *yaw_sigma;
   if (absl::Status s = ScaleNoise(*flags, &options.scenario); !s.ok()) return s;
   options.passages = static_cast<int>(*passages);
+  options.update.estimate_camera_yaw = flags->Has("estimate-camera-yaw");
   options.strategy = flags->GetString("strategy", "cc-gsd");
   options.update.max_subgraph_dim = static_cast<int>(*dim);
   options.update.detections_per_landmark = static_cast<int>(*per_landmark);
@@ -379,12 +392,13 @@ absl::Status RunExperimentCommand(const std::vector<std::string>& args) {
   std::cout << absl::StrFormat(
       "strategy=%s noise=%s landmarks=%d passages=%d final_mean_dist_err_m=%.4f final_nees_per_dof=%.3f "
       "final_joint_nees_per_dof=%.3f median_passage_ms=%.2f failed=%d quarantined=%d inflated=%d joint_rejected=%d "
-      "detections_used=%d detections_outliers=%d landmarks_disagreeing=%d out=%s\n",
+      "detections_used=%d detections_outliers=%d landmarks_disagreeing=%d vehicle_yaw_within_2sigma=%.3f "
+      "vehicle_yaw_nees=%.3f out=%s\n",
       options.strategy, NoiseConfigName(options.scenario.noise), options.scenario.landmarks, options.passages,
       result->final_mean_dist_err_m, result->final_nees_per_dof, result->final_joint_nees_per_dof,
       result->median_passage_ms, result->failed_passages, result->quarantined_passages, result->inflated_passages,
       result->joint_rejected_passages, result->detections_used, result->detections_outliers,
-      result->landmarks_disagreeing, out);
+      result->landmarks_disagreeing, result->vehicle_yaw.within_2sigma_fraction, result->vehicle_yaw.nees, out);
   return absl::OkStatus();
 }
 
@@ -399,7 +413,8 @@ absl::Status RunCityCommand(const std::vector<std::string>& args) {
              {"mislabel-rate", true}, {"multipath-rate", true}, {"overconfident-rate", true},
              {"bad-calibration-rate", true}, {"fault-seed", true},
              {"export-passages", true}, {"export-format", true}, {"steering-noise-scale", true},
-             {"speed-noise-scale", true}, {"gnss-noise-scale", true}, {"pixel-noise-scale", true}, {"quiet", false}});
+             {"speed-noise-scale", true}, {"gnss-noise-scale", true}, {"pixel-noise-scale", true}, {"quiet", false},
+             {"estimate-camera-yaw", false}});
   if (!flags.ok()) return flags.status();
   CityExperimentOptions options;
   CityScenarioOptions& city = options.city;
@@ -447,6 +462,7 @@ absl::Status RunCityCommand(const std::vector<std::string>& args) {
   if (absl::Status s = ParseFaults(*flags, &options.faults); !s.ok()) return s;
   options.update.warmup_passages = static_cast<int>(*warmup);
   options.update.relinearize_until_passages = static_cast<int>(*relinearize);
+  options.update.estimate_camera_yaw = flags->Has("estimate-camera-yaw");
   if (absl::Status s = options.Validate(); !s.ok()) return AsUsageError(s);
   const std::string out = flags->GetString("out", "out/city");
   const bool quiet = flags->Has("quiet");

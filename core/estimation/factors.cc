@@ -59,6 +59,14 @@ ceres::CostFunction* CameraFactor::Create(double u_px, double sigma_px, const Ca
   return new ceres::AutoDiffCostFunction<CameraFactor, 1, 3, 2>(new CameraFactor(u_px, sigma_px, calib));
 }
 
+ceres::CostFunction* CameraYawFactor::Create(double u_px, double sigma_px, const Calibration& calib) {
+  return new ceres::AutoDiffCostFunction<CameraYawFactor, 1, 3, 2, 1>(new CameraYawFactor(u_px, sigma_px, calib));
+}
+
+ceres::CostFunction* ScalarPriorFactor::Create(double mean, double sigma) {
+  return new ceres::AutoDiffCostFunction<ScalarPriorFactor, 1, 1>(new ScalarPriorFactor(mean, sigma));
+}
+
 BearingFactor::BearingFactor(double u_px, double sigma_px, const Calibration& calib)
     : bearing_rad_(std::atan2(calib.cx_px - u_px, calib.fx_px)), calib_(calib) {
   // du/db = -fx / cos^2(b) = -(fx^2 + (u - cx)^2) / fx.

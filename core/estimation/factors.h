@@ -154,6 +154,49 @@ class CameraFactor {
   Calibration calib_;
 };
 
+// One detection by a camera whose yaw is off its declared calibration by an estimated offset
+// (shared by every detection of the vehicle's passage): residual (u_predicted - u_measured) /
+// sigma_px with the camera turned by calib.camera_yaw_rad + offset. Blocks: pose (3), landmark
+// (2), camera yaw offset (1, rad).
+class CameraYawFactor {
+ public:
+  CameraYawFactor(double u_px, double sigma_px, const Calibration& calib)
+      : u_px_(u_px), inv_sigma_(1.0 / sigma_px), calib_(calib) {}
+
+  template <typename T>
+  bool operator()(const T* pose, const T* landmark, const T* yaw_offset, T* residual) const {
+    T u;
+    if (!ProjectCameraPoint(LandmarkInCamera(pose, landmark, calib_, yaw_offset[0]), calib_, &u)) return false;
+    residual[0] = (u - T(u_px_)) * T(inv_sigma_);
+    return true;
+  }
+
+  static ceres::CostFunction* Create(double u_px, double sigma_px, const Calibration& calib);
+
+ private:
+  double u_px_;
+  double inv_sigma_;
+  Calibration calib_;
+};
+
+// Gaussian prior on a scalar state (a camera yaw offset): residual (x - mean) / sigma. Block: x (1).
+class ScalarPriorFactor {
+ public:
+  ScalarPriorFactor(double mean, double sigma) : mean_(mean), inv_sigma_(1.0 / sigma) {}
+
+  template <typename T>
+  bool operator()(const T* x, T* residual) const {
+    residual[0] = (x[0] - T(mean_)) * T(inv_sigma_);
+    return true;
+  }
+
+  static ceres::CostFunction* Create(double mean, double sigma);
+
+ private:
+  double mean_;
+  double inv_sigma_;
+};
+
 // Bearing form of a detection, used to localise a passage against the map before the pixel
 // model is solved: residual wrap(atan2(c_y, c_x) - b) / sigma_b, with b = atan2(cx - u, fx) and
 // sigma_b the pixel sigma mapped through the projection at u (first order). Unlike the pixel

@@ -184,6 +184,53 @@ TEST(CameraFactor, ResidualIsZeroForTheProjectedPixel) {
   EXPECT_NEAR(r, 0.0, 1e-12);
 }
 
+TEST(CameraYawFactor, JacobianMatchesFiniteDifferencesInPoseLandmarkAndYawOffset) {
+  std::mt19937 rng(5);
+  std::uniform_real_distribution<double> u(-1.0, 1.0);
+  Calibration calib;
+  calib.camera_yaw_rad = 0.05;
+  calib.camera_position_m = {1.5, 0.2};
+  for (int trial = 0; trial < 20; ++trial) {
+    const double heading = u(rng);
+    const Pose2 pose(u(rng), u(rng), heading);
+    const double range = 25.0 + 15.0 * u(rng), bearing = heading + 0.5 * u(rng);
+    const std::vector<double> landmark{pose.x() + range * std::cos(bearing), pose.y() + range * std::sin(bearing)};
+    std::unique_ptr<ceres::CostFunction> cost(CameraYawFactor::Create(900.0 + 100 * u(rng), 5.0, calib));
+    ExpectJacobiansMatchFiniteDifferences(*cost, {{pose.x(), pose.y(), pose.z()}, landmark, {0.02 * u(rng)}}, 1e-5);
+  }
+}
+
+TEST(CameraYawFactor, AnOffsetActsAsTheSameTurnOfTheDeclaredCameraYaw) {
+  Calibration calib;
+  calib.camera_yaw_rad = 0.01;
+  Calibration turned = calib;
+  turned.camera_yaw_rad += 0.008;
+  const Pose2 pose(1.0, 2.0, 0.3);
+  const Eigen::Vector2d landmark(20.0, 12.0);
+  double u_turned;
+  ASSERT_TRUE(ProjectLandmark(pose.data(), landmark.data(), turned, &u_turned));
+  std::unique_ptr<ceres::CostFunction> with_offset(CameraYawFactor::Create(u_turned, 5.0, calib));
+  const double offset = 0.008;
+  const double* params[] = {pose.data(), landmark.data(), &offset};
+  double r;
+  ASSERT_TRUE(with_offset->Evaluate(params, &r, nullptr));
+  EXPECT_NEAR(r, 0.0, 1e-9);
+  const double none = 0.0;
+  const double* unturned[] = {pose.data(), landmark.data(), &none};
+  ASSERT_TRUE(with_offset->Evaluate(unturned, &r, nullptr));
+  EXPECT_GT(std::abs(r), 1.0);  // 0.008 rad is some 8 px, 1.6 sigma
+}
+
+TEST(ScalarPriorFactor, JacobianMatchesFiniteDifferencesAndResidualIsWhitened) {
+  std::unique_ptr<ceres::CostFunction> cost(ScalarPriorFactor::Create(0.01, 0.02));
+  ExpectJacobiansMatchFiniteDifferences(*cost, {{0.03}}, 1e-8);
+  const double x = 0.05;
+  const double* params[] = {&x};
+  double r;
+  ASSERT_TRUE(cost->Evaluate(params, &r, nullptr));
+  EXPECT_NEAR(r, 2.0, 1e-12);
+}
+
 TEST(BearingFactor, JacobianMatchesFiniteDifferences) {
   std::mt19937 rng(6);
   std::uniform_real_distribution<double> u(-1.0, 1.0);

@@ -117,6 +117,14 @@ absl::StatusOr<GraphLinearization> GraphLinearization::Compute(ceres::Problem* p
   return g;
 }
 
+double GraphLinearization::MarginalVariance(const double* block) const {
+  const int u = offset_.at(block);
+  Eigen::VectorXd unit = Eigen::VectorXd::Zero(other_dim_);
+  unit(u) = 1.0;
+  const Eigen::VectorXd column = a_llt_->solve(unit);
+  return column(u) + w_.row(u).dot(sigma_ll_ * w_.row(u).transpose());
+}
+
 double GraphLinearization::Sigma(int u, int v) const {
   if (u >= other_dim_ && v >= other_dim_) return sigma_ll_(u - other_dim_, v - other_dim_);
   if (u >= other_dim_) std::swap(u, v);

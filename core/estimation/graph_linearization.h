@@ -50,6 +50,9 @@ class GraphLinearization {
   // The cost's gradient in the landmarks with the other blocks eliminated, at the point it was
   // computed at: zero at an exact optimum, the solver's shortfall otherwise.
   const Eigen::VectorXd& landmark_gradient() const { return landmark_gradient_; }
+  // Marginal variance of a scalar parameter block that is not a landmark (e.g. a camera yaw
+  // offset): (A^-1)_uu + w_u Sigma_LL w_u^T, one sparse solve.
+  double MarginalVariance(const double* block) const;
 
   // Second-order bias correction of the solution (Box 1971): to order sigma^2 a nonlinear
   // least-squares (MAP) estimate is off its expectation by

@@ -147,6 +147,10 @@ absl::StatusOr<PassageUpdate> SolveJointly(const std::vector<Passage>& passages,
   for (int p = 0; p < count; ++p) {
     for (size_t i = 0; i < seen[p].ids.size(); ++i) detections_of[seen[p].ids[i]] += seen[p].detections[i].size();
   }
+  // With the camera yaw estimated: one offset per passage, each with the prior of a new vehicle
+  // (the vehicles' stored estimates already hold these passages, so taking them as priors here
+  // would count the passages twice). Per passage, the passages' factors stay independent.
+  std::vector<double> yaw_offset_rad(count, 0.0);
   for (int p = 0; p < count; ++p) {
     weights.push_back(std::make_unique<ceres::LossFunctionWrapper>(new ceres::TrivialLoss(), ceres::TAKE_OWNERSHIP));
     std::vector<ceres::ResidualBlockId> before;
@@ -155,12 +159,20 @@ absl::StatusOr<PassageUpdate> SolveJointly(const std::vector<Passage>& passages,
                         weights[p].get(), &poses[p], &problem);
     problem.GetResidualBlocks(&blocks_of[p]);
     blocks_of[p].erase(blocks_of[p].begin(), blocks_of[p].begin() + before.size());
+    if (options.estimate_camera_yaw) {
+      blocks_of[p].push_back(problem.AddResidualBlock(
+          ScalarPriorFactor::Create(0.0, options.camera_yaw_prior_sigma_rad), nullptr, &yaw_offset_rad[p]));
+    }
     for (size_t i = 0; i < seen[p].ids.size(); ++i) {
       const LandmarkId id = seen[p].ids[i];
       for (const CameraObservation* d : seen[p].detections[i]) {
-        blocks_of[p].push_back(problem.AddResidualBlock(
-            CameraFactor::Create(d->u_px, passages[p].noise.pixel_sigma_px, passages[p].calibration), weights[p].get(),
-            poses[p][d->node].data(), block_of[id]));
+        const double sigma_px = passages[p].noise.pixel_sigma_px;
+        blocks_of[p].push_back(
+            options.estimate_camera_yaw
+                ? problem.AddResidualBlock(CameraYawFactor::Create(d->u_px, sigma_px, passages[p].calibration),
+                                           weights[p].get(), poses[p][d->node].data(), block_of[id], &yaw_offset_rad[p])
+                : problem.AddResidualBlock(CameraFactor::Create(d->u_px, sigma_px, passages[p].calibration),
+                                           weights[p].get(), poses[p][d->node].data(), block_of[id]));
         ++summary.detections_used;
       }
       landmark_dims_of[p] += 2.0 * seen[p].detections[i].size() / detections_of[id];
@@ -184,7 +196,9 @@ absl::StatusOr<PassageUpdate> SolveJointly(const std::vector<Passage>& passages,
       double cost = 0.0;
       std::vector<double> residuals;
       if (!problem.Evaluate(evaluate, &cost, &residuals, nullptr, nullptr)) continue;
-      const double dof = static_cast<double>(residuals.size()) - 3.0 * poses[p].size() - landmark_dims_of[p];
+      // (a yaw offset's prior residual and its state cancel)
+      const double dof = static_cast<double>(residuals.size()) - 3.0 * poses[p].size() - landmark_dims_of[p] -
+                         (options.estimate_camera_yaw ? 2.0 : 0.0);
       const double chi2 = 2.0 * cost;
       if (const double variance_factor = VarianceFactor(chi2, dof, options.inflation_test_sigmas);
           variance_factor > 1.0) {
@@ -283,6 +297,9 @@ absl::StatusOr<PassageUpdate> SolveJointly(const std::vector<Passage>& passages,
   Yield(options);
   summary.covariance_ms += MillisecondsSince(covariance_start);
   MapDelta delta = overlay.TakeDelta();
+  // The vehicles' estimates are those of the sequential update of the last passage.
+  delta.vehicles = single.delta.vehicles;
+  for (auto& [id, vehicle] : delta.vehicles) vehicle.version = delta.version;
   for (const auto& [id, record] : delta.landmarks) {
     if (seen_by.count(id)) ++(map.FindLandmark(id) != nullptr ? summary.landmarks_updated : summary.landmarks_created);
   }

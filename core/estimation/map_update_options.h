@@ -62,6 +62,16 @@ struct MapUpdateOptions {
   // with it.
   int window_hops = 0;
   int max_solver_iterations = 100;
+  // Per-vehicle camera yaw calibration (docs/estimation.md, "Per-vehicle camera calibration"):
+  // every sequential update estimates the passage's camera yaw offset from its declared
+  // calibration, one state shared by all its camera residuals, with the vehicle's stored estimate
+  // (VehicleCalibration) as its prior, and stores the solve's posterior as the vehicle's new
+  // estimate. The state is eliminated with the poses, so the map's factor holds its uncertainty.
+  // false: the declared calibration is taken as exact (no state, no vehicle records).
+  bool estimate_camera_yaw = false;
+  // Prior standard deviation (rad) of the camera yaw offset of a vehicle without an estimate yet
+  // (mean 0), and of every passage in the joint solves (warm-up, re-solves). Default 1 degree.
+  double camera_yaw_prior_sigma_rad = 0.017453292519943295;
   // A map landmark that a subgraph's solve moves further than this from its map estimate (squared
   // Mahalanobis distance in the map's marginal covariance; an honest update moves it by much less,
   // since its move has covariance prior - posterior) is one the passage and the map disagree

@@ -35,7 +35,22 @@ struct PassageProgress {
   std::unordered_set<LandmarkId> held_back;
   // Detections set aside as outliers (OutlierDetections), by node and landmark.
   std::set<DetectionKey> outliers;
+  // With the camera yaw estimated: the vehicle's offset when the passage started, applied to the
+  // calibration the passage is solved with (each subgraph's yaw state is the further offset).
+  double yaw_base_rad = 0.0;
+  bool vehicle_counted = false;  // the vehicle's passage count incremented
 };
+
+// The prior of a subgraph's camera yaw offset: the vehicle's estimate so far (earlier subgraphs
+// of the passage included), or mean 0 with options.camera_yaw_prior_sigma_rad for a new vehicle.
+VehicleCalibration VehicleYawPrior(const std::string& vehicle_id, const MapUpdateOptions& options,
+                                   const MapReaderInterface& map) {
+  if (const VehicleCalibration* known = map.FindVehicle(vehicle_id)) return *known;
+  VehicleCalibration prior;
+  prior.vehicle_id = vehicle_id;
+  prior.camera_yaw_variance_rad2 = options.camera_yaw_prior_sigma_rad * options.camera_yaw_prior_sigma_rad;
+  return prior;
+}
 
 // What a solve shows must be left out before anything is committed: the subgraph is solved again
 // without it.
@@ -116,6 +131,9 @@ absl::StatusOr<SetAsideRequest> UpdateFromSubgraph(const Passage& passage, const
   if (landmarks.ids.empty()) return SetAsideRequest{};
 
   LandmarkUpdate update(graph.frame, map, landmarks.ids);
+  VehicleCalibration vehicle = VehicleYawPrior(passage.vehicle_id, options, *map);
+  // The camera yaw offset's state, relative to the calibration the passage is solved with.
+  double yaw_offset_rad = vehicle.camera_yaw_offset_rad - progress->yaw_base_rad;
   // Weight of the passage's measurements: 1 until the consistency test asks for inflation.
   ceres::LossFunctionWrapper measurement_weight(new ceres::TrivialLoss(), ceres::TAKE_OWNERSHIP);
   ceres::Problem::Options problem_options;
@@ -123,14 +141,24 @@ absl::StatusOr<SetAsideRequest> UpdateFromSubgraph(const Passage& passage, const
   ceres::Problem problem(problem_options);
   // The measurement weight scales every measurement residual; the map prior is never weighted.
   AddPoseGraphFactors(graph, range.first, range.last, calib.gnss_lever_arm_m, &measurement_weight, &poses, &problem);
+  if (options.estimate_camera_yaw) {
+    problem.AddResidualBlock(
+        ScalarPriorFactor::Create(yaw_offset_rad, std::sqrt(vehicle.camera_yaw_variance_rad2)), nullptr,
+        &yaw_offset_rad);
+  }
   std::vector<CameraResidual> camera_residuals;
   for (int i = 0; i < update.size(); ++i) {
     if (!update.in_map(i)) Eigen::Map<Eigen::Vector2d>(update.block(i)) = landmarks.initial[i];
     problem.AddParameterBlock(update.block(i), 2);
     for (const CameraObservation* d : landmarks.detections[i]) {
+      double* pose = poses[d->node - range.first].data();
+      const double sigma_px = passage.noise.pixel_sigma_px;
       const ceres::ResidualBlockId id =
-          problem.AddResidualBlock(CameraFactor::Create(d->u_px, passage.noise.pixel_sigma_px, calib),
-                                   &measurement_weight, poses[d->node - range.first].data(), update.block(i));
+          options.estimate_camera_yaw
+              ? problem.AddResidualBlock(CameraYawFactor::Create(d->u_px, sigma_px, calib), &measurement_weight, pose,
+                                         update.block(i), &yaw_offset_rad)
+              : problem.AddResidualBlock(CameraFactor::Create(d->u_px, sigma_px, calib), &measurement_weight, pose,
+                                         update.block(i));
       camera_residuals.push_back({id, {d->node, d->landmark_id}});
       ++summary->detections_used;
     }
@@ -183,6 +211,13 @@ absl::StatusOr<SetAsideRequest> UpdateFromSubgraph(const Passage& passage, const
   for (int i = 0; i < update.size(); ++i) landmark_blocks.push_back(update.block(i));
   absl::StatusOr<GraphLinearization> linearization = LinearizeSolution(&problem, landmark_blocks, options, summary);
   if (!linearization.ok()) return linearization.status();
+  // The yaw state is eliminated with the poses in the landmarks' covariance; its own marginal, at
+  // the bias-corrected solution, is the vehicle's posterior.
+  if (options.estimate_camera_yaw) {
+    vehicle.camera_yaw_offset_rad = progress->yaw_base_rad + yaw_offset_rad;
+    vehicle.camera_yaw_variance_rad2 = linearization->MarginalVariance(&yaw_offset_rad);
+    vehicle.updated_unix_ms = passage.start_time_unix_ms;
+  }
 
   const int64_t seen_ms = passage.start_time_unix_ms;
   auto touch = [&](Landmark* record) {
@@ -203,6 +238,14 @@ absl::StatusOr<SetAsideRequest> UpdateFromSubgraph(const Passage& passage, const
     }
   }
   summary->landmarks_conditioned += stats->conditioned;
+  if (options.estimate_camera_yaw) {
+    if (!progress->vehicle_counted) ++vehicle.passages;
+    progress->vehicle_counted = true;
+    vehicle.version = map->version();
+    map->PutVehicle(vehicle);
+    summary->camera_yaw_offset_rad = vehicle.camera_yaw_offset_rad;
+    summary->camera_yaw_sigma_rad = std::sqrt(vehicle.camera_yaw_variance_rad2);
+  }
   return SetAsideRequest{};
 }
 
@@ -297,6 +340,10 @@ absl::Status MapUpdateOptions::Validate() const {
     return absl::InvalidArgumentError(
         absl::StrCat("relinearize_until_passages: must be >= 0 (0 = off), got ", relinearize_until_passages));
   }
+  if (!(camera_yaw_prior_sigma_rad > 0.0 && camera_yaw_prior_sigma_rad < 1.0)) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("camera_yaw_prior_sigma_rad: must lie in (0, 1), got ", camera_yaw_prior_sigma_rad));
+  }
   if (max_solver_iterations < 1) {
     return absl::InvalidArgumentError(absl::StrCat("max_solver_iterations: must be >= 1, got ", max_solver_iterations));
   }
@@ -311,14 +358,28 @@ std::string PassageUpdateSummary::Brief() const {
       "total_ms=%.2f version=%d joint_passages=%d joint_rejected=%d",
       nodes, subgraphs, landmarks_updated, landmarks_created, landmarks_held_back, landmarks_disagreeing, landmarks_conditioned, detections_used,
       detections_dropped, detections_outliers, solver_iterations, max_variance_factor, solve_ms, covariance_ms, bias_correction_ms,
-      max_bias_correction_m, total_ms, map_version, joint_passages, joint_rejected ? 1 : 0);
+      max_bias_correction_m, total_ms, map_version, joint_passages, joint_rejected ? 1 : 0) +
+         (camera_yaw_sigma_rad > 0.0 ? absl::StrFormat(" camera_yaw_deg=%.3f camera_yaw_sigma_deg=%.3f",
+                                                        camera_yaw_offset_rad * 180.0 / M_PI,
+                                                        camera_yaw_sigma_rad * 180.0 / M_PI)
+                                     : std::string());
 }
 
 namespace {
 
 // ComputePassageUpdate's work, written into `overlay`; fills `summary` but its total time.
-absl::Status ApplyPassage(const Passage& passage, const MapUpdateOptions& options, MapOverlay* overlay,
+absl::Status ApplyPassage(const Passage& declared, const MapUpdateOptions& options, MapOverlay* overlay,
                           PassageUpdateSummary* summary) {
+  PassageProgress progress;
+  // With the camera yaw estimated, the passage is solved (initial guesses included) with the
+  // vehicle's offset so far applied to the camera yaw it declares.
+  Passage calibrated;
+  if (options.estimate_camera_yaw) {
+    progress.yaw_base_rad = VehicleYawPrior(declared.vehicle_id, options, *overlay).camera_yaw_offset_rad;
+    calibrated = declared;
+    calibrated.calibration.camera_yaw_rad += progress.yaw_base_rad;
+  }
+  const Passage& passage = options.estimate_camera_yaw ? calibrated : declared;
   GraphOptions graph_options;
   graph_options.detections_per_landmark = options.detections_per_landmark;
   graph_options.refine_initial_poses = false;  // done per subgraph, with the map
@@ -332,7 +393,6 @@ absl::Status ApplyPassage(const Passage& passage, const MapUpdateOptions& option
   const std::vector<NodeRange> ranges = SubdivideGraph(*graph, max_dim);
   summary->subgraphs = static_cast<int>(ranges.size());
 
-  PassageProgress progress;
   for (const NodeRange& range : ranges) {
     // Each round sets aside at least one more landmark or detection, so this ends.
     for (;;) {

@@ -39,6 +39,10 @@ struct PassageUpdateSummary {
   double bias_correction_ms = 0.0;
   double max_bias_correction_m = 0.0;  // largest landmark shift by the bias correction
   double total_ms = 0.0;
+  // With the camera yaw estimated (MapUpdateOptions::estimate_camera_yaw): the vehicle's estimate
+  // after the passage, and its standard deviation.
+  double camera_yaw_offset_rad = 0.0;
+  double camera_yaw_sigma_rad = 0.0;
   int64_t map_version = 0;  // version after the update
   int joint_passages = 0;       // passages solved jointly (warm-up or re-solve); 0 = sequential update
   bool joint_rejected = false;  // the joint solve was not usable, this is the sequential update

@@ -2,6 +2,7 @@
 //   build/core/map_updater_benchmark --benchmark_repetitions=5 --benchmark_report_aggregates_only=true
 #include <benchmark/benchmark.h>
 
+#include "absl/strings/str_cat.h"
 #include "core/estimation/map_updater.h"
 #include "core/sim/scenario.h"
 
@@ -16,6 +17,7 @@ void BM_ApplyPassage(benchmark::State& state) {
   const Scenario scenario = *Scenario::Create(scenario_options);
   MapUpdateOptions options;
   options.strategy = static_cast<UpdateStrategy>(state.range(1));
+  options.estimate_camera_yaw = state.range(2) != 0;
   MapState map;
   MapUpdater updater(options);
   for (int i = 0; i < kMaturePassages; ++i) {
@@ -44,15 +46,16 @@ void BM_ApplyPassage(benchmark::State& state) {
   state.counters["solve_ms"] = benchmark::Counter(solve_ms, benchmark::Counter::kAvgIterations);
   state.counters["covariance_ms"] = benchmark::Counter(covariance_ms, benchmark::Counter::kAvgIterations);
   state.counters["bias_correction_ms"] = benchmark::Counter(bias_ms, benchmark::Counter::kAvgIterations);
-  state.SetLabel(UpdateStrategyName(options.strategy));
+  state.SetLabel(absl::StrCat(UpdateStrategyName(options.strategy), options.estimate_camera_yaw ? " +yaw" : ""));
 }
 
 BENCHMARK(BM_ApplyPassage)
-    ->ArgNames({"landmarks", "strategy"})
-    ->Args({100, static_cast<int>(UpdateStrategy::kCorrelatedSubdivided)})
-    ->Args({100, static_cast<int>(UpdateStrategy::kCorrelated)})
-    ->Args({100, static_cast<int>(UpdateStrategy::kDecorrelated)})
-    ->Args({25, static_cast<int>(UpdateStrategy::kCorrelatedSubdivided)})
+    ->ArgNames({"landmarks", "strategy", "yaw"})
+    ->Args({100, static_cast<int>(UpdateStrategy::kCorrelatedSubdivided), 0})
+    ->Args({100, static_cast<int>(UpdateStrategy::kCorrelatedSubdivided), 1})  // camera yaw estimated
+    ->Args({100, static_cast<int>(UpdateStrategy::kCorrelated), 0})
+    ->Args({100, static_cast<int>(UpdateStrategy::kDecorrelated), 0})
+    ->Args({25, static_cast<int>(UpdateStrategy::kCorrelatedSubdivided), 0})
     ->Unit(benchmark::kMillisecond);
 
 }  // namespace

@@ -121,6 +121,15 @@ void MapState::AppendPassageFactorIds(const std::string& vehicle_id, const std::
   if (it != factors_of_passage_.end()) out->insert(out->end(), it->second.begin(), it->second.end());
 }
 
+const VehicleCalibration* MapState::FindVehicle(const std::string& vehicle_id) const {
+  const auto it = vehicles_.find(vehicle_id);
+  return it != vehicles_.end() ? &it->second : nullptr;
+}
+
+void MapState::ForEachVehicle(const std::function<void(const VehicleCalibration&)>& fn) const {
+  for (const auto& [id, vehicle] : vehicles_) fn(vehicle);
+}
+
 void MapState::ForEachLandmark(const std::function<void(const Landmark&)>& fn) const {
   for (const auto& [id, landmark] : landmarks_) fn(landmark);
 }
@@ -187,12 +196,18 @@ void MapState::Apply(const MapDelta& delta) {
   for (const auto& [id, factor] : delta.added_factors) PutFactor(factor);
   for (const auto& [id, landmark] : delta.landmarks) PutLandmark(landmark);
   for (LandmarkId id : delta.removed_landmarks) RemoveLandmark(id);
+  for (const auto& [id, vehicle] : delta.vehicles) PutVehicle(vehicle);
   version_ = std::max(version_, delta.version);
 }
 
 MapOverlay::MapOverlay(const MapReaderInterface& base) : base_(base), last_factor_id_(base.last_factor_id()) {
   delta_.base_version = base.version();
   delta_.version = base.version();
+}
+
+const VehicleCalibration* MapOverlay::FindVehicle(const std::string& vehicle_id) const {
+  const auto it = delta_.vehicles.find(vehicle_id);
+  return it != delta_.vehicles.end() ? &it->second : base_.FindVehicle(vehicle_id);
 }
 
 const Landmark* MapOverlay::FindLandmark(LandmarkId id) const {
@@ -346,6 +361,15 @@ absl::Status CheckFactorRecord(const MapFactor& f, bool semidefinite) {
   return absl::OkStatus();
 }
 
+absl::Status CheckVehicleRecord(const VehicleCalibration& v) {
+  if (!std::isfinite(v.camera_yaw_offset_rad) || std::abs(v.camera_yaw_offset_rad) > M_PI ||
+      !std::isfinite(v.camera_yaw_variance_rad2) || !(v.camera_yaw_variance_rad2 > 0.0) || v.passages < 0) {
+    return absl::InternalError(absl::StrCat("vehicle ", v.vehicle_id,
+                                            ": camera yaw offset not finite within +-pi, or its variance not positive"));
+  }
+  return absl::OkStatus();
+}
+
 absl::Status Prefixed(const char* prefix, const absl::Status& s) {
   return s.ok() ? s : absl::Status(s.code(), absl::StrCat(prefix, s.message()));
 }
@@ -359,6 +383,9 @@ absl::Status CheckDeltaInvariants(const MapDelta& delta) {
   for (const auto& [id, f] : delta.added_factors) {
     if (absl::Status s = CheckFactorRecord(f, /*semidefinite=*/true); !s.ok()) return Prefixed("map invariant: ", s);
   }
+  for (const auto& [id, v] : delta.vehicles) {
+    if (absl::Status s = CheckVehicleRecord(v); !s.ok()) return Prefixed("map invariant: ", s);
+  }
   return absl::OkStatus();
 }
 
@@ -369,6 +396,9 @@ absl::Status CheckStoredMap(const MapState& map) {
   });
   map.ForEachFactor([&](const MapFactor& f) {
     if (status.ok()) status = CheckFactorRecord(f, /*semidefinite=*/false);
+  });
+  map.ForEachVehicle([&](const VehicleCalibration& v) {
+    if (status.ok()) status = CheckVehicleRecord(v);
   });
   if (status.ok()) return status;
   return absl::DataLossError(absl::StrCat("the stored map is damaged: ", status.message()));

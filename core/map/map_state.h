@@ -52,6 +52,18 @@ struct MapFactor {
   Eigen::VectorXd information_vector;  // 2k
 };
 
+// A vehicle's camera yaw calibration as its passages estimated it (docs/estimation.md, "Per-vehicle
+// camera calibration"): the offset to add to the camera yaw its passages declare, and its
+// variance, the posterior after its last passage (the prior of its next).
+struct VehicleCalibration {
+  std::string vehicle_id;
+  double camera_yaw_offset_rad = 0.0;
+  double camera_yaw_variance_rad2 = 0.0;
+  int64_t passages = 0;         // passages that estimated it
+  int64_t version = 0;          // map version that last changed it
+  int64_t updated_unix_ms = 0;  // start time of the last passage that changed it
+};
+
 // One 2x2 block (a, b) of the map's information matrix: the sum of its factors' blocks, rows in
 // a's offsets, columns in b's.
 struct InformationBlock {
@@ -85,6 +97,8 @@ class MapReaderInterface {
   // Largest factor id ever used (ids are not reused, also after a removal).
   virtual int64_t last_factor_id() const = 0;
   virtual int64_t version() const = 0;
+  // The vehicle's camera calibration; nullptr when none of its passages estimated one.
+  virtual const VehicleCalibration* FindVehicle(const std::string& vehicle_id) const = 0;
 };
 
 // One stored block of a row of the information: (row landmark, `id`).
@@ -134,10 +148,11 @@ struct MapDelta {
   // excluded).
   std::vector<int64_t> folded_factors;
   std::vector<LandmarkId> removed_landmarks;            // left without any factor
+  std::map<std::string, VehicleCalibration> vehicles;  // full new records, by vehicle_id
 
   bool empty() const {
     return landmarks.empty() && added_factors.empty() && removed_factors.empty() && removed_landmarks.empty() &&
-           folded_factors.empty();
+           folded_factors.empty() && vehicles.empty();
   }
 };
 
@@ -170,17 +185,21 @@ class MapState : public MapReaderInterface {
                               std::vector<int64_t>* out) const override;
   int64_t last_factor_id() const override { return last_factor_id_; }
   int64_t version() const override { return version_; }
+  const VehicleCalibration* FindVehicle(const std::string& vehicle_id) const override;
 
   size_t landmark_count() const { return landmarks_.size(); }
   size_t factor_count() const { return factors_.size(); }
   void ForEachLandmark(const std::function<void(const Landmark&)>& fn) const;
   void ForEachFactor(const std::function<void(const MapFactor&)>& fn) const;
+  // In increasing vehicle_id.
+  void ForEachVehicle(const std::function<void(const VehicleCalibration&)>& fn) const;
   // Ids in increasing order.
   std::vector<LandmarkId> LandmarkIds() const;
 
   // Inserts or replaces records; used by the store when loading. Sets the version when larger.
   void PutLandmark(const Landmark& landmark);
   void PutFactor(MapFactor factor);
+  void PutVehicle(const VehicleCalibration& vehicle) { vehicles_[vehicle.vehicle_id] = vehicle; }
   void RemoveFactor(int64_t id);
   // Drops factor `id`'s record but keeps its information in the map (see MapDelta::folded_factors).
   void FoldFactor(int64_t id);
@@ -203,6 +222,7 @@ class MapState : public MapReaderInterface {
   std::unordered_map<LandmarkId, std::vector<int64_t>> factors_of_;
   std::map<std::pair<std::string, std::string>, std::vector<int64_t>> factors_of_passage_;
   AssembledInformation information_;
+  std::map<std::string, VehicleCalibration> vehicles_;
   int64_t last_factor_id_ = 0;
   int64_t version_ = 0;
 };
@@ -223,8 +243,10 @@ class MapOverlay : public MapReaderInterface {
                               std::vector<int64_t>* out) const override;
   int64_t last_factor_id() const override { return last_factor_id_; }
   int64_t version() const override { return delta_.version; }
+  const VehicleCalibration* FindVehicle(const std::string& vehicle_id) const override;
 
   void PutLandmark(const Landmark& landmark);
+  void PutVehicle(const VehicleCalibration& vehicle) { delta_.vehicles[vehicle.vehicle_id] = vehicle; }
   // Removes a landmark (one left without factors).
   void RemoveLandmark(LandmarkId id);
   // Adds a factor under a new id; returns the id.

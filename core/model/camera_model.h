@@ -26,14 +26,34 @@ Eigen::Matrix<T, 2, 1> LandmarkInCamera(const T* pose, const T* landmark, const 
   return {cy * vx + sy * vy, -sy * vx + cy * vy};
 }
 
-// Horizontal pixel of a landmark (2D pinhole): u = -fx c_y / c_x + cx. False when the landmark
-// is not in front of the camera.
+// The same with the camera turned by a further `yaw_offset_rad` (an estimated calibration error,
+// added to calib.camera_yaw_rad).
 template <typename T>
-bool ProjectLandmark(const T* pose, const T* landmark, const Calibration& calib, T* u_px) {
-  const Eigen::Matrix<T, 2, 1> cam = LandmarkInCamera(pose, landmark, calib);
+Eigen::Matrix<T, 2, 1> LandmarkInCamera(const T* pose, const T* landmark, const Calibration& calib,
+                                        const T& yaw_offset_rad) {
+  using std::cos;
+  using std::sin;
+  Calibration straight = calib;
+  straight.camera_yaw_rad = 0.0;
+  const Eigen::Matrix<T, 2, 1> v = LandmarkInCamera(pose, landmark, straight);
+  const T yaw = T(calib.camera_yaw_rad) + yaw_offset_rad;
+  const T cy = cos(yaw), sy = sin(yaw);
+  return {cy * v.x() + sy * v.y(), -sy * v.x() + cy * v.y()};
+}
+
+// Horizontal pixel of a point in the camera frame (2D pinhole): u = -fx c_y / c_x + cx. False
+// when it is not in front of the camera.
+template <typename T>
+bool ProjectCameraPoint(const Eigen::Matrix<T, 2, 1>& cam, const Calibration& calib, T* u_px) {
   if (!(cam.x() > T(kMinCameraDepthM))) return false;
   *u_px = -T(calib.fx_px) * cam.y() / cam.x() + T(calib.cx_px);
   return true;
+}
+
+// Horizontal pixel of a landmark. False when the landmark is not in front of the camera.
+template <typename T>
+bool ProjectLandmark(const T* pose, const T* landmark, const Calibration& calib, T* u_px) {
+  return ProjectCameraPoint(LandmarkInCamera(pose, landmark, calib), calib, u_px);
 }
 
 inline Eigen::Vector2d LandmarkInCameraFrame(const Eigen::Vector3d& pose, const Eigen::Vector2d& landmark,

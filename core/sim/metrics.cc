@@ -9,6 +9,36 @@
 
 namespace crowdmap {
 
+VehicleYawMetrics EvaluateVehicleYaw(const MapReaderInterface& map,
+                                     const std::vector<std::pair<std::string, double>>& truth) {
+  VehicleYawMetrics m;
+  int within = 0;
+  double squared = 0.0, nees = 0.0;
+  for (const auto& [vehicle_id, truth_rad] : truth) {
+    VehicleYawError e;
+    e.vehicle_id = vehicle_id;
+    e.truth_rad = truth_rad;
+    e.estimate_rad = std::numeric_limits<double>::quiet_NaN();
+    if (const VehicleCalibration* v = map.FindVehicle(vehicle_id)) {
+      e.estimate_rad = v->camera_yaw_offset_rad;
+      e.sigma_rad = std::sqrt(v->camera_yaw_variance_rad2);
+      e.passages = v->passages;
+      const double error = e.estimate_rad - truth_rad;
+      ++m.estimated;
+      if (std::abs(error) <= 2.0 * e.sigma_rad) ++within;
+      squared += error * error;
+      nees += error * error / (e.sigma_rad * e.sigma_rad);
+    }
+    m.vehicles.push_back(std::move(e));
+  }
+  if (m.estimated > 0) {
+    m.within_2sigma_fraction = static_cast<double>(within) / m.estimated;
+    m.rms_error_rad = std::sqrt(squared / m.estimated);
+    m.nees = nees / m.estimated;
+  }
+  return m;
+}
+
 MapErrorMetrics EvaluateMap(const MapReaderInterface& map, const std::vector<TruthLandmark>& truth) {
   MapErrorMetrics m;
   const StackedMapErrors stacked = StackMapErrors(map, truth);

@@ -1,6 +1,8 @@
 #ifndef CROWDMAP_CORE_SIM_METRICS_H_
 #define CROWDMAP_CORE_SIM_METRICS_H_
 
+#include <string>
+#include <utility>
 #include <vector>
 
 #include <Eigen/Core>
@@ -42,6 +44,27 @@ StackedMapErrors StackMapErrors(const MapReaderInterface& map, const std::vector
 // one run's nees_per_dof is then one draw of a few degrees of freedom, and only an average over
 // runs (seeds) tests consistency. NaN without a usable covariance.
 double NeesPerDofSdIfConsistent(const MapReaderInterface& map, const std::vector<TruthLandmark>& truth);
+
+// One vehicle's estimated camera yaw offset (VehicleCalibration) against its true one.
+struct VehicleYawError {
+  std::string vehicle_id;
+  double truth_rad = 0.0;
+  double estimate_rad = 0.0;  // NaN when the map holds no estimate for it
+  double sigma_rad = 0.0;
+  int64_t passages = 0;
+};
+
+struct VehicleYawMetrics {
+  std::vector<VehicleYawError> vehicles;  // in the order of the truth
+  int estimated = 0;                      // vehicles with an estimate
+  double within_2sigma_fraction = 0.0;    // of those estimated: |error| <= 2 sigma (95.4% if consistent)
+  double rms_error_rad = 0.0;
+  double nees = 0.0;                      // mean of (error / sigma)^2; 1 when consistent
+};
+
+// `truth`: vehicle_id and true offset from the declared camera yaw, per vehicle.
+VehicleYawMetrics EvaluateVehicleYaw(const MapReaderInterface& map,
+                                     const std::vector<std::pair<std::string, double>>& truth);
 
 }  // namespace crowdmap
 

@@ -94,6 +94,28 @@ TEST(EvaluateMap, SkipsLandmarksMissingFromTheMapAndIgnoresExtraOnes) {
   EXPECT_NEAR(m.nees_per_dof, 25.0 / 2, 1e-5);
 }
 
+TEST(EvaluateVehicleYaw, CountsEstimatesWithinTwoSigmaAndSkipsVehiclesWithout) {
+  MapState map;
+  VehicleCalibration a;
+  a.vehicle_id = "a";
+  a.camera_yaw_offset_rad = 0.011;
+  a.camera_yaw_variance_rad2 = 0.001 * 0.001;  // error 1 sigma
+  a.passages = 10;
+  VehicleCalibration b = a;
+  b.vehicle_id = "b";
+  b.camera_yaw_offset_rad = -0.003;  // error 3 sigma
+  map.PutVehicle(a);
+  map.PutVehicle(b);
+  const VehicleYawMetrics m = EvaluateVehicleYaw(map, {{"a", 0.010}, {"b", 0.0}, {"c", 0.002}});
+  ASSERT_EQ(m.vehicles.size(), 3u);
+  EXPECT_EQ(m.estimated, 2);
+  EXPECT_DOUBLE_EQ(m.within_2sigma_fraction, 0.5);
+  EXPECT_NEAR(m.nees, (1.0 + 9.0) / 2.0, 1e-9);
+  EXPECT_NEAR(m.rms_error_rad, std::sqrt((1e-6 + 9e-6) / 2.0), 1e-12);
+  EXPECT_EQ(m.vehicles[0].passages, 10);
+  EXPECT_TRUE(std::isnan(m.vehicles[2].estimate_rad));
+}
+
 TEST(EvaluateMap, GivesZerosForAnEmptyMap) {
   const MapErrorMetrics m = EvaluateMap(MapState(), {MakeTruth(1, {0.0, 0.0})});
   EXPECT_EQ(m.landmarks_evaluated, 0);

@@ -100,6 +100,13 @@ absl::Status ScenarioOptions::Validate() const {
     return absl::InvalidArgumentError(absl::StrCat("piece_min_m, piece_max_m: must be both 0 (whole passages) or 0 < min <= max, got ",
                                                    piece_min_m, ", ", piece_max_m));
   }
+  if (vehicles < 0 || !(vehicle_yaw_bias_sigma_rad >= 0.0 && vehicle_yaw_bias_sigma_rad < 0.5)) {
+    return absl::InvalidArgumentError(absl::StrCat("vehicles, vehicle_yaw_bias_sigma_rad: must be >= 0 and in [0, 0.5), got ",
+                                                   vehicles, ", ", vehicle_yaw_bias_sigma_rad));
+  }
+  if (vehicle_yaw_bias_sigma_rad > 0.0 && vehicles == 0) {
+    return absl::InvalidArgumentError("vehicle_yaw_bias_sigma_rad: needs a fleet (vehicles > 0)");
+  }
   if (std::abs(origin.lat_deg) > 85.0 || std::abs(origin.lon_deg) > 180.0) {
     return absl::InvalidArgumentError("origin: latitude must lie in [-85, 85] and longitude in [-180, 180]");
   }
@@ -149,12 +156,18 @@ Pose2 Scenario::TruePoseAt(double t) const {
                          t);
 }
 
+double Scenario::VehicleYawBiasRad(int vehicle) const {
+  if (options_.vehicles == 0 || options_.vehicle_yaw_bias_sigma_rad == 0.0) return 0.0;
+  std::mt19937_64 rng(SplitMix64(SplitMix64(options_.seed ^ 0x56454849434c45ull) ^ static_cast<uint64_t>(vehicle)));
+  return options_.vehicle_yaw_bias_sigma_rad * std::normal_distribution<double>(0.0, 1.0)(rng);
+}
+
 Passage Scenario::MakePassage(int index) const {
   const ScenarioOptions& o = options_;
   NoiseSource noise(SplitMix64(SplitMix64(o.seed) ^ static_cast<uint64_t>(index)));
 
   Passage p;
-  p.vehicle_id = absl::StrCat("sim-", index % 1000);
+  p.vehicle_id = o.vehicles > 0 ? absl::StrCat("sim-v", VehicleOf(index)) : absl::StrCat("sim-", index % 1000);
   p.passage_id = absl::StrCat("p", index, "-s", o.seed, "-n", o.landmarks, "-", NoiseConfigName(o.noise));
   p.start_time_unix_ms = 1767225600000LL + static_cast<int64_t>(index) * 200000;
   p.calibration = o.calibration;
@@ -172,6 +185,7 @@ Passage Scenario::MakePassage(int index) const {
   const bool yaw_bias = o.noise == NoiseConfig::kYawBias || o.noise == NoiseConfig::kGnssAr1YawBias;
   Calibration true_camera = o.calibration;
   if (yaw_bias) true_camera.camera_yaw_rad += o.camera_yaw_bias_rad;
+  true_camera.camera_yaw_rad += VehicleYawBiasRad(VehicleOf(index));
   const int frames = static_cast<int>(std::floor(o.duration_s * o.camera_rate_hz + 1e-9)) + 1;
   for (int k = 0; k < frames; ++k) {
     const double t = k / o.camera_rate_hz;

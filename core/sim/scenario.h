@@ -50,6 +50,12 @@ struct ScenarioOptions {
   // rest, drawn from (seed, index). Both 0 = the whole route.
   double piece_min_m = 0.0;
   double piece_max_m = 0.0;
+  // A fleet: passage i is driven by vehicle i % vehicles (vehicle_id "sim-v<i % vehicles>"), whose
+  // camera yaw is off by its own error, drawn once per vehicle from N(0, sigma^2) with (seed,
+  // vehicle) (VehicleYawBiasRad), besides the noise configuration's common bias. 0 = every passage
+  // its own vehicle (vehicle_id "sim-<i % 1000>"), without such an error.
+  int vehicles = 0;
+  double vehicle_yaw_bias_sigma_rad = 0.0;
 
   absl::Status Validate() const;
 };
@@ -82,6 +88,11 @@ class Scenario {
   // scenario, so the same passage uploaded twice is a duplicate but a passage of another seed,
   // landmark count or noise configuration is not.
   Passage MakePassage(int index) const;
+
+  // The vehicle of passage `index` (0 when options.vehicles is 0) and its own camera yaw error
+  // (rad; 0 without a fleet).
+  int VehicleOf(int index) const { return options_.vehicles > 0 ? index % options_.vehicles : 0; }
+  double VehicleYawBiasRad(int vehicle) const;
 
   // True pose at time t (seconds since start), by the same bicycle steps as the route.
   Pose2 TruePoseAt(double t_s) const;

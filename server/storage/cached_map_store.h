@@ -60,6 +60,10 @@ class CachedMapStore : public MapStoreInterface {
   absl::StatusOr<MapStats> GetStats() override { return inner_->GetStats(); }
   // From the in-memory map.
   absl::StatusOr<LandmarkProvenance> GetLandmarkProvenance(LandmarkId id) override;
+  absl::StatusOr<VehicleCalibration> GetVehicle(const std::string& vehicle_id) override {
+    return inner_->GetVehicle(vehicle_id);
+  }
+  absl::StatusOr<std::vector<VehicleCalibration>> ListVehicles() override { return inner_->ListVehicles(); }
 
   // Commits through the inner store, then publishes the new copy.
   absl::Status CommitPassageApplied(int64_t id, const MapDelta& delta, const PassageResult& result) override;

@@ -181,6 +181,11 @@ class MapStoreInterface {
   virtual absl::StatusOr<MapStats> GetStats() = 0;
   // Landmark `id` and the passages that shaped it. NotFound when it is not mapped.
   virtual absl::StatusOr<LandmarkProvenance> GetLandmarkProvenance(LandmarkId id) = 0;
+  // The camera calibration estimated for `vehicle_id` (written with the map's changes). NotFound
+  // when none of its passages estimated one.
+  virtual absl::StatusOr<VehicleCalibration> GetVehicle(const std::string& vehicle_id) = 0;
+  // Every vehicle's, in increasing vehicle_id.
+  virtual absl::StatusOr<std::vector<VehicleCalibration>> ListVehicles() = 0;
 };
 
 struct SqliteMapStoreOptions {

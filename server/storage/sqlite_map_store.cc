@@ -211,6 +211,9 @@ absl::Status SqliteMapStore::WriteMapDelta(SqliteConnection* db, const MapDelta&
   for (int64_t fid : delta.folded_factors) {
     if (auto s = FoldFactor(db, fid); !s.ok()) return s;
   }
+  for (const auto& [vehicle_id, vehicle] : delta.vehicles) {
+    if (auto s = WriteVehicle(db, vehicle); !s.ok()) return s;
+  }
   int64_t last_factor_id = 0;
   for (const auto& [fid, factor] : delta.added_factors) {
     if (!factor.information.allFinite() || !factor.information_vector.allFinite()) {
@@ -232,6 +235,63 @@ absl::Status SqliteMapStore::WriteMapDelta(SqliteConnection* db, const MapDelta&
   if (auto s = set_version->Run(); !s.ok()) return s;
 
   return absl::OkStatus();
+}
+
+absl::Status SqliteMapStore::WriteVehicle(SqliteConnection* db, const VehicleCalibration& v) {
+  auto stmt = db->Prepare(
+      "INSERT OR REPLACE INTO vehicles (vehicle_id, camera_yaw_offset_rad, camera_yaw_variance_rad2, passages, version, "
+      "updated_unix_ms) VALUES (?1, ?2, ?3, ?4, ?5, ?6)");
+  if (!stmt.ok()) return stmt.status();
+  stmt->Bind(1, v.vehicle_id);
+  stmt->Bind(2, v.camera_yaw_offset_rad);
+  stmt->Bind(3, v.camera_yaw_variance_rad2);
+  stmt->Bind(4, v.passages);
+  stmt->Bind(5, v.version);
+  stmt->Bind(6, v.updated_unix_ms);
+  return stmt->Run();
+}
+
+absl::StatusOr<std::vector<VehicleCalibration>> SqliteMapStore::ReadVehicles(
+    SqliteConnection* db, const std::string& where, const std::function<void(SqliteStatement&)>& bind) {
+  auto stmt = db->Prepare(absl::StrCat(
+      "SELECT vehicle_id, camera_yaw_offset_rad, camera_yaw_variance_rad2, passages, version, updated_unix_ms "
+      "FROM vehicles ",
+      where, " ORDER BY vehicle_id"));
+  if (!stmt.ok()) return stmt.status();
+  bind(*stmt);
+  std::vector<VehicleCalibration> out;
+  while (true) {
+    auto row = stmt->Step();
+    if (!row.ok()) return row.status();
+    if (!*row) break;
+    VehicleCalibration v;
+    v.vehicle_id = stmt->Text(0);
+    v.camera_yaw_offset_rad = stmt->Double(1);
+    v.camera_yaw_variance_rad2 = stmt->Double(2);
+    v.passages = stmt->Int(3);
+    v.version = stmt->Int(4);
+    v.updated_unix_ms = stmt->Int(5);
+    out.push_back(std::move(v));
+  }
+  return out;
+}
+
+absl::StatusOr<VehicleCalibration> SqliteMapStore::GetVehicle(const std::string& vehicle_id) {
+  auto db = map_->AcquireReader();
+  if (!db.ok()) return db.status();
+  absl::StatusOr<std::vector<VehicleCalibration>> found =
+      ReadVehicles(db->get(), "WHERE vehicle_id = ?1", [&](SqliteStatement& s) { s.Bind(1, vehicle_id); });
+  if (!found.ok()) return found.status();
+  if (found->empty()) {
+    return absl::NotFoundError(absl::StrCat("vehicle_id: no camera calibration estimated for '", vehicle_id, "'"));
+  }
+  return found->front();
+}
+
+absl::StatusOr<std::vector<VehicleCalibration>> SqliteMapStore::ListVehicles() {
+  auto db = map_->AcquireReader();
+  if (!db.ok()) return db.status();
+  return ReadVehicles(db->get(), "", [](SqliteStatement&) {});
 }
 
 absl::Status SqliteMapStore::FoldFactor(SqliteConnection* db, int64_t id) {
@@ -433,6 +493,9 @@ absl::Status SqliteMapStore::ReadMap(SqliteConnection* db, MapState* map) {
     if (!*row) break;
     map->PutBaseVector(vectors->Int(0), Eigen::Vector2d(vectors->Double(1), vectors->Double(2)));
   }
+  absl::StatusOr<std::vector<VehicleCalibration>> vehicles = ReadVehicles(db, "", [](SqliteStatement&) {});
+  if (!vehicles.ok()) return vehicles.status();
+  for (const VehicleCalibration& v : *vehicles) map->PutVehicle(v);
   auto last = db->Prepare("SELECT value FROM map_meta WHERE key = 'last_factor_id'");
   if (!last.ok()) return last.status();
   if (auto row = last->Step(); !row.ok()) return row.status();

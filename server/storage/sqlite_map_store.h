@@ -45,6 +45,8 @@ class SqliteMapStore : public MapStoreInterface {
   absl::StatusOr<LandmarkPage> ChangedLandmarks(const BoundingBox& box, int64_t since_version) override;
   absl::StatusOr<MapStats> GetStats() override;
   absl::StatusOr<LandmarkProvenance> GetLandmarkProvenance(LandmarkId id) override;
+  absl::StatusOr<VehicleCalibration> GetVehicle(const std::string& vehicle_id) override;
+  absl::StatusOr<std::vector<VehicleCalibration>> ListVehicles() override;
 
  private:
   SqliteMapStore(const SqliteMapStoreOptions& options, std::unique_ptr<SqliteFile> map,
@@ -59,6 +61,10 @@ class SqliteMapStore : public MapStoreInterface {
                                                                       const std::string& passage_id);
   static absl::StatusOr<int64_t> ReadMapVersion(SqliteConnection* db);
   static absl::Status WriteLandmark(SqliteConnection* db, const Landmark& landmark);
+  static absl::Status WriteVehicle(SqliteConnection* db, const VehicleCalibration& vehicle);
+  // The vehicles selected by `where` (after the column list), bound by `bind`.
+  static absl::StatusOr<std::vector<VehicleCalibration>> ReadVehicles(SqliteConnection* db, const std::string& where,
+                                                                      const std::function<void(SqliteStatement&)>& bind);
   // In the writer's transaction: the stored version is delta.base_version; passage `id` is in `state`.
   static absl::Status CheckBaseVersion(SqliteConnection* db, const MapDelta& delta);
   static absl::Status CheckPassageState(SqliteConnection* db, int64_t id, PassageState state);

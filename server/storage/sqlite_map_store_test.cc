@@ -752,6 +752,110 @@ TEST(SqliteMapStore, ASchemaFourFileHasItsQueueMovedToTheQueueFile) {
   }
 }
 
+VehicleCalibration MakeVehicle(const std::string& id, double yaw_rad, int64_t passages, int64_t version) {
+  VehicleCalibration v;
+  v.vehicle_id = id;
+  v.camera_yaw_offset_rad = yaw_rad;
+  v.camera_yaw_variance_rad2 = 1e-6 * passages;
+  v.passages = passages;
+  v.version = version;
+  v.updated_unix_ms = 1000 + passages;
+  return v;
+}
+
+void ExpectSameVehicle(const VehicleCalibration& a, const VehicleCalibration& b) {
+  EXPECT_EQ(a.vehicle_id, b.vehicle_id);
+  EXPECT_EQ(a.camera_yaw_offset_rad, b.camera_yaw_offset_rad) << a.vehicle_id << ": stored bit for bit";
+  EXPECT_EQ(a.camera_yaw_variance_rad2, b.camera_yaw_variance_rad2) << a.vehicle_id;
+  EXPECT_EQ(a.passages, b.passages) << a.vehicle_id;
+  EXPECT_EQ(a.version, b.version) << a.vehicle_id;
+  EXPECT_EQ(a.updated_unix_ms, b.updated_unix_ms) << a.vehicle_id;
+}
+
+TEST(SqliteMapStore, VehicleCalibrationsAreWrittenWithTheMapChangeAndReadBackAfterReopening) {
+  TempDir dir;
+  const std::string path = dir.File("map.db");
+  {
+    auto store = OpenStore(path);
+    const int64_t first = EnqueueAndClaim(store.get(), "p1");
+    MapDelta delta;
+    delta.version = 1;
+    delta.landmarks[7] = MakeLandmark(7, 48.7, 2.17, 1);
+    delta.vehicles["veh-b"] = MakeVehicle("veh-b", 0.009, 1, 1);
+    delta.vehicles["veh-a"] = MakeVehicle("veh-a", -0.004, 1, 1);
+    ASSERT_TRUE(store->CommitPassageApplied(first, delta, PassageResult()).ok());
+    // A later passage of one vehicle replaces its record.
+    const int64_t second = EnqueueAndClaim(store.get(), "p2");
+    MapDelta next;
+    next.base_version = 1;
+    next.version = 2;
+    next.vehicles["veh-a"] = MakeVehicle("veh-a", -0.0035, 2, 2);
+    ASSERT_TRUE(store->CommitPassageApplied(second, next, PassageResult()).ok());
+  }
+  for (bool cached : {false, true}) {
+    std::unique_ptr<MapStoreInterface> store = OpenStore(path);
+    if (cached) {
+      auto wrapped = CachedMapStore::Create(std::move(store));
+      ASSERT_TRUE(wrapped.ok()) << wrapped.status();
+      store = std::move(*wrapped);
+    }
+    auto a = store->GetVehicle("veh-a");
+    ASSERT_TRUE(a.ok()) << a.status();
+    ExpectSameVehicle(*a, MakeVehicle("veh-a", -0.0035, 2, 2));
+    auto missing = store->GetVehicle("veh-c");
+    EXPECT_EQ(missing.status().code(), absl::StatusCode::kNotFound);
+    EXPECT_NE(missing.status().message().find("veh-c"), std::string::npos) << missing.status();
+    auto all = store->ListVehicles();
+    ASSERT_TRUE(all.ok()) << all.status();
+    ASSERT_EQ(all->size(), 2u);
+    EXPECT_EQ((*all)[0].vehicle_id, "veh-a");
+    ExpectSameVehicle((*all)[1], MakeVehicle("veh-b", 0.009, 1, 1));
+    MapState map;
+    ASSERT_TRUE(store->LoadMap(&map).ok());
+    ASSERT_NE(map.FindVehicle("veh-b"), nullptr);
+    ExpectSameVehicle(*map.FindVehicle("veh-b"), (*all)[1]);
+    EXPECT_TRUE(CheckStoredMap(map).ok());
+  }
+}
+
+TEST(SqliteMapStore, ASchemaFiveMapGainsTheVehiclesTableAndKeepsItsMap) {
+  TempDir dir;
+  const std::string path = dir.File("map.db");
+  {
+    auto store = OpenStore(path);
+    const int64_t id = EnqueueAndClaim(store.get(), "p1");
+    MapDelta delta;
+    delta.version = 1;
+    delta.landmarks[7] = MakeLandmark(7, 48.7, 2.17, 1);
+    ASSERT_TRUE(store->CommitPassageApplied(id, delta, PassageResult()).ok());
+  }
+  // Back to the file schema 5 wrote: migration 5 -> 6 only adds the vehicles table.
+  ASSERT_EQ(LatestSchemaVersion(), 6);
+  {
+    auto db = SqliteConnection::Open(path, 5000, /*read_only=*/false);
+    ASSERT_TRUE(db.ok()) << db.status();
+    ASSERT_TRUE((*db)->Exec("DROP TABLE vehicles; PRAGMA user_version = 5;").ok());
+  }
+  ASSERT_EQ(SqlInt(path, "SELECT COUNT(*) FROM sqlite_master WHERE name = 'vehicles'"), 0);
+  auto store = OpenStore(path);
+  ASSERT_NE(store, nullptr);
+  EXPECT_EQ(SqlInt(path, "PRAGMA user_version"), 6);
+  auto none = store->ListVehicles();
+  ASSERT_TRUE(none.ok()) << none.status();
+  EXPECT_TRUE(none->empty());
+  MapState map;
+  ASSERT_TRUE(store->LoadMap(&map).ok());
+  EXPECT_EQ(map.landmark_count(), 1u);
+  EXPECT_EQ(map.version(), 1);
+  const int64_t id = EnqueueAndClaim(store.get(), "p2");
+  MapDelta next;
+  next.base_version = 1;
+  next.version = 2;
+  next.vehicles["veh-a"] = MakeVehicle("veh-a", 0.001, 1, 2);
+  ASSERT_TRUE(store->CommitPassageApplied(id, next, PassageResult()).ok());
+  EXPECT_EQ(store->GetVehicle("veh-a")->passages, 1);
+}
+
 TEST(SqliteMapStore, FoldedFactorsMoveIntoTheBaseAndTheMapStaysTheSame) {
   TempDir dir;
   const std::string path = dir.File("map.db");

@@ -308,6 +308,19 @@ const std::vector<Migration>& Migrations() {
       DELETE FROM row_counts WHERE name LIKE 'passages_%';
       )sql"),
        nullptr},
+      // 5 -> 6: each vehicle's camera yaw offset as its passages estimated it (VehicleCalibration),
+      // written in the transaction of the map change that estimated it.
+      {R"sql(
+      CREATE TABLE vehicles (
+        vehicle_id TEXT PRIMARY KEY,
+        camera_yaw_offset_rad REAL NOT NULL,
+        camera_yaw_variance_rad2 REAL NOT NULL,
+        passages INTEGER NOT NULL,
+        version INTEGER NOT NULL,
+        updated_unix_ms INTEGER NOT NULL
+      ) STRICT, WITHOUT ROWID;
+      )sql",
+       nullptr},
   };
   return kMigrations;
 }
