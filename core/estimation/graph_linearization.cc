@@ -117,12 +117,14 @@ absl::StatusOr<GraphLinearization> GraphLinearization::Compute(ceres::Problem* p
   return g;
 }
 
-double GraphLinearization::MarginalVariance(const double* block) const {
+GraphLinearization::ScalarMarginal GraphLinearization::MarginalVariance(const double* block) const {
   const int u = offset_.at(block);
   Eigen::VectorXd unit = Eigen::VectorXd::Zero(other_dim_);
   unit(u) = 1.0;
-  const Eigen::VectorXd column = a_llt_->solve(unit);
-  return column(u) + w_.row(u).dot(sigma_ll_ * w_.row(u).transpose());
+  ScalarMarginal m;
+  m.given_landmarks = a_llt_->solve(unit)(u);
+  m.from_landmarks = w_.row(u).dot(sigma_ll_ * w_.row(u).transpose());
+  return m;
 }
 
 double GraphLinearization::Sigma(int u, int v) const {

@@ -51,8 +51,14 @@ class GraphLinearization {
   // computed at: zero at an exact optimum, the solver's shortfall otherwise.
   const Eigen::VectorXd& landmark_gradient() const { return landmark_gradient_; }
   // Marginal variance of a scalar parameter block that is not a landmark (e.g. a camera yaw
-  // offset): (A^-1)_uu + w_u Sigma_LL w_u^T, one sparse solve.
-  double MarginalVariance(const double* block) const;
+  // offset), in its two parts: given the landmarks, (A^-1)_uu, and what the landmarks'
+  // uncertainty adds, w_u Sigma_LL w_u^T. One sparse solve.
+  struct ScalarMarginal {
+    double given_landmarks = 0.0;
+    double from_landmarks = 0.0;
+    double total() const { return given_landmarks + from_landmarks; }
+  };
+  ScalarMarginal MarginalVariance(const double* block) const;
 
   // Second-order bias correction of the solution (Box 1971): to order sigma^2 a nonlinear
   // least-squares (MAP) estimate is off its expectation by

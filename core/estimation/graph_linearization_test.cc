@@ -101,5 +101,44 @@ TEST(GraphLinearization, SecondOrderCorrectionRemovesTheBiasOfANonlinearEstimate
   }
 }
 
+// r = a0 y + a1 . l - b, whitened: a linear residual in a scalar y and a 2-D landmark l.
+struct ScalarLandmarkResidual {
+  ScalarLandmarkResidual(double a0, double a1x, double a1y, double b) : a0(a0), a1x(a1x), a1y(a1y), b(b) {}
+  template <typename T>
+  bool operator()(const T* y, const T* l, T* r) const {
+    r[0] = T(a0) * y[0] + T(a1x) * l[0] + T(a1y) * l[1] - T(b);
+    return true;
+  }
+  double a0, a1x, a1y, b;
+};
+
+TEST(GraphLinearization, ScalarMarginalSplitsIntoTheVarianceGivenTheLandmarksAndTheirShare) {
+  std::mt19937 rng(7);
+  std::uniform_real_distribution<double> u(-1.0, 1.0);
+  double y = 0.0;
+  std::vector<Eigen::Vector2d> landmarks(2, Eigen::Vector2d::Zero());
+  ceres::Problem problem;
+  // Dense information of (y, l0, l1), built alongside.
+  Eigen::MatrixXd h = Eigen::MatrixXd::Zero(5, 5);
+  for (int k = 0; k < 12; ++k) {
+    const int i = k % 2;
+    const Eigen::Vector3d a(u(rng), u(rng), u(rng));
+    problem.AddResidualBlock(new ceres::AutoDiffCostFunction<ScalarLandmarkResidual, 1, 1, 2>(
+                                 new ScalarLandmarkResidual(a(0), a(1), a(2), u(rng))),
+                             nullptr, &y, landmarks[i].data());
+    Eigen::VectorXd row = Eigen::VectorXd::Zero(5);
+    row(0) = a(0);
+    row.segment<2>(1 + 2 * i) = a.tail<2>();
+    h += row * row.transpose();
+  }
+  absl::StatusOr<GraphLinearization> lin =
+      GraphLinearization::Compute(&problem, {landmarks[0].data(), landmarks[1].data()});
+  ASSERT_TRUE(lin.ok()) << lin.status();
+  const GraphLinearization::ScalarMarginal m = lin->MarginalVariance(&y);
+  EXPECT_NEAR(m.given_landmarks, 1.0 / h(0, 0), 1e-12);
+  EXPECT_NEAR(m.total(), h.inverse()(0, 0), 1e-12);
+  EXPECT_GT(m.from_landmarks, 0.0);
+}
+
 }  // namespace
 }  // namespace crowdmap

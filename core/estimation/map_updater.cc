@@ -21,6 +21,7 @@
 #include "core/estimation/passage_exclusion.h"
 #include "core/estimation/subdivision.h"
 #include "core/estimation/subgraph_steps.h"
+#include "core/estimation/vehicle_calibration.h"
 
 namespace crowdmap {
 namespace {
@@ -46,10 +47,7 @@ struct PassageProgress {
 VehicleCalibration VehicleYawPrior(const std::string& vehicle_id, const MapUpdateOptions& options,
                                    const MapReaderInterface& map) {
   if (const VehicleCalibration* known = map.FindVehicle(vehicle_id)) return *known;
-  VehicleCalibration prior;
-  prior.vehicle_id = vehicle_id;
-  prior.camera_yaw_variance_rad2 = options.camera_yaw_prior_sigma_rad * options.camera_yaw_prior_sigma_rad;
-  return prior;
+  return NewVehicleCalibration(vehicle_id, options.camera_yaw_prior_sigma_rad);
 }
 
 // What a solve shows must be left out before anything is committed: the subgraph is solved again
@@ -212,10 +210,11 @@ absl::StatusOr<SetAsideRequest> UpdateFromSubgraph(const Passage& passage, const
   absl::StatusOr<GraphLinearization> linearization = LinearizeSolution(&problem, landmark_blocks, options, summary);
   if (!linearization.ok()) return linearization.status();
   // The yaw state is eliminated with the poses in the landmarks' covariance; its own marginal, at
-  // the bias-corrected solution, is the vehicle's posterior.
+  // the bias-corrected solution, updates the vehicle's record.
   if (options.estimate_camera_yaw) {
-    vehicle.camera_yaw_offset_rad = progress->yaw_base_rad + yaw_offset_rad;
-    vehicle.camera_yaw_variance_rad2 = linearization->MarginalVariance(&yaw_offset_rad);
+    const GraphLinearization::ScalarMarginal yaw = linearization->MarginalVariance(&yaw_offset_rad);
+    vehicle = ConsiderCameraYawSolve(vehicle, progress->yaw_base_rad + yaw_offset_rad, yaw.given_landmarks,
+                                     yaw.from_landmarks);
     vehicle.updated_unix_ms = passage.start_time_unix_ms;
   }
 

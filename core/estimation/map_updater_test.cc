@@ -796,9 +796,10 @@ TEST(CameraYawEstimation, EachVehiclesBiasIsRecoveredWithinThreeSigmaAndTheMapBe
     const double truth = scenario.VehicleYawBiasRad(v), sigma = std::sqrt(record->camera_yaw_variance_rad2);
     EXPECT_LT(std::abs(record->camera_yaw_offset_rad - truth), 3.0 * sigma)
         << "vehicle " << v << " truth " << truth << " estimate " << record->camera_yaw_offset_rad << " sigma " << sigma;
-    // From the 1 degree prior to about 0.14 degrees after 8 passages: early on the map, not the
-    // pixels, limits what a passage says about the camera.
-    EXPECT_LT(sigma, 0.2 * MapUpdateOptions().camera_yaw_prior_sigma_rad) << v;
+    // From the 1 degree prior to about 0.2-0.25 degrees after 8 passages of a 24-passage map: the
+    // young map's errors, shared by every passage of the vehicle, not the pixels, limit it
+    // (ConsiderCameraYawSolve).
+    EXPECT_LT(sigma, 0.3 * MapUpdateOptions().camera_yaw_prior_sigma_rad) << v;
   }
   const MapErrorMetrics with = EvaluateMap(estimated, scenario.landmarks());
   const MapErrorMetrics without = EvaluateMap(run(false), scenario.landmarks());

@@ -363,9 +363,12 @@ absl::Status CheckFactorRecord(const MapFactor& f, bool semidefinite) {
 
 absl::Status CheckVehicleRecord(const VehicleCalibration& v) {
   if (!std::isfinite(v.camera_yaw_offset_rad) || std::abs(v.camera_yaw_offset_rad) > M_PI ||
-      !std::isfinite(v.camera_yaw_variance_rad2) || !(v.camera_yaw_variance_rad2 > 0.0) || v.passages < 0) {
-    return absl::InternalError(absl::StrCat("vehicle ", v.vehicle_id,
-                                            ": camera yaw offset not finite within +-pi, or its variance not positive"));
+      !std::isfinite(v.camera_yaw_variance_rad2) || !(v.camera_yaw_variance_rad2 > 0.0) ||
+      !std::isfinite(v.camera_yaw_information) || !(v.camera_yaw_information > 0.0) ||
+      !std::isfinite(v.camera_yaw_map_term) || v.camera_yaw_map_term < 0.0 || v.passages < 0) {
+    return absl::InternalError(absl::StrCat(
+        "vehicle ", v.vehicle_id,
+        ": camera yaw offset not finite within +-pi, or its variance or information not positive"));
   }
   return absl::OkStatus();
 }

@@ -59,6 +59,11 @@ struct VehicleCalibration {
   std::string vehicle_id;
   double camera_yaw_offset_rad = 0.0;
   double camera_yaw_variance_rad2 = 0.0;
+  // Its two parts (core/estimation/vehicle_calibration.h, ConsiderCameraYawSolve): the information
+  // of the prior and of the solves' own measurements (1/rad^2), and the weighted sum of their
+  // map-borne errors' covariances (1/rad^2).
+  double camera_yaw_information = 0.0;
+  double camera_yaw_map_term = 0.0;
   int64_t passages = 0;         // passages that estimated it
   int64_t version = 0;          // map version that last changed it
   int64_t updated_unix_ms = 0;  // start time of the last passage that changed it

@@ -239,22 +239,26 @@ absl::Status SqliteMapStore::WriteMapDelta(SqliteConnection* db, const MapDelta&
 
 absl::Status SqliteMapStore::WriteVehicle(SqliteConnection* db, const VehicleCalibration& v) {
   auto stmt = db->Prepare(
-      "INSERT OR REPLACE INTO vehicles (vehicle_id, camera_yaw_offset_rad, camera_yaw_variance_rad2, passages, version, "
-      "updated_unix_ms) VALUES (?1, ?2, ?3, ?4, ?5, ?6)");
+      "INSERT OR REPLACE INTO vehicles (vehicle_id, camera_yaw_offset_rad, camera_yaw_variance_rad2, "
+      "camera_yaw_information, camera_yaw_map_term, passages, version, updated_unix_ms) "
+      "VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8)");
   if (!stmt.ok()) return stmt.status();
   stmt->Bind(1, v.vehicle_id);
   stmt->Bind(2, v.camera_yaw_offset_rad);
   stmt->Bind(3, v.camera_yaw_variance_rad2);
-  stmt->Bind(4, v.passages);
-  stmt->Bind(5, v.version);
-  stmt->Bind(6, v.updated_unix_ms);
+  stmt->Bind(4, v.camera_yaw_information);
+  stmt->Bind(5, v.camera_yaw_map_term);
+  stmt->Bind(6, v.passages);
+  stmt->Bind(7, v.version);
+  stmt->Bind(8, v.updated_unix_ms);
   return stmt->Run();
 }
 
 absl::StatusOr<std::vector<VehicleCalibration>> SqliteMapStore::ReadVehicles(
     SqliteConnection* db, const std::string& where, const std::function<void(SqliteStatement&)>& bind) {
   auto stmt = db->Prepare(absl::StrCat(
-      "SELECT vehicle_id, camera_yaw_offset_rad, camera_yaw_variance_rad2, passages, version, updated_unix_ms "
+      "SELECT vehicle_id, camera_yaw_offset_rad, camera_yaw_variance_rad2, camera_yaw_information, "
+      "camera_yaw_map_term, passages, version, updated_unix_ms "
       "FROM vehicles ",
       where, " ORDER BY vehicle_id"));
   if (!stmt.ok()) return stmt.status();
@@ -268,9 +272,11 @@ absl::StatusOr<std::vector<VehicleCalibration>> SqliteMapStore::ReadVehicles(
     v.vehicle_id = stmt->Text(0);
     v.camera_yaw_offset_rad = stmt->Double(1);
     v.camera_yaw_variance_rad2 = stmt->Double(2);
-    v.passages = stmt->Int(3);
-    v.version = stmt->Int(4);
-    v.updated_unix_ms = stmt->Int(5);
+    v.camera_yaw_information = stmt->Double(3);
+    v.camera_yaw_map_term = stmt->Double(4);
+    v.passages = stmt->Int(5);
+    v.version = stmt->Int(6);
+    v.updated_unix_ms = stmt->Int(7);
     out.push_back(std::move(v));
   }
   return out;

@@ -757,6 +757,8 @@ VehicleCalibration MakeVehicle(const std::string& id, double yaw_rad, int64_t pa
   v.vehicle_id = id;
   v.camera_yaw_offset_rad = yaw_rad;
   v.camera_yaw_variance_rad2 = 1e-6 * passages;
+  v.camera_yaw_information = 9e5 / passages;
+  v.camera_yaw_map_term = 3.0 + passages;
   v.passages = passages;
   v.version = version;
   v.updated_unix_ms = 1000 + passages;
@@ -767,6 +769,8 @@ void ExpectSameVehicle(const VehicleCalibration& a, const VehicleCalibration& b)
   EXPECT_EQ(a.vehicle_id, b.vehicle_id);
   EXPECT_EQ(a.camera_yaw_offset_rad, b.camera_yaw_offset_rad) << a.vehicle_id << ": stored bit for bit";
   EXPECT_EQ(a.camera_yaw_variance_rad2, b.camera_yaw_variance_rad2) << a.vehicle_id;
+  EXPECT_EQ(a.camera_yaw_information, b.camera_yaw_information) << a.vehicle_id;
+  EXPECT_EQ(a.camera_yaw_map_term, b.camera_yaw_map_term) << a.vehicle_id;
   EXPECT_EQ(a.passages, b.passages) << a.vehicle_id;
   EXPECT_EQ(a.version, b.version) << a.vehicle_id;
   EXPECT_EQ(a.updated_unix_ms, b.updated_unix_ms) << a.vehicle_id;

@@ -315,6 +315,8 @@ const std::vector<Migration>& Migrations() {
         vehicle_id TEXT PRIMARY KEY,
         camera_yaw_offset_rad REAL NOT NULL,
         camera_yaw_variance_rad2 REAL NOT NULL,
+        camera_yaw_information REAL NOT NULL,
+        camera_yaw_map_term REAL NOT NULL,
         passages INTEGER NOT NULL,
         version INTEGER NOT NULL,
         updated_unix_ms INTEGER NOT NULL

@@ -1,0 +1,33 @@
+#include "core/estimation/vehicle_calibration.h"
+
+#include <algorithm>
+#include <cmath>
+
+namespace crowdmap {
+
+VehicleCalibration NewVehicleCalibration(const std::string& vehicle_id, double prior_sigma_rad) {
+  VehicleCalibration v;
+  v.vehicle_id = vehicle_id;
+  v.camera_yaw_variance_rad2 = prior_sigma_rad * prior_sigma_rad;
+  v.camera_yaw_information = 1.0 / v.camera_yaw_variance_rad2;
+  return v;
+}
+
+VehicleCalibration ConsiderCameraYawSolve(const VehicleCalibration& prior, double posterior_offset_rad,
+                                          double given_landmarks_rad2, double from_landmarks_rad2) {
+  VehicleCalibration v = prior;
+  v.camera_yaw_offset_rad = posterior_offset_rad;
+  const double prior_information = 1.0 / prior.camera_yaw_variance_rad2;
+  const double own = 1.0 / given_landmarks_rad2 - prior_information;
+  if (!(own > 0.0)) return v;  // the solve added nothing about the yaw (to rounding)
+  const double landmarks_share = std::sqrt(std::max(0.0, from_landmarks_rad2)) * (own + prior_information) / own;
+  // The new solve's pairs with every earlier one (and the first prior, conservatively) and itself.
+  v.camera_yaw_map_term =
+      prior.camera_yaw_map_term + own * landmarks_share * landmarks_share * (2.0 * prior.camera_yaw_information + own);
+  v.camera_yaw_information = prior.camera_yaw_information + own;
+  v.camera_yaw_variance_rad2 =
+      (1.0 + v.camera_yaw_map_term / v.camera_yaw_information) / v.camera_yaw_information;
+  return v;
+}
+
+}  // namespace crowdmap

@@ -1,0 +1,41 @@
+#ifndef CROWDMAP_CORE_ESTIMATION_VEHICLE_CALIBRATION_H_
+#define CROWDMAP_CORE_ESTIMATION_VEHICLE_CALIBRATION_H_
+
+// A vehicle's camera yaw offset across its passages (docs/estimation.md, "Per-vehicle camera
+// calibration"). Every solve of one of its (sub)graphs estimates the offset with the vehicle's
+// record as prior; these functions turn the solve's result into the vehicle's new record.
+
+#include <string>
+
+#include "core/map/map_state.h"
+
+namespace crowdmap {
+
+// The record a vehicle without one starts from: offset 0 with variance prior_sigma_rad^2.
+VehicleCalibration NewVehicleCalibration(const std::string& vehicle_id, double prior_sigma_rad);
+
+// The vehicle's record after a solve that took `prior` as its yaw prior and found the offset
+// `posterior_offset_rad`, with marginal variance given_landmarks_rad2 + from_landmarks_rad2
+// (GraphLinearization::ScalarMarginal: the variance with the solve's landmarks known, and what
+// their uncertainty adds).
+//
+// The solves of one vehicle all measure its yaw against the same map, so the parts of their errors
+// that come from the map's landmarks are not independent: a map error that turns a street by a
+// little turns every yaw estimated along it the same way. Chaining the solves' posteriors would
+// count that part as if it shrank with every passage and make the record over-confident. Instead
+// the record is a consider estimate, the solves weighted by their own information J_k (pixels,
+// odometry, GNSS: independent from solve to solve, J = 1/given - 1/prior) with the map-borne
+// errors kept apart. Solve k's map-borne error has standard deviation s_k (its posterior share
+// sqrt(from) undone from the prior's weight: s = sqrt(from) (J + 1/prior) / J). The map only
+// gains information, and the error of a better estimate is shared by every poorer one, so two
+// solves' map-borne errors are taken to covary by the later one's variance; where the later one
+// looked at other landmarks they covary less, so this errs on the safe side. The record keeps
+//   camera_yaw_information  I = sum J_k (the first prior counted as a solve without map error),
+//   camera_yaw_map_term     U = sum_i sum_j J_i J_j s_later(i,j)^2,
+// and its variance is 1/I + U / I^2. The mean is the solve's posterior mean.
+VehicleCalibration ConsiderCameraYawSolve(const VehicleCalibration& prior, double posterior_offset_rad,
+                                          double given_landmarks_rad2, double from_landmarks_rad2);
+
+}  // namespace crowdmap
+
+#endif  // CROWDMAP_CORE_ESTIMATION_VEHICLE_CALIBRATION_H_
