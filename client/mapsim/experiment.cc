@@ -99,7 +99,8 @@ absl::StatusOr<std::vector<int>> ReadOrderFile(const std::string& path) {
 }
 
 absl::StatusOr<double> LoopCramerRaoMeanError(const Scenario& scenario, const std::vector<int>& indices,
-                                              const GraphOptions& graph, const std::function<void(int, double)>& progress) {
+                                              const GraphOptions& graph, double camera_yaw_prior_sigma_rad,
+                                              const std::function<void(int, double)>& progress) {
   GraphOptions options = graph;
   options.frame_origin = scenario.options().origin;
   const auto true_pose = [&](double t) { return scenario.TruePoseAt(t); };
@@ -107,7 +108,7 @@ absl::StatusOr<double> LoopCramerRaoMeanError(const Scenario& scenario, const st
     if (id < 1 || id > static_cast<LandmarkId>(scenario.landmarks().size())) return std::nullopt;
     return scenario.landmarks()[id - 1].position_m;
   };
-  CramerRaoBound bound;
+  CramerRaoBound bound(camera_yaw_prior_sigma_rad);
   const auto mean_error = [&]() -> absl::StatusOr<double> {
     absl::StatusOr<std::map<LandmarkId, Eigen::Matrix2d>> cov = bound.Covariances();
     if (!cov.ok()) return cov.status();
@@ -117,7 +118,10 @@ absl::StatusOr<double> LoopCramerRaoMeanError(const Scenario& scenario, const st
   };
   for (size_t k = 0; k < indices.size(); ++k) {
     absl::StatusOr<PassageFisherInformation> info =
-        PassageLandmarkInformation(scenario.MakePassage(indices[k]), options, true_pose, true_landmark);
+        PassageLandmarkInformation(scenario.MakePassage(indices[k]), options, true_pose, true_landmark,
+                                   camera_yaw_prior_sigma_rad > 0.0
+                                       ? std::optional<double>(scenario.CameraYawErrorRad(indices[k]))
+                                       : std::nullopt);
     if (!info.ok()) return info.status();
     bound.Add(*info);
     if (progress) {
@@ -208,7 +212,9 @@ absl::StatusOr<ExperimentResult> RunExperiment(const ExperimentOptions& options,
     for (int i = 0; i < options.passages; ++i) indices[i] = options.order.empty() ? i : options.order[i];
     GraphOptions graph;
     graph.detections_per_landmark = update.detections_per_landmark;
-    absl::StatusOr<double> bound = LoopCramerRaoMeanError(*scenario, indices, graph);
+    // With the camera yaw estimated, the bound has each vehicle's yaw offset as a state too.
+    absl::StatusOr<double> bound = LoopCramerRaoMeanError(
+        *scenario, indices, graph, update.estimate_camera_yaw ? update.camera_yaw_prior_sigma_rad : 0.0);
     if (!bound.ok()) return bound.status();
     result.crlb_mean_dist_err_m = *bound;
   }
@@ -216,12 +222,10 @@ absl::StatusOr<ExperimentResult> RunExperiment(const ExperimentOptions& options,
 }
 
 std::vector<std::pair<std::string, double>> FleetYawTruth(const Scenario& scenario) {
-  const ScenarioOptions& o = scenario.options();
-  const bool common = o.noise == NoiseConfig::kYawBias || o.noise == NoiseConfig::kGnssAr1YawBias;
   std::vector<std::pair<std::string, double>> truth;
-  for (int v = 0; v < o.vehicles; ++v) {
-    // The vehicle id of its passages (MakePassage(v) is its first).
-    truth.emplace_back(absl::StrCat("sim-v", v), scenario.VehicleYawBiasRad(v) + (common ? o.camera_yaw_bias_rad : 0.0));
+  for (int v = 0; v < scenario.options().vehicles; ++v) {
+    // Passage v is the vehicle's first.
+    truth.emplace_back(scenario.MakePassage(v).vehicle_id, scenario.CameraYawErrorRad(v));
   }
   return truth;
 }

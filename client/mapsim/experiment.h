@@ -85,8 +85,10 @@ using ExperimentProgress = std::function<void(const PassageRecord&)>;
 // The Cramer-Rao bound on the mean distance error of the map built from `scenario`'s passages
 // `indices` (mean over the landmarks seen of the bound's expected distance; see cramer_rao.h), and
 // `progress` called with the bound after each passage's information is added, if given.
+// `camera_yaw_prior_sigma_rad` > 0: the estimator estimates each vehicle's camera yaw offset with
+// this prior, and the bound holds these offsets as states (0: the calibration taken as known).
 absl::StatusOr<double> LoopCramerRaoMeanError(const Scenario& scenario, const std::vector<int>& indices,
-                                              const GraphOptions& graph,
+                                              const GraphOptions& graph, double camera_yaw_prior_sigma_rad = 0.0,
                                               const std::function<void(int, double)>& progress = nullptr);
 
 std::vector<int> ShuffledOrder(int passages, int window, int from, uint64_t seed);

@@ -714,7 +714,7 @@ absl::Status RunCrlbCommand(const std::vector<std::string>& args) {
   graph.detections_per_landmark = static_cast<int>(*per_landmark);
   int next_report = 1;
   absl::StatusOr<double> bound =
-      LoopCramerRaoMeanError(*scenario, indices, graph, [&](int done, double mean_error_m) {
+      LoopCramerRaoMeanError(*scenario, indices, graph, 0.0, [&](int done, double mean_error_m) {
         if (done != next_report && done != *passages) return;
         if (done == next_report) next_report *= 10;
         std::cout << absl::StrFormat("passages=%d crlb_mean_dist_err_m=%.4f\n", done, mean_error_m);

@@ -88,7 +88,8 @@ class CorrelatedGnssSequence : public ceres::CostFunction {
 
 absl::StatusOr<PassageFisherInformation> PassageLandmarkInformation(
     const Passage& passage, const GraphOptions& options, const std::function<Pose2(double)>& true_pose,
-    const std::function<std::optional<Eigen::Vector2d>(LandmarkId)>& true_landmark) {
+    const std::function<std::optional<Eigen::Vector2d>(LandmarkId)>& true_landmark,
+    std::optional<double> true_camera_yaw_offset_rad) {
   if (!options.frame_origin) return absl::InvalidArgumentError("frame_origin: must be set (the truth's frame)");
   GraphOptions graph_options = options;
   graph_options.refine_initial_poses = false;  // the graph is evaluated at the truth, not solved
@@ -135,44 +136,70 @@ absl::StatusOr<PassageFisherInformation> PassageLandmarkInformation(
     }
     cameras.emplace_back(it->second, &d);
   }
+  double yaw_offset_rad = true_camera_yaw_offset_rad.value_or(0.0);
   for (const auto& [k, d] : cameras) {
-    problem.AddResidualBlock(CameraFactor::Create(d->u_px, passage.noise.pixel_sigma_px, passage.calibration), nullptr,
-                             poses[d->node].data(), positions[k].data());
+    const double sigma_px = passage.noise.pixel_sigma_px;
+    if (true_camera_yaw_offset_rad) {
+      problem.AddResidualBlock(CameraYawFactor::Create(d->u_px, sigma_px, passage.calibration), nullptr,
+                               poses[d->node].data(), positions[k].data(), &yaw_offset_rad);
+    } else {
+      problem.AddResidualBlock(CameraFactor::Create(d->u_px, sigma_px, passage.calibration), nullptr,
+                               poses[d->node].data(), positions[k].data());
+    }
   }
   std::vector<ceres::ResidualBlockId> residuals;
   problem.GetResidualBlocks(&residuals);
   std::vector<double*> blocks;
   for (Eigen::Vector2d& p : positions) blocks.push_back(p.data());
+  if (true_camera_yaw_offset_rad && !cameras.empty()) {
+    blocks.push_back(&yaw_offset_rad);
+    out.camera_yaw_vehicle = passage.vehicle_id;
+  }
   absl::StatusOr<LandmarkInformation> information = EliminateToLandmarks(&problem, residuals, blocks);
   if (!information.ok()) return information.status();
   out.information = std::move(information->information);
   return out;
 }
 
+int CramerRaoBound::Grow(int rows) {
+  const int at = static_cast<int>(information_.rows());
+  information_.conservativeResizeLike(Eigen::MatrixXd::Zero(at + rows, at + rows));
+  return at;
+}
+
 void CramerRaoBound::Add(const PassageFisherInformation& passage) {
-  std::vector<int> at;
+  // Each of the passage's rows and where it goes.
+  std::vector<int> to;
   for (LandmarkId id : passage.landmarks) {
-    auto [it, inserted] = index_.emplace(id, static_cast<int>(index_.size()));
-    at.push_back(it->second);
+    auto it = landmark_offset_.find(id);
+    if (it == landmark_offset_.end()) it = landmark_offset_.emplace(id, Grow(2)).first;
+    to.push_back(it->second);
+    to.push_back(it->second + 1);
   }
-  const int n = 2 * static_cast<int>(index_.size());
-  if (information_.rows() < n) information_.conservativeResizeLike(Eigen::MatrixXd::Zero(n, n));
-  for (size_t a = 0; a < at.size(); ++a) {
-    for (size_t b = 0; b < at.size(); ++b) {
-      information_.block<2, 2>(2 * at[a], 2 * at[b]) += passage.information.block<2, 2>(2 * a, 2 * b);
+  if (passage.camera_yaw_vehicle) {
+    auto it = vehicle_offset_.find(*passage.camera_yaw_vehicle);
+    if (it == vehicle_offset_.end()) {
+      it = vehicle_offset_.emplace(*passage.camera_yaw_vehicle, Grow(1)).first;
+      if (camera_yaw_prior_sigma_rad_ > 0.0) {
+        information_(it->second, it->second) += 1.0 / (camera_yaw_prior_sigma_rad_ * camera_yaw_prior_sigma_rad_);
+      }
     }
+    to.push_back(it->second);
+  }
+  for (size_t a = 0; a < to.size(); ++a) {
+    for (size_t b = 0; b < to.size(); ++b) information_(to[a], to[b]) += passage.information(a, b);
   }
 }
 
 absl::StatusOr<std::map<LandmarkId, Eigen::Matrix2d>> CramerRaoBound::Covariances() const {
   std::map<LandmarkId, Eigen::Matrix2d> out;
-  if (index_.empty()) return out;
+  if (landmark_offset_.empty()) return out;
   const Eigen::LLT<Eigen::MatrixXd> llt(0.5 * (information_ + information_.transpose()));
   if (llt.info() != Eigen::Success) {
     return absl::FailedPreconditionError("Cramer-Rao bound: the passages' information does not determine every landmark");
   }
   const Eigen::MatrixXd cov = llt.solve(Eigen::MatrixXd::Identity(information_.rows(), information_.cols()));
-  for (const auto& [id, i] : index_) out[id] = cov.block<2, 2>(2 * i, 2 * i);
+  for (const auto& [id, i] : landmark_offset_) out[id] = cov.block<2, 2>(i, i);
   return out;
 }
 

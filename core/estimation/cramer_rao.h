@@ -9,6 +9,7 @@
 #include <functional>
 #include <map>
 #include <optional>
+#include <string>
 #include <vector>
 
 #include <Eigen/Core>
@@ -27,19 +28,32 @@ namespace crowdmap {
 // factors, so that the bound checks them.
 struct PassageFisherInformation {
   std::vector<LandmarkId> landmarks;
-  Eigen::MatrixXd information;  // 2 rows per landmark, in `landmarks` order
+  // With the camera yaw estimated: the passage's vehicle, whose camera yaw offset (one state per
+  // vehicle, shared by its passages) follows the landmarks in `information`.
+  std::optional<std::string> camera_yaw_vehicle;
+  Eigen::MatrixXd information;  // 2 rows per landmark, in `landmarks` order, then the yaw's row
 };
 
 // `true_pose(t)` is the vehicle's true pose at t (s since the passage start) and
 // `true_landmark(id)` a landmark's true position, both in the frame at options.frame_origin
 // (which must be set). Detections of landmarks without a true position are left out.
+// `true_camera_yaw_offset_rad`: set when the estimator estimates the vehicle's camera yaw offset
+// (MapUpdateOptions::estimate_camera_yaw), the true offset of its camera from the declared
+// calibration; the offset is then a state of the bound, not eliminated with the poses.
 absl::StatusOr<PassageFisherInformation> PassageLandmarkInformation(
     const Passage& passage, const GraphOptions& options, const std::function<Pose2(double)>& true_pose,
-    const std::function<std::optional<Eigen::Vector2d>(LandmarkId)>& true_landmark);
+    const std::function<std::optional<Eigen::Vector2d>(LandmarkId)>& true_landmark,
+    std::optional<double> true_camera_yaw_offset_rad = std::nullopt);
 
 // Sums passages' Fisher information and gives the bound.
 class CramerRaoBound {
  public:
+  // `camera_yaw_prior_sigma_rad`: the estimator's prior on a vehicle's camera yaw offset, added
+  // once per vehicle whose passages carry the yaw state (a Bayesian bound: the prior is
+  // information the estimator has). 0: no prior.
+  explicit CramerRaoBound(double camera_yaw_prior_sigma_rad = 0.0)
+      : camera_yaw_prior_sigma_rad_(camera_yaw_prior_sigma_rad) {}
+
   void Add(const PassageFisherInformation& passage);
   // The bound on each landmark seen so far: its 2x2 block of the inverse of the summed
   // information. FailedPrecondition when the information is singular (a landmark the passages do
@@ -47,8 +61,12 @@ class CramerRaoBound {
   absl::StatusOr<std::map<LandmarkId, Eigen::Matrix2d>> Covariances() const;
 
  private:
-  std::map<LandmarkId, int> index_;
+  // Offset of each landmark (2 rows) and of each vehicle's camera yaw (1 row) in information_.
+  int Grow(int rows);  // a new variable's offset
+  std::map<LandmarkId, int> landmark_offset_;
+  std::map<std::string, int> vehicle_offset_;
   Eigen::MatrixXd information_;
+  double camera_yaw_prior_sigma_rad_;
 };
 
 // Expected distance |e| of a zero-mean 2-D Gaussian error with covariance `cov`: the bound's

@@ -38,15 +38,51 @@ LoopBound MakeLoop(int landmarks, uint64_t seed, NoiseConfig noise = NoiseConfig
   return {*std::move(scenario), options};
 }
 
-PassageFisherInformation Information(const LoopBound& loop, int index) {
+PassageFisherInformation Information(const LoopBound& loop, int index, bool camera_yaw = false) {
   absl::StatusOr<PassageFisherInformation> info = PassageLandmarkInformation(
       loop.scenario.MakePassage(index), loop.options, [&](double t) { return loop.scenario.TruePoseAt(t); },
       [&](LandmarkId id) -> std::optional<Eigen::Vector2d> {
         if (id < 1 || id > static_cast<LandmarkId>(loop.scenario.landmarks().size())) return std::nullopt;
         return loop.scenario.landmarks()[id - 1].position_m;
-      });
+      },
+      camera_yaw ? std::optional<double>(loop.scenario.CameraYawErrorRad(index)) : std::nullopt);
   EXPECT_TRUE(info.ok()) << info.status();
   return *std::move(info);
+}
+
+// A camera yaw state shared by a vehicle's passages: the bound loosens, to the known-calibration
+// bound as its prior tightens, and less as more passages of the vehicle pin the yaw down.
+TEST(CramerRaoBound, AnEstimatedCameraYawLoosensTheBoundByWhatItsPriorLeavesOpen) {
+  ScenarioOptions o;
+  o.landmarks = 10;
+  o.vehicles = 2;
+  o.vehicle_yaw_bias_sigma_rad = 0.01;
+  absl::StatusOr<Scenario> scenario = Scenario::Create(o);
+  ASSERT_TRUE(scenario.ok());
+  GraphOptions options;
+  options.frame_origin = scenario->options().origin;
+  const LoopBound loop{*std::move(scenario), options};
+  const int passages = 6;
+  auto mean_variance = [&](bool yaw, double prior_sigma) {
+    CramerRaoBound bound(prior_sigma);
+    for (int i = 0; i < passages; ++i) {
+      const PassageFisherInformation info = Information(loop, i, yaw);
+      EXPECT_EQ(info.camera_yaw_vehicle.has_value(), yaw);
+      if (yaw) EXPECT_EQ(info.information.rows(), 2 * static_cast<int>(info.landmarks.size()) + 1);
+      bound.Add(info);
+    }
+    const auto cov = bound.Covariances();
+    EXPECT_TRUE(cov.ok()) << cov.status();
+    double sum = 0.0;
+    for (const auto& [id, c] : *cov) sum += c.trace() / cov->size();
+    return sum;
+  };
+  const double known = mean_variance(false, 0.0);
+  const double loose = mean_variance(true, 0.02), tight = mean_variance(true, 1e-7);
+  EXPECT_GT(loose, 1.01 * known);
+  // (to 1e-4: the known-calibration bound is taken at the declared camera yaw, the other at the
+  // true one, about 0.01 rad apart)
+  EXPECT_NEAR(tight / known, 1.0, 1e-4);
 }
 
 TEST(CramerRaoBound, TheSamePassageTwiceHalvesTheBound) {

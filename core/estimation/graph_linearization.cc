@@ -21,7 +21,8 @@ absl::StatusOr<LandmarkInformation> EliminateToLandmarks(ceres::Problem* problem
   }
   int nx = 0;
   for (double* block : ordered) nx += problem->ParameterBlockSize(block);
-  const int nl = 2 * static_cast<int>(landmarks.size());
+  int nl = 0;
+  for (double* block : landmarks) nl += problem->ParameterBlockSize(block);
   ordered.insert(ordered.end(), landmarks.begin(), landmarks.end());
 
   ceres::Problem::EvaluateOptions evaluate;

@@ -19,7 +19,8 @@ namespace crowdmap {
 // What some residual blocks say about some landmarks at the problem's current point once the
 // other parameter blocks they involve are eliminated: their cost is, to second order,
 // const + gradient^T d + 1/2 d^T information d in the landmarks' displacement d (2 per landmark,
-// in the order given). Landmarks the blocks do not involve get zero rows.
+// in the order given). Landmarks the blocks do not involve get zero rows. Other blocks to keep
+// (a calibration state) may be passed among the landmarks, with their own sizes.
 struct LandmarkInformation {
   Eigen::MatrixXd information;
   Eigen::VectorXd gradient;

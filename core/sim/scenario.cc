@@ -162,6 +162,11 @@ double Scenario::VehicleYawBiasRad(int vehicle) const {
   return options_.vehicle_yaw_bias_sigma_rad * std::normal_distribution<double>(0.0, 1.0)(rng);
 }
 
+double Scenario::CameraYawErrorRad(int index) const {
+  const bool common = options_.noise == NoiseConfig::kYawBias || options_.noise == NoiseConfig::kGnssAr1YawBias;
+  return (common ? options_.camera_yaw_bias_rad : 0.0) + VehicleYawBiasRad(VehicleOf(index));
+}
+
 Passage Scenario::MakePassage(int index) const {
   const ScenarioOptions& o = options_;
   NoiseSource noise(SplitMix64(SplitMix64(o.seed) ^ static_cast<uint64_t>(index)));
@@ -182,10 +187,8 @@ Passage Scenario::MakePassage(int index) const {
   p.noise.gnss_correlation_time_s = gnss.CorrelationTimeS();  // the passage declares its GNSS process
   p.gnss = SimulateGnss([this](double t) { return TruePoseAt(t); }, o.duration_s, frame_, o.calibration, gnss, &noise);
 
-  const bool yaw_bias = o.noise == NoiseConfig::kYawBias || o.noise == NoiseConfig::kGnssAr1YawBias;
   Calibration true_camera = o.calibration;
-  if (yaw_bias) true_camera.camera_yaw_rad += o.camera_yaw_bias_rad;
-  true_camera.camera_yaw_rad += VehicleYawBiasRad(VehicleOf(index));
+  true_camera.camera_yaw_rad += CameraYawErrorRad(index);
   const int frames = static_cast<int>(std::floor(o.duration_s * o.camera_rate_hz + 1e-9)) + 1;
   for (int k = 0; k < frames; ++k) {
     const double t = k / o.camera_rate_hz;

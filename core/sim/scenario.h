@@ -93,6 +93,9 @@ class Scenario {
   // (rad; 0 without a fleet).
   int VehicleOf(int index) const { return options_.vehicles > 0 ? index % options_.vehicles : 0; }
   double VehicleYawBiasRad(int vehicle) const;
+  // How far passage `index`'s true camera yaw is off the calibration it declares (rad): the noise
+  // configuration's common bias plus its vehicle's own error.
+  double CameraYawErrorRad(int index) const;
 
   // True pose at time t (seconds since start), by the same bicycle steps as the route.
   Pose2 TruePoseAt(double t_s) const;
