@@ -5,6 +5,7 @@
 #include <unordered_set>
 
 #include "absl/strings/str_cat.h"
+#include "core/estimation/vehicle_calibration.h"
 #include "core/localization/passage_localizer.h"
 #include "server/map_service.h"
 #include "server/request_log.h"
@@ -76,9 +77,18 @@ grpc::Status MapService::LocalizePassage(grpc::ServerContext* ctx, const pb::Loc
   absl::StatusOr<LandmarkPage> page =
       context_->store->QueryRegion(PassageBox(*passage), /*after_id=*/0, /*limit=*/0, /*include_cross=*/true);
   if (!page.ok()) return log.Done(page.status());
+  // The vehicle's camera yaw as its uploads estimated it, when they did.
+  double camera_yaw_offset_rad = 0.0;
+  if (absl::StatusOr<VehicleCalibration> vehicle = context_->store->GetVehicle(passage->vehicle_id); vehicle.ok()) {
+    camera_yaw_offset_rad = vehicle->camera_yaw_offset_rad;
+    *passage = WithVehicleCameraYaw(*passage, *vehicle);
+  } else if (!absl::IsNotFound(vehicle.status())) {
+    return log.Done(vehicle.status());
+  }
   absl::StatusOr<PassageLocalization> result = crowdmap::LocalizePassage(*passage, LocalizationMapFromPage(*passage, *page));
   if (!result.ok()) return log.Done(result.status());
   PassageLocalizationToProto(*result, response);
+  response->set_camera_yaw_offset_rad(camera_yaw_offset_rad);
   log.Add(result->Brief());
   return log.Done(absl::OkStatus());
 }

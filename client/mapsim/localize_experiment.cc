@@ -12,6 +12,7 @@
 #include "absl/strings/str_format.h"
 #include "core/estimation/factors.h"
 #include "core/estimation/map_updater.h"
+#include "core/estimation/vehicle_calibration.h"
 #include "core/map/map_state.h"
 #include "core/sim/metrics.h"
 #include "core/sim/sensor_simulation.h"
@@ -52,10 +53,14 @@ LocalizationMap ThesisMap(const Scenario& scenario, const LocalizeExperimentOpti
 }
 
 // crowdmap's own map of the scenario after `passages` passages (indices 100000 + i, so none is a
-// localised passage), applied in order by the in-process updater with its default options.
+// localised passage), applied in order by the in-process updater with mapd's default options:
+// the camera yaw of each vehicle (sim-<i % 1000>: the localised passage i's vehicle drove map
+// passage 100000 + i) estimated.
 absl::StatusOr<MapState> OwnMap(const Scenario& scenario, int passages, const LocalizeProgress& progress) {
   MapState map;
-  MapUpdater updater{MapUpdateOptions{}};
+  MapUpdateOptions options;
+  options.estimate_camera_yaw = true;
+  MapUpdater updater{options};
   for (int i = 0; i < passages; ++i) {
     const Passage passage = scenario.MakePassage(100000 + i);
     absl::StatusOr<PassageUpdate> update = updater.Compute(passage, map);
@@ -157,6 +162,11 @@ absl::StatusOr<std::vector<LocalizeRow>> RunLocalizeExperiment(const LocalizeExp
       }
       for (int run = 0; run < options.runs; ++run) {
         const Passage passage = scenario->MakePassage(run);
+        // With crowdmap's map, as LocalizePassage: the vehicle's estimated camera yaw applied.
+        Passage with_map = passage;
+        if (const VehicleCalibration* vehicle = own ? own->FindVehicle(passage.vehicle_id) : nullptr) {
+          with_map = WithVehicleCameraYaw(passage, *vehicle);
+        }
         absl::StatusOr<LocalizationMap> map =
             own ? ReadLocalizationMap(*own, passage)
                 : absl::StatusOr<LocalizationMap>(ThesisMap(*scenario, options, cases[c].inconsistent_map,
@@ -164,7 +174,7 @@ absl::StatusOr<std::vector<LocalizeRow>> RunLocalizeExperiment(const LocalizeExp
         if (!map.ok()) return map.status();
         absl::StatusOr<PassageLocalization> alone = LocalizePassage(passage, LocalizationMap{}, options.localizer);
         if (!alone.ok()) return alone.status();
-        absl::StatusOr<PassageLocalization> located = LocalizePassage(passage, *map, options.localizer);
+        absl::StatusOr<PassageLocalization> located = LocalizePassage(with_map, *map, options.localizer);
         if (!located.ok()) return located.status();
         Accumulate(*scenario, *alone, &without);
         Accumulate(*scenario, *located, &with);

@@ -3,6 +3,9 @@
 #include <algorithm>
 #include <chrono>
 
+#include <Eigen/Cholesky>
+#include <Eigen/Eigenvalues>
+
 #include "absl/strings/str_cat.h"
 #include "core/estimation/factors.h"
 
@@ -14,6 +17,20 @@ double MillisecondsSince(std::chrono::steady_clock::time_point start) {
 }
 
 Eigen::MatrixXd Symmetrized(const Eigen::MatrixXd& m) { return 0.5 * (m + m.transpose()); }
+
+// A factor's information, posterior - prior, is positive semi-definite, but the difference of
+// two matrices some hundred times larger than it (a mature map's prior) leaves rounding errors of
+// either sign along the directions the passage hardly informs (with the camera yaw estimated, the
+// landmarks' common turn about the vehicle). Eigenvalues below zero by no more than the rounding
+// of `posterior` are set to zero; a larger negative one is left for the map invariants to refuse.
+Eigen::MatrixXd WithoutRoundingNegatives(const Eigen::MatrixXd& information, const Eigen::MatrixXd& posterior) {
+  if (information.rows() == 0 || Eigen::LDLT<Eigen::MatrixXd>(information).isPositive()) return information;
+  const Eigen::SelfAdjointEigenSolver<Eigen::MatrixXd> eigen(information);
+  const double rounding = 1e-10 * posterior.cwiseAbs().maxCoeff() * static_cast<double>(information.rows());
+  if (eigen.info() != Eigen::Success || eigen.eigenvalues()(0) < -rounding) return information;
+  const Eigen::VectorXd clipped = eigen.eigenvalues().cwiseMax(0.0);
+  return Symmetrized(eigen.eigenvectors() * clipped.asDiagonal() * eigen.eigenvectors().transpose());
+}
 
 // A landmark outside a graph whose estimate moved by less than this is not rewritten (a change of
 // the conditioning far from the graph, below any use).
@@ -158,7 +175,7 @@ absl::StatusOr<LandmarkUpdateStats> LandmarkUpdate::Commit(const Eigen::MatrixXd
     if (llt.info() != Eigen::Success) return absl::InternalError("graph landmark covariance is not positive definite");
     const Eigen::MatrixXd information = Symmetrized(llt.solve(Eigen::MatrixXd::Identity(2 * n, 2 * n)));
     MapFactor f = make_factor(ids_);
-    f.information = Symmetrized(information - prior);
+    f.information = WithoutRoundingNegatives(Symmetrized(information - prior), information);
     f.information_vector = information * x - prior_vector - gradient;
     const int64_t factor_id = AddLocalFactor(frame_, x, std::move(f), map_);
     if (prior_window_ && prior_window_->closed()) {

@@ -374,9 +374,9 @@ absl::Status ApplyPassage(const Passage& declared, const MapUpdateOptions& optio
   // vehicle's offset so far applied to the camera yaw it declares.
   Passage calibrated;
   if (options.estimate_camera_yaw) {
-    progress.yaw_base_rad = VehicleYawPrior(declared.vehicle_id, options, *overlay).camera_yaw_offset_rad;
-    calibrated = declared;
-    calibrated.calibration.camera_yaw_rad += progress.yaw_base_rad;
+    const VehicleCalibration vehicle = VehicleYawPrior(declared.vehicle_id, options, *overlay);
+    progress.yaw_base_rad = vehicle.camera_yaw_offset_rad;
+    calibrated = WithVehicleCameraYaw(declared, vehicle);
   }
   const Passage& passage = options.estimate_camera_yaw ? calibrated : declared;
   GraphOptions graph_options;

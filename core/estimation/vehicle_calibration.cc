@@ -30,4 +30,10 @@ VehicleCalibration ConsiderCameraYawSolve(const VehicleCalibration& prior, doubl
   return v;
 }
 
+Passage WithVehicleCameraYaw(const Passage& passage, const VehicleCalibration& vehicle) {
+  Passage calibrated = passage;
+  calibrated.calibration.camera_yaw_rad += vehicle.camera_yaw_offset_rad;
+  return calibrated;
+}
+
 }  // namespace crowdmap

@@ -8,6 +8,7 @@
 #include <string>
 
 #include "core/map/map_state.h"
+#include "core/model/passage.h"
 
 namespace crowdmap {
 
@@ -35,6 +36,10 @@ VehicleCalibration NewVehicleCalibration(const std::string& vehicle_id, double p
 // and its variance is 1/I + U / I^2. The mean is the solve's posterior mean.
 VehicleCalibration ConsiderCameraYawSolve(const VehicleCalibration& prior, double posterior_offset_rad,
                                           double given_landmarks_rad2, double from_landmarks_rad2);
+
+// `passage` with the vehicle's estimated offset added to the camera yaw it declares: how the map
+// update solves it and how LocalizePassage localises it.
+Passage WithVehicleCameraYaw(const Passage& passage, const VehicleCalibration& vehicle);
 
 }  // namespace crowdmap
 
