@@ -7,6 +7,7 @@
 #include <optional>
 
 #include <google/protobuf/util/json_util.h>
+#include <nlohmann/json.hpp>
 
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
@@ -358,7 +359,7 @@ absl::Status TileAt(const Arguments& args, Context& ctx) {
   }
   const TileId tile = TileContaining(p, kStorageZoom);
   if (ctx.json) {
-    *ctx.out << absl::StrFormat("{\n  \"z\": %d,\n  \"x\": %d,\n  \"y\": %d\n}\n", tile.z, tile.x, tile.y);
+    *ctx.out << nlohmann::ordered_json{{"z", tile.z}, {"x", tile.x}, {"y", tile.y}}.dump(2) << "\n";
   } else {
     *ctx.out << absl::StrFormat("%d %d %d\n", tile.z, tile.x, tile.y);
   }

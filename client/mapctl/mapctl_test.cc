@@ -163,7 +163,7 @@ TEST_F(MapctlTest, MapReadsShowEveryLandmark) {
 
   CliRun geo = Mapctl({"export", "--bbox", RouteBbox(), "--format", "geojson", "--ellipses"}, address_);
   ASSERT_EQ(geo.code, 0) << geo.err;
-  EXPECT_TRUE(absl::StartsWith(geo.out, "{\"type\": \"FeatureCollection\"")) << geo.out.substr(0, 80);
+  EXPECT_TRUE(absl::StartsWith(geo.out, "{\"type\":\"FeatureCollection\"")) << geo.out.substr(0, 80);
   EXPECT_EQ(Count(geo.out, "\"Point\""), landmarks);
   EXPECT_EQ(Count(geo.out, "\"Polygon\""), landmarks);
   CliRun to_file = Mapctl({"export", "--bbox", RouteBbox(), "--out", dir_.File("map.geojson")}, address_);
