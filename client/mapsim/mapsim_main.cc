@@ -8,6 +8,7 @@
 #include <map>
 #include <numeric>
 #include <string>
+#include <tuple>
 #include <utility>
 #include <vector>
 
@@ -61,12 +62,13 @@ struct NoiseScales {
 };
 
 void AddNoiseScaleFlags(CLI::App* command, NoiseScales* scales) {
-  const std::pair<const char*, double*> flags[] = {{"--steering-noise-scale", &scales->steering},
-                                                   {"--speed-noise-scale", &scales->speed},
-                                                   {"--gnss-noise-scale", &scales->gnss},
-                                                   {"--pixel-noise-scale", &scales->pixel}};
-  for (const auto& [name, scale] : flags) {
-    command->add_option(name, *scale, "scale this sensor's noise, drawn and modelled alike")
+  const std::tuple<const char*, double*, const char*> flags[] = {
+      {"--steering-noise-scale", &scales->steering, "steering"},
+      {"--speed-noise-scale", &scales->speed, "speed"},
+      {"--gnss-noise-scale", &scales->gnss, "GNSS"},
+      {"--pixel-noise-scale", &scales->pixel, "camera's pixel"}};
+  for (const auto& [name, scale, sensor] : flags) {
+    command->add_option(name, *scale, absl::StrCat("scale the ", sensor, " noise, drawn and modelled alike"))
         ->check(Positive())
         ->type_name("X");
   }
