@@ -61,11 +61,11 @@ int Lines(const std::string& text) {
 TEST(MapsimExitCodes, UsageErrorsExitWithTwoAndOneLine) {
   const std::vector<std::pair<std::vector<std::string>, std::string>> cases = {
       {{"frobnicate"}, "unknown command 'frobnicate'"},
-      {{"experiment", "--colour"}, "unknown flag --colour"},
-      {{"experiment", "extra"}, "unexpected argument 'extra'"},
-      {{"experiment", "--passages"}, "--passages needs a value"},
-      {{"experiment", "--passages", "--quiet"}, "--passages needs a value"},
-      {{"experiment", "--passages", "x"}, "--passages: expected an integer"},
+      {{"experiment", "--colour"}, "not expected: --colour"},
+      {{"experiment", "extra"}, "not expected: extra"},
+      {{"experiment", "--passages"}, "--passages: 1 required"},
+      {{"experiment", "--passages", "--quiet"}, "--passages: needs a value"},
+      {{"experiment", "--passages", "x"}, "Could not convert: --passages = x"},
       {{"experiment", "--passages", "0"}, "passages: must be >= 1"},
       {{"experiment", "--noise", "pink"}, "unknown 'pink'"},
       {{"experiment", "--strategy", "foo"}, "unknown 'foo'"},
@@ -76,11 +76,12 @@ TEST(MapsimExitCodes, UsageErrorsExitWithTwoAndOneLine) {
       {{"pose-bias", "--passages", "-1"}, "passages: must be >= 2"},
       {{"passage-consistency", "--strategy", "dc"}, "strategy: dc"},
       {{"passage-consistency", "--noise", "pink"}, "unknown 'pink'"},
-      {{"localize", "--landmarks", "a,b"}, "not a comma-separated list of integers"},
-      {{"reproduce", "--jobs", "two"}, "--jobs: expected an integer"},
+      {{"localize", "--landmarks", "a,b"}, "Could not convert: --landmarks = a,b"},
+      {{"reproduce", "--jobs", "two"}, "Could not convert: --jobs = two"},
       {{"fleet", "--vehicles", "0"}, "vehicles: must be >= 1"},
+      {{"fleet", "--route-m", "900"}, "--route-m requires --city"},
       {{"fleet", "--tls-cert", "c.pem"}, "--tls-cert"},
-      {{"export-passages", "--format", "xml"}, "--format: 'xml' is not json or binary"},
+      {{"export-passages", "--format", "xml"}, "--format: xml not in {json,binary}"},
       {{"bench", "--clients", "0"}, "clients >= 1"},
   };
   for (const auto& [args, message] : cases) {
@@ -120,6 +121,25 @@ TEST(MapctlExitCodes, TheBinaryExitsWithTheDocumentedCodes) {
   BinaryRun tile = RunBinary(MAPCTL_PATH, {"tile", "--at", "0.5,0.5"});
   EXPECT_EQ(tile.code, 0) << tile.err;
   EXPECT_EQ(tile.out, "16 32859 32676\n");
+}
+
+TEST(MapctlServer, ReadsMapctlServerAndTheFlagWins) {
+  BinaryRun env = RunBinary(MAPCTL_PATH, {"info"}, "MAPCTL_SERVER=127.0.0.1:1");
+  EXPECT_EQ(env.code, 1);
+  EXPECT_TRUE(absl::StrContains(env.err, "127.0.0.1:1")) << env.err;
+  TempDir dir;
+  auto server = StartTestServer(TestServerOptions(dir.File("map.db")));
+  ASSERT_NE(server, nullptr);
+  BinaryRun r = RunBinary(MAPCTL_PATH, {"info", "--json"}, "MAPCTL_SERVER=" + server->address());
+  EXPECT_EQ(r.code, 0) << r.err;
+  EXPECT_TRUE(absl::StrContains(r.out, "\"landmark_count\": \"0\"")) << r.out;
+  BinaryRun flagged = RunBinary(MAPCTL_PATH, {"info", "--server", server->address()}, "MAPCTL_SERVER=127.0.0.1:1");
+  EXPECT_EQ(flagged.code, 0) << flagged.err;
+  // The token file named by the environment is read like --token-file's.
+  BinaryRun token = RunBinary(MAPCTL_PATH, {"info", "--server", server->address()},
+                              "CROWDMAP_TOKEN_FILE=" + dir.File("no-such-token"));
+  EXPECT_EQ(token.code, 2) << token.err;
+  EXPECT_TRUE(absl::StrContains(token.err, "--token-file: cannot read")) << token.err;
 }
 
 TEST(MapsimServer, FleetReadsMapctlServerLikeMapctl) {

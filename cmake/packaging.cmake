@@ -21,7 +21,7 @@ install(DIRECTORY ${PROJECT_SOURCE_DIR}/proto/mapservice DESTINATION ${CMAKE_INS
 # the crowdmap_ prefix>). Their include directories point into the source and build trees; for
 # the export they are wrapped so that an installed consumer sees include/crowdmap instead.
 set(crowdmap_exported crowdmap_client crowdmap_wire crowdmap_proto crowdmap_map crowdmap_model crowdmap_geo
-  crowdmap_flags crowdmap_localization crowdmap_estimation)
+  crowdmap_localization crowdmap_estimation)
 foreach(target IN LISTS crowdmap_exported)
   get_target_property(dirs ${target} INTERFACE_INCLUDE_DIRECTORIES)
   set(wrapped "$<INSTALL_INTERFACE:${CROWDMAP_INSTALL_INCLUDEDIR}>")
@@ -46,7 +46,6 @@ install(EXPORT crowdmapTargets NAMESPACE crowdmap:: DESTINATION ${CROWDMAP_INSTA
 install(DIRECTORY ${PROJECT_SOURCE_DIR}/core DESTINATION ${CROWDMAP_INSTALL_INCLUDEDIR} FILES_MATCHING PATTERN "*.h")
 install(DIRECTORY ${PROJECT_SOURCE_DIR}/client/api DESTINATION ${CROWDMAP_INSTALL_INCLUDEDIR}/client
   FILES_MATCHING PATTERN "*.h")
-install(FILES ${PROJECT_SOURCE_DIR}/client/common/flags.h DESTINATION ${CROWDMAP_INSTALL_INCLUDEDIR}/client/common)
 install(FILES ${PROJECT_SOURCE_DIR}/server/grpc_status.h ${PROJECT_SOURCE_DIR}/server/wire_convert.h
   ${PROJECT_SOURCE_DIR}/server/geojson.h DESTINATION ${CROWDMAP_INSTALL_INCLUDEDIR}/server)
 install(FILES ${PROJECT_SOURCE_DIR}/server/storage/map_store.h DESTINATION ${CROWDMAP_INSTALL_INCLUDEDIR}/server/storage)

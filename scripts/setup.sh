@@ -29,6 +29,7 @@ PACKAGES=(
   libcivetweb-dev libjs-leaflet
   python3 python3-yaml
   libssl-dev openssl
+  libcli11-dev nlohmann-json3-dev
 )
 # Only for the tests: GoogleTest, Google Benchmark, the map viewer's browser test (headless
 # chromium through chromedriver and selenium) and the Python client example's gRPC runtime.

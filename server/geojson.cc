@@ -4,9 +4,8 @@
 #include <cmath>
 
 #include <Eigen/Eigenvalues>
+#include <nlohmann/json.hpp>
 
-#include "absl/strings/str_cat.h"
-#include "absl/strings/str_format.h"
 #include "core/geo/local_frame.h"
 
 namespace crowdmap {
@@ -14,8 +13,9 @@ namespace {
 
 constexpr double kChi2Dof2P95 = 5.991464547107979;  // chi-square quantile, 2 dof, p = 0.95
 
-std::string Num(double v) { return absl::StrFormat("%.10g", v); }
-std::string Coord(const LatLon& p) { return absl::StrFormat("[%.9f, %.9f]", p.lon_deg, p.lat_deg); }
+using Json = nlohmann::ordered_json;
+
+Json Position(const LatLon& p) { return Json::array({GeoJsonDegrees(p.lon_deg), GeoJsonDegrees(p.lat_deg)}); }
 
 Eigen::Matrix2d Cov(const ::mapservice::v1::Landmark& l) {
   Eigen::Matrix2d c;
@@ -23,19 +23,19 @@ Eigen::Matrix2d Cov(const ::mapservice::v1::Landmark& l) {
   return c;
 }
 
-std::string EllipseRing(const LatLon& center, const Eigen::Matrix2d& cov, int points) {
+Json EllipseRing(const LatLon& center, const Eigen::Matrix2d& cov, int points) {
   const ErrorEllipse e = ErrorEllipse95(cov);
   const double azimuth_rad = e.azimuth_deg * M_PI / 180.0;
   const Eigen::Vector2d major_dir(std::sin(azimuth_rad), std::cos(azimuth_rad));  // (East, North)
   const Eigen::Vector2d minor_dir(-major_dir.y(), major_dir.x());  // +90 deg: the ring runs counterclockwise
   const LocalFrame frame(center);
-  std::string ring = "[";
+  Json ring = Json::array();
   for (int k = 0; k <= points; ++k) {
     const double t = 2.0 * M_PI * (k % points) / points;
     const Eigen::Vector2d en = e.semi_major_m * std::cos(t) * major_dir + e.semi_minor_m * std::sin(t) * minor_dir;
-    absl::StrAppend(&ring, k ? ", " : "", Coord(frame.ToGeo(en)));
+    ring.push_back(Position(frame.ToGeo(en)));
   }
-  return ring + "]";
+  return ring;
 }
 
 }  // namespace
@@ -52,35 +52,41 @@ ErrorEllipse ErrorEllipse95(const Eigen::Matrix2d& cov_en_m2) {
   return e;
 }
 
+double GeoJsonDegrees(double deg) { return std::round(deg * 1e9) / 1e9; }
+
 std::string LandmarksToGeoJson(const std::vector<::mapservice::v1::Landmark>& landmarks, int64_t map_version,
                                const GeoJsonOptions& options) {
   const int points = std::max(8, options.ellipse_points);
-  std::string out = absl::StrCat("{\"type\": \"FeatureCollection\", \"map_version\": ", map_version,
-                                 ", \"features\": [");
-  bool first = true;
+  Json features = Json::array();
   for (const ::mapservice::v1::Landmark& l : landmarks) {
     const LatLon position{l.lat_deg(), l.lon_deg()};
     const Eigen::Matrix2d cov = Cov(l);
     const ErrorEllipse e = ErrorEllipse95(cov);
-    absl::StrAppend(&out, first ? "\n" : ",\n", "{\"type\": \"Feature\", \"id\": ", l.id(),
-                    ", \"geometry\": {\"type\": \"Point\", \"coordinates\": ", Coord(position), "}",
-                    ", \"properties\": {\"id\": ", l.id(), ", \"kind\": \"landmark\"",
-                    ", \"cov_en_m2\": [[", Num(cov(0, 0)), ", ", Num(cov(0, 1)), "], [", Num(cov(1, 0)), ", ",
-                    Num(cov(1, 1)), "]]", ", \"sigma_east_m\": ", Num(std::sqrt(cov(0, 0))),
-                    ", \"sigma_north_m\": ", Num(std::sqrt(cov(1, 1))),
-                    ", \"ellipse95_semi_major_m\": ", Num(e.semi_major_m),
-                    ", \"ellipse95_semi_minor_m\": ", Num(e.semi_minor_m),
-                    ", \"ellipse95_azimuth_deg\": ", Num(e.azimuth_deg), ", \"version\": ", l.version(),
-                    ", \"passages_seen\": ", l.passages_seen(), ", \"last_seen_unix_ms\": ", l.last_seen_unix_ms(),
-                    "}}");
-    first = false;
+    features.push_back({{"type", "Feature"},
+                        {"id", l.id()},
+                        {"geometry", {{"type", "Point"}, {"coordinates", Position(position)}}},
+                        {"properties",
+                         {{"id", l.id()},
+                          {"kind", "landmark"},
+                          {"cov_en_m2", Json::array({Json::array({cov(0, 0), cov(0, 1)}),
+                                                     Json::array({cov(1, 0), cov(1, 1)})})},
+                          {"sigma_east_m", std::sqrt(cov(0, 0))},
+                          {"sigma_north_m", std::sqrt(cov(1, 1))},
+                          {"ellipse95_semi_major_m", e.semi_major_m},
+                          {"ellipse95_semi_minor_m", e.semi_minor_m},
+                          {"ellipse95_azimuth_deg", e.azimuth_deg},
+                          {"version", l.version()},
+                          {"passages_seen", l.passages_seen()},
+                          {"last_seen_unix_ms", l.last_seen_unix_ms()}}}});
     if (options.ellipses) {
-      absl::StrAppend(&out, ",\n{\"type\": \"Feature\", \"geometry\": {\"type\": \"Polygon\", \"coordinates\": [",
-                      EllipseRing(position, cov, points), "]}, \"properties\": {\"id\": ", l.id(),
-                      ", \"kind\": \"error_ellipse_95\"}}");
+      features.push_back(
+          {{"type", "Feature"},
+           {"geometry", {{"type", "Polygon"}, {"coordinates", Json::array({EllipseRing(position, cov, points)})}}},
+           {"properties", {{"id", l.id()}, {"kind", "error_ellipse_95"}}}});
     }
   }
-  return out + "\n]}\n";
+  const Json collection = {{"type", "FeatureCollection"}, {"map_version", map_version}, {"features", features}};
+  return collection.dump() + "\n";
 }
 
 }  // namespace crowdmap

@@ -19,13 +19,18 @@ struct ErrorEllipse {
 
 ErrorEllipse ErrorEllipse95(const Eigen::Matrix2d& cov_en_m2);
 
+// A GeoJSON position's coordinate, degrees rounded to 9 decimals (0.1 mm): more digits only make
+// the text longer (RFC 7946 section 11.2).
+double GeoJsonDegrees(double deg);
+
 struct GeoJsonOptions {
   bool ellipses = false;    // add each landmark's 95% error ellipse as a Polygon feature
   int ellipse_points = 36;  // vertices per ellipse ring (>= 8)
 };
 
-// RFC 7946 FeatureCollection: one Point per landmark ([lon, lat]) with id, covariance, 95% ellipse,
-// version and counts as properties; optionally the ellipses as counterclockwise Polygons.
+// RFC 7946 FeatureCollection, on one line: one Point per landmark ([lon, lat]) with id,
+// covariance, 95% ellipse, version and counts as properties; optionally the ellipses as
+// counterclockwise Polygons.
 std::string LandmarksToGeoJson(const std::vector<::mapservice::v1::Landmark>& landmarks, int64_t map_version,
                                const GeoJsonOptions& options);
 

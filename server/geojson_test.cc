@@ -2,6 +2,8 @@
 
 #include <cmath>
 
+#include <nlohmann/json.hpp>
+
 #include "gtest/gtest.h"
 
 namespace crowdmap {
@@ -27,6 +29,11 @@ TEST(ErrorEllipse95, AzimuthFollowsTheMajorAxisClockwiseFromNorth) {
   EXPECT_NEAR(e.semi_major_m / e.semi_minor_m, 3.0, 1e-9);
 }
 
+TEST(GeoJsonDegrees, KeepsNineDecimals) {
+  EXPECT_EQ(GeoJsonDegrees(48.1371541234567), 48.137154123);
+  EXPECT_EQ(GeoJsonDegrees(-122.4000000004), -122.4);
+}
+
 TEST(LandmarksToGeoJson, PointsInLonLatOrderAndCounterclockwiseEllipses) {
   ::mapservice::v1::Landmark l;
   l.set_id(7);
@@ -38,26 +45,24 @@ TEST(LandmarksToGeoJson, PointsInLonLatOrderAndCounterclockwiseEllipses) {
   GeoJsonOptions options;
   options.ellipses = true;
   options.ellipse_points = 16;
-  const std::string text = LandmarksToGeoJson({l}, 3, options);
-  EXPECT_NE(text.find("\"coordinates\": [2.250000000, 48.500000000]"), std::string::npos) << text;
-  EXPECT_NE(text.find("\"version\": 3"), std::string::npos);
+  const nlohmann::json collection = nlohmann::json::parse(LandmarksToGeoJson({l}, 3, options));
+  EXPECT_EQ(collection["type"], "FeatureCollection");
+  EXPECT_EQ(collection["map_version"], 3);
+  ASSERT_EQ(collection["features"].size(), 2u);
+  const nlohmann::json& point = collection["features"][0];
+  EXPECT_EQ(point["geometry"]["coordinates"], nlohmann::json::array({2.25, 48.5}));
+  EXPECT_EQ(point["properties"]["version"], 3);
+  EXPECT_EQ(point["properties"]["cov_en_m2"], nlohmann::json::array({{4.0, 0.0}, {0.0, 1.0}}));
   // Shoelace area of the ring in (lon, lat): positive when counterclockwise.
-  const size_t ring = text.find("\"Polygon\", \"coordinates\": [[[");
-  ASSERT_NE(ring, std::string::npos);
-  std::vector<std::pair<double, double>> pts;
-  size_t p = text.find("[[[", ring) + 2;
-  while (true) {
-    double lon, lat;
-    if (sscanf(text.c_str() + p, "[%lf, %lf]", &lon, &lat) != 2) break;
-    pts.emplace_back(lon, lat);
-    p = text.find(']', p) + 1;
-    if (text[p] != ',') break;
-    p += 2;
-  }
-  ASSERT_EQ(pts.size(), 17u);
-  EXPECT_EQ(pts.front(), pts.back());
+  const nlohmann::json& polygon = collection["features"][1]["geometry"];
+  EXPECT_EQ(polygon["type"], "Polygon");
+  const nlohmann::json& ring = polygon["coordinates"][0];
+  ASSERT_EQ(ring.size(), 17u);
+  EXPECT_EQ(ring.front(), ring.back());
   double area = 0.0;
-  for (size_t i = 0; i + 1 < pts.size(); ++i) area += pts[i].first * pts[i + 1].second - pts[i + 1].first * pts[i].second;
+  for (size_t i = 0; i + 1 < ring.size(); ++i) {
+    area += ring[i][0].get<double>() * ring[i + 1][1].get<double>() - ring[i + 1][0].get<double>() * ring[i][1].get<double>();
+  }
   EXPECT_GT(area, 0.0);
 }
 

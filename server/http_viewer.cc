@@ -32,7 +32,7 @@ HttpResponse Json(int code, std::string body) {
 }
 
 HttpResponse Error(int code, const std::string& message) {
-  return Json(code, absl::StrCat("{\"error\": \"", JsonEscape(message), "\"}\n"));
+  return Json(code, JsonText({{"error", message}}) + "\n");
 }
 
 HttpResponse FromStatus(const absl::Status& status) {
@@ -215,9 +215,10 @@ HttpResponse HttpViewer::Handle(const std::string& path, const std::string& quer
     return Error(404, absl::StrCat("no such page: ", path));
   }
   if (path == "/api/config") {
-    return Json(200, absl::StrCat("{\"auth\": ", auth_ != nullptr ? "true" : "false", ", \"basemap_url\": \"",
-                                  JsonEscape(options_.basemap_url), "\", \"server_version\": \"", CROWDMAP_VERSION,
-                                  "\"}\n"));
+    return Json(200, JsonText({{"auth", auth_ != nullptr},
+                               {"basemap_url", options_.basemap_url},
+                               {"server_version", CROWDMAP_VERSION}}) +
+                         "\n");
   }
   Principal who{"anonymous", Role::kAdmin, "none"};
   if (auth_ != nullptr) {

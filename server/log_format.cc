@@ -22,10 +22,10 @@ class JsonLogFormatter : public spdlog::formatter {
     char time[32];
     std::strftime(time, sizeof(time), "%Y-%m-%dT%H:%M:%S", &utc);
     const spdlog::string_view_t level = spdlog::level::to_string_view(msg.level);
-    const std::string line =
-        absl::StrFormat("{\"time\":\"%s.%03dZ\",\"level\":\"%s\",\"msg\":\"%s\"}\n", time, millis,
-                        std::string_view(level.data(), level.size()),
-                        JsonEscape(std::string_view(msg.payload.data(), msg.payload.size())));
+    const std::string line = JsonText({{"time", absl::StrFormat("%s.%03dZ", time, millis)},
+                                       {"level", std::string_view(level.data(), level.size())},
+                                       {"msg", std::string_view(msg.payload.data(), msg.payload.size())}}) +
+                             "\n";
     dest.append(line.data(), line.data() + line.size());
   }
 
@@ -34,21 +34,8 @@ class JsonLogFormatter : public spdlog::formatter {
 
 }  // namespace
 
-std::string JsonEscape(std::string_view text) {
-  std::string out;
-  out.reserve(text.size() + 8);
-  for (unsigned char c : text) {
-    if (c == '"') {
-      out += "\\\"";
-    } else if (c == '\\') {
-      out += "\\\\";
-    } else if (c < 0x20 || c >= 0x7f) {
-      out += absl::StrFormat("\\u%04x", c);
-    } else {
-      out += static_cast<char>(c);
-    }
-  }
-  return out;
+std::string JsonText(const nlohmann::ordered_json& value) {
+  return value.dump(-1, ' ', /*ensure_ascii=*/true, nlohmann::ordered_json::error_handler_t::replace);
 }
 
 std::unique_ptr<spdlog::formatter> MakeJsonLogFormatter() { return std::make_unique<JsonLogFormatter>(); }

@@ -5,14 +5,14 @@
 #include <string>
 #include <string_view>
 
+#include <nlohmann/json.hpp>
 #include <spdlog/formatter.h>
 
 namespace crowdmap {
 
-// `text` as the body of a JSON string (without the quotes): quote, backslash and control
-// characters escaped, and every byte outside ASCII written as \u00XX, so the line is valid JSON
-// whatever bytes it carries.
-std::string JsonEscape(std::string_view text);
+// `value` as one line of JSON text (no newline) that is valid whatever bytes its strings carry:
+// characters outside ASCII escaped (\u00e9), bytes that are not UTF-8 replaced by U+FFFD.
+std::string JsonText(const nlohmann::ordered_json& value);
 
 // One JSON object per line: {"time":"2026-11-24T10:00:00.123Z","level":"info","msg":"..."}; the
 // message is the key=value line the text format prints.

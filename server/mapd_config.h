@@ -1,9 +1,10 @@
 #ifndef CROWDMAP_SERVER_MAPD_CONFIG_H_
 #define CROWDMAP_SERVER_MAPD_CONFIG_H_
 
-#include <functional>
 #include <string>
 #include <vector>
+
+#include <CLI/CLI.hpp>
 
 #include "absl/status/statusor.h"
 #include "server/map_server.h"
@@ -18,19 +19,31 @@ struct MapdConfig {
   bool version = false;  // --version
 };
 
-// Looks up an environment variable; nullptr when unset.
-using EnvLookup = std::function<const char*(const char*)>;
+// Resolves mapd's settings from `args` (without the program name) and the process environment.
+// Precedence: command-line flag, then environment variable (MAPD_ + the flag name in upper case
+// with '_', e.g. MAPD_MAX_QUEUE), then the config file (--config or MAPD_CONFIG; lines
+// "name = value", '#' comments, names as the flags without "--"), then defaults.
+absl::StatusOr<MapdConfig> ParseMapdConfig(const std::vector<std::string>& args);
 
-// Resolves mapd's settings. Precedence: command-line flag, then environment variable (MAPD_ + the
-// flag name in upper case with '_', e.g. MAPD_MAX_QUEUE), then the config file (--config or
-// MAPD_CONFIG; lines "name = value", '#' comments, names as the flags without "--"), then defaults.
-absl::StatusOr<MapdConfig> ParseMapdConfig(const std::vector<std::string>& args, const EnvLookup& env);
+// The map update options mapd starts from before its settings are applied: MapUpdateOptions'
+// defaults with the camera yaw of each vehicle estimated.
+MapUpdateOptions MapdDefaultUpdateOptions();
 
 // Every effective setting as key=value pairs, for the log line at start.
 std::string DescribeMapdConfig(const MapdConfig& config);
 
 // The --help text.
 std::string MapdUsage();
+
+// The environment variable of the setting `name`: "max-queue" -> MAPD_MAX_QUEUE.
+std::string MapdEnvName(const std::string& name);
+
+// Adds the setting `name` bound to `*value`: the flag --NAME, the variable MapdEnvName(NAME) and
+// the config file's line "NAME = value".
+template <typename T>
+CLI::Option* AddMapdSetting(CLI::App* mapd, const std::string& name, T* value, const std::string& description) {
+  return mapd->add_option("--" + name, *value, description)->envname(MapdEnvName(name));
+}
 
 }  // namespace crowdmap
 

@@ -1,24 +1,49 @@
 #include "server/mapd_config.h"
 
+#include <stdlib.h>
+
 #include <fstream>
 #include <map>
 
+#include "absl/strings/match.h"
 #include "gtest/gtest.h"
 #include "server/testing/temp_dir.h"
+
+extern char** environ;
 
 namespace crowdmap {
 namespace {
 
-EnvLookup FakeEnv(std::map<std::string, std::string> vars) {
-  auto shared = std::make_shared<std::map<std::string, std::string>>(std::move(vars));
-  return [shared](const char* name) -> const char* {
-    auto it = shared->find(name);
-    return it == shared->end() ? nullptr : it->second.c_str();
-  };
+// mapd reads the process environment: these MAPD_* variables are set for one test (every other
+// MAPD_* variable unset), and the environment is restored after it.
+class ScopedMapdEnvironment {
+ public:
+  explicit ScopedMapdEnvironment(const std::map<std::string, std::string>& vars) {
+    for (char** entry = environ; *entry != nullptr; ++entry) {
+      const std::string text = *entry;
+      if (absl::StartsWith(text, "MAPD_")) saved_[text.substr(0, text.find('='))] = text.substr(text.find('=') + 1);
+    }
+    for (const auto& [name, value] : saved_) unsetenv(name.c_str());
+    for (const auto& [name, value] : vars) setenv(name.c_str(), value.c_str(), 1);
+    set_ = vars;
+  }
+  ~ScopedMapdEnvironment() {
+    for (const auto& [name, value] : set_) unsetenv(name.c_str());
+    for (const auto& [name, value] : saved_) setenv(name.c_str(), value.c_str(), 1);
+  }
+
+ private:
+  std::map<std::string, std::string> saved_, set_;
+};
+
+absl::StatusOr<MapdConfig> ParseWithEnvironment(const std::vector<std::string>& args,
+                                                const std::map<std::string, std::string>& env) {
+  ScopedMapdEnvironment scoped(env);
+  return ParseMapdConfig(args);
 }
 
 TEST(MapdConfig, DefaultsMatchTheDocumentedOnes) {
-  auto c = ParseMapdConfig({}, FakeEnv({}));
+  auto c = ParseWithEnvironment({}, {});
   ASSERT_TRUE(c.ok()) << c.status();
   EXPECT_EQ(c->server.listen, "127.0.0.1:50051");
   EXPECT_EQ(c->server.db_path, "./var/map.db");
@@ -30,8 +55,8 @@ TEST(MapdConfig, FlagBeatsEnvironmentBeatsConfigFile) {
   TempDir dir;
   const std::string path = dir.File("mapd.conf");
   std::ofstream(path) << "# comment\nmax_queue = 11\nworkers = 3\nstrategy: dc\nlisten = 0.0.0.0:1\n";
-  auto c = ParseMapdConfig({"--config", path, "--max-queue=33"},
-                           FakeEnv({{"MAPD_MAX_QUEUE", "22"}, {"MAPD_WORKERS", "2"}, {"MAPD_DB", "/x/y.db"}}));
+  auto c = ParseWithEnvironment({"--config", path, "--max-queue=33"},
+                                {{"MAPD_MAX_QUEUE", "22"}, {"MAPD_WORKERS", "2"}, {"MAPD_DB", "/x/y.db"}});
   ASSERT_TRUE(c.ok()) << c.status();
   EXPECT_EQ(c->server.max_queue, 33);
   EXPECT_EQ(c->server.worker.workers, 2);
@@ -40,38 +65,60 @@ TEST(MapdConfig, FlagBeatsEnvironmentBeatsConfigFile) {
   EXPECT_EQ(c->server.db_path, "/x/y.db");
 }
 
+TEST(MapdConfig, ReadsTheConfigFileNamedByMapdConfigAndChecksItEvenWithVersion) {
+  TempDir dir;
+  const std::string path = dir.File("mapd.conf");
+  std::ofstream(path) << "db = /x/from-file.db\nmax_queue: 7\n";
+  auto c = ParseWithEnvironment({}, {{"MAPD_CONFIG", path}});
+  ASSERT_TRUE(c.ok()) << c.status();
+  EXPECT_EQ(c->server.db_path, "/x/from-file.db");
+  EXPECT_EQ(c->server.max_queue, 7);
+  EXPECT_FALSE(ParseWithEnvironment({}, {{"MAPD_CONFIG", dir.File("missing.conf")}}).ok());
+  EXPECT_FALSE(ParseWithEnvironment({"--config", dir.File("missing.conf")}, {}).ok());
+
+  const std::string bad = dir.File("bad.conf");
+  std::ofstream(bad) << "# mapd\nlisten = 127.0.0.1:1\nmax-quue = 3\n";
+  auto unknown = ParseWithEnvironment({"--config", bad, "--version"}, {});
+  ASSERT_FALSE(unknown.ok());
+  EXPECT_NE(unknown.status().message().find(bad + ":3: unknown setting max-quue"), std::string::npos)
+      << unknown.status();
+  const std::string bad_value = dir.File("bad_value.conf");
+  std::ofstream(bad_value) << "workers = many\n";
+  EXPECT_FALSE(ParseWithEnvironment({"--config", bad_value, "--version"}, {}).ok());
+}
+
 TEST(MapdConfig, RejectsUnknownFlagsAndBadValues) {
-  EXPECT_FALSE(ParseMapdConfig({"--bogus", "1"}, FakeEnv({})).ok());
-  EXPECT_FALSE(ParseMapdConfig({"--workers", "many"}, FakeEnv({})).ok());
-  EXPECT_FALSE(ParseMapdConfig({"--workers", "0"}, FakeEnv({})).ok());
-  EXPECT_FALSE(ParseMapdConfig({"--strategy", "best"}, FakeEnv({})).ok());
-  EXPECT_FALSE(ParseMapdConfig({"--max-message-mb=0"}, FakeEnv({})).ok());
-  auto nice = ParseMapdConfig({"--worker-nice", "20"}, FakeEnv({}));
+  EXPECT_FALSE(ParseWithEnvironment({"--bogus", "1"}, {}).ok());
+  EXPECT_FALSE(ParseWithEnvironment({"--workers", "many"}, {}).ok());
+  EXPECT_FALSE(ParseWithEnvironment({"--workers", "0"}, {}).ok());
+  EXPECT_FALSE(ParseWithEnvironment({"--strategy", "best"}, {}).ok());
+  EXPECT_FALSE(ParseWithEnvironment({"--max-message-mb=0"}, {}).ok());
+  auto nice = ParseWithEnvironment({"--worker-nice", "20"}, {});
   ASSERT_FALSE(nice.ok());
   EXPECT_NE(nice.status().message().find("worker-nice"), std::string::npos) << nice.status();
 }
 
 TEST(MapdConfig, ReadsUpdateOptions) {
-  auto c = ParseMapdConfig({"--max-subgraph-dim", "300", "--window-hops", "3"}, FakeEnv({}));
+  auto c = ParseWithEnvironment({"--max-subgraph-dim", "300", "--window-hops", "3"}, {});
   ASSERT_TRUE(c.ok()) << c.status();
   EXPECT_EQ(c->server.worker.update.max_subgraph_dim, 300);
   EXPECT_EQ(c->server.worker.update.warmup_passages, 8);
-  auto w = ParseMapdConfig({}, FakeEnv({{"MAPD_WARMUP_PASSAGES", "0"}}));
+  auto w = ParseWithEnvironment({}, {{"MAPD_WARMUP_PASSAGES", "0"}});
   ASSERT_TRUE(w.ok()) << w.status();
   EXPECT_EQ(w->server.worker.update.warmup_passages, 0);
   EXPECT_EQ(c->server.worker.update.relinearize_until_passages, 128);
-  auto r = ParseMapdConfig({"--relinearize-until-passages", "0"}, FakeEnv({}));
+  auto r = ParseWithEnvironment({"--relinearize-until-passages", "0"}, {});
   ASSERT_TRUE(r.ok()) << r.status();
   EXPECT_EQ(r->server.worker.update.relinearize_until_passages, 0);
-  auto bad_r = ParseMapdConfig({}, FakeEnv({{"MAPD_RELINEARIZE_UNTIL_PASSAGES", "-3"}}));
+  auto bad_r = ParseWithEnvironment({}, {{"MAPD_RELINEARIZE_UNTIL_PASSAGES", "-3"}});
   ASSERT_FALSE(bad_r.ok());
   EXPECT_NE(bad_r.status().message().find("relinearize_until_passages"), std::string::npos) << bad_r.status();
-  auto bad = ParseMapdConfig({"--warmup-passages", "-1"}, FakeEnv({}));
+  auto bad = ParseWithEnvironment({"--warmup-passages", "-1"}, {});
   ASSERT_FALSE(bad.ok());
   EXPECT_NE(bad.status().message().find("warmup_passages"), std::string::npos) << bad.status();
   EXPECT_EQ(c->server.worker.update.window_hops, 3);
   EXPECT_EQ(c->server.worker.nice, 10);
-  auto n = ParseMapdConfig({}, FakeEnv({{"MAPD_WORKER_NICE", "0"}}));
+  auto n = ParseWithEnvironment({}, {{"MAPD_WORKER_NICE", "0"}});
   ASSERT_TRUE(n.ok()) << n.status();
   EXPECT_EQ(n->server.worker.nice, 0);
 }
@@ -83,42 +130,42 @@ namespace crowdmap {
 namespace {
 
 TEST(MapdConfig, VersionFlagIsRecognised) {
-  auto c = ParseMapdConfig({"--version"}, FakeEnv({}));
+  auto c = ParseWithEnvironment({"--version"}, {});
   ASSERT_TRUE(c.ok()) << c.status();
   EXPECT_TRUE(c->version);
-  EXPECT_FALSE(ParseMapdConfig({}, FakeEnv({}))->version);
+  EXPECT_FALSE(ParseWithEnvironment({}, {})->version);
 }
 
 TEST(MapdConfig, ReadsTheTrustRules) {
-  auto c = ParseMapdConfig({"--max-detection-residual-sigmas", "4", "--max-landmark-shift-sigmas=6",
-                            "--max-new-landmark-ray-sigma-m", "2.5"},
-                           FakeEnv({{"MAPD_MAX_CHI2_PER_DOF", "8"}}));
+  auto c = ParseWithEnvironment({"--max-detection-residual-sigmas", "4", "--max-landmark-shift-sigmas=6",
+                                 "--max-new-landmark-ray-sigma-m", "2.5"},
+                                {{"MAPD_MAX_CHI2_PER_DOF", "8"}});
   ASSERT_TRUE(c.ok()) << c.status();
   const MapUpdateOptions& u = c->server.worker.update;
   EXPECT_EQ(u.max_detection_residual_sigmas, 4.0);
   EXPECT_EQ(u.max_landmark_shift_mahalanobis2, 36.0);
   EXPECT_EQ(u.max_new_landmark_ray_sigma_m, 2.5);
   EXPECT_EQ(u.max_chi2_per_dof, 8.0);
-  auto bad = ParseMapdConfig({"--max-detection-residual-sigmas", "many"}, FakeEnv({}));
+  auto bad = ParseWithEnvironment({"--max-detection-residual-sigmas", "many"}, {});
   ASSERT_FALSE(bad.ok());
   EXPECT_NE(bad.status().message().find("max-detection-residual-sigmas"), std::string::npos) << bad.status();
-  auto negative = ParseMapdConfig({"--max-new-landmark-ray-sigma-m", "-1"}, FakeEnv({}));
+  auto negative = ParseWithEnvironment({"--max-new-landmark-ray-sigma-m", "-1"}, {});
   ASSERT_FALSE(negative.ok());
   EXPECT_NE(negative.status().message().find("max_new_landmark_ray_sigma_m"), std::string::npos) << negative.status();
 }
 
 TEST(MapdConfig, CreateMetricsAndLogFormatAreOffOrTextByDefaultAndSettable) {
-  auto defaults = ParseMapdConfig({}, FakeEnv({}));
+  auto defaults = ParseWithEnvironment({}, {});
   ASSERT_TRUE(defaults.ok()) << defaults.status();
   EXPECT_FALSE(defaults->server.create_db) << "mapd creates a map only with --create";
   EXPECT_EQ(defaults->server.metrics_listen, "");
   EXPECT_EQ(defaults->log_format, "text");
-  auto set = ParseMapdConfig({"--create", "--metrics-listen", "127.0.0.1:9464", "--log-format=json"}, FakeEnv({}));
+  auto set = ParseWithEnvironment({"--create", "--metrics-listen", "127.0.0.1:9464", "--log-format=json"}, {});
   ASSERT_TRUE(set.ok()) << set.status();
   EXPECT_TRUE(set->server.create_db);
   EXPECT_EQ(set->server.metrics_listen, "127.0.0.1:9464");
   EXPECT_EQ(set->log_format, "json");
-  auto env = ParseMapdConfig({}, FakeEnv({{"MAPD_CREATE", "true"}, {"MAPD_LOG_FORMAT", "json"}}));
+  auto env = ParseWithEnvironment({}, {{"MAPD_CREATE", "true"}, {"MAPD_LOG_FORMAT", "json"}});
   ASSERT_TRUE(env.ok()) << env.status();
   EXPECT_TRUE(env->server.create_db);
   EXPECT_EQ(env->log_format, "json");
@@ -128,19 +175,19 @@ TEST(MapdConfig, CreateMetricsAndLogFormatAreOffOrTextByDefaultAndSettable) {
   EXPECT_NE(described.find("max-landmark-shift-sigmas=5 "), std::string::npos) << described;
   EXPECT_NE(described.find("estimate-camera-yaw=true"), std::string::npos) << described;
   EXPECT_TRUE(set->server.worker.update.estimate_camera_yaw) << "mapd estimates camera yaw by default";
-  auto off = ParseMapdConfig({"--estimate-camera-yaw", "false"}, FakeEnv({}));
+  auto off = ParseWithEnvironment({"--estimate-camera-yaw", "false"}, {});
   ASSERT_TRUE(off.ok()) << off.status();
   EXPECT_FALSE(off->server.worker.update.estimate_camera_yaw);
-  auto bad = ParseMapdConfig({}, FakeEnv({{"MAPD_ESTIMATE_CAMERA_YAW", "sometimes"}}));
+  auto bad = ParseWithEnvironment({}, {{"MAPD_ESTIMATE_CAMERA_YAW", "sometimes"}});
   ASSERT_FALSE(bad.ok());
   EXPECT_NE(bad.status().message().find("--estimate-camera-yaw"), absl::string_view::npos) << bad.status();
 }
 
 TEST(MapdConfig, BadLogFormatAndCreateValuesNameTheFlag) {
-  auto format = ParseMapdConfig({"--log-format", "xml"}, FakeEnv({}));
+  auto format = ParseWithEnvironment({"--log-format", "xml"}, {});
   ASSERT_FALSE(format.ok());
   EXPECT_NE(format.status().message().find("--log-format"), absl::string_view::npos) << format.status();
-  auto create = ParseMapdConfig({}, FakeEnv({{"MAPD_CREATE", "maybe"}}));
+  auto create = ParseWithEnvironment({}, {{"MAPD_CREATE", "maybe"}});
   ASSERT_FALSE(create.ok());
   EXPECT_NE(create.status().message().find("--create"), absl::string_view::npos) << create.status();
 }
@@ -149,8 +196,8 @@ TEST(MapdConfig, SecurityAndLimitSettingsComeFromFlagsEnvironmentAndFile) {
   TempDir dir;
   const std::string path = dir.File("mapd.conf");
   std::ofstream(path) << "tls_cert = /etc/mapd/cert.pem\ntls_key = /etc/mapd/key.pem\nauth_file = /etc/mapd/auth\n";
-  auto c = ParseMapdConfig({"--config", path, "--max-threads", "256", "--vehicle-upload-rate=0.5"},
-                           FakeEnv({{"MAPD_MAX_UPLOAD_STREAMS", "8"}, {"MAPD_AUTH", "on"}}));
+  auto c = ParseWithEnvironment({"--config", path, "--max-threads", "256", "--vehicle-upload-rate=0.5"},
+                                {{"MAPD_MAX_UPLOAD_STREAMS", "8"}, {"MAPD_AUTH", "on"}});
   ASSERT_TRUE(c.ok()) << c.status();
   EXPECT_EQ(c->server.security.tls_cert, "/etc/mapd/cert.pem");
   EXPECT_EQ(c->server.security.auth_file, "/etc/mapd/auth");
@@ -161,23 +208,23 @@ TEST(MapdConfig, SecurityAndLimitSettingsComeFromFlagsEnvironmentAndFile) {
 }
 
 TEST(MapdConfig, SecurityErrorsNameTheFlag) {
-  auto half_tls = ParseMapdConfig({"--tls-cert", "c.pem"}, FakeEnv({}));
+  auto half_tls = ParseWithEnvironment({"--tls-cert", "c.pem"}, {});
   ASSERT_FALSE(half_tls.ok());
   EXPECT_NE(half_tls.status().message().find("--tls-key"), std::string::npos) << half_tls.status();
-  auto ca_alone = ParseMapdConfig({"--tls-client-ca", "ca.pem"}, FakeEnv({}));
+  auto ca_alone = ParseWithEnvironment({"--tls-client-ca", "ca.pem"}, {});
   ASSERT_FALSE(ca_alone.ok());
   EXPECT_NE(ca_alone.status().message().find("--tls-client-ca"), std::string::npos) << ca_alone.status();
-  auto auth = ParseMapdConfig({"--auth", "maybe"}, FakeEnv({}));
+  auto auth = ParseWithEnvironment({"--auth", "maybe"}, {});
   ASSERT_FALSE(auth.ok());
   EXPECT_NE(auth.status().message().find("--auth"), std::string::npos) << auth.status();
-  auto threads = ParseMapdConfig({"--max-threads", "many"}, FakeEnv({}));
+  auto threads = ParseWithEnvironment({"--max-threads", "many"}, {});
   ASSERT_FALSE(threads.ok());
   EXPECT_NE(threads.status().message().find("--max-threads"), std::string::npos) << threads.status();
-  auto few_threads = ParseMapdConfig({"--max-threads", "100"}, FakeEnv({}));  // streams could take them all
+  auto few_threads = ParseWithEnvironment({"--max-threads", "100"}, {});  // streams could take them all
   ASSERT_FALSE(few_threads.ok());
   EXPECT_NE(few_threads.status().message().find("--max-upload-streams + --max-watch-streams"), std::string::npos)
       << few_threads.status();
-  auto burst = ParseMapdConfig({"--vehicle-upload-burst-mb", "8"}, FakeEnv({}));
+  auto burst = ParseWithEnvironment({"--vehicle-upload-burst-mb", "8"}, {});
   ASSERT_FALSE(burst.ok());
   EXPECT_NE(burst.status().message().find("--max-passage-mb"), std::string::npos) << burst.status();
 }

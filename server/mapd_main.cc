@@ -3,7 +3,6 @@
 #include <pthread.h>
 #include <signal.h>
 
-#include <cstdlib>
 #include <iostream>
 
 #include <spdlog/sinks/stdout_color_sinks.h>
@@ -25,7 +24,7 @@ int main(int argc, char** argv) {
   pthread_sigmask(SIG_BLOCK, &signals, nullptr);
 
   std::vector<std::string> args(argv + 1, argv + argc);
-  auto config = crowdmap::ParseMapdConfig(args, [](const char* name) { return std::getenv(name); });
+  auto config = crowdmap::ParseMapdConfig(args);
   if (!config.ok()) {
     std::cerr << "mapd: " << config.status().message() << "\n";
     return 2;

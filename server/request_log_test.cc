@@ -20,11 +20,12 @@ TEST(EscapeForLog, KeepsPrintableTextAndEscapesWhatCouldForgeALine) {
   EXPECT_EQ(EscapeForLog(std::string("nul\0byte", 8)), "nul\\x00byte");
 }
 
-TEST(JsonEscape, EscapesQuotesBackslashesControlAndNonAsciiBytes) {
-  EXPECT_EQ(JsonEscape("rpc=GetTile code=OK"), "rpc=GetTile code=OK");
-  EXPECT_EQ(JsonEscape("error=\"a\\b\""), "error=\\\"a\\\\b\\\"");
-  EXPECT_EQ(JsonEscape("a\nb\tc"), "a\\u000ab\\u0009c");
-  EXPECT_EQ(JsonEscape("\xc3\xa9\x7f"), "\\u00c3\\u00a9\\u007f");
+TEST(JsonText, EscapesQuotesBackslashesControlAndNonAsciiAndReplacesBytesThatAreNotUtf8) {
+  EXPECT_EQ(JsonText({{"msg", "rpc=GetTile code=OK"}}), R"({"msg":"rpc=GetTile code=OK"})");
+  EXPECT_EQ(JsonText({{"msg", "error=\"a\\b\""}}), R"({"msg":"error=\"a\\b\""})");
+  EXPECT_EQ(JsonText({{"msg", "a\nb\tc\x01"}}), R"({"msg":"a\nb\tc\u0001"})");
+  EXPECT_EQ(JsonText({{"msg", "\xc3\xa9\x7f"}}), R"({"msg":"\u00e9\u007f"})");
+  EXPECT_EQ(JsonText({{"msg", "v\xff"}}), R"({"msg":"v\ufffd"})");
 }
 
 TEST(JsonLogFormat, WritesOneObjectPerLineWithTimeLevelAndMessage) {
@@ -38,7 +39,7 @@ TEST(JsonLogFormat, WritesOneObjectPerLineWithTimeLevelAndMessage) {
   EXPECT_TRUE(std::regex_match(
       line, std::regex(R"re(\{"time":"\d{4}-\d\d-\d\dT\d\d:\d\d:\d\d\.\d{3}Z","level":"warning","msg":"(.*)"\}\n)re")))
       << line;
-  EXPECT_NE(line.find(R"js("msg":"rpc=UploadPassage vehicle=v\"}\u000a{\"level\":\"error\""})js"), std::string::npos)
+  EXPECT_NE(line.find(R"js("msg":"rpc=UploadPassage vehicle=v\"}\n{\"level\":\"error\""})js"), std::string::npos)
       << line;
   EXPECT_EQ(std::count(line.begin(), line.end(), '\n'), 1);
 }

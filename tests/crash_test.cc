@@ -5,6 +5,7 @@
 
 #include "core/estimation/map_updater.h"
 #include "server/testing/temp_dir.h"
+#include "server/mapd_config.h"
 #include "tests/support/map_compare.h"
 #include "tests/support/mapd_process.h"
 #include "tests/support/mock_vehicle.h"
@@ -52,7 +53,7 @@ int Repeats() {
 
 TEST(MapdCrash, SigkillWhileApplyingLosesNothingAndAppliesNothingTwice) {
   const Scenario scenario = ShortScenario(10, 60.0);
-  const MapState expected = MapFromPassages(scenario, kPassages);
+  const MapState expected = MapFromPassages(scenario, kPassages, MapdDefaultUpdateOptions());
   int caught_processing = 0;
   for (int round = 0; round < Repeats(); ++round) {
     SCOPED_TRACE("round " + std::to_string(round));
@@ -83,7 +84,7 @@ TEST(MapdCrash, SigkillWhileApplyingLosesNothingAndAppliesNothingTwice) {
 
 TEST(MapdCrash, SigtermFinishesThePassageInProgressAndExitsZero) {
   const Scenario scenario = ShortScenario(10, 60.0);
-  const MapState expected = MapFromPassages(scenario, kPassages);
+  const MapState expected = MapFromPassages(scenario, kPassages, MapdDefaultUpdateOptions());
   TempDir dir;
   const std::string db = dir.File("map.db");
   {

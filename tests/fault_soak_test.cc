@@ -26,6 +26,7 @@
 #include "core/estimation/map_updater.h"
 #include "server/testing/temp_dir.h"
 #include "server/wire_convert.h"
+#include "server/mapd_config.h"
 #include "tests/support/map_compare.h"
 #include "tests/support/mapd_process.h"
 #include "tests/support/mock_vehicle.h"
@@ -163,7 +164,7 @@ void ExpectEveryAcknowledgedPassageAppliedOnce(MockVehicle* client, const Scenar
   EXPECT_EQ(info->queue_depth(), 0);
   std::sort(order.begin(), order.end());
   MapState expected;
-  MapUpdater updater{MapUpdateOptions()};
+  MapUpdater updater{MapdDefaultUpdateOptions()};  // mapd's
   int sequential_instead = 0;
   for (const Applied& a : order) {
     const Passage passage = scenario.MakePassage(a.index);

@@ -1,6 +1,5 @@
 #include "client/api/client_security.h"
 
-#include <cstdlib>
 #include <fstream>
 #include <sstream>
 
@@ -54,33 +53,12 @@ absl::StatusOr<std::shared_ptr<grpc::ChannelCredentials>> MakeChannelCredentials
   return grpc::SslCredentials(ssl);
 }
 
-std::map<std::string, bool> ClientSecurityFlags() {
-  return {{"tls-ca", true}, {"tls-cert", true}, {"tls-key", true}, {"tls-server-name", true}, {"token-file", true}};
-}
-
-absl::Status ApplyClientSecurityFlags(const Flags& flags, ClientSecurityOptions* options) {
-  options->tls_ca = flags.GetString("tls-ca", options->tls_ca);
-  options->tls_cert = flags.GetString("tls-cert", options->tls_cert);
-  options->tls_key = flags.GetString("tls-key", options->tls_key);
-  options->tls_server_name = flags.GetString("tls-server-name", options->tls_server_name);
-  const char* env_token_file = std::getenv("CROWDMAP_TOKEN_FILE");
-  const std::string token_file =
-      flags.GetString("token-file", env_token_file != nullptr && *env_token_file ? env_token_file : "");
-  if (!token_file.empty()) {
-    absl::StatusOr<std::string> token = ReadFile("token-file", token_file);
-    if (!token.ok()) return token.status();
-    options->token = std::string(absl::StripAsciiWhitespace(*token));
-    if (options->token.empty()) return absl::InvalidArgumentError(absl::StrCat("--token-file: ", token_file, " is empty"));
-  }
-  return options->Validate();
-}
-
-std::string ClientSecurityUsage() {
-  return R"(  --tls-ca PATH                  TLS: the PEM CA that signed mapd's certificate (default plaintext)
-  --tls-cert PATH --tls-key PATH mTLS: this client's PEM certificate and key
-  --tls-server-name NAME         the name in mapd's certificate, if not the --server host
-  --token-file PATH              bearer token (default $CROWDMAP_TOKEN_FILE; none)
-)";
+absl::Status ReadTokenFile(const std::string& path, ClientSecurityOptions* options) {
+  absl::StatusOr<std::string> token = ReadFile("token-file", path);
+  if (!token.ok()) return token.status();
+  options->token = std::string(absl::StripAsciiWhitespace(*token));
+  if (options->token.empty()) return absl::InvalidArgumentError(absl::StrCat("--token-file: ", path, " is empty"));
+  return absl::OkStatus();
 }
 
 }  // namespace crowdmap

@@ -1,14 +1,12 @@
 #ifndef CROWDMAP_CLIENT_API_CLIENT_SECURITY_H_
 #define CROWDMAP_CLIENT_API_CLIENT_SECURITY_H_
 
-#include <map>
 #include <memory>
 #include <string>
 
 #include <grpcpp/security/credentials.h>
 
 #include "absl/status/statusor.h"
-#include "client/common/flags.h"
 
 namespace crowdmap {
 
@@ -27,14 +25,9 @@ struct ClientSecurityOptions {
 // TLS credentials (reading the PEM files; errors name the flag), or insecure ones without tls_ca.
 absl::StatusOr<std::shared_ptr<grpc::ChannelCredentials>> MakeChannelCredentials(const ClientSecurityOptions& options);
 
-// The flags every client tool takes: --tls-ca, --tls-cert, --tls-key, --tls-server-name,
-// --token-file (Flags::Parse's `known` format).
-std::map<std::string, bool> ClientSecurityFlags();
-// Reads them into `options`; the token comes from --token-file, else the file named by
-// $CROWDMAP_TOKEN_FILE (whitespace around it ignored), never from the command line.
-absl::Status ApplyClientSecurityFlags(const Flags& flags, ClientSecurityOptions* options);
-// Their lines for --help.
-std::string ClientSecurityUsage();
+// Reads the bearer token from the file at `path` into `options->token` (whitespace around it
+// ignored); errors name --token-file.
+absl::Status ReadTokenFile(const std::string& path, ClientSecurityOptions* options);
 
 }  // namespace crowdmap
 

@@ -1,16 +1,20 @@
 #include "client/api/localization_export.h"
 
 #include <cmath>
+#include <vector>
 
-#include "absl/strings/str_cat.h"
+#include <nlohmann/json.hpp>
+
 #include "absl/strings/str_format.h"
-#include "absl/strings/str_join.h"
+#include "server/geojson.h"
 
 namespace crowdmap {
 namespace {
 
-std::string Coord(const ::mapservice::v1::LocalizedPose& p) {
-  return absl::StrFormat("[%.9f, %.9f]", p.lon_deg(), p.lat_deg());
+using Json = nlohmann::ordered_json;
+
+Json Position(const ::mapservice::v1::LocalizedPose& p) {
+  return Json::array({GeoJsonDegrees(p.lon_deg()), GeoJsonDegrees(p.lat_deg())});
 }
 
 double Cov(const ::mapservice::v1::LocalizedPose& p, int r, int c) {
@@ -30,21 +34,32 @@ std::string LocalizationToCsv(const ::mapservice::v1::LocalizePassageResponse& l
 }
 
 std::string LocalizationToGeoJson(const ::mapservice::v1::LocalizePassageResponse& localization) {
-  std::vector<std::string> coords, features;
-  for (const auto& p : localization.poses()) coords.push_back(Coord(p));
-  features.push_back(absl::StrFormat(
-      R"({"type": "Feature", "geometry": {"type": "LineString", "coordinates": [%s]}, "properties": )"
-      R"({"map_version": %d, "chi2": %.6g, "dof": %d, "landmarks_used": [%s], "detections_used": %d, )"
-      R"("detections_rejected": %d}})",
-      absl::StrJoin(coords, ", "), localization.map_version(), localization.chi2(), localization.dof(),
-      absl::StrJoin(localization.landmarks_used(), ", "), localization.detections_used(), localization.rejected_size()));
+  Json track = Json::array();
+  for (const auto& p : localization.poses()) track.push_back(Position(p));
+  const std::vector<int64_t> landmarks_used(localization.landmarks_used().begin(), localization.landmarks_used().end());
+  Json features = Json::array();
+  features.push_back({{"type", "Feature"},
+                      {"geometry", {{"type", "LineString"}, {"coordinates", track}}},
+                      {"properties",
+                       {{"map_version", localization.map_version()},
+                        {"chi2", localization.chi2()},
+                        {"dof", localization.dof()},
+                        {"landmarks_used", landmarks_used},
+                        {"detections_used", localization.detections_used()},
+                        {"detections_rejected", localization.rejected_size()}}}});
+  // A pose without covariance has null standard deviations.
   for (const auto& p : localization.poses()) {
-    features.push_back(absl::StrFormat(
-        R"({"type": "Feature", "geometry": {"type": "Point", "coordinates": %s}, "properties": )"
-        R"({"t_s": %.3f, "heading_rad": %.6f, "sigma_east_m": %.4g, "sigma_north_m": %.4g, "sigma_heading_rad": %.4g}})",
-        Coord(p), p.t_s(), p.heading_rad(), std::sqrt(Cov(p, 0, 0)), std::sqrt(Cov(p, 1, 1)), std::sqrt(Cov(p, 2, 2))));
+    features.push_back({{"type", "Feature"},
+                        {"geometry", {{"type", "Point"}, {"coordinates", Position(p)}}},
+                        {"properties",
+                         {{"t_s", p.t_s()},
+                          {"heading_rad", p.heading_rad()},
+                          {"sigma_east_m", std::sqrt(Cov(p, 0, 0))},
+                          {"sigma_north_m", std::sqrt(Cov(p, 1, 1))},
+                          {"sigma_heading_rad", std::sqrt(Cov(p, 2, 2))}}}});
   }
-  return absl::StrCat(R"({"type": "FeatureCollection", "features": [)", "\n", absl::StrJoin(features, ",\n"), "\n]}\n");
+  const Json collection = {{"type", "FeatureCollection"}, {"features", features}};
+  return collection.dump() + "\n";
 }
 
 }  // namespace crowdmap

@@ -10,6 +10,8 @@
 #include <random>
 #include <thread>
 
+#include <nlohmann/json.hpp>
+
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
@@ -62,11 +64,15 @@ absl::Status MapClientOptions::Validate() const {
 
 std::string RetryServiceConfig(const MapClientOptions& options) {
   if (options.max_attempts < 2) return "{}";
-  return absl::StrFormat(
-      R"({"methodConfig": [{"name": [{"service": "mapservice.v1.MapService", "method": "UploadPassage"}],)"
-      R"( "retryPolicy": {"maxAttempts": %d, "initialBackoff": "%s", "maxBackoff": "%s", "backoffMultiplier": 2,)"
-      R"( "retryableStatusCodes": ["UNAVAILABLE", "RESOURCE_EXHAUSTED"]}}]})",
-      options.max_attempts, Seconds(options.initial_backoff), Seconds(options.max_backoff));
+  const nlohmann::ordered_json policy = {
+      {"maxAttempts", options.max_attempts},
+      {"initialBackoff", Seconds(options.initial_backoff)},
+      {"maxBackoff", Seconds(options.max_backoff)},
+      {"backoffMultiplier", 2},
+      {"retryableStatusCodes", {"UNAVAILABLE", "RESOURCE_EXHAUSTED"}}};
+  const nlohmann::ordered_json method = {
+      {"name", {{{"service", "mapservice.v1.MapService"}, {"method", "UploadPassage"}}}}, {"retryPolicy", policy}};
+  return nlohmann::ordered_json{{"methodConfig", {method}}}.dump();
 }
 
 pb::BoundingBox WorldBox() {

@@ -5,6 +5,7 @@
 #include <atomic>
 
 #include <grpcpp/server_builder.h>
+#include <nlohmann/json.hpp>
 
 #include "server/testing/temp_dir.h"
 #include "server/wire_convert.h"
@@ -204,10 +205,14 @@ TEST(MapClientRetries, ServiceConfigCarriesThePolicyAndOptionsAreChecked) {
   options.max_attempts = 4;
   options.initial_backoff = std::chrono::milliseconds(50);
   options.max_backoff = std::chrono::milliseconds(2000);
-  const std::string config = RetryServiceConfig(options);
-  EXPECT_NE(config.find(R"("maxAttempts": 4)"), std::string::npos) << config;
-  EXPECT_NE(config.find(R"("initialBackoff": "0.050s")"), std::string::npos) << config;
-  EXPECT_NE(config.find(R"("maxBackoff": "2.000s")"), std::string::npos) << config;
+  const nlohmann::json config = nlohmann::json::parse(RetryServiceConfig(options));
+  const nlohmann::json& method = config["methodConfig"][0];
+  EXPECT_EQ(method["name"][0]["method"], "UploadPassage") << config;
+  EXPECT_EQ(method["retryPolicy"]["maxAttempts"], 4) << config;
+  EXPECT_EQ(method["retryPolicy"]["initialBackoff"], "0.050s") << config;
+  EXPECT_EQ(method["retryPolicy"]["maxBackoff"], "2.000s") << config;
+  EXPECT_EQ(method["retryPolicy"]["retryableStatusCodes"], nlohmann::json::array({"UNAVAILABLE", "RESOURCE_EXHAUSTED"}))
+      << config;
   options.max_attempts = 1;
   EXPECT_EQ(RetryServiceConfig(options), "{}");
   options.max_attempts = 6;

@@ -1,13 +1,13 @@
 #include "client/mapctl/mapctl.h"
 
 #include <cmath>
-#include <cstdlib>
 #include <fstream>
 #include <map>
 #include <memory>
 #include <optional>
 
 #include <google/protobuf/util/json_util.h>
+#include <nlohmann/json.hpp>
 
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
@@ -21,62 +21,29 @@
 #include "client/api/localization_export.h"
 #include "client/api/map_client.h"
 #include "client/api/passage_files.h"
-#include "client/common/flags.h"
+#include "client/common/cli.h"
+#include "client/common/client_flags.h"
 #include "client/mapctl/table_cell.h"
 
 namespace crowdmap {
 namespace {
 
-constexpr char kUsage[] = R"(mapctl: operate a crowdmap map service (mapd).
+constexpr char kExitCodes[] = R"(Exit codes: 0 success, 1 failure (unreachable server, malformed file, unknown id, ...), 2 usage error
+(unknown command or flag, missing argument, bad value), reported before any call is made.)";
 
-Usage: mapctl COMMAND [ARGS] [--server HOST:PORT] [--json] [--deadline-s S]
-       mapctl --version
-
-Commands:
-  upload FILE...                 upload passage files (protobuf JSON or binary mapservice.v1.Passage)
-  status ID                      one passage: server id, or VEHICLE/PASSAGE_ID
-  passages [--state S]           uploaded passages; S = queued | processing | applied | rejected | failed
-                                 | excluded | quarantined | discarded
-  landmark ID                    one landmark and the passages that shaped it
-  exclude ID                     take an applied passage out of the map (server id, or
-                                 VEHICLE/PASSAGE_ID): the map becomes what it would be without it
-  requeue ID                     put a failed or quarantined passage back in the queue (its
-                                 attempts cleared; the map's checks apply again)
-  release ID                     queue a quarantined passage to be applied once with the map's
-                                 consistency checks off (you vouch for it, e.g. a landmark moved)
-  discard ID                     mark a failed or quarantined passage discarded: never applied
-  info                           map version, landmark and queue counts, strategy
-  tile Z X Y                     landmarks of one z16 tile
-  tile --at LAT,LON              the z16 tile containing a point, printed as Z X Y (no call)
-  region --bbox MINLON,MINLAT,MAXLON,MAXLAT
-                                 landmarks inside a bounding box (a box valid only with lat and
-                                 lon swapped is read swapped, with a warning)
-  watch --bbox ... [--since V] [--seconds S] [--updates N]
-                                 follow changes in a bounding box (until Ctrl-C, S seconds or N updates);
-                                 each call's first answer must come within --deadline-s; when the
-                                 server restarts, it reconnects from the last version received
-                                 (waiting up to --deadline-s for the server, a warning on stderr)
-  export --bbox ... --format geojson [--ellipses] [--out FILE]
-                                 RFC 7946 FeatureCollection of the landmarks (stdout unless --out)
-  localize FILE [--format csv|geojson] [--out FILE]
-                                 localise a passage file against the map (read-only): the pose at
-                                 every node with its covariance (CSV by default; stdout unless --out)
-  vehicles [ID]                  the camera yaw offset estimated for each vehicle (operators), or
-                                 for one, e.g. "camera yaw +0.52° ± 0.03° after 14 passages"
-
-Common flags:
-  --server HOST:PORT             mapd address (default $MAPCTL_SERVER or 127.0.0.1:50051)
-  --json                         machine-readable output (protobuf JSON, zero-valued fields
-                                 included) instead of tables
-  --deadline-s S                 deadline of each call, seconds (default 10)
-  --tls-ca PATH                  TLS: the PEM CA that signed mapd's certificate (default plaintext)
-  --tls-cert PATH --tls-key PATH mTLS: this client's PEM certificate and key
-  --tls-server-name NAME         the name in mapd's certificate, if not the --server host
-  --token-file PATH              bearer token (default $CROWDMAP_TOKEN_FILE; none)
-
-Exit codes: 0 success, 1 failure (unreachable server, malformed file, unknown id, ...), 2 usage error
-(unknown command or flag, missing argument, bad value), reported before any call is made.
-)";
+// A command's flags and arguments, as parsed (each command binds those it takes).
+struct Arguments {
+  std::vector<std::string> positional;
+  std::string server = MapClientOptions().server;
+  bool json = false;
+  double deadline_s = 10.0;
+  ClientSecurityFlags security;
+  std::string state, bbox, at, out;
+  std::string format;  // each command's default is set where it binds --format
+  int64_t since = 0, updates = 0;
+  double seconds = 0.0;
+  bool ellipses = false;
+};
 
 struct Context {
   std::unique_ptr<MapClient> client;
@@ -140,9 +107,8 @@ bool InBboxRange(double min_lon, double min_lat, double max_lon, double max_lat)
 // --bbox MINLON,MINLAT,MAXLON,MAXLAT. A box valid only with lat and lon swapped (a latitude beyond
 // +-90 that is a valid longitude) is read swapped, with a warning; a box valid neither way
 // is a usage error.
-absl::StatusOr<pb::BoundingBox> ParseBbox(const Flags& flags, Context& ctx) {
-  if (!flags.Has("bbox")) return UsageError("--bbox MINLON,MINLAT,MAXLON,MAXLAT is required");
-  const std::string text = flags.GetString("bbox", "");
+absl::StatusOr<pb::BoundingBox> ParseBbox(const Arguments& args, Context& ctx) {
+  const std::string& text = args.bbox;
   std::vector<std::string> parts = absl::StrSplit(text, ',');
   double v[4];
   if (parts.size() != 4) return UsageError(absl::StrCat("--bbox: '", text, "' is not MINLON,MINLAT,MAXLON,MAXLAT"));
@@ -193,10 +159,10 @@ void PrintPassageRow(const pb::PassageStatus& p, std::ostream& out) {
                          FormatTime(p.received_unix_ms()), EscapeForTerminal(OneLine(p.error())));
 }
 
-absl::Status Upload(const Flags& flags, Context& ctx) {
-  if (flags.positional().empty()) return UsageError("give at least one passage file");
+absl::Status Upload(const Arguments& args, Context& ctx) {
+  if (args.positional.empty()) return UsageError("give at least one passage file");
   std::vector<std::pair<std::string, pb::Passage>> files;
-  for (const std::string& path : flags.positional()) {
+  for (const std::string& path : args.positional) {
     absl::StatusOr<pb::Passage> passage = ReadPassageFile(path);
     if (!passage.ok()) return passage.status();
     files.emplace_back(path, *std::move(passage));
@@ -218,11 +184,11 @@ absl::Status Upload(const Flags& flags, Context& ctx) {
 }
 
 // The passage named by a command's one argument: a server id, or VEHICLE/PASSAGE_ID.
-absl::StatusOr<PassageKey> PassageArgument(const Flags& flags) {
-  if (flags.positional().size() != 1) {
+absl::StatusOr<PassageKey> PassageArgument(const Arguments& args) {
+  if (args.positional.size() != 1) {
     return UsageError(absl::StrCat("give one ID (number or VEHICLE/PASSAGE_ID)"));
   }
-  const std::string& arg = flags.positional()[0];
+  const std::string& arg = args.positional[0];
   PassageKey key;
   if (absl::SimpleAtoi(arg, &key.id)) return key;
   if (size_t slash = arg.find('/'); slash != std::string::npos) {
@@ -233,8 +199,8 @@ absl::StatusOr<PassageKey> PassageArgument(const Flags& flags) {
   return UsageError(absl::StrCat("'", arg, "' is neither a number nor VEHICLE/PASSAGE_ID"));
 }
 
-absl::Status Status(const Flags& flags, Context& ctx) {
-  absl::StatusOr<PassageKey> key = PassageArgument(flags);
+absl::Status Status(const Arguments& args, Context& ctx) {
+  absl::StatusOr<PassageKey> key = PassageArgument(args);
   if (!key.ok()) return key.status();
   absl::StatusOr<pb::PassageStatus> status =
       key->id != 0 ? ctx.client->GetPassage(key->id) : ctx.client->GetPassage(key->vehicle_id, key->passage_id);
@@ -265,9 +231,9 @@ absl::Status Status(const Flags& flags, Context& ctx) {
   return absl::OkStatus();
 }
 
-absl::Status LandmarkCommand(const Flags& flags, Context& ctx) {
+absl::Status LandmarkCommand(const Arguments& args, Context& ctx) {
   int64_t id = 0;
-  if (flags.positional().size() != 1 || !absl::SimpleAtoi(flags.positional()[0], &id)) {
+  if (args.positional.size() != 1 || !absl::SimpleAtoi(args.positional[0], &id)) {
     return UsageError("give one landmark id (a number)");
   }
   absl::StatusOr<pb::GetLandmarkResponse> response = ctx.client->GetLandmark(id);
@@ -297,10 +263,10 @@ std::string DescribeVehicleYaw(const pb::Vehicle& v) {
                          v.camera_yaw_sigma_rad() * kDeg, v.passages(), v.passages() == 1 ? "" : "s");
 }
 
-absl::Status Vehicles(const Flags& flags, Context& ctx) {
-  if (flags.positional().size() > 1) return UsageError("give at most one vehicle id");
-  if (flags.positional().size() == 1) {
-    absl::StatusOr<pb::Vehicle> vehicle = ctx.client->GetVehicle(flags.positional()[0]);
+absl::Status Vehicles(const Arguments& args, Context& ctx) {
+  if (args.positional.size() > 1) return UsageError("give at most one vehicle id");
+  if (args.positional.size() == 1) {
+    absl::StatusOr<pb::Vehicle> vehicle = ctx.client->GetVehicle(args.positional[0]);
     if (!vehicle.ok()) return vehicle.status();
     *ctx.out << (ctx.json ? ToJson(*vehicle)
                           : absl::StrCat(EscapeForTerminal(vehicle->vehicle_id()), ": ", DescribeVehicleYaw(*vehicle),
@@ -320,8 +286,8 @@ absl::Status Vehicles(const Flags& flags, Context& ctx) {
   return absl::OkStatus();
 }
 
-absl::Status Exclude(const Flags& flags, Context& ctx) {
-  absl::StatusOr<PassageKey> key = PassageArgument(flags);
+absl::Status Exclude(const Arguments& args, Context& ctx) {
+  absl::StatusOr<PassageKey> key = PassageArgument(args);
   if (!key.ok()) return key.status();
   absl::StatusOr<pb::ExcludePassageResponse> response = ctx.client->ExcludePassage(*key);
   if (!response.ok()) return response.status();
@@ -338,8 +304,8 @@ absl::Status Exclude(const Flags& flags, Context& ctx) {
 }
 
 // requeue ID / release ID / discard ID: an operator's decision on a failed or quarantined passage.
-absl::Status Resolve(pb::ResolvePassageRequest::Action action, const Flags& flags, Context& ctx) {
-  absl::StatusOr<PassageKey> key = PassageArgument(flags);
+absl::Status Resolve(pb::ResolvePassageRequest::Action action, const Arguments& args, Context& ctx) {
+  absl::StatusOr<PassageKey> key = PassageArgument(args);
   if (!key.ok()) return key.status();
   absl::StatusOr<pb::PassageStatus> status = ctx.client->ResolvePassage(*key, action);
   if (!status.ok()) return status.status();
@@ -352,22 +318,22 @@ absl::Status Resolve(pb::ResolvePassageRequest::Action action, const Flags& flag
   return absl::OkStatus();
 }
 
-absl::Status Requeue(const Flags& flags, Context& ctx) {
-  return Resolve(pb::ResolvePassageRequest::REQUEUE, flags, ctx);
+absl::Status Requeue(const Arguments& args, Context& ctx) {
+  return Resolve(pb::ResolvePassageRequest::REQUEUE, args, ctx);
 }
 
-absl::Status Release(const Flags& flags, Context& ctx) {
-  return Resolve(pb::ResolvePassageRequest::RELEASE, flags, ctx);
+absl::Status Release(const Arguments& args, Context& ctx) {
+  return Resolve(pb::ResolvePassageRequest::RELEASE, args, ctx);
 }
 
-absl::Status Discard(const Flags& flags, Context& ctx) {
-  return Resolve(pb::ResolvePassageRequest::DISCARD, flags, ctx);
+absl::Status Discard(const Arguments& args, Context& ctx) {
+  return Resolve(pb::ResolvePassageRequest::DISCARD, args, ctx);
 }
 
-absl::Status Passages(const Flags& flags, Context& ctx) {
+absl::Status Passages(const Arguments& args, Context& ctx) {
   std::optional<pb::PassageState> state;
-  if (flags.Has("state")) {
-    absl::StatusOr<pb::PassageState> s = ParseState(flags.GetString("state", ""));
+  if (!args.state.empty()) {
+    absl::StatusOr<pb::PassageState> s = ParseState(args.state);
     if (!s.ok()) return s.status();
     state = *s;
   }
@@ -386,7 +352,7 @@ absl::Status Passages(const Flags& flags, Context& ctx) {
   return absl::OkStatus();
 }
 
-absl::Status Info(const Flags& flags, Context& ctx) {
+absl::Status Info(const Arguments& args, Context& ctx) {
   absl::StatusOr<pb::MapInfo> info = ctx.client->GetMapInfo();
   if (!info.ok()) return info.status();
   if (ctx.json) {
@@ -408,9 +374,9 @@ absl::Status Info(const Flags& flags, Context& ctx) {
 }
 
 // tile --at LAT,LON: the address of the storage (z16) tile containing the point; no call.
-absl::Status TileAt(const Flags& flags, Context& ctx) {
-  if (!flags.positional().empty()) return UsageError("give either Z X Y or --at LAT,LON");
-  const std::string text = flags.GetString("at", "");
+absl::Status TileAt(const Arguments& args, Context& ctx) {
+  if (!args.positional.empty()) return UsageError("give either Z X Y or --at LAT,LON");
+  const std::string& text = args.at;
   std::vector<std::string> parts = absl::StrSplit(text, ',');
   LatLon p;
   if (parts.size() != 2 || !absl::SimpleAtod(parts[0], &p.lat_deg) || !absl::SimpleAtod(parts[1], &p.lon_deg) ||
@@ -423,20 +389,20 @@ absl::Status TileAt(const Flags& flags, Context& ctx) {
   }
   const TileId tile = TileContaining(p, kStorageZoom);
   if (ctx.json) {
-    *ctx.out << absl::StrFormat("{\n  \"z\": %d,\n  \"x\": %d,\n  \"y\": %d\n}\n", tile.z, tile.x, tile.y);
+    *ctx.out << nlohmann::ordered_json{{"z", tile.z}, {"x", tile.x}, {"y", tile.y}}.dump(2) << "\n";
   } else {
     *ctx.out << absl::StrFormat("%d %d %d\n", tile.z, tile.x, tile.y);
   }
   return absl::OkStatus();
 }
 
-absl::Status Tile(const Flags& flags, Context& ctx) {
-  if (flags.Has("at")) return TileAt(flags, ctx);
-  if (flags.positional().size() != 3) return UsageError("give Z X Y or --at LAT,LON");
+absl::Status Tile(const Arguments& args, Context& ctx) {
+  if (!args.at.empty()) return TileAt(args, ctx);
+  if (args.positional.size() != 3) return UsageError("give Z X Y or --at LAT,LON");
   int zxy[3];
   for (int i = 0; i < 3; ++i) {
-    if (!absl::SimpleAtoi(flags.positional()[i], &zxy[i])) {
-      return UsageError(absl::StrCat("'", flags.positional()[i], "' is not an integer"));
+    if (!absl::SimpleAtoi(args.positional[i], &zxy[i])) {
+      return UsageError(absl::StrCat("'", args.positional[i], "' is not an integer"));
     }
   }
   absl::StatusOr<pb::GetTileResponse> tile = ctx.client->GetTile(zxy[0], zxy[1], zxy[2]);
@@ -451,8 +417,8 @@ absl::Status Tile(const Flags& flags, Context& ctx) {
   return absl::OkStatus();
 }
 
-absl::Status Region(const Flags& flags, Context& ctx) {
-  absl::StatusOr<pb::BoundingBox> box = ParseBbox(flags, ctx);
+absl::Status Region(const Arguments& args, Context& ctx) {
+  absl::StatusOr<pb::BoundingBox> box = ParseBbox(args, ctx);
   if (!box.ok()) return box.status();
   absl::StatusOr<RegionMap> region = ctx.client->QueryRegion(*box);
   if (!region.ok()) return region.status();
@@ -468,25 +434,18 @@ absl::Status Region(const Flags& flags, Context& ctx) {
   return absl::OkStatus();
 }
 
-absl::Status Watch(const Flags& flags, Context& ctx) {
-  absl::StatusOr<pb::BoundingBox> box = ParseBbox(flags, ctx);
+absl::Status Watch(const Arguments& args, Context& ctx) {
+  absl::StatusOr<pb::BoundingBox> box = ParseBbox(args, ctx);
   if (!box.ok()) return box.status();
-  absl::StatusOr<long long> since = flags.GetInt("since", 0), updates = flags.GetInt("updates", 0);
-  absl::StatusOr<double> seconds = flags.GetDouble("seconds", 0.0);
-  for (const absl::Status& s : {since.status(), updates.status(), seconds.status()}) {
-    if (!s.ok()) return s;
-  }
-  if (*since < 0) return UsageError("--since: must be >= 0");
-  if (!(*seconds >= 0)) return UsageError("--seconds: must be >= 0 (0 = until Ctrl-C or --updates)");
   MapClient::WatchOptions options;
-  if (*seconds > 0) options.duration = std::chrono::milliseconds(static_cast<int64_t>(*seconds * 1000));
+  if (args.seconds > 0) options.duration = std::chrono::milliseconds(static_cast<int64_t>(args.seconds * 1000));
   options.reconnect = true;
   options.on_reconnect = [&](const absl::Status& lost, int64_t version) {
     ctx.Warn() << "connection lost (" << absl::StatusCodeToString(lost.code()) << ": " << OneLine(lost.message())
                << "); reconnecting from map version " << version << "\n";
   };
-  long long received = 0;
-  return ctx.client->WatchRegion(*box, *since, [&](const pb::WatchRegionResponse& change) {
+  int64_t received = 0;
+  return ctx.client->WatchRegion(*box, args.since, [&](const pb::WatchRegionResponse& change) {
     if (ctx.json) {
       std::string line;
       google::protobuf::util::JsonPrintOptions options;
@@ -502,7 +461,7 @@ absl::Status Watch(const Flags& flags, Context& ctx) {
       }
     }
     ctx.out->flush();
-    return *updates <= 0 || ++received < *updates;
+    return args.updates <= 0 || ++received < args.updates;
   }, options);
 }
 
@@ -514,33 +473,26 @@ absl::Status WriteTextFile(const std::string& path, const std::string& text) {
   return absl::OkStatus();
 }
 
-absl::Status Export(const Flags& flags, Context& ctx) {
-  absl::StatusOr<pb::BoundingBox> box = ParseBbox(flags, ctx);
+absl::Status Export(const Arguments& args, Context& ctx) {
+  absl::StatusOr<pb::BoundingBox> box = ParseBbox(args, ctx);
   if (!box.ok()) return box.status();
-  const std::string format = flags.GetString("format", "geojson");
-  if (format != "geojson") return UsageError(absl::StrCat("--format: '", format, "' is not geojson"));
   absl::StatusOr<RegionMap> region = ctx.client->QueryRegion(*box);
   if (!region.ok()) return region.status();
   GeoJsonOptions options;
-  options.ellipses = flags.Has("ellipses");
+  options.ellipses = args.ellipses;
   const std::string text = LandmarksToGeoJson(region->landmarks, region->map_version, options);
-  if (!flags.Has("out")) {
+  if (args.out.empty()) {
     *ctx.out << text;
     return absl::OkStatus();
   }
-  const std::string path = flags.GetString("out", "");
-  if (absl::Status s = WriteTextFile(path, text); !s.ok()) return s;
-  if (!ctx.json) *ctx.out << absl::StrFormat("wrote %d landmarks (map version %d) to %s\n", region->landmarks.size(), region->map_version, path);
+  if (absl::Status s = WriteTextFile(args.out, text); !s.ok()) return s;
+  if (!ctx.json) *ctx.out << absl::StrFormat("wrote %d landmarks (map version %d) to %s\n", region->landmarks.size(), region->map_version, args.out);
   return absl::OkStatus();
 }
 
-absl::Status Localize(const Flags& flags, Context& ctx) {
-  if (flags.positional().size() != 1) return UsageError("give one passage file");
-  const std::string format = flags.GetString("format", "csv");
-  if (format != "csv" && format != "geojson") {
-    return UsageError(absl::StrCat("--format: '", format, "' is not csv or geojson"));
-  }
-  absl::StatusOr<pb::Passage> passage = ReadPassageFile(flags.positional()[0]);
+absl::Status Localize(const Arguments& args, Context& ctx) {
+  if (args.positional.size() != 1) return UsageError("give one passage file");
+  absl::StatusOr<pb::Passage> passage = ReadPassageFile(args.positional[0]);
   if (!passage.ok()) return passage.status();
   absl::StatusOr<pb::LocalizePassageResponse> response = ctx.client->LocalizePassage(*passage);
   if (!response.ok()) return response.status();
@@ -548,113 +500,174 @@ absl::Status Localize(const Flags& flags, Context& ctx) {
     *ctx.out << ToJson(*response);
     return absl::OkStatus();
   }
-  const std::string text = format == "csv" ? LocalizationToCsv(*response) : LocalizationToGeoJson(*response);
-  if (!flags.Has("out")) {
+  const std::string text = args.format == "csv" ? LocalizationToCsv(*response) : LocalizationToGeoJson(*response);
+  if (args.out.empty()) {
     *ctx.out << text;
     return absl::OkStatus();
   }
-  const std::string path = flags.GetString("out", "");
-  if (absl::Status s = WriteTextFile(path, text); !s.ok()) return s;
+  if (absl::Status s = WriteTextFile(args.out, text); !s.ok()) return s;
   *ctx.out << absl::StrFormat(
       "wrote %d poses to %s (map version %d, %d landmarks used, %d detections rejected, chi2 %.1f / %d dof)\n",
-      response->poses_size(), path, response->map_version(), response->landmarks_used_size(),
+      response->poses_size(), args.out, response->map_version(), response->landmarks_used_size(),
       response->rejected_size(), response->chi2(), response->dof());
   return absl::OkStatus();
 }
 
-using Command = absl::Status (*)(const Flags&, Context&);
+using Command = absl::Status (*)(const Arguments&, Context&);
 
-struct CommandSpec {
-  Command run;
-  std::map<std::string, bool> flags;  // besides the common ones
-  bool no_arguments = false;          // takes flags only
+// --server, --json, --deadline-s and the TLS and token flags, which every command takes.
+void AddCommonFlags(CLI::App* command, Arguments* args) {
+  const std::string group = "Common flags";
+  AddServerFlag(command, &args->server)->group(group);
+  command->add_flag("--json", args->json,
+                    "machine-readable output (protobuf JSON, zero-valued fields included) instead of tables")
+      ->group(group);
+  command->add_option("--deadline-s", args->deadline_s, "deadline of each call, seconds")
+      ->check(Positive())
+      ->group(group);
+  AddClientSecurityFlags(command, &args->security);
+}
+
+// A command: what it runs, and its flags and arguments once parsed. Every command has its own,
+// for CLI11 reads the environment ($MAPCTL_SERVER) into the flags of every command, parsed or not.
+struct MapctlCommand {
+  Command run = nullptr;
+  Arguments args;
 };
 
-const std::map<std::string, CommandSpec>& Commands() {
-  static const auto* commands = new std::map<std::string, CommandSpec>{
-      {"upload", {&Upload, {}}},
-      {"status", {&Status, {}}},
-      {"exclude", {&Exclude, {}}},
-      {"requeue", {&Requeue, {}}},
-      {"release", {&Release, {}}},
-      {"discard", {&Discard, {}}},
-      {"landmark", {&LandmarkCommand, {}}},
-      {"passages", {&Passages, {{"state", true}}, true}},
-      {"info", {&Info, {}, true}},
-      {"tile", {&Tile, {{"at", true}}}},
-      {"region", {&Region, {{"bbox", true}}, true}},
-      {"watch", {&Watch, {{"bbox", true}, {"since", true}, {"seconds", true}, {"updates", true}}, true}},
-      {"export", {&Export, {{"bbox", true}, {"format", true}, {"ellipses", false}, {"out", true}}, true}},
-      {"localize", {&Localize, {{"format", true}, {"out", true}}}},
-      {"vehicles", {&Vehicles, {}}},
+// mapctl's command line: `commands` gets each command by name, its flags bound.
+std::unique_ptr<CLI::App> NewMapctlCommandLine(std::map<std::string, MapctlCommand>* commands) {
+  std::unique_ptr<CLI::App> app = NewCommandLine(
+      "mapctl", "mapctl: operate a crowdmap map service (mapd). `mapctl COMMAND --help` lists a command's flags.",
+      kExitCodes);
+  auto add = [&](const char* name, const char* description, Command run) {
+    MapctlCommand& command = (*commands)[name];
+    command.run = run;
+    return std::make_pair(app->add_subcommand(name, description), &command.args);
   };
-  return *commands;
+  auto add_passage_command = [&](const char* name, const char* description, Command run) {
+    auto [command, args] = add(name, description, run);
+    command->add_option("ID", args->positional, "server id, or VEHICLE/PASSAGE_ID");
+  };
+  auto add_bbox = [](CLI::App* command, Arguments* args) {
+    command->add_option("--bbox", args->bbox,
+                        "the box, degrees (a box valid only with lat and lon swapped is read swapped, with a\n"
+                        "warning)")
+        ->type_name("MINLON,MINLAT,MAXLON,MAXLAT")
+        ->required();
+  };
+  auto add_out = [](CLI::App* command, Arguments* args) {
+    command->add_option("--out", args->out, "write to FILE (default stdout)")->type_name("FILE");
+  };
+
+  auto [upload, upload_args] = add("upload", "upload passage files (protobuf JSON or binary mapservice.v1.Passage)", &Upload);
+  upload->add_option("FILE", upload_args->positional, "passage files");
+  add_passage_command("status", "one passage", &Status);
+  auto [passages, passages_args] = add("passages", "uploaded passages", &Passages);
+  passages
+      ->add_option("--state", passages_args->state,
+                   "only those in state S: queued | processing | applied | rejected | failed | excluded |\n"
+                   "quarantined | discarded")
+      ->type_name("S");
+  auto [landmark, landmark_args] = add("landmark", "one landmark and the passages that shaped it", &LandmarkCommand);
+  landmark->add_option("ID", landmark_args->positional, "landmark id");
+  add_passage_command("exclude",
+                      "take an applied passage out of the map: the map becomes what it would be without it",
+                      &Exclude);
+  add_passage_command("requeue",
+                      "put a failed or quarantined passage back in the queue (its attempts cleared; the map's\n"
+                      "checks apply again)",
+                      &Requeue);
+  add_passage_command("release",
+                      "queue a quarantined passage to be applied once with the map's consistency checks off\n"
+                      "(you vouch for it, e.g. a landmark moved)",
+                      &Release);
+  add_passage_command("discard", "mark a failed or quarantined passage discarded: never applied", &Discard);
+  add("info", "map version, landmark and queue counts, strategy", &Info);
+  auto [tile, tile_args] =
+      add("tile", "landmarks of one z16 tile, Z X Y; with --at, the tile containing a point (no call)", &Tile);
+  tile->add_option("Z_X_Y", tile_args->positional, "the tile: zoom, column, row");
+  tile->add_option("--at", tile_args->at, "print the z16 tile containing this point as Z X Y")->type_name("LAT,LON");
+  auto [region, region_args] = add("region", "landmarks inside a bounding box", &Region);
+  add_bbox(region, region_args);
+  auto [watch, watch_args] = add("watch",
+                                 "follow changes in a bounding box (until Ctrl-C, --seconds or --updates); each\n"
+                                 "call's first answer must come within --deadline-s; when the server restarts,\n"
+                                 "it reconnects from the last version received (waiting up to --deadline-s for\n"
+                                 "the server, a warning on stderr)",
+                                 &Watch);
+  add_bbox(watch, watch_args);
+  watch->add_option("--since", watch_args->since, "start after this map version")
+      ->check(NonNegative())
+      ->type_name("V");
+  watch->add_option("--seconds", watch_args->seconds, "stop after S seconds (0 = until Ctrl-C or --updates)")
+      ->check(NonNegative())
+      ->type_name("S");
+  watch->add_option("--updates", watch_args->updates, "stop after N updates (0 = no limit)")->type_name("N");
+  auto [export_command, export_args] =
+      add("export", "RFC 7946 FeatureCollection of the landmarks in a bounding box", &Export);
+  add_bbox(export_command, export_args);
+  export_args->format = "geojson";
+  export_command->add_option("--format", export_args->format, "output format")->check(CLI::IsMember({"geojson"}));
+  export_command->add_flag("--ellipses", export_args->ellipses, "add each landmark's 95% error ellipse as a polygon");
+  add_out(export_command, export_args);
+  auto [localize, localize_args] = add("localize",
+                                       "localise a passage file against the map (read-only): the pose at every node\n"
+                                       "with its covariance",
+                                       &Localize);
+  localize->add_option("FILE", localize_args->positional, "passage file");
+  localize_args->format = "csv";
+  localize->add_option("--format", localize_args->format, "output format")->check(CLI::IsMember({"csv", "geojson"}));
+  add_out(localize, localize_args);
+  auto [vehicles, vehicles_args] = add("vehicles",
+                                       "the camera yaw offset estimated for each vehicle (operators), or for one, e.g.\n"
+                                       "\"camera yaw +0.52° ± 0.03° after 14 passages\"",
+                                       &Vehicles);
+  vehicles->add_option("ID", vehicles_args->positional, "vehicle id");
+  for (auto& [name, command] : *commands) AddCommonFlags(app->get_subcommand(name), &command.args);
+  return app;
+}
+
+// The client the common flags describe; errors are usage errors.
+absl::StatusOr<std::unique_ptr<MapClient>> ClientFromFlags(const Arguments& args) {
+  MapClientOptions options;
+  options.server = args.server;
+  options.call_deadline = std::chrono::milliseconds(static_cast<int64_t>(args.deadline_s * 1000));
+  absl::StatusOr<ClientSecurityOptions> security = ClientSecurityFromFlags(args.security);
+  if (!security.ok()) return security.status();
+  options.security = *std::move(security);
+  absl::StatusOr<std::unique_ptr<MapClient>> client = MapClient::Create(options);
+  if (!client.ok()) return AsUsageError(client.status());
+  return client;
 }
 
 }  // namespace
 
-const char* MapctlUsage() { return kUsage; }
-
 int RunMapctl(const std::vector<std::string>& args, std::ostream& out, std::ostream& err) {
+  std::map<std::string, MapctlCommand> commands;
+  std::unique_ptr<CLI::App> app = NewMapctlCommandLine(&commands);
   if (args.empty()) {
-    err << kUsage;
+    err << app->help();
     return kExitUsage;
   }
-  if (args[0] == "--version") {
-    out << "mapctl (crowdmap) " << CROWDMAP_VERSION << "\n";
-    return kExitOk;
+  absl::StatusOr<ParsedCommandLine> parsed = ParseCommandLine(*app, args, out);
+  if (parsed.ok() && *parsed == ParsedCommandLine::kPrintedHelpOrVersion) return kExitOk;
+  const std::string name = ParsedCommand(*app);
+  absl::Status status = parsed.status();
+  if (status.ok()) {
+    const MapctlCommand& command = commands.at(name);
+    absl::StatusOr<std::unique_ptr<MapClient>> client = ClientFromFlags(command.args);
+    status = client.status();
+    if (client.ok()) {
+      Context ctx{*std::move(client), command.args.json, &out, &err, name};
+      status = command.run(command.args, ctx);
+    }
   }
-  if (args[0] == "--help" || args[0] == "-h" || args[0] == "help") {
-    out << kUsage;
-    return kExitOk;
-  }
-  const std::string& name = args[0];
-  auto it = Commands().find(name);
-  if (it == Commands().end()) {
-    err << "mapctl: unknown command '" << name << "' (see mapctl --help)\n";
-    return kExitUsage;
-  }
-  std::map<std::string, bool> known = it->second.flags;
-  known.insert({{"server", true}, {"json", false}, {"deadline-s", true}, {"help", false}});
-  for (const auto& flag : ClientSecurityFlags()) known.insert(flag);
-  absl::StatusOr<Flags> flags = Flags::Parse({args.begin() + 1, args.end()}, known);
-  if (!flags.ok()) {
-    err << "mapctl " << name << ": " << OneLine(flags.status().message()) << " (see mapctl --help)\n";
-    return kExitUsage;
-  }
-  if (flags->Has("help")) {
-    out << kUsage;
-    return kExitOk;
-  }
-  if (it->second.no_arguments && !flags->positional().empty()) {
-    err << "mapctl " << name << ": unexpected argument '" << flags->positional()[0] << "' (see mapctl --help)\n";
-    return kExitUsage;
-  }
-  MapClientOptions options;
-  const char* env_server = std::getenv("MAPCTL_SERVER");
-  options.server = flags->GetString("server", env_server && *env_server ? env_server : options.server);
-  absl::StatusOr<double> deadline_s = flags->GetDouble("deadline-s", 10.0);
-  if (!deadline_s.ok() || !(*deadline_s > 0)) {
-    err << "mapctl " << name << ": --deadline-s: need a positive number of seconds\n";
-    return kExitUsage;
-  }
-  options.call_deadline = std::chrono::milliseconds(static_cast<int64_t>(*deadline_s * 1000));
-  if (absl::Status s = ApplyClientSecurityFlags(*flags, &options.security); !s.ok()) {
-    err << "mapctl " << name << ": " << OneLine(s.message()) << "\n";
-    return kExitUsage;
-  }
-  absl::StatusOr<std::unique_ptr<MapClient>> client = MapClient::Create(options);
-  if (!client.ok()) {
-    err << "mapctl " << name << ": " << OneLine(client.status().message()) << "\n";
-    return kExitUsage;
-  }
-  Context ctx{*std::move(client), flags->Has("json"), &out, &err, name};
-  const absl::Status status = it->second.run(*flags, ctx);
+  const std::string where = name.empty() ? "mapctl" : absl::StrCat("mapctl ", name);
   if (IsUsageError(status)) {
-    err << "mapctl " << name << ": " << OneLine(status.message()) << " (see mapctl --help)\n";
+    err << where << ": " << OneLine(status.message()) << " (see mapctl --help)\n";
   } else if (!status.ok()) {
-    err << "mapctl " << name << ": " << absl::StatusCodeToString(status.code()) << ": "
-        << OneLine(status.message()) << "\n";
+    err << where << ": " << absl::StatusCodeToString(status.code()) << ": " << OneLine(status.message()) << "\n";
   }
   return ExitCodeFor(status);
 }

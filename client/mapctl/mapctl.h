@@ -11,9 +11,6 @@ namespace crowdmap {
 // `err`. Returns the exit code: 0 success, 1 failure (server, file, unknown id), 2 usage error.
 int RunMapctl(const std::vector<std::string>& args, std::ostream& out, std::ostream& err);
 
-// The --help text.
-const char* MapctlUsage();
-
 }  // namespace crowdmap
 
 #endif  // CROWDMAP_CLIENT_MAPCTL_MAPCTL_H_

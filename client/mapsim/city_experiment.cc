@@ -8,6 +8,7 @@
 #include <fstream>
 
 #include <Eigen/Cholesky>
+#include <nlohmann/json.hpp>
 #include <spdlog/spdlog.h>
 
 #include "absl/strings/str_cat.h"
@@ -37,7 +38,6 @@ std::vector<double> ErrorsM(const std::vector<CityLandmarkError>& errors) {
   return out;
 }
 
-std::string JsonNumber(double v) { return std::isfinite(v) ? absl::StrFormat("%.6g", v) : "null"; }
 
 }  // namespace
 
@@ -189,49 +189,58 @@ absl::Status WriteCityOutputs(const CityExperimentOptions& options, const CityEx
   if (!csv) return absl::InternalError(absl::StrCat("cannot write ", dir, "/landmarks.csv"));
 
   const CityScenarioOptions& c = options.city;
+  const FaultOptions& f = options.faults;
+  // Non-finite figures are written as null.
+  const nlohmann::ordered_json summary = {
+      {"blocks_x", c.blocks_x},
+      {"blocks_y", c.blocks_y},
+      {"block_m", c.block_m},
+      {"route_length_m", c.route_length_m},
+      {"vehicles", c.vehicles},
+      {"seed", c.seed},
+      {"layout_seed", c.layout_seed},
+      {"noise", NoiseConfigName(c.noise)},
+      {"strategy", UpdateStrategyName(options.update.strategy)},
+      {"passages", result.passages},
+      {"passages_failed", result.failed_passages},
+      {"passages_relinearized", result.relinearized_passages},
+      {"passages_inflated", result.inflated_passages},
+      {"landmarks_held_back", result.landmarks_held_back},
+      {"landmarks_disagreeing", result.landmarks_disagreeing},
+      {"passages_quarantined", result.quarantined_passages},
+      {"detections_used", result.detections_used},
+      {"detections_outliers", result.detections_outliers},
+      {"faults",
+       {{"seed", f.seed},
+        {"mislabel_rate", f.mislabel_rate},
+        {"multipath_rate", f.multipath_rate},
+        {"overconfident_rate", f.overconfident_rate},
+        {"bad_calibration_rate", f.bad_calibration_rate},
+        {"faulty_passages", result.faulty_passages},
+        {"mislabelled_detections", result.mislabelled_detections},
+        {"multipath_passages", result.multipath_passages},
+        {"overconfident_passages", result.overconfident_passages},
+        {"bad_calibration_passages", result.bad_calibration_passages},
+        {"failed_faulty_passages", result.failed_faulty_passages},
+        {"failed_clean_passages", result.failed_clean_passages}}},
+      {"relinearize_sigmas", options.update.relinearize_sigmas},
+      {"nees_per_dof", result.nees_per_dof},
+      {"landmarks_in_layout", result.layout_landmarks},
+      {"landmarks_mapped", result.errors.size()},
+      {"layout_s", result.layout_s},
+      {"mean_error_m", result.mean_error_m},
+      {"median_error_m", result.median_error_m},
+      {"p95_error_m", result.p95_error_m},
+      {"p50_ms_per_passage", result.p50_ms},
+      {"p95_ms_per_passage", result.p95_ms},
+      {"estimate_camera_yaw", options.update.estimate_camera_yaw},
+      {"vehicle_yaw_bias_sigma_rad", options.city.vehicle_yaw_bias_sigma_rad},
+      {"vehicle_yaw_within_2sigma", result.vehicle_yaw.within_2sigma_fraction},
+      {"vehicle_yaw_nees", result.vehicle_yaw.nees},
+      {"vehicle_yaw_rms_error_rad", result.vehicle_yaw.rms_error_rad},
+  };
   std::ofstream json(std::filesystem::path(dir) / "summary.json");
-  json << "{\n"
-       << absl::StrFormat("  \"blocks_x\": %d,\n  \"blocks_y\": %d,\n", c.blocks_x, c.blocks_y)
-       << "  \"block_m\": " << JsonNumber(c.block_m) << ",\n"
-       << "  \"route_length_m\": " << JsonNumber(c.route_length_m) << ",\n"
-       << absl::StrFormat("  \"vehicles\": %d,\n  \"seed\": %d,\n  \"layout_seed\": %d,\n", c.vehicles, c.seed,
-                          c.layout_seed)
-       << absl::StrFormat("  \"noise\": \"%s\",\n", NoiseConfigName(c.noise))
-       << absl::StrFormat("  \"strategy\": \"%s\",\n", UpdateStrategyName(options.update.strategy))
-       << absl::StrFormat("  \"passages\": %d,\n", result.passages)
-       << absl::StrFormat("  \"passages_failed\": %d,\n", result.failed_passages)
-       << absl::StrFormat("  \"passages_relinearized\": %d,\n", result.relinearized_passages)
-       << absl::StrFormat("  \"passages_inflated\": %d,\n", result.inflated_passages)
-       << absl::StrFormat("  \"landmarks_held_back\": %d,\n", result.landmarks_held_back)
-       << absl::StrFormat("  \"landmarks_disagreeing\": %d,\n", result.landmarks_disagreeing)
-       << absl::StrFormat("  \"passages_quarantined\": %d,\n", result.quarantined_passages)
-       << absl::StrFormat("  \"detections_used\": %d,\n", result.detections_used)
-       << absl::StrFormat("  \"detections_outliers\": %d,\n", result.detections_outliers)
-       << absl::StrFormat("  \"faults\": {\"seed\": %d, \"mislabel_rate\": %g, \"multipath_rate\": %g, "
-                          "\"overconfident_rate\": %g, \"bad_calibration_rate\": %g,\n", options.faults.seed,
-                          options.faults.mislabel_rate, options.faults.multipath_rate, options.faults.overconfident_rate,
-                          options.faults.bad_calibration_rate)
-       << absl::StrFormat("    \"faulty_passages\": %d, \"mislabelled_detections\": %d, \"multipath_passages\": %d, "
-                          "\"overconfident_passages\": %d, \"bad_calibration_passages\": %d,\n",
-                          result.faulty_passages, result.mislabelled_detections, result.multipath_passages,
-                          result.overconfident_passages, result.bad_calibration_passages)
-       << absl::StrFormat("    \"failed_faulty_passages\": %d, \"failed_clean_passages\": %d},\n",
-                          result.failed_faulty_passages, result.failed_clean_passages)
-       << absl::StrFormat("  \"relinearize_sigmas\": %g,\n", options.update.relinearize_sigmas)
-       << "  \"nees_per_dof\": " << JsonNumber(result.nees_per_dof) << ",\n"
-       << absl::StrFormat("  \"landmarks_in_layout\": %d,\n", result.layout_landmarks)
-       << absl::StrFormat("  \"landmarks_mapped\": %d,\n", result.errors.size())
-       << "  \"layout_s\": " << JsonNumber(result.layout_s) << ",\n"
-       << "  \"mean_error_m\": " << JsonNumber(result.mean_error_m) << ",\n"
-       << "  \"median_error_m\": " << JsonNumber(result.median_error_m) << ",\n"
-       << "  \"p95_error_m\": " << JsonNumber(result.p95_error_m) << ",\n"
-       << "  \"p50_ms_per_passage\": " << JsonNumber(result.p50_ms) << ",\n"
-       << "  \"p95_ms_per_passage\": " << JsonNumber(result.p95_ms) << ",\n"
-       << absl::StrFormat("  \"estimate_camera_yaw\": %s,\n", options.update.estimate_camera_yaw ? "true" : "false")
-       << "  \"vehicle_yaw_bias_sigma_rad\": " << JsonNumber(c.vehicle_yaw_bias_sigma_rad) << ",\n"
-       << "  \"vehicle_yaw_within_2sigma\": " << JsonNumber(result.vehicle_yaw.within_2sigma_fraction) << ",\n"
-       << "  \"vehicle_yaw_nees\": " << JsonNumber(result.vehicle_yaw.nees) << ",\n"
-       << "  \"vehicle_yaw_rms_error_rad\": " << JsonNumber(result.vehicle_yaw.rms_error_rad) << "\n}\n";
+  json << summary.dump(2) << "\n";
   json.close();
   if (!json) return absl::InternalError(absl::StrCat("cannot write ", dir, "/summary.json"));
   return absl::OkStatus();

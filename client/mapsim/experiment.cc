@@ -10,6 +10,7 @@
 #include <numeric>
 #include <random>
 
+#include <nlohmann/json.hpp>
 #include <spdlog/spdlog.h>
 
 #include "absl/strings/str_cat.h"
@@ -27,7 +28,6 @@ double Median(std::vector<double> v) {
   return v[v.size() / 2];
 }
 
-std::string JsonNumber(double v) { return std::isfinite(v) ? absl::StrFormat("%.6g", v) : "null"; }
 
 }  // namespace
 
@@ -275,53 +275,54 @@ absl::Status WriteExperimentOutputs(const ExperimentOptions& options, const Expe
   }
   if (!cross) return absl::InternalError(absl::StrCat("cannot write ", dir, "/cross_covariances.csv"));
 
-  std::ofstream json(std::filesystem::path(dir) / "summary.json");
-  json << "{\n"
-       << absl::StrFormat("  \"strategy\": \"%s\",\n", options.strategy)
-       << absl::StrFormat("  \"noise\": \"%s\",\n", NoiseConfigName(options.scenario.noise))
-       << absl::StrFormat("  \"seed\": %d,\n", options.scenario.seed)
-       << absl::StrFormat("  \"landmarks\": %d,\n", options.scenario.landmarks)
-       << absl::StrFormat("  \"piece_min_m\": %g,\n  \"piece_max_m\": %g,\n", options.scenario.piece_min_m,
-                          options.scenario.piece_max_m)
-       << absl::StrFormat("  \"passages\": %d,\n", options.passages)
-       << absl::StrFormat("  \"failed_passages\": %d,\n", result.failed_passages)
-       << absl::StrFormat("  \"relinearized_passages\": %d,\n", result.relinearized_passages)
-       << absl::StrFormat("  \"relinearize_sigmas\": %g,\n", options.update.relinearize_sigmas)
-       << absl::StrFormat("  \"inflated_passages\": %d,\n", result.inflated_passages)
-       << absl::StrFormat("  \"max_subgraph_dim\": %d,\n", options.update.max_subgraph_dim)
-       << absl::StrFormat("  \"detections_per_landmark\": %d,\n", options.update.detections_per_landmark)
-       << absl::StrFormat("  \"warmup_passages\": %d,\n", options.update.warmup_passages)
-       << absl::StrFormat("  \"relinearize_until_passages\": %d,\n", options.update.relinearize_until_passages)
-       << "  \"edge_margin_sigmas\": " << JsonNumber(options.update.edge_margin_sigmas) << ",\n"
-       << absl::StrFormat("  \"joint_rejected_passages\": %d,\n", result.joint_rejected_passages)
-       << absl::StrFormat("  \"quarantined_passages\": %d,\n", result.quarantined_passages)
-       << absl::StrFormat("  \"detections_used\": %d,\n", result.detections_used)
-       << absl::StrFormat("  \"detections_outliers\": %d,\n", result.detections_outliers)
-       << absl::StrFormat("  \"landmarks_disagreeing\": %d,\n", result.landmarks_disagreeing)
-       << "  \"final_mean_dist_err_m\": " << JsonNumber(result.final_mean_dist_err_m) << ",\n"
-       << "  \"final_nees_per_dof\": " << JsonNumber(result.final_nees_per_dof) << ",\n"
-       << "  \"final_joint_nees_per_dof\": " << JsonNumber(result.final_joint_nees_per_dof) << ",\n"
-       << "  \"nees_per_dof_sd_if_consistent\": " << JsonNumber(result.nees_per_dof_sd_if_consistent) << ",\n"
-       << "  \"crlb_mean_dist_err_m\": " << JsonNumber(result.crlb_mean_dist_err_m) << ",\n"
-       << "  \"error_over_crlb\": " << JsonNumber(result.final_mean_dist_err_m / result.crlb_mean_dist_err_m) << ",\n"
-       << "  \"median_passage_ms\": " << JsonNumber(result.median_passage_ms) << ",\n"
-       << absl::StrFormat("  \"estimate_camera_yaw\": %s,\n", options.update.estimate_camera_yaw ? "true" : "false")
-       << absl::StrFormat("  \"vehicles\": %d,\n", options.scenario.vehicles)
-       << "  \"vehicle_yaw_bias_sigma_rad\": " << JsonNumber(options.scenario.vehicle_yaw_bias_sigma_rad) << ",\n"
-       << "  \"vehicle_yaw_within_2sigma\": " << JsonNumber(result.vehicle_yaw.within_2sigma_fraction) << ",\n"
-       << "  \"vehicle_yaw_nees\": " << JsonNumber(result.vehicle_yaw.nees) << ",\n"
-       << "  \"vehicle_yaw_rms_error_rad\": " << JsonNumber(result.vehicle_yaw.rms_error_rad) << ",\n"
-       << "  \"vehicle_yaw\": [";
-  for (size_t v = 0; v < result.vehicle_yaw.vehicles.size(); ++v) {
-    const VehicleYawError& e = result.vehicle_yaw.vehicles[v];
-    json << (v == 0 ? "\n" : ",\n")
-         << absl::StrFormat("    {\"vehicle_id\": \"%s\", \"truth_rad\": ", e.vehicle_id) << JsonNumber(e.truth_rad)
-         << ", \"estimate_rad\": " << JsonNumber(e.estimate_rad) << ", \"sigma_rad\": " << JsonNumber(e.sigma_rad)
-         << absl::StrFormat(", \"passages\": %d}", e.passages);
+  // Non-finite figures (no bound computed) are written as null.
+  nlohmann::ordered_json summary = {
+      {"strategy", options.strategy},
+      {"noise", NoiseConfigName(options.scenario.noise)},
+      {"seed", options.scenario.seed},
+      {"landmarks", options.scenario.landmarks},
+      {"piece_min_m", options.scenario.piece_min_m},
+      {"piece_max_m", options.scenario.piece_max_m},
+      {"passages", options.passages},
+      {"failed_passages", result.failed_passages},
+      {"relinearized_passages", result.relinearized_passages},
+      {"relinearize_sigmas", options.update.relinearize_sigmas},
+      {"inflated_passages", result.inflated_passages},
+      {"max_subgraph_dim", options.update.max_subgraph_dim},
+      {"detections_per_landmark", options.update.detections_per_landmark},
+      {"warmup_passages", options.update.warmup_passages},
+      {"relinearize_until_passages", options.update.relinearize_until_passages},
+      {"edge_margin_sigmas", options.update.edge_margin_sigmas},
+      {"joint_rejected_passages", result.joint_rejected_passages},
+      {"quarantined_passages", result.quarantined_passages},
+      {"detections_used", result.detections_used},
+      {"detections_outliers", result.detections_outliers},
+      {"landmarks_disagreeing", result.landmarks_disagreeing},
+      {"final_mean_dist_err_m", result.final_mean_dist_err_m},
+      {"final_nees_per_dof", result.final_nees_per_dof},
+      {"final_joint_nees_per_dof", result.final_joint_nees_per_dof},
+      {"nees_per_dof_sd_if_consistent", result.nees_per_dof_sd_if_consistent},
+      {"crlb_mean_dist_err_m", result.crlb_mean_dist_err_m},
+      {"error_over_crlb", result.final_mean_dist_err_m / result.crlb_mean_dist_err_m},
+      {"median_passage_ms", result.median_passage_ms},
+      {"estimate_camera_yaw", options.update.estimate_camera_yaw},
+      {"vehicles", options.scenario.vehicles},
+      {"vehicle_yaw_bias_sigma_rad", options.scenario.vehicle_yaw_bias_sigma_rad},
+      {"vehicle_yaw_within_2sigma", result.vehicle_yaw.within_2sigma_fraction},
+      {"vehicle_yaw_nees", result.vehicle_yaw.nees},
+      {"vehicle_yaw_rms_error_rad", result.vehicle_yaw.rms_error_rad},
+  };
+  nlohmann::ordered_json& vehicle_yaw = summary["vehicle_yaw"] = nlohmann::ordered_json::array();
+  for (const VehicleYawError& e : result.vehicle_yaw.vehicles) {
+    vehicle_yaw.push_back({{"vehicle_id", e.vehicle_id},
+                           {"truth_rad", e.truth_rad},
+                           {"estimate_rad", e.estimate_rad},
+                           {"sigma_rad", e.sigma_rad},
+                           {"passages", e.passages}});
   }
-  json << (result.vehicle_yaw.vehicles.empty() ? "]" : "\n  ]");
-  for (const auto& [key, value] : extra_summary) json << ",\n  \"" << key << "\": " << JsonNumber(value);
-  json << "\n}\n";
+  for (const auto& [key, value] : extra_summary) summary[key] = value;
+  std::ofstream json(std::filesystem::path(dir) / "summary.json");
+  json << summary.dump(2) << "\n";
   if (!json) return absl::InternalError(absl::StrCat("cannot write ", dir, "/summary.json"));
 
   return WriteErrorPlot(result.records,
