@@ -45,29 +45,50 @@ struct ThesisRobustness {
 constexpr ThesisRobustness kThesisRobustness[] = {
     {"white", 0.51}, {"yaw-bias", 0.67}, {"gnss-ar1", 0.69}, {"ar1+yaw", 0.80}};
 
-Job MakeJob(const ReproduceOptions& o, int landmarks, const std::string& strategy, NoiseConfig noise, uint64_t seed) {
+// One cell of the grids: what its experiments share but the seed.
+ExperimentOptions CellOptions(int landmarks, const std::string& strategy, NoiseConfig noise,
+                              bool estimate_camera_yaw = false, int vehicles = 0) {
+  ExperimentOptions cell;
+  cell.scenario.landmarks = landmarks;
+  cell.scenario.noise = noise;
+  cell.strategy = strategy;
+  cell.update.estimate_camera_yaw = estimate_camera_yaw;
+  cell.scenario.vehicles = vehicles;
+  // A fleet's vehicles each with their own camera yaw error, 0.5 degrees (1 sigma).
+  cell.scenario.vehicle_yaw_bias_sigma_rad = vehicles > 0 ? 0.5 * M_PI / 180.0 : 0.0;
+  return cell;
+}
+
+// The robustness grid again with the camera yaw estimated, and a fleet of 20 vehicles.
+std::vector<ExperimentOptions> CameraYawCells() {
+  std::vector<ExperimentOptions> cells;
+  for (NoiseConfig noise :
+       {NoiseConfig::kWhite, NoiseConfig::kYawBias, NoiseConfig::kGnssAr1, NoiseConfig::kGnssAr1YawBias}) {
+    cells.push_back(CellOptions(50, "cc-gsd", noise, /*estimate_camera_yaw=*/true));
+  }
+  cells.push_back(CellOptions(50, "cc-gsd", NoiseConfig::kWhite, /*estimate_camera_yaw=*/true, /*vehicles=*/20));
+  return cells;
+}
+
+Job MakeJob(const ReproduceOptions& o, const ExperimentOptions& cell, uint64_t seed) {
   Job job;
-  job.name = absl::StrCat("n", landmarks, "_", strategy, "_", NoiseConfigName(noise), "_s", seed);
-  job.options.scenario.landmarks = landmarks;
-  job.options.scenario.noise = noise;
+  job.options = cell;
+  job.name = absl::StrCat("n", cell.scenario.landmarks, "_", cell.strategy, "_", NoiseConfigName(cell.scenario.noise),
+                          cell.scenario.vehicles > 0 ? absl::StrCat("_v", cell.scenario.vehicles) : "",
+                          cell.update.estimate_camera_yaw ? "_yaw" : "", "_s", seed);
   job.options.scenario.seed = seed;
   job.options.passages = o.passages;
-  job.options.strategy = strategy;
   return job;
 }
 
 bool SameCell(const ExperimentOptions& a, const ExperimentOptions& b) {
-  return a.scenario.landmarks == b.scenario.landmarks && a.strategy == b.strategy && a.scenario.noise == b.scenario.noise;
+  return a.scenario.landmarks == b.scenario.landmarks && a.strategy == b.strategy && a.scenario.noise == b.scenario.noise &&
+         a.update.estimate_camera_yaw == b.update.estimate_camera_yaw && a.scenario.vehicles == b.scenario.vehicles;
 }
 
 // One cell of the report over the seeds: the results of every seed's experiment, or none if any
 // of them failed.
-std::vector<const ExperimentResult*> Results(const std::deque<Job>& jobs, int landmarks, const std::string& strategy,
-                                             NoiseConfig noise) {
-  ExperimentOptions cell;
-  cell.scenario.landmarks = landmarks;
-  cell.strategy = strategy;
-  cell.scenario.noise = noise;
+std::vector<const ExperimentResult*> Results(const std::deque<Job>& jobs, const ExperimentOptions& cell) {
   std::vector<const ExperimentResult*> out;
   for (const Job& j : jobs) {
     if (!SameCell(j.options, cell)) continue;
@@ -113,9 +134,11 @@ std::string NeesCell(const std::vector<const ExperimentResult*>& rs) {
 }
 
 // Whether consistency is judged on this cell: CC and CC+GSD with the noise the estimator models
-// (white, or coloured GNSS noise declared by the passages).
+// (white, coloured GNSS noise declared by the passages, and a camera yaw error where it is
+// estimated).
 bool IsConsistencyCell(const ExperimentOptions& e) {
-  const bool modelled = e.scenario.noise == NoiseConfig::kWhite || e.scenario.noise == NoiseConfig::kGnssAr1;
+  const bool modelled = e.scenario.noise == NoiseConfig::kWhite || e.scenario.noise == NoiseConfig::kGnssAr1 ||
+                        e.update.estimate_camera_yaw;
   return modelled && (e.strategy == "cc" || e.strategy == "cc-gsd");
 }
 
@@ -139,9 +162,9 @@ std::string Report(const ReproduceOptions& o, const std::deque<Job>& jobs, doubl
         "| NEES CC+GSD | joint NEES CC / CC+GSD | ms CC | ms DC | ms CC+GSD | thesis s CC / DC / CC+GSD |\n"
         "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n";
   for (const ThesisRow& t : kThesisTable) {
-    const auto cc = Results(jobs, t.landmarks, "cc", NoiseConfig::kWhite);
-    const auto dc = Results(jobs, t.landmarks, "dc", NoiseConfig::kWhite);
-    const auto gsd = Results(jobs, t.landmarks, "cc-gsd", NoiseConfig::kWhite);
+    const auto cc = Results(jobs, CellOptions(t.landmarks, "cc", NoiseConfig::kWhite));
+    const auto dc = Results(jobs, CellOptions(t.landmarks, "dc", NoiseConfig::kWhite));
+    const auto gsd = Results(jobs, CellOptions(t.landmarks, "cc-gsd", NoiseConfig::kWhite));
     absl::StrAppendFormat(
         &md,
         "| %d | %s | %.2f | %s | %.2f | %s | %.2f | %s | %s | %s | %s / %s | %s | %s | %s | %.2f / %.2f / %.2f |\n",
@@ -162,7 +185,7 @@ std::string Report(const ReproduceOptions& o, const std::deque<Job>& jobs, doubl
         "passages (ours) |\n"
         "|---|---|---|---|---|---|---|---|\n";
   for (const ThesisRobustness& t : kThesisRobustness) {
-    const auto rs = Results(jobs, 50, "cc-gsd", *ParseNoiseConfig(t.noise));
+    const auto rs = Results(jobs, CellOptions(50, "cc-gsd", *ParseNoiseConfig(t.noise)));
     std::string after40 = "n/a", ratio = "n/a";
     const auto has40 = [](const ExperimentResult* r) { return r->records.size() >= 40; };
     if (!rs.empty() && std::all_of(rs.begin(), rs.end(), has40)) {
@@ -181,6 +204,40 @@ std::string Report(const ReproduceOptions& o, const std::deque<Job>& jobs, doubl
                           Cell(rs, &ExperimentResult::final_joint_nees_per_dof, "%.2f", true), after40);
   }
   md += "\nThesis: 1.99 m after 40 passages with ar1+yaw (field test: 1.90 m).\n";
+  md += "\n## Robustness with each vehicle's camera yaw estimated (mapd's default): N = 50, CC+GSD\n\n"
+        "Each passage's graph has a camera yaw offset state, its vehicle's record as prior (a simulated vehicle per "
+        "passage, except the fleet row: 20 vehicles, each camera off by its own error, 0.5 degrees sigma). CRLB: the "
+        "bound with each vehicle's yaw offset a state, and the estimator's prior on it. Vehicle yaw: the share of "
+        "vehicles whose estimate is within 2 of its sigmas of the truth, and the mean of (error / sigma)^2.\n\n"
+        "| noise | error (ours) | CRLB | error / CRLB | NEES (ours) | joint NEES | error after 40 passages | "
+        "vehicle yaw within 2 sigma | vehicle yaw NEES |\n"
+        "|---|---|---|---|---|---|---|---|---|\n";
+  for (const ExperimentOptions& cell : CameraYawCells()) {
+    const auto rs = Results(jobs, cell);
+    const std::string name = cell.scenario.vehicles > 0
+                                 ? absl::StrCat(NoiseConfigName(cell.scenario.noise), ", ", cell.scenario.vehicles,
+                                                " vehicles with their own yaw")
+                                 : NoiseConfigName(cell.scenario.noise);
+    const auto mean = [&](const std::function<double(const ExperimentResult&)>& f, const char* format) {
+      return rs.empty() ? std::string("failed") : absl::StrFormat(format, Mean(rs, f));
+    };
+    const auto has40 = [](const ExperimentResult* r) { return r->records.size() >= 40; };
+    const std::string after40 =
+        !rs.empty() && std::all_of(rs.begin(), rs.end(), has40)
+            ? mean([](const ExperimentResult& r) { return r.records[39].metrics.mean_dist_err_m; }, "%.3f")
+            : "n/a";
+    absl::StrAppendFormat(
+        &md, "| %s | %s | %s | %s | %s | %s | %s | %s | %s |\n", name,
+        Cell(rs, &ExperimentResult::final_mean_dist_err_m, "%.3f", true),
+        Cell(rs, &ExperimentResult::crlb_mean_dist_err_m, "%.3f"),
+        mean([](const ExperimentResult& r) { return r.final_mean_dist_err_m / r.crlb_mean_dist_err_m; }, "%.2f"),
+        NeesCell(rs), Cell(rs, &ExperimentResult::final_joint_nees_per_dof, "%.2f", true), after40,
+        cell.scenario.vehicles > 0
+            ? mean([](const ExperimentResult& r) { return r.vehicle_yaw.within_2sigma_fraction; }, "%.3f")
+            : "n/a",
+        cell.scenario.vehicles > 0 ? mean([](const ExperimentResult& r) { return r.vehicle_yaw.nees; }, "%.2f")
+                                   : "n/a");
+  }
   return md;
 }
 
@@ -218,12 +275,13 @@ absl::Status RunReproduction(const ReproduceOptions& o) {
   for (uint64_t seed = o.seed; seed < o.seed + o.seeds; ++seed) {
     for (int n : {4, 25, 50, 75, 100}) {
       for (const char* strategy : {"cc", "dc", "cc-gsd"}) {
-        initial.push_back(MakeJob(o, n, strategy, NoiseConfig::kWhite, seed));
+        initial.push_back(MakeJob(o, CellOptions(n, strategy, NoiseConfig::kWhite), seed));
       }
     }
     for (NoiseConfig noise : {NoiseConfig::kGnssAr1, NoiseConfig::kYawBias, NoiseConfig::kGnssAr1YawBias}) {
-      initial.push_back(MakeJob(o, 50, "cc-gsd", noise, seed));
+      initial.push_back(MakeJob(o, CellOptions(50, "cc-gsd", noise), seed));
     }
+    for (const ExperimentOptions& cell : CameraYawCells()) initial.push_back(MakeJob(o, cell, seed));
   }
   // Longest first, so that the two workers finish together.
   std::stable_sort(initial.begin(), initial.end(), [](const Job& a, const Job& b) {
@@ -267,7 +325,7 @@ absl::Status RunReproduction(const ReproduceOptions& o) {
                      further.size());
       }
       for (uint64_t seed : further) {
-        jobs.push_back(MakeJob(o, job.options.scenario.landmarks, job.options.strategy, job.options.scenario.noise, seed));
+        jobs.push_back(MakeJob(o, job.options, seed));
       }
       changed.notify_all();
     }

@@ -22,7 +22,8 @@ struct ReproduceOptions {
 };
 
 // Runs the thesis's table 5.2 grid (N in {4,25,50,75,100} x {cc, dc, cc-gsd}, white noise) and its
-// robustness grid (N=50, cc-gsd, four noise configurations) for each seed (and the further seeds
+// robustness grid (N=50, cc-gsd, four noise configurations; again with the camera yaw estimated,
+// and a fleet of vehicles with their own yaw errors) for each seed (and the further seeds
 // of nees_sd_target), each experiment into its own folder, and writes OUT/reproduction.md with our
 // figures (means over the seeds) beside the thesis's.
 absl::Status RunReproduction(const ReproduceOptions& options);

@@ -24,7 +24,8 @@ TEST(Reproduce, RunsEveryExperimentForEachSeedAndReportsTheMeans) {
   options.seeds = 2;
   options.nees_sd_target = 0.0;  // no further seeds
   ASSERT_TRUE(RunReproduction(options).ok());
-  for (const char* name : {"n4_cc_white_s4", "n100_cc-gsd_white_s5", "n50_cc-gsd_ar1+yaw_s5"}) {
+  for (const char* name : {"n4_cc_white_s4", "n100_cc-gsd_white_s5", "n50_cc-gsd_ar1+yaw_s5", "n50_cc-gsd_ar1+yaw_yaw_s5",
+                           "n50_cc-gsd_white_v20_yaw_s4"}) {
     EXPECT_TRUE(std::filesystem::exists(std::filesystem::path(options.out_dir) / name / "summary.json")) << name;
   }
   const std::string md = ReadAll(std::filesystem::path(options.out_dir) / "reproduction.md");
@@ -42,6 +43,14 @@ TEST(Reproduce, RunsEveryExperimentForEachSeedAndReportsTheMeans) {
   for (const char* noise : {"| white |", "| yaw-bias |", "| gnss-ar1 |", "| ar1+yaw |"}) {
     EXPECT_NE(md.find(noise), std::string::npos) << noise;
   }
+  // The camera yaw table: the fleet row reports how well each vehicle's yaw is known.
+  const size_t yaw_table = md.find("camera yaw estimated");
+  ASSERT_NE(yaw_table, std::string::npos) << md;
+  const size_t fleet = md.find("| white, 20 vehicles with their own yaw |", yaw_table);
+  ASSERT_NE(fleet, std::string::npos) << md;
+  const std::string line = md.substr(fleet, md.find('\n', fleet) - fleet);
+  EXPECT_EQ(line.find("failed"), std::string::npos) << line;
+  EXPECT_EQ(line.find("n/a | n/a |"), std::string::npos) << line;  // the vehicle yaw columns
 }
 
 TEST(Reproduce, ConsistencyCellsTakeSeedsUntilTheirMeanNeesIsPreciseEnough) {
