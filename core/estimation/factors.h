@@ -140,15 +140,21 @@ class CameraFactor {
 
   template <typename T>
   bool operator()(const T* pose, const T* landmark, T* residual) const {
-    T u;
-    if (!ProjectLandmark(pose, landmark, calib_, &u)) return false;
-    residual[0] = (u - T(u_px_)) * T(inv_sigma_);
-    return true;
+    return Residual(LandmarkInCamera(pose, landmark, calib_), residual);
   }
 
   static ceres::CostFunction* Create(double u_px, double sigma_px, const Calibration& calib);
 
- private:
+ protected:
+  // The whitened pixel residual of a landmark at `cam` in the camera frame.
+  template <typename T>
+  bool Residual(const Eigen::Matrix<T, 2, 1>& cam, T* residual) const {
+    T u;
+    if (!ProjectCameraPoint(cam, calib_, &u)) return false;
+    residual[0] = (u - T(u_px_)) * T(inv_sigma_);
+    return true;
+  }
+
   double u_px_;
   double inv_sigma_;
   Calibration calib_;
@@ -158,25 +164,16 @@ class CameraFactor {
 // (shared by every detection of the vehicle's passage): residual (u_predicted - u_measured) /
 // sigma_px with the camera turned by calib.camera_yaw_rad + offset. Blocks: pose (3), landmark
 // (2), camera yaw offset (1, rad).
-class CameraYawFactor {
+class CameraYawFactor : public CameraFactor {
  public:
-  CameraYawFactor(double u_px, double sigma_px, const Calibration& calib)
-      : u_px_(u_px), inv_sigma_(1.0 / sigma_px), calib_(calib) {}
+  using CameraFactor::CameraFactor;
 
   template <typename T>
   bool operator()(const T* pose, const T* landmark, const T* yaw_offset, T* residual) const {
-    T u;
-    if (!ProjectCameraPoint(LandmarkInCamera(pose, landmark, calib_, yaw_offset[0]), calib_, &u)) return false;
-    residual[0] = (u - T(u_px_)) * T(inv_sigma_);
-    return true;
+    return Residual(LandmarkInCamera(pose, landmark, calib_, yaw_offset[0]), residual);
   }
 
   static ceres::CostFunction* Create(double u_px, double sigma_px, const Calibration& calib);
-
- private:
-  double u_px_;
-  double inv_sigma_;
-  Calibration calib_;
 };
 
 // Gaussian prior on a scalar state (a camera yaw offset): residual (x - mean) / sigma. Block: x (1).

@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cstdio>
+#include <numeric>
 #include <utility>
 #include <vector>
 
@@ -773,20 +774,12 @@ TEST(CameraYawEstimation, AFirstPassageNarrowsTheDefaultPriorAndRecordsTheVehicl
 TEST(CameraYawEstimation, EachVehiclesBiasIsRecoveredWithinThreeSigmaAndTheMapBeatsIgnoringIt) {
   const int vehicles = 3, passages = 24;
   const Scenario scenario = MakeFleetScenario(25, vehicles, 2);
+  std::vector<int> order(passages);
+  std::iota(order.begin(), order.end(), 0);
   auto run = [&](bool estimate) {
     MapUpdateOptions options;
     options.estimate_camera_yaw = estimate;
-    MapUpdater updater(options);
-    MapState map;
-    for (int i = 0; i < passages; ++i) {
-      const Passage passage = scenario.MakePassage(i);
-      absl::StatusOr<PassageUpdate> update = updater.Compute(passage, map);
-      EXPECT_TRUE(update.ok()) << update.status();
-      if (!update.ok()) continue;
-      map.Apply(update->delta);
-      updater.Applied(passage, update->delta);
-    }
-    return map;
+    return ApplyInOrder(scenario, order, options);
   };
   const MapState estimated = run(true);
   for (int v = 0; v < vehicles; ++v) {
