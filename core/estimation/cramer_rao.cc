@@ -138,14 +138,8 @@ absl::StatusOr<PassageFisherInformation> PassageLandmarkInformation(
   }
   double yaw_offset_rad = true_camera_yaw_offset_rad.value_or(0.0);
   for (const auto& [k, d] : cameras) {
-    const double sigma_px = passage.noise.pixel_sigma_px;
-    if (true_camera_yaw_offset_rad) {
-      problem.AddResidualBlock(CameraYawFactor::Create(d->u_px, sigma_px, passage.calibration), nullptr,
-                               poses[d->node].data(), positions[k].data(), &yaw_offset_rad);
-    } else {
-      problem.AddResidualBlock(CameraFactor::Create(d->u_px, sigma_px, passage.calibration), nullptr,
-                               poses[d->node].data(), positions[k].data());
-    }
+    AddCameraResidual(d->u_px, passage.noise.pixel_sigma_px, passage.calibration, nullptr, poses[d->node].data(),
+                      positions[k].data(), true_camera_yaw_offset_rad ? &yaw_offset_rad : nullptr, &problem);
   }
   std::vector<ceres::ResidualBlockId> residuals;
   problem.GetResidualBlocks(&residuals);

@@ -63,6 +63,16 @@ ceres::CostFunction* CameraYawFactor::Create(double u_px, double sigma_px, const
   return new ceres::AutoDiffCostFunction<CameraYawFactor, 1, 3, 2, 1>(new CameraYawFactor(u_px, sigma_px, calib));
 }
 
+ceres::ResidualBlockId AddCameraResidual(double u_px, double sigma_px, const Calibration& calib,
+                                         ceres::LossFunction* loss, double* pose, double* landmark,
+                                         double* yaw_offset_rad, ceres::Problem* problem) {
+  if (yaw_offset_rad == nullptr) {
+    return problem->AddResidualBlock(CameraFactor::Create(u_px, sigma_px, calib), loss, pose, landmark);
+  }
+  return problem->AddResidualBlock(CameraYawFactor::Create(u_px, sigma_px, calib), loss, pose, landmark,
+                                   yaw_offset_rad);
+}
+
 ceres::CostFunction* ScalarPriorFactor::Create(double mean, double sigma) {
   return new ceres::AutoDiffCostFunction<ScalarPriorFactor, 1, 1>(new ScalarPriorFactor(mean, sigma));
 }

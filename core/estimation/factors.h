@@ -176,6 +176,12 @@ class CameraYawFactor : public CameraFactor {
   static ceres::CostFunction* Create(double u_px, double sigma_px, const Calibration& calib);
 };
 
+// Adds one detection's pixel residual to `problem`: a CameraFactor, or with `yaw_offset_rad` (a
+// camera yaw offset state, or nullptr) a CameraYawFactor on it.
+ceres::ResidualBlockId AddCameraResidual(double u_px, double sigma_px, const Calibration& calib,
+                                         ceres::LossFunction* loss, double* pose, double* landmark,
+                                         double* yaw_offset_rad, ceres::Problem* problem);
+
 // Gaussian prior on a scalar state (a camera yaw offset): residual (x - mean) / sigma. Block: x (1).
 class ScalarPriorFactor {
  public:

@@ -166,13 +166,9 @@ absl::StatusOr<PassageUpdate> SolveJointly(const std::vector<Passage>& passages,
     for (size_t i = 0; i < seen[p].ids.size(); ++i) {
       const LandmarkId id = seen[p].ids[i];
       for (const CameraObservation* d : seen[p].detections[i]) {
-        const double sigma_px = passages[p].noise.pixel_sigma_px;
-        blocks_of[p].push_back(
-            options.estimate_camera_yaw
-                ? problem.AddResidualBlock(CameraYawFactor::Create(d->u_px, sigma_px, passages[p].calibration),
-                                           weights[p].get(), poses[p][d->node].data(), block_of[id], &yaw_offset_rad[p])
-                : problem.AddResidualBlock(CameraFactor::Create(d->u_px, sigma_px, passages[p].calibration),
-                                           weights[p].get(), poses[p][d->node].data(), block_of[id]));
+        blocks_of[p].push_back(AddCameraResidual(d->u_px, passages[p].noise.pixel_sigma_px, passages[p].calibration,
+                                                 weights[p].get(), poses[p][d->node].data(), block_of[id],
+                                                 options.estimate_camera_yaw ? &yaw_offset_rad[p] : nullptr, &problem));
         ++summary.detections_used;
       }
       landmark_dims_of[p] += 2.0 * seen[p].detections[i].size() / detections_of[id];
@@ -196,9 +192,9 @@ absl::StatusOr<PassageUpdate> SolveJointly(const std::vector<Passage>& passages,
       double cost = 0.0;
       std::vector<double> residuals;
       if (!problem.Evaluate(evaluate, &cost, &residuals, nullptr, nullptr)) continue;
-      // (a yaw offset's prior residual and its state cancel)
+      // (a yaw offset is one more parameter; its prior is among the residuals)
       const double dof = static_cast<double>(residuals.size()) - 3.0 * poses[p].size() - landmark_dims_of[p] -
-                         (options.estimate_camera_yaw ? 2.0 : 0.0);
+                         (options.estimate_camera_yaw ? 1.0 : 0.0);
       const double chi2 = 2.0 * cost;
       if (const double variance_factor = VarianceFactor(chi2, dof, options.inflation_test_sigmas);
           variance_factor > 1.0) {

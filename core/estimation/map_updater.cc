@@ -149,14 +149,9 @@ absl::StatusOr<SetAsideRequest> UpdateFromSubgraph(const Passage& passage, const
     if (!update.in_map(i)) Eigen::Map<Eigen::Vector2d>(update.block(i)) = landmarks.initial[i];
     problem.AddParameterBlock(update.block(i), 2);
     for (const CameraObservation* d : landmarks.detections[i]) {
-      double* pose = poses[d->node - range.first].data();
-      const double sigma_px = passage.noise.pixel_sigma_px;
-      const ceres::ResidualBlockId id =
-          options.estimate_camera_yaw
-              ? problem.AddResidualBlock(CameraYawFactor::Create(d->u_px, sigma_px, calib), &measurement_weight, pose,
-                                         update.block(i), &yaw_offset_rad)
-              : problem.AddResidualBlock(CameraFactor::Create(d->u_px, sigma_px, calib), &measurement_weight, pose,
-                                         update.block(i));
+      const ceres::ResidualBlockId id = AddCameraResidual(
+          d->u_px, passage.noise.pixel_sigma_px, calib, &measurement_weight, poses[d->node - range.first].data(),
+          update.block(i), options.estimate_camera_yaw ? &yaw_offset_rad : nullptr, &problem);
       camera_residuals.push_back({id, {d->node, d->landmark_id}});
       ++summary->detections_used;
     }
