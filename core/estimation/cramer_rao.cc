@@ -1,5 +1,6 @@
 #include "core/estimation/cramer_rao.h"
 
+#include <algorithm>
 #include <cmath>
 
 #include <Eigen/Cholesky>
@@ -156,8 +157,14 @@ absl::StatusOr<PassageFisherInformation> PassageLandmarkInformation(
 }
 
 int CramerRaoBound::Grow(int rows) {
-  const int at = static_cast<int>(information_.rows());
-  information_.conservativeResizeLike(Eigen::MatrixXd::Zero(at + rows, at + rows));
+  const int at = dim_;
+  dim_ += rows;
+  // The capacity doubles: with a yaw state per vehicle, a new variable comes with nearly every
+  // passage.
+  if (dim_ > information_.rows()) {
+    const int capacity = std::max(dim_, 2 * static_cast<int>(information_.rows()));
+    information_.conservativeResizeLike(Eigen::MatrixXd::Zero(capacity, capacity));
+  }
   return at;
 }
 
@@ -188,11 +195,12 @@ void CramerRaoBound::Add(const PassageFisherInformation& passage) {
 absl::StatusOr<std::map<LandmarkId, Eigen::Matrix2d>> CramerRaoBound::Covariances() const {
   std::map<LandmarkId, Eigen::Matrix2d> out;
   if (landmark_offset_.empty()) return out;
-  const Eigen::LLT<Eigen::MatrixXd> llt(0.5 * (information_ + information_.transpose()));
+  const auto information = information_.topLeftCorner(dim_, dim_);
+  const Eigen::LLT<Eigen::MatrixXd> llt(0.5 * (information + information.transpose()));
   if (llt.info() != Eigen::Success) {
     return absl::FailedPreconditionError("Cramer-Rao bound: the passages' information does not determine every landmark");
   }
-  const Eigen::MatrixXd cov = llt.solve(Eigen::MatrixXd::Identity(information_.rows(), information_.cols()));
+  const Eigen::MatrixXd cov = llt.solve(Eigen::MatrixXd::Identity(dim_, dim_));
   for (const auto& [id, i] : landmark_offset_) out[id] = cov.block<2, 2>(i, i);
   return out;
 }

@@ -65,7 +65,8 @@ class CramerRaoBound {
   int Grow(int rows);  // a new variable's offset
   std::map<LandmarkId, int> landmark_offset_;
   std::map<std::string, int> vehicle_offset_;
-  Eigen::MatrixXd information_;
+  Eigen::MatrixXd information_;  // its leading dim_ x dim_ block; the rest is spare capacity
+  int dim_ = 0;
   double camera_yaw_prior_sigma_rad_;
 };
 
