@@ -246,7 +246,18 @@ absl::StatusOr<PassageUpdate> SolveJointly(const std::vector<Passage>& passages,
   for (const Passage& passage : passages) batch.emplace(passage.vehicle_id, passage.passage_id);
   for (int64_t id : factor_ids) {
     const MapFactor* f = overlay.FindFactor(id);
-    if (f != nullptr && batch.count({f->vehicle_id, f->passage_id})) overlay.RemoveFactor(id);
+    if (f == nullptr || !batch.count({f->vehicle_id, f->passage_id})) continue;
+    // A replaced factor must not reach a landmark the joint solve does not estimate again (its
+    // detections unusable at the joint poses): that landmark would lose the passage's information,
+    // down to none at all.
+    for (LandmarkId l : f->landmarks) {
+      if (!seen_by.count(l)) {
+        return absl::FailedPreconditionError(absl::StrCat("landmark ", l, ": passage ", f->passage_id,
+                                                          " informs it, but the joint solve could not use its "
+                                                          "detections of it"));
+      }
+    }
+    overlay.RemoveFactor(id);
   }
   const bool correlated = options.strategy != UpdateStrategy::kDecorrelated;
   if (correlated) {

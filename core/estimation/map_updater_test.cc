@@ -557,6 +557,31 @@ TEST(ComputePassageUpdate, EveryCommittedMapHasPositiveDefiniteInformationAndIts
   EXPECT_EQ(checked, 8);
 }
 
+// The young map's joint solves replace the factors of the passages they re-solve: a landmark one
+// of those factors reached, but whose detections the joint solve cannot use, must not be left
+// without information (the map could no longer be factorised around it).
+TEST(MapUpdater, JointSolvesOfAYoungCityMapLeaveItsInformationPositiveDefinite) {
+  CityScenarioOptions city;
+  city.route_length_m = 1000.0;
+  city.vehicle_yaw_bias_sigma_rad = 0.0087;
+  absl::StatusOr<CityScenario> scenario = CityScenario::Create(city);
+  ASSERT_TRUE(scenario.ok()) << scenario.status();
+  MapUpdateOptions options;
+  options.estimate_camera_yaw = true;
+  MapState map;
+  MapUpdater updater(options);
+  for (int i = 0; i < 8; ++i) {
+    const Passage passage = scenario->MakePassage(i);
+    absl::StatusOr<PassageUpdate> update = updater.Compute(passage, map);
+    ASSERT_TRUE(update.ok()) << "passage " << i << ": " << update.status();
+    map.Apply(update->delta);
+    updater.Applied(passage, update->delta);
+    absl::StatusOr<MapWindow> window = MapWindow::Build(map, map.LandmarkIds(), MapWindowOptions());
+    ASSERT_TRUE(window.ok()) << "after passage " << i << ": " << window.status();
+    ASSERT_TRUE(window->offsets().allFinite());
+  }
+}
+
 TEST(ComputePassageUpdate, DetectionsReportedUnderANeighboursIdAreSetAsideAsOutliers) {
   CityScenarioOptions city;
   city.route_length_m = 1000.0;
