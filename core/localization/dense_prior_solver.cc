@@ -1,5 +1,6 @@
 #include "core/localization/dense_prior_solver.h"
 
+#include <algorithm>
 #include <cmath>
 #include <limits>
 
@@ -56,6 +57,31 @@ void SolveManyInPlace(const SparseMatrix& l, RowMatrix* x) {
   }
 }
 
+// L^-1 for a lower-triangular L, by column blocks: the inverse is lower triangular, so a block of
+// its columns is solved only on the rows at and below the block (a third of the flops of a solve
+// against the whole identity).
+template <typename Lower>
+Eigen::MatrixXd LowerTriangularInverse(const Lower& l) {
+  const int n = static_cast<int>(l.rows());
+  constexpr int kBlock = 64;
+  Eigen::MatrixXd x = Eigen::MatrixXd::Zero(n, n);
+  for (int j = 0; j < n; j += kBlock) {
+    const int b = std::min(kBlock, n - j);
+    auto block = x.block(j, j, n - j, b);
+    block.topRows(b).setIdentity();
+    l.bottomRightCorner(n - j, n - j).template triangularView<Eigen::Lower>().solveInPlace(block);
+  }
+  return x;
+}
+
+// A^-1 from A = L L^T: L^-T L^-1, the product of the triangular inverse with itself.
+Eigen::MatrixXd InverseFromLLT(const Eigen::LLT<Eigen::MatrixXd>& llt) {
+  const Eigen::MatrixXd l_inverse = LowerTriangularInverse(Eigen::MatrixXd(llt.matrixL()));
+  Eigen::MatrixXd out = Eigen::MatrixXd::Zero(l_inverse.rows(), l_inverse.cols());
+  out.selfadjointView<Eigen::Lower>().rankUpdate(l_inverse.transpose());
+  return out.selfadjointView<Eigen::Lower>();
+}
+
 // The Gauss-Newton information at one point, poses eliminated: H = [A B; B^T C], C = D + prior
 // information, factorised as A (sparse Cholesky, P A P^T = L L^T), W = A^-1 B and S = C - B^T W
 // (dense Cholesky). The pose rows of B and W are kept in the factor's order (P B, P W): the large
@@ -102,8 +128,7 @@ class Linearization {
     const int np = static_cast<int>(pw_.rows()), nl = static_cast<int>(pw_.cols());
     std::vector<Eigen::Matrix3d> out = PoseBlocksOfInverse(a_llt_, np / 3);
     if (nl == 0) return out;
-    Eigen::MatrixXd l_inverse = Eigen::MatrixXd::Identity(nl, nl);
-    s_llt_.matrixL().solveInPlace(l_inverse);
+    const Eigen::MatrixXd l_inverse = LowerTriangularInverse(Eigen::MatrixXd(s_llt_.matrixL()));
     RowMatrix pz = pb_ * l_inverse.transpose();
     SolveManyInPlace(l_, &pz);
     const Eigen::VectorXi& p = a_llt_.permutationP().indices();
@@ -149,7 +174,7 @@ absl::StatusOr<DensePriorSolution> SolveWithDensePrior(ceres::Problem* problem, 
   if (prior_llt.info() != Eigen::Success) {
     return absl::FailedPreconditionError("localization: the map covariance is not positive definite");
   }
-  const Eigen::MatrixXd prior_information = prior_llt.solve(Eigen::MatrixXd::Identity(nl, nl));
+  const Eigen::MatrixXd prior_information = InverseFromLLT(prior_llt);
 
   ceres::Problem::EvaluateOptions evaluate;
   for (Pose2& p : *poses) evaluate.parameter_blocks.push_back(p.data());
