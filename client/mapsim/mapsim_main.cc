@@ -86,7 +86,8 @@ void ScaleNoise(const NoiseScales& scales, ScenarioOptions* scenario) {
 }
 
 // --warmup-passages, --relinearize-until-passages, --window-hops, --relinearize-sigmas and
-// --relinearizations-per-passage and --estimate-camera-yaw (experiment and city).
+// --relinearizations-per-passage, --estimate-camera-yaw and --max-landmark-shift-sigmas (experiment
+// and city).
 void AddMapUpdateFlags(CLI::App* command, MapUpdateOptions* update) {
   command->add_option("--window-hops", update->window_hops,
                       "re-estimate the map within H links of each graph (0 = whole map, exact)")
@@ -109,6 +110,15 @@ void AddMapUpdateFlags(CLI::App* command, MapUpdateOptions* update) {
   command->add_flag("--estimate-camera-yaw", update->estimate_camera_yaw,
                     "estimate each vehicle's camera yaw offset, its history the prior, as mapd does\n"
                     "(summary.json: vehicle_yaw, estimate against truth per vehicle)");
+  command
+      ->add_option_function<double>(
+          "--max-landmark-shift-sigmas",
+          [update](double sigmas) { update->max_landmark_shift_mahalanobis2 = sigmas * sigmas; },
+          "a map landmark a subgraph's solve would move further than X of the map's sigmas is set\n"
+          "aside for that passage, as mapd's flag of that name (0 = off)")
+      ->check(NonNegative())
+      ->default_val(std::sqrt(update->max_landmark_shift_mahalanobis2))
+      ->type_name("X");
 }
 
 void AddQuietFlag(CLI::App* command, bool* quiet) { command->add_flag("--quiet", *quiet, "no progress lines"); }

@@ -88,6 +88,16 @@ ceres::CostFunction* BearingFactor::Create(double u_px, double sigma_px, const C
   return new ceres::AutoDiffCostFunction<BearingFactor, 1, 3, 2>(new BearingFactor(u_px, sigma_px, calib));
 }
 
+ceres::CostFunction* ShiftedBearingFactor::Create(const Pose2& pose, const Eigen::Vector2d& landmark, double w,
+                                                  double u_px, double sigma_px, const Calibration& calib) {
+  return new ceres::AutoDiffCostFunction<ShiftedBearingFactor, 1, 2, 2>(
+      new ShiftedBearingFactor(pose, landmark, w, u_px, sigma_px, calib));
+}
+
+ceres::CostFunction* Ar1StepFactor::Create(double alpha, double sigma) {
+  return new ceres::AutoDiffCostFunction<Ar1StepFactor, 2, 2, 2>(new Ar1StepFactor(alpha, sigma));
+}
+
 LandmarkPriorFactor::LandmarkPriorFactor(const Eigen::VectorXd& mean, const Eigen::MatrixXd& sqrt_info)
     : mean_(mean), sqrt_info_(sqrt_info) {
   set_num_residuals(static_cast<int>(mean.size()));

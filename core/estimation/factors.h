@@ -225,6 +225,53 @@ class BearingFactor {
   Calibration calib_;
 };
 
+// A bearing (BearingFactor) from a pose held fixed but for a translation, interpolated between two
+// knots of a piecewise-linear offset, (1 - w) a + w b, to a landmark held fixed: it aligns a
+// trajectory to the map before the trajectory itself is solved. Blocks: knot a (2), knot b (2).
+class ShiftedBearingFactor {
+ public:
+  ShiftedBearingFactor(const Pose2& pose, const Eigen::Vector2d& landmark, double w, double u_px, double sigma_px,
+                       const Calibration& calib)
+      : pose_(pose), landmark_(landmark), w_(w), bearing_(u_px, sigma_px, calib) {}
+
+  template <typename T>
+  bool operator()(const T* a, const T* b, T* residual) const {
+    const T pose[3] = {T(pose_.x()) + T(1.0 - w_) * a[0] + T(w_) * b[0],
+                       T(pose_.y()) + T(1.0 - w_) * a[1] + T(w_) * b[1], T(pose_.z())};
+    const T landmark[2] = {T(landmark_.x()), T(landmark_.y())};
+    return bearing_(pose, landmark, residual);
+  }
+
+  static ceres::CostFunction* Create(const Pose2& pose, const Eigen::Vector2d& landmark, double w, double u_px,
+                                     double sigma_px, const Calibration& calib);
+
+ private:
+  Pose2 pose_;
+  Eigen::Vector2d landmark_;
+  double w_;
+  BearingFactor bearing_;
+};
+
+// Two consecutive values of a first-order Gauss-Markov process in the plane, each axis with
+// stationary deviation sigma and correlation alpha between them: the white innovation
+// (b - alpha a) / (sigma sqrt(1 - alpha^2)). Blocks: a (2), b (2).
+class Ar1StepFactor {
+ public:
+  Ar1StepFactor(double alpha, double sigma) : alpha_(alpha), inv_scale_(1.0 / (sigma * std::sqrt(1.0 - alpha * alpha))) {}
+
+  template <typename T>
+  bool operator()(const T* a, const T* b, T* residual) const {
+    for (int i = 0; i < 2; ++i) residual[i] = (b[i] - T(alpha_) * a[i]) * T(inv_scale_);
+    return true;
+  }
+
+  static ceres::CostFunction* Create(double alpha, double sigma);
+
+ private:
+  double alpha_;
+  double inv_scale_;
+};
+
 // Gaussian prior on k landmarks jointly: residual S (x - mean), x the stacked landmark positions,
 // S the square-root information of their joint covariance. With k = 1 this is one DC prior; with
 // all map landmarks of a graph it is the CC prior. Blocks: k landmarks (2 each). Linear, so the

@@ -246,6 +246,53 @@ TEST(BearingFactor, JacobianMatchesFiniteDifferences) {
   }
 }
 
+TEST(ShiftedBearingFactor, JacobianMatchesFiniteDifferences) {
+  std::mt19937 rng(16);
+  std::uniform_real_distribution<double> u(-1.0, 1.0);
+  Calibration calib;
+  calib.camera_yaw_rad = 0.02;
+  for (int trial = 0; trial < 20; ++trial) {
+    const Pose2 pose(5.0 * u(rng), 5.0 * u(rng), u(rng));
+    const Eigen::Vector2d landmark = pose.head<2>() + 25.0 * Eigen::Vector2d(std::cos(pose.z()), std::sin(pose.z())) +
+                                     Eigen::Vector2d(3.0 * u(rng), 3.0 * u(rng));
+    std::unique_ptr<ceres::CostFunction> cost(
+        ShiftedBearingFactor::Create(pose, landmark, 0.5 + 0.5 * u(rng), 960.0 + 400 * u(rng), 5.0, calib));
+    ExpectJacobiansMatchFiniteDifferences(*cost, {{2.0 * u(rng), 2.0 * u(rng)}, {2.0 * u(rng), 2.0 * u(rng)}}, 1e-5);
+  }
+}
+
+TEST(ShiftedBearingFactor, IsTheBearingFactorAtTheInterpolatedShift) {
+  Calibration calib;
+  const Pose2 pose(1.0, 2.0, 0.3);
+  const Eigen::Vector2d landmark(30.0, 14.0), a(1.5, -2.0), b(-0.5, 3.0);
+  const double w = 0.25;
+  std::unique_ptr<ceres::CostFunction> shifted(ShiftedBearingFactor::Create(pose, landmark, w, 900.0, 5.0, calib));
+  std::unique_ptr<ceres::CostFunction> plain(BearingFactor::Create(900.0, 5.0, calib));
+  Pose2 moved = pose;
+  moved.head<2>() += (1.0 - w) * a + w * b;
+  const double* shifted_params[] = {a.data(), b.data()};
+  const double* plain_params[] = {moved.data(), landmark.data()};
+  double r_shifted = 0.0, r_plain = 0.0;
+  ASSERT_TRUE(shifted->Evaluate(shifted_params, &r_shifted, nullptr));
+  ASSERT_TRUE(plain->Evaluate(plain_params, &r_plain, nullptr));
+  EXPECT_NEAR(r_shifted, r_plain, 1e-12);
+}
+
+TEST(Ar1StepFactor, JacobianMatchesFiniteDifferencesAndWhitensTheStep) {
+  std::mt19937 rng(17);
+  std::uniform_real_distribution<double> u(-5.0, 5.0);
+  std::unique_ptr<ceres::CostFunction> cost(Ar1StepFactor::Create(0.8, 10.0));
+  for (int trial = 0; trial < 10; ++trial) {
+    ExpectJacobiansMatchFiniteDifferences(*cost, {{u(rng), u(rng)}, {u(rng), u(rng)}}, 1e-6);
+  }
+  const Eigen::Vector2d a(10.0, -5.0), b(14.0, -1.0);
+  const double* params[] = {a.data(), b.data()};
+  Eigen::Vector2d r;
+  ASSERT_TRUE(cost->Evaluate(params, r.data(), nullptr));
+  EXPECT_NEAR(r.x(), (14.0 - 8.0) / (10.0 * 0.6), 1e-12);
+  EXPECT_NEAR(r.y(), (-1.0 + 4.0) / (10.0 * 0.6), 1e-12);
+}
+
 TEST(BearingFactor, AgreesWithThePixelResidualToFirstOrder) {
   // Near the measurement the whitened bearing residual has the magnitude of the whitened pixel
   // residual (opposite sign: u decreases as the bearing increases), so both give the same cost.

@@ -756,6 +756,34 @@ TEST(MapUpdater, PartialDrivesFromTheFirstPassageOnBuildAConsistentMap) {
   EXPECT_LT(metrics.joint_nees_per_dof, 1.5);
 }
 
+// Coloured GNSS (AR(1), 10 m, 83 s correlation time) puts whole passages tens of metres off for
+// minutes. Localised from there against the map, a piece of a passage could wind through a full
+// turn and stay there (a wrong minimum, chi2 15 times its degrees of freedom, the passage then
+// inflated away); aligned to the map first, every passage of this run solves to a consistent chi2.
+TEST(ComputePassageUpdate, ColouredGnssPassagesTensOfMetresOffReachTheRightMinimum) {
+  ScenarioOptions options;
+  options.landmarks = 50;
+  options.noise = NoiseConfig::kGnssAr1;
+  const Scenario scenario = *Scenario::Create(options);
+  MapUpdater updater(MapUpdateOptions(), {}, 0);
+  MapState map;
+  int inflated = 0;
+  for (int i = 0; i < 48; ++i) {
+    const Passage passage = scenario.MakePassage(i);
+    absl::StatusOr<PassageUpdate> update = updater.Compute(passage, map);
+    ASSERT_TRUE(update.ok()) << "passage " << i << ": " << update.status();
+    if (update->summary.max_variance_factor > 1.0) {
+      ++inflated;
+      ADD_FAILURE() << "passage " << i << " inflated by " << update->summary.max_variance_factor;
+    }
+    map.Apply(update->delta);
+    updater.Applied(passage, update->delta);
+  }
+  EXPECT_EQ(inflated, 0);
+  const MapErrorMetrics metrics = EvaluateMap(map, scenario.landmarks());
+  EXPECT_LT(metrics.joint_nees_per_dof, 1.5);
+}
+
 // A fleet of three vehicles whose cameras are each turned by their own error (sigma 0.5 degrees).
 Scenario MakeFleetScenario(int landmarks, int vehicles, uint64_t seed) {
   ScenarioOptions options;

@@ -114,8 +114,60 @@ void Solve(const MapUpdateOptions& options, ceres::Solver::Options solver_option
 // Refines the subgraph's initial poses: odometry + GNSS + the bearings of the map landmarks held
 // fixed, if any. The pixel model alone cannot start from poses tens of metres off (with coloured
 // GNSS noise the GNSS-aligned guess often is), the bounded bearing residual can.
+namespace {
+
+// Under coloured GNSS noise the initial poses follow fixes that can be tens of metres off, the same
+// way for minutes. Solved from there against the bearings to the map, a piece of the trajectory
+// can wind through a full turn (a wrong minimum the full solve keeps: headings are only known
+// modulo 2 pi). First the trajectory is moved, its shape held, by a smooth offset (piecewise
+// linear, knots half a correlation time apart, the GNSS process's statistics as its prior) that
+// best fits the bearings to the map landmarks (Cauchy loss: some detections may not fit).
+void AlignToMap(const PassageGraph& graph, const NodeRange& range, const Passage& passage,
+                const SubgraphLandmarks& landmarks, const MapUpdateOptions& update_options, std::vector<Pose2>* poses) {
+  const double tau = graph.gnss_correlation_time_s;
+  if (!(tau > 0.0) || graph.gnss.empty()) return;
+  const double t0 = graph.node_times_s[range.first], span = graph.node_times_s[range.last] - t0;
+  if (!(span > 0.0)) return;
+  const int knots = 1 + std::max(1, static_cast<int>(std::ceil(span / std::max(5.0, 0.5 * tau))));
+  const double spacing = span / (knots - 1);
+  const double sigma = std::sqrt(0.5 * graph.gnss.front().cov_m2.trace());
+  std::vector<Eigen::Vector2d> offset(knots, Eigen::Vector2d::Zero());
+  ceres::Problem problem;
+  int bearings = 0;
+  for (size_t i = 0; i < landmarks.ids.size(); ++i) {
+    if (!landmarks.known[i]) continue;
+    for (const CameraObservation* d : landmarks.detections[i]) {
+      const double x = (graph.node_times_s[d->node] - t0) / spacing;
+      const int a = std::clamp(static_cast<int>(std::floor(x)), 0, knots - 2);
+      problem.AddResidualBlock(
+          ShiftedBearingFactor::Create((*poses)[d->node - range.first], landmarks.initial[i], x - a, d->u_px,
+                                       passage.noise.pixel_sigma_px, passage.calibration),
+          new ceres::CauchyLoss(3.0), offset[a].data(), offset[a + 1].data());
+      ++bearings;
+    }
+  }
+  if (bearings == 0) return;
+  problem.AddResidualBlock(new LandmarkPriorFactor(Eigen::Vector2d::Zero(), Eigen::Matrix2d::Identity() / sigma),
+                           nullptr, offset[0].data());
+  for (int j = 1; j < knots; ++j) {
+    problem.AddResidualBlock(Ar1StepFactor::Create(std::exp(-spacing / tau), sigma), nullptr, offset[j - 1].data(),
+                             offset[j].data());
+  }
+  ceres::Solver::Summary summary;
+  Solve(update_options, SolverOptions(update_options.max_solver_iterations), &problem, &summary);
+  if (!summary.IsSolutionUsable()) return;
+  for (int k = range.first; k <= range.last; ++k) {
+    const double x = (graph.node_times_s[k] - t0) / spacing;
+    const int a = std::clamp(static_cast<int>(std::floor(x)), 0, knots - 2);
+    (*poses)[k - range.first].head<2>() += (1.0 - (x - a)) * offset[a] + (x - a) * offset[a + 1];
+  }
+}
+
+}  // namespace
+
 void InitializePoses(const PassageGraph& graph, const NodeRange& range, const Passage& passage,
                      const MapUpdateOptions& update_options, SubgraphLandmarks* landmarks, std::vector<Pose2>* poses) {
+  AlignToMap(graph, range, passage, *landmarks, update_options, poses);
   ceres::Problem problem;
   AddPoseGraphFactors(graph, range.first, range.last, passage.calibration.gnss_lever_arm_m, nullptr, poses, &problem,
                       /*independent_fixes=*/true);
