@@ -51,21 +51,16 @@ absl::StatusOr<PassageUpdate> SolveJointly(const std::vector<Passage>& passages,
 
   // Starting point: `map` with the last passage applied on its own, the basin the sequential
   // update finds (the intersection of all rays is no start when each passage's GNSS is metres
-  // off in its own way); landmarks it lacks start at the intersection of their rays.
+  // off in its own way). Only landmarks the sequential updates created are estimated: those they
+  // hold back (too few or too parallel rays, MapUpdateOptions::min_new_landmark_detections and
+  // after) are no better determined here, and placed by two rays they can land kilometres off.
   MapOverlay guess(map);
   for (const auto& [id, record] : single.delta.landmarks) guess.PutLandmark(record);
-  std::map<LandmarkId, RayIntersection> rays;
+  std::map<LandmarkId, Eigen::Vector2d> initial;
   for (int p = 0; p < count; ++p) {
     for (const CameraObservation& d : graphs[p].detections) {
-      rays[d.landmark_id].Add(CameraRay(graphs[p].initial_poses[d.node], passages[p].calibration, d.u_px));
-    }
-  }
-  std::map<LandmarkId, Eigen::Vector2d> initial;
-  for (const auto& [id, lines] : rays) {
-    if (const Landmark* known = guess.FindLandmark(id)) {
-      initial[id] = frame.ToLocal(known->position);
-    } else if (std::optional<Eigen::Vector2d> x = lines.Solve()) {
-      initial[id] = *x;
+      if (initial.count(d.landmark_id)) continue;
+      if (const Landmark* known = guess.FindLandmark(d.landmark_id)) initial[d.landmark_id] = frame.ToLocal(known->position);
     }
   }
   std::vector<std::vector<Pose2>> poses(count);
@@ -316,16 +311,19 @@ absl::StatusOr<PassageUpdate> SolveJointly(const std::vector<Passage>& passages,
   return PassageUpdate{std::move(delta), summary};
 }
 
-// Why the joint solution `joint` must not be used, or "" if it may: a landmark of the sequential
-// update `single` that the joint solve moved out of the sequential estimate's confidence region.
-// Both estimate the same landmarks from nearly the same information, so they differ by far less
-// than that region, unless the joint solve converged to another minimum.
-std::string JointSolutionRejected(const PassageUpdate& single, const PassageUpdate& joint, double max_mahalanobis2) {
-  for (const auto& [id, sequential] : single.delta.landmarks) {
-    const auto it = joint.delta.landmarks.find(id);
-    if (it == joint.delta.landmarks.end()) continue;  // only conditioned by the sequential update
-    const Eigen::Vector2d offset = EastNorthOffset(sequential.position, it->second.position);
-    const Eigen::LDLT<Eigen::Matrix2d> cov(sequential.cov_en_m2);
+// Why the joint solution `joint` must not be used, or "" if it may: a landmark that the joint
+// solve moved out of the confidence region of the sequential estimate (the update `single` of
+// the last passage on `map`, or `map`'s own for the landmarks that update did not touch). Both
+// estimate the same landmarks from nearly the same information, so they differ by far less than
+// that region, unless the joint solve converged to another minimum.
+std::string JointSolutionRejected(const MapReaderInterface& map, const PassageUpdate& single, const PassageUpdate& joint,
+                                  double max_mahalanobis2) {
+  for (const auto& [id, joint_record] : joint.delta.landmarks) {
+    const auto it = single.delta.landmarks.find(id);
+    const Landmark* sequential = it != single.delta.landmarks.end() ? &it->second : map.FindLandmark(id);
+    if (sequential == nullptr) continue;
+    const Eigen::Vector2d offset = EastNorthOffset(sequential->position, joint_record.position);
+    const Eigen::LDLT<Eigen::Matrix2d> cov(sequential->cov_en_m2);
     if (cov.info() != Eigen::Success || !cov.isPositive()) continue;
     const double mahalanobis2 = offset.dot(cov.solve(offset));
     if (!(mahalanobis2 <= max_mahalanobis2)) {
@@ -351,7 +349,7 @@ absl::StatusOr<PassageUpdate> ComputeBatchUpdate(const std::vector<Passage>& pas
   absl::StatusOr<PassageUpdate> single = ComputePassageUpdate(passages.back(), options, map);
   if (!single.ok()) return single.status();
   absl::StatusOr<PassageUpdate> joint = SolveJointly(passages, options, map, *single);
-  const std::string rejected = joint.ok() ? JointSolutionRejected(*single, *joint, options.max_joint_mahalanobis2)
+  const std::string rejected = joint.ok() ? JointSolutionRejected(map, *single, *joint, options.max_joint_mahalanobis2)
                                           : std::string(joint.status().message());
   if (rejected.empty()) return joint;
   // The sequential update is a valid map change on its own: the passage is not lost.
