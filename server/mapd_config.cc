@@ -135,6 +135,13 @@ std::unique_ptr<CLI::App> NewMapdCommandLine(MapdConfig* config) {
       ->envname(MapdEnvName("max-landmark-shift-sigmas"))
       ->default_val(std::sqrt(u.max_landmark_shift_mahalanobis2))
       ->type_name("X");
+  app->add_option_function<double>(
+         "--max-update-shift-sigmas", [&u](double sigmas) { u.max_update_shift_mahalanobis2 = sigmas * sigmas; },
+         "a passage whose update would move a landmark seen by 3 or more passages further than X of\n"
+         "its sigmas is quarantined, the map unchanged (0 = off)")
+      ->envname(MapdEnvName("max-update-shift-sigmas"))
+      ->default_val(std::sqrt(u.max_update_shift_mahalanobis2))
+      ->type_name("X");
   AddMapdSetting(app, "max-new-landmark-ray-sigma-m", &u.max_new_landmark_ray_sigma_m,
                  "a new landmark is created only when its own rays fix it to X metres")
       ->type_name("X");
@@ -230,6 +237,7 @@ std::string DescribeMapdConfig(const MapdConfig& config) {
       " max-message-mb=", o.max_message_mb, " max-passage-mb=", o.max_passage_mb,
       " max-detection-residual-sigmas=", u.max_detection_residual_sigmas,
       " max-landmark-shift-sigmas=", std::sqrt(u.max_landmark_shift_mahalanobis2),
+      " max-update-shift-sigmas=", std::sqrt(u.max_update_shift_mahalanobis2),
       " max-new-landmark-ray-sigma-m=", u.max_new_landmark_ray_sigma_m, " max-chi2-per-dof=", u.max_chi2_per_dof,
       " estimate-camera-yaw=", u.estimate_camera_yaw ? "true" : "false",
       " metrics-listen=", o.metrics_listen.empty() ? "none" : EscapeForLog(o.metrics_listen),

@@ -86,8 +86,8 @@ void ScaleNoise(const NoiseScales& scales, ScenarioOptions* scenario) {
 }
 
 // --warmup-passages, --relinearize-until-passages, --window-hops, --relinearize-sigmas and
-// --relinearizations-per-passage, --estimate-camera-yaw and --max-landmark-shift-sigmas (experiment
-// and city).
+// --relinearizations-per-passage, --estimate-camera-yaw, --max-landmark-shift-sigmas and
+// --max-update-shift-sigmas (experiment and city).
 void AddMapUpdateFlags(CLI::App* command, MapUpdateOptions* update) {
   command->add_option("--window-hops", update->window_hops,
                       "re-estimate the map within H links of each graph (0 = whole map, exact)")
@@ -118,6 +118,15 @@ void AddMapUpdateFlags(CLI::App* command, MapUpdateOptions* update) {
           "aside for that passage, as mapd's flag of that name (0 = off)")
       ->check(NonNegative())
       ->default_val(std::sqrt(update->max_landmark_shift_mahalanobis2))
+      ->type_name("X");
+  command
+      ->add_option_function<double>(
+          "--max-update-shift-sigmas",
+          [update](double sigmas) { update->max_update_shift_mahalanobis2 = sigmas * sigmas; },
+          "a passage whose update would move a landmark seen by 3 or more passages further than X\n"
+          "of its sigmas is refused (quarantined), as mapd's flag of that name (0 = off)")
+      ->check(NonNegative())
+      ->default_val(std::sqrt(update->max_update_shift_mahalanobis2))
       ->type_name("X");
 }
 

@@ -22,6 +22,11 @@ enum class UpdateStrategy {
 absl::StatusOr<UpdateStrategy> ParseUpdateStrategy(std::string_view name);
 const char* UpdateStrategyName(UpdateStrategy strategy);
 
+// Passages that must have seen a landmark before MapUpdateOptions::max_update_shift_mahalanobis2
+// bounds what one passage may do to it: a landmark seen once or twice has a covariance that rests
+// on a linearisation metres off, and honest passages may still move it further.
+constexpr int64_t kEstablishedLandmarkPassages = 3;
+
 struct MapUpdateOptions {
   UpdateStrategy strategy = UpdateStrategy::kCorrelatedSubdivided;
   // Largest state dimension (3 per pose + 2 per landmark) of one subgraph with cc-gsd.
@@ -77,6 +82,15 @@ struct MapUpdateOptions {
   // since its move has covariance prior - posterior) is one the passage and the map disagree
   // about: its detections are set aside and the subgraph solved again without them. 0 = off.
   double max_landmark_shift_mahalanobis2 = 25.0;
+  // The whole sequential update of one passage is refused (FailedPrecondition: the passage is
+  // quarantined, the map unchanged) when it moves a landmark the map has from at least
+  // kEstablishedLandmarkPassages passages further than this from its map estimate (squared
+  // Mahalanobis distance in its map marginal covariance). The bound on what one passage can do to
+  // an established map, whatever it contains: the gate above sets aside the detections of a
+  // landmark in disagreement, but a passage can still move landmarks through the others it sees
+  // and their correlations. Honest moves have covariance prior - posterior, a small fraction of
+  // the prior once a landmark has been seen a few times. 0 = off.
+  double max_update_shift_mahalanobis2 = 9.0;
   // A detection whose residual at a subgraph's solution exceeds this many pixel sigmas is an
   // outlier (a neighbouring landmark reported under this one's id, a false detection): it is set
   // aside and the subgraph solved again without it, before the consistency test. 0 = off.

@@ -293,6 +293,10 @@ absl::Status MapUpdateOptions::Validate() const {
     return absl::InvalidArgumentError(
         absl::StrCat("max_landmark_shift_mahalanobis2: must be >= 0 (0 = off), got ", max_landmark_shift_mahalanobis2));
   }
+  if (!(max_update_shift_mahalanobis2 >= 0.0)) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("max_update_shift_mahalanobis2: must be >= 0 (0 = off), got ", max_update_shift_mahalanobis2));
+  }
   if (!(max_new_landmark_ray_sigma_m > 0.0)) {
     return absl::InvalidArgumentError(
         absl::StrCat("max_new_landmark_ray_sigma_m: must be > 0, got ", max_new_landmark_ray_sigma_m));
@@ -428,6 +432,31 @@ absl::StatusOr<PassageUpdate> TakeUpdate(MapOverlay* overlay, PassageUpdateSumma
   return PassageUpdate{std::move(delta), summary};
 }
 
+// Refused (FailedPrecondition naming the landmarks) when `delta` moves an established landmark
+// of `map` further than options.max_update_shift_mahalanobis2 allows.
+absl::Status CheckUpdateShifts(const MapDelta& delta, const MapReaderInterface& map, const MapUpdateOptions& options) {
+  if (options.max_update_shift_mahalanobis2 <= 0.0) return absl::OkStatus();
+  std::vector<std::pair<double, std::string>> moved;  // (sigmas, description)
+  for (const auto& [id, changed] : delta.landmarks) {
+    const Landmark* before = map.FindLandmark(id);
+    if (before == nullptr || before->passages_seen < kEstablishedLandmarkPassages) continue;
+    const Eigen::Vector2d shift = EastNorthOffset(before->position, changed.position);
+    const Eigen::LDLT<Eigen::Matrix2d> cov(before->cov_en_m2);
+    const double mahalanobis2 = shift.dot(cov.solve(shift));
+    if (mahalanobis2 <= options.max_update_shift_mahalanobis2) continue;
+    moved.emplace_back(std::sqrt(mahalanobis2),
+                       absl::StrFormat("landmark %d by %.2f m (%.1f sigma)", id, shift.norm(), std::sqrt(mahalanobis2)));
+  }
+  if (moved.empty()) return absl::OkStatus();
+  std::sort(moved.rbegin(), moved.rend());
+  std::string list;
+  for (size_t k = 0; k < moved.size() && k < 5; ++k) absl::StrAppend(&list, k ? ", " : "", moved[k].second);
+  if (moved.size() > 5) absl::StrAppend(&list, " and ", moved.size() - 5, " more");
+  return absl::FailedPreconditionError(absl::StrFormat(
+      "the update would move %d established landmark(s) further than %.1f of their sigmas: %s; the map is unchanged",
+      moved.size(), std::sqrt(options.max_update_shift_mahalanobis2), list));
+}
+
 }  // namespace
 
 absl::StatusOr<PassageUpdate> ComputePassageUpdate(const Passage& passage, const MapUpdateOptions& options,
@@ -437,7 +466,12 @@ absl::StatusOr<PassageUpdate> ComputePassageUpdate(const Passage& passage, const
   MapOverlay overlay(map);
   PassageUpdateSummary summary;
   if (absl::Status s = ApplyPassage(passage, options, &overlay, &summary); !s.ok()) return s;
-  return TakeUpdate(&overlay, summary, start);
+  absl::StatusOr<PassageUpdate> update = TakeUpdate(&overlay, summary, start);
+  if (!update.ok()) return update;
+  if (absl::Status s = CheckUpdateShifts(update->delta, map, options); !s.ok()) {
+    return absl::Status(s.code(), absl::StrCat("passage ", passage.passage_id, ": ", s.message()));
+  }
+  return update;
 }
 
 absl::StatusOr<PassageUpdate> ComputePassageRelinearization(const Passage& passage, const MapUpdateOptions& options,
@@ -506,6 +540,7 @@ absl::StatusOr<PassageUpdate> MapUpdater::Compute(const Passage& passage, const 
   if (mode.vouched) {
     options.max_chi2_per_dof = 0.0;
     options.max_landmark_shift_mahalanobis2 = 0.0;
+    options.max_update_shift_mahalanobis2 = 0.0;
   }
   absl::StatusOr<PassageUpdate> update;
   if (joint_next() && !mode.sequential) {
