@@ -137,7 +137,7 @@ std::unique_ptr<CLI::App> NewMapdCommandLine(MapdConfig* config) {
       ->type_name("X");
   app->add_option_function<double>(
          "--max-update-shift-sigmas", [&u](double sigmas) { u.max_update_shift_mahalanobis2 = sigmas * sigmas; },
-         "a passage whose update would move a landmark seen by 3 or more passages further than X of\n"
+         "a passage whose update would move a landmark seen by 10 or more passages further than X of\n"
          "its sigmas is quarantined, the map unchanged (0 = off)")
       ->envname(MapdEnvName("max-update-shift-sigmas"))
       ->default_val(std::sqrt(u.max_update_shift_mahalanobis2))

@@ -123,7 +123,7 @@ void AddMapUpdateFlags(CLI::App* command, MapUpdateOptions* update) {
       ->add_option_function<double>(
           "--max-update-shift-sigmas",
           [update](double sigmas) { update->max_update_shift_mahalanobis2 = sigmas * sigmas; },
-          "a passage whose update would move a landmark seen by 3 or more passages further than X\n"
+          "a passage whose update would move a landmark seen by 10 or more passages further than X\n"
           "of its sigmas is refused (quarantined), as mapd's flag of that name (0 = off)")
       ->check(NonNegative())
       ->default_val(std::sqrt(update->max_update_shift_mahalanobis2))

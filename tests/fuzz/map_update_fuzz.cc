@@ -3,9 +3,9 @@
 // script over a valid passage (shifted or scattered GNSS, over-confident sigmas, mislabelled or
 // invented landmarks, garbage calibration, odd speeds and steering, cut drives, shifted times).
 // Whatever it does, an update that is accepted must keep the map's invariants (finite estimates,
-// positive semi-definite factors, positive-definite marginals) and must not move any landmark of
-// the map further than the disagreement gate allows (MapUpdateOptions::
-// max_landmark_shift_mahalanobis2, in the landmark's standard deviations).
+// positive semi-definite factors, positive-definite marginals) and must not move any established
+// landmark of the map further than the whole-update gate allows (MapUpdateOptions::
+// max_update_shift_mahalanobis2, in the landmark's standard deviations: 3 by default).
 #include <algorithm>
 #include <cmath>
 #include <cstdio>
@@ -184,9 +184,10 @@ extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
   for (const auto& [id, changed] : update->delta.landmarks) {
     const Landmark* before = m.map.FindLandmark(id);
     if (before == nullptr) continue;  // created by this passage
+    if (before->passages_seen < kEstablishedLandmarkPassages) continue;
     const Eigen::Vector2d shift = changed.Offset() - before->Offset();
     const double sigmas = std::sqrt(shift.dot(before->cov_en_m2.llt().solve(shift)));
-    if (!(sigmas * sigmas <= m.options.max_landmark_shift_mahalanobis2)) {
+    if (!(sigmas * sigmas <= m.options.max_update_shift_mahalanobis2)) {
       Fail("landmark " + std::to_string(id) + " moved " + std::to_string(shift.norm()) + " m, " +
            std::to_string(sigmas) + " of its sigmas");
     }
