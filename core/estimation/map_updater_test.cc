@@ -557,6 +557,27 @@ TEST(ComputePassageUpdate, EveryCommittedMapHasPositiveDefiniteInformationAndIts
   EXPECT_EQ(checked, 8);
 }
 
+// Applies the first `passages` city passages through a MapUpdater (its joint solves included) to
+// an empty map; `after_each` sees the map after every passage.
+MapState ApplyCityPassagesThroughUpdater(const CityScenarioOptions& city, int passages, const MapUpdateOptions& options,
+                                         const std::function<void(int, const MapState&)>& after_each = nullptr) {
+  absl::StatusOr<CityScenario> scenario = CityScenario::Create(city);
+  EXPECT_TRUE(scenario.ok()) << scenario.status();
+  MapState map;
+  if (!scenario.ok()) return map;
+  MapUpdater updater(options);
+  for (int i = 0; i < passages; ++i) {
+    const Passage passage = scenario->MakePassage(i);
+    absl::StatusOr<PassageUpdate> update = updater.Compute(passage, map);
+    EXPECT_TRUE(update.ok()) << "passage " << i << ": " << update.status();
+    if (!update.ok()) continue;
+    map.Apply(update->delta);
+    updater.Applied(passage, update->delta);
+    if (after_each) after_each(i, map);
+  }
+  return map;
+}
+
 // The young map's joint solves replace the factors of the passages they re-solve: a landmark one
 // of those factors reached, but whose detections the joint solve cannot use, must not be left
 // without information (the map could no longer be factorised around it).
@@ -564,22 +585,13 @@ TEST(MapUpdater, JointSolvesOfAYoungCityMapLeaveItsInformationPositiveDefinite) 
   CityScenarioOptions city;
   city.route_length_m = 1000.0;
   city.vehicle_yaw_bias_sigma_rad = 0.0087;
-  absl::StatusOr<CityScenario> scenario = CityScenario::Create(city);
-  ASSERT_TRUE(scenario.ok()) << scenario.status();
   MapUpdateOptions options;
   options.estimate_camera_yaw = true;
-  MapState map;
-  MapUpdater updater(options);
-  for (int i = 0; i < 8; ++i) {
-    const Passage passage = scenario->MakePassage(i);
-    absl::StatusOr<PassageUpdate> update = updater.Compute(passage, map);
-    ASSERT_TRUE(update.ok()) << "passage " << i << ": " << update.status();
-    map.Apply(update->delta);
-    updater.Applied(passage, update->delta);
+  ApplyCityPassagesThroughUpdater(city, 8, options, [](int i, const MapState& map) {
     absl::StatusOr<MapWindow> window = MapWindow::Build(map, map.LandmarkIds(), MapWindowOptions());
     ASSERT_TRUE(window.ok()) << "after passage " << i << ": " << window.status();
     ASSERT_TRUE(window->offsets().allFinite());
-  }
+  });
 }
 
 // The young map's joint solves on the street grid, vehicles with their own sensor rates: before
@@ -592,15 +604,7 @@ TEST(MapUpdater, JointSolvesOfAYoungCityMapPlaceNoLandmarkFarOff) {
   city.rate_variation = 0.2;
   absl::StatusOr<CityScenario> scenario = CityScenario::Create(city);
   ASSERT_TRUE(scenario.ok()) << scenario.status();
-  MapState map;
-  MapUpdater updater(MapUpdateOptions{});
-  for (int i = 0; i < 16; ++i) {
-    const Passage passage = scenario->MakePassage(i);
-    absl::StatusOr<PassageUpdate> update = updater.Compute(passage, map);
-    ASSERT_TRUE(update.ok()) << "passage " << i << ": " << update.status();
-    map.Apply(update->delta);
-    updater.Applied(passage, update->delta);
-  }
+  const MapState map = ApplyCityPassagesThroughUpdater(city, 16, MapUpdateOptions{});
   double worst = 0.0, sum = 0.0;
   map.ForEachLandmark([&](const Landmark& l) {
     const double error = (scenario->frame().ToLocal(l.position) - scenario->landmarks()[l.id - 1].position_m).norm();
