@@ -2,7 +2,6 @@
 #include <algorithm>
 #include <map>
 #include <memory>
-#include <optional>
 #include <set>
 #include <unordered_set>
 
@@ -15,7 +14,6 @@
 #include "core/estimation/landmark_update.h"
 #include "core/estimation/map_updater.h"
 #include "core/estimation/subgraph_steps.h"
-#include "core/estimation/triangulation.h"
 
 namespace crowdmap {
 namespace {
@@ -52,8 +50,8 @@ absl::StatusOr<PassageUpdate> SolveJointly(const std::vector<Passage>& passages,
   // Starting point: `map` with the last passage applied on its own, the basin the sequential
   // update finds (the intersection of all rays is no start when each passage's GNSS is metres
   // off in its own way). Only landmarks the sequential updates created are estimated: those they
-  // hold back (too few or too parallel rays, MapUpdateOptions::min_new_landmark_detections and
-  // after) are no better determined here, and placed by two rays they can land kilometres off.
+  // hold back (too few rays, too little parallax, too far: the creation rules of
+  // MapUpdateOptions) are no better determined here, and two rays can place them kilometres off.
   MapOverlay guess(map);
   for (const auto& [id, record] : single.delta.landmarks) guess.PutLandmark(record);
   std::map<LandmarkId, Eigen::Vector2d> initial;
