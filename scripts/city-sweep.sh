@@ -4,7 +4,8 @@
 # per-vehicle camera errors (each vehicle's yaw estimated), sensor rates +-20% per vehicle, two
 # seeds (noise and layout). Prints one line per run, then the passages refused (false refusals:
 # every passage is clean) and the mean error and NEES per noise model.
-#   scripts/city-sweep.sh [OUT_DIR]        (default out/city-sweep; JOBS=2 runs two at a time)
+#   scripts/city-sweep.sh [OUT_DIR]        (default out/city-sweep; JOBS=2 runs two at a time,
+#                                           EXTRA_FLAGS="..." adds mapsim city flags to every run)
 # About 15 minutes with JOBS=2 on a 2-core machine. Runs already in OUT_DIR are kept.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -18,7 +19,7 @@ done; done; done; done | xargs -P "$JOBS" -L 1 bash -c '
   name=$0 route=$1 noise=$2 vy=$3 seed=$4
   if [ ! -f "'"$OUT"'/$name/summary.json" ]; then
     "'"$MAPSIM"'" city --passages 60 --route-m "$route" --noise "$noise" --vehicle-yaw-bias-sigma-rad "$vy" \
-      --estimate-camera-yaw --rate-variation 0.2 --seed "$seed" --layout-seed "$seed" --out "'"$OUT"'/$name" \
+      --estimate-camera-yaw --rate-variation 0.2 --seed "$seed" --layout-seed "$seed" ${EXTRA_FLAGS:-} --out "'"$OUT"'/$name" \
       --quiet > "'"$OUT"'/$name.log" 2>&1
   fi
   echo "$name $(tail -n 1 "'"$OUT"'/$name.log" | grep -o "failed=[0-9]*\|quarantined=[0-9]*\|mean_error_m=[0-9.]*\|nees_per_dof=[0-9.]*" | tr "\n" " ")"'

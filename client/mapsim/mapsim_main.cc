@@ -86,8 +86,8 @@ void ScaleNoise(const NoiseScales& scales, ScenarioOptions* scenario) {
 }
 
 // --warmup-passages, --relinearize-until-passages, --window-hops, --relinearize-sigmas and
-// --relinearizations-per-passage, --estimate-camera-yaw, --max-landmark-shift-sigmas and
-// --max-update-shift-sigmas (experiment and city).
+// --relinearizations-per-passage, --estimate-camera-yaw, --max-landmark-shift-sigmas,
+// --max-chi2-per-dof and --max-update-shift-sigmas (experiment and city).
 void AddMapUpdateFlags(CLI::App* command, MapUpdateOptions* update) {
   command->add_option("--window-hops", update->window_hops,
                       "re-estimate the map within H links of each graph (0 = whole map, exact)")
@@ -118,6 +118,10 @@ void AddMapUpdateFlags(CLI::App* command, MapUpdateOptions* update) {
           "aside for that passage, as mapd's flag of that name (0 = off)")
       ->check(NonNegative())
       ->default_val(std::sqrt(update->max_landmark_shift_mahalanobis2))
+      ->type_name("X");
+  command->add_option("--max-chi2-per-dof", update->max_chi2_per_dof,
+                      "refuse a passage when a solve leaves chi2 above X per degree of freedom before any\n"
+                      "inflation, 0 = never")
       ->type_name("X");
   command
       ->add_option_function<double>(
@@ -165,10 +169,6 @@ void AddExperimentFlags(CLI::App* command, ExperimentCommand* c) {
                       "inflate a passage's measurement covariances by chi2/dof when its chi2 exceeds dof\n"
                       "by K sigma, 0 = never")
       ->type_name("K");
-  command->add_option("--max-chi2-per-dof", o.update.max_chi2_per_dof,
-                      "refuse a passage when a solve leaves chi2 above X per degree of freedom before any\n"
-                      "inflation, 0 = never")
-      ->type_name("X");
   CLI::Option* shuffle_window =
       command
           ->add_option("--shuffle-window", c->shuffle_window,
