@@ -111,9 +111,6 @@ void Solve(const MapUpdateOptions& options, ceres::Solver::Options solver_option
   Yield(options);
 }
 
-// Refines the subgraph's initial poses: odometry + GNSS + the bearings of the map landmarks held
-// fixed, if any. The pixel model alone cannot start from poses tens of metres off (with coloured
-// GNSS noise the GNSS-aligned guess often is), the bounded bearing residual can.
 namespace {
 
 // Under coloured GNSS noise the initial poses follow fixes that can be tens of metres off, the same
@@ -132,15 +129,20 @@ void AlignToMap(const PassageGraph& graph, const NodeRange& range, const Passage
   const double spacing = span / (knots - 1);
   const double sigma = std::sqrt(0.5 * graph.gnss.front().cov_m2.trace());
   std::vector<Eigen::Vector2d> offset(knots, Eigen::Vector2d::Zero());
+  // A node's offset: (1 - w) offset[a] + w offset[a + 1].
+  const auto knot_of = [&](int node) {
+    const double x = (graph.node_times_s[node] - t0) / spacing;
+    const int a = std::clamp(static_cast<int>(std::floor(x)), 0, knots - 2);
+    return std::make_pair(a, x - a);
+  };
   ceres::Problem problem;
   int bearings = 0;
   for (size_t i = 0; i < landmarks.ids.size(); ++i) {
     if (!landmarks.known[i]) continue;
     for (const CameraObservation* d : landmarks.detections[i]) {
-      const double x = (graph.node_times_s[d->node] - t0) / spacing;
-      const int a = std::clamp(static_cast<int>(std::floor(x)), 0, knots - 2);
+      const auto [a, w] = knot_of(d->node);
       problem.AddResidualBlock(
-          ShiftedBearingFactor::Create((*poses)[d->node - range.first], landmarks.initial[i], x - a, d->u_px,
+          ShiftedBearingFactor::Create((*poses)[d->node - range.first], landmarks.initial[i], w, d->u_px,
                                        passage.noise.pixel_sigma_px, passage.calibration),
           new ceres::CauchyLoss(3.0), offset[a].data(), offset[a + 1].data());
       ++bearings;
@@ -157,14 +159,16 @@ void AlignToMap(const PassageGraph& graph, const NodeRange& range, const Passage
   Solve(update_options, SolverOptions(update_options.max_solver_iterations), &problem, &summary);
   if (!summary.IsSolutionUsable()) return;
   for (int k = range.first; k <= range.last; ++k) {
-    const double x = (graph.node_times_s[k] - t0) / spacing;
-    const int a = std::clamp(static_cast<int>(std::floor(x)), 0, knots - 2);
-    (*poses)[k - range.first].head<2>() += (1.0 - (x - a)) * offset[a] + (x - a) * offset[a + 1];
+    const auto [a, w] = knot_of(k);
+    (*poses)[k - range.first].head<2>() += (1.0 - w) * offset[a] + w * offset[a + 1];
   }
 }
 
 }  // namespace
 
+// Refines the subgraph's initial poses: odometry + GNSS + the bearings of the map landmarks held
+// fixed, if any. The pixel model alone cannot start from poses tens of metres off (with coloured
+// GNSS noise the GNSS-aligned guess often is), the bounded bearing residual can.
 void InitializePoses(const PassageGraph& graph, const NodeRange& range, const Passage& passage,
                      const MapUpdateOptions& update_options, SubgraphLandmarks* landmarks, std::vector<Pose2>* poses) {
   AlignToMap(graph, range, passage, *landmarks, update_options, poses);
