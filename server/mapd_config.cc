@@ -61,6 +61,16 @@ class MapdConfigFile : public CLI::Config {
   const CLI::App* mapd_;
 };
 
+// A setting given in sigmas and kept as the squared Mahalanobis distance `*mahalanobis2`.
+void AddSigmasSetting(CLI::App* app, const std::string& name, double* mahalanobis2, const std::string& description) {
+  app->add_option_function<double>(
+         "--" + name, [mahalanobis2](double sigmas) { *mahalanobis2 = sigmas * sigmas; }, description)
+      ->envname(MapdEnvName(name))
+      ->check(CLI::NonNegativeNumber)
+      ->default_val(std::sqrt(*mahalanobis2))
+      ->type_name("X");
+}
+
 // mapd's command line, its settings bound to `config`.
 std::unique_ptr<CLI::App> NewMapdCommandLine(MapdConfig* config) {
   auto mapd = std::make_unique<CLI::App>("mapd: the crowdsourced landmark map service (gRPC, mapservice.v1).", "mapd");
@@ -128,20 +138,12 @@ std::unique_ptr<CLI::App> NewMapdCommandLine(MapdConfig* config) {
                  "a detection whose residual at a subgraph's solution exceeds X pixel sigmas is set aside\n"
                  "as an outlier (0 = off)")
       ->type_name("X");
-  app->add_option_function<double>(
-         "--max-landmark-shift-sigmas", [&u](double sigmas) { u.max_landmark_shift_mahalanobis2 = sigmas * sigmas; },
-         "a map landmark a subgraph's solve would move further than X of the map's sigmas is set\n"
-         "aside for that passage (0 = off)")
-      ->envname(MapdEnvName("max-landmark-shift-sigmas"))
-      ->default_val(std::sqrt(u.max_landmark_shift_mahalanobis2))
-      ->type_name("X");
-  app->add_option_function<double>(
-         "--max-update-shift-sigmas", [&u](double sigmas) { u.max_update_shift_mahalanobis2 = sigmas * sigmas; },
-         "a passage whose update would move a landmark seen by 10 or more passages further than X of\n"
-         "its sigmas is quarantined, the map unchanged (0 = off)")
-      ->envname(MapdEnvName("max-update-shift-sigmas"))
-      ->default_val(std::sqrt(u.max_update_shift_mahalanobis2))
-      ->type_name("X");
+  AddSigmasSetting(app, "max-landmark-shift-sigmas", &u.max_landmark_shift_mahalanobis2,
+                   "a map landmark a subgraph's solve would move further than X of the map's sigmas is set\n"
+                   "aside for that passage (0 = off)");
+  AddSigmasSetting(app, "max-update-shift-sigmas", &u.max_update_shift_mahalanobis2,
+                   "a passage whose update would move a landmark seen by 10 or more passages further than X of\n"
+                   "its sigmas is quarantined, the map unchanged (0 = off)");
   AddMapdSetting(app, "max-new-landmark-ray-sigma-m", &u.max_new_landmark_ray_sigma_m,
                  "a new landmark is created only when its own rays fix it to X metres")
       ->type_name("X");

@@ -139,11 +139,17 @@ TEST(MapdConfig, VersionFlagIsRecognised) {
 TEST(MapdConfig, ReadsTheTrustRules) {
   auto c = ParseWithEnvironment({"--max-detection-residual-sigmas", "4", "--max-landmark-shift-sigmas=6",
                                  "--max-new-landmark-ray-sigma-m", "2.5"},
-                                {{"MAPD_MAX_CHI2_PER_DOF", "8"}});
+                                {{"MAPD_MAX_CHI2_PER_DOF", "8"}, {"MAPD_MAX_UPDATE_SHIFT_SIGMAS", "4"}});
   ASSERT_TRUE(c.ok()) << c.status();
   const MapUpdateOptions& u = c->server.worker.update;
   EXPECT_EQ(u.max_detection_residual_sigmas, 4.0);
   EXPECT_EQ(u.max_landmark_shift_mahalanobis2, 36.0);
+  EXPECT_EQ(u.max_update_shift_mahalanobis2, 16.0);
+  // A gate in sigmas is squared: a negative value is refused, not taken as its opposite.
+  auto negative_sigmas = ParseWithEnvironment({"--max-update-shift-sigmas", "-3"}, {});
+  ASSERT_FALSE(negative_sigmas.ok());
+  EXPECT_NE(negative_sigmas.status().message().find("max-update-shift-sigmas"), std::string::npos)
+      << negative_sigmas.status();
   EXPECT_EQ(u.max_new_landmark_ray_sigma_m, 2.5);
   EXPECT_EQ(u.max_chi2_per_dof, 8.0);
   auto bad = ParseWithEnvironment({"--max-detection-residual-sigmas", "many"}, {});

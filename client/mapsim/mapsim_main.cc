@@ -110,27 +110,23 @@ void AddMapUpdateFlags(CLI::App* command, MapUpdateOptions* update) {
   command->add_flag("--estimate-camera-yaw", update->estimate_camera_yaw,
                     "estimate each vehicle's camera yaw offset, its history the prior, as mapd does\n"
                     "(summary.json: vehicle_yaw, estimate against truth per vehicle)");
-  command
-      ->add_option_function<double>(
-          "--max-landmark-shift-sigmas",
-          [update](double sigmas) { update->max_landmark_shift_mahalanobis2 = sigmas * sigmas; },
-          "a map landmark a subgraph's solve would move further than X of the map's sigmas is set\n"
-          "aside for that passage, as mapd's flag of that name (0 = off)")
-      ->check(NonNegative())
-      ->default_val(std::sqrt(update->max_landmark_shift_mahalanobis2))
-      ->type_name("X");
+  // Gates given in sigmas, kept as squared Mahalanobis distances.
+  const auto add_sigmas = [command](const std::string& flag, double* mahalanobis2, const std::string& description) {
+    command->add_option_function<double>(flag, [mahalanobis2](double sigmas) { *mahalanobis2 = sigmas * sigmas; },
+                                         description)
+        ->check(NonNegative())
+        ->default_val(std::sqrt(*mahalanobis2))
+        ->type_name("X");
+  };
+  add_sigmas("--max-landmark-shift-sigmas", &update->max_landmark_shift_mahalanobis2,
+             "a map landmark a subgraph's solve would move further than X of the map's sigmas is set\n"
+             "aside for that passage, as mapd's flag of that name (0 = off)");
+  add_sigmas("--max-update-shift-sigmas", &update->max_update_shift_mahalanobis2,
+             "a passage whose update would move a landmark seen by 10 or more passages further than X\n"
+             "of its sigmas is refused (quarantined), as mapd's flag of that name (0 = off)");
   command->add_option("--max-chi2-per-dof", update->max_chi2_per_dof,
                       "refuse a passage when a solve leaves chi2 above X per degree of freedom before any\n"
                       "inflation, 0 = never")
-      ->type_name("X");
-  command
-      ->add_option_function<double>(
-          "--max-update-shift-sigmas",
-          [update](double sigmas) { update->max_update_shift_mahalanobis2 = sigmas * sigmas; },
-          "a passage whose update would move a landmark seen by 10 or more passages further than X\n"
-          "of its sigmas is refused (quarantined), as mapd's flag of that name (0 = off)")
-      ->check(NonNegative())
-      ->default_val(std::sqrt(update->max_update_shift_mahalanobis2))
       ->type_name("X");
 }
 
