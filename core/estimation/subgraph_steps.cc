@@ -155,8 +155,12 @@ void AlignToMap(const PassageGraph& graph, const NodeRange& range, const Passage
     problem.AddResidualBlock(Ar1StepFactor::Create(std::exp(-spacing / tau), sigma), nullptr, offset[j - 1].data(),
                              offset[j].data());
   }
+  // A starting point only: decimetres are plenty for the pose solve that follows.
+  ceres::Solver::Options options = SolverOptions(update_options.max_solver_iterations);
+  options.function_tolerance = 1e-4;
+  options.parameter_tolerance = 1e-4;
   ceres::Solver::Summary summary;
-  Solve(update_options, SolverOptions(update_options.max_solver_iterations), &problem, &summary);
+  Solve(update_options, options, &problem, &summary);
   if (!summary.IsSolutionUsable()) return;
   for (int k = range.first; k <= range.last; ++k) {
     const auto [a, w] = knot_of(k);
