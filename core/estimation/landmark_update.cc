@@ -8,6 +8,7 @@
 
 #include "absl/strings/str_cat.h"
 #include "core/estimation/factors.h"
+#include "core/estimation/passage_prior.h"
 
 namespace crowdmap {
 namespace {
@@ -31,10 +32,6 @@ Eigen::MatrixXd WithoutRoundingNegatives(const Eigen::MatrixXd& information, con
   const Eigen::VectorXd clipped = eigen.eigenvalues().cwiseMax(0.0);
   return Symmetrized(eigen.eigenvectors() * clipped.asDiagonal() * eigen.eigenvectors().transpose());
 }
-
-// A landmark outside a graph whose estimate moved by less than this is not rewritten (a change of
-// the conditioning far from the graph, below any use).
-constexpr double kMinWrittenChangeM = 1e-6;
 
 // Derivative of the graph's local coordinates with respect to a landmark's offset from its anchor
 // (East/North at the anchor), at `offset`: the tangent frames at the anchor and at the landmark
@@ -62,7 +59,7 @@ LandmarkUpdate::LandmarkUpdate(const LocalFrame& frame, MapOverlay* map, std::ve
   }
 }
 
-absl::Status LandmarkUpdate::AddMapPrior(bool correlated, const MapWindowOptions& window, ceres::Problem* problem) {
+absl::Status LandmarkUpdate::AddMapPrior(const LandmarkUpdateOptions& options, ceres::Problem* problem) {
   prior_index_.clear();
   std::vector<LandmarkId> prior_ids;
   for (int i = 0; i < size(); ++i) {
@@ -81,7 +78,7 @@ absl::Status LandmarkUpdate::AddMapPrior(bool correlated, const MapWindowOptions
     to_local[k] = OffsetToLocal(frame_, lm->anchor, lm->Offset());
     prior_mean_.segment<2>(2 * k) = positions_[prior_index_[k]];
   }
-  if (!correlated) {
+  if (!options.correlated) {
     for (int k = 0; k < m; ++k) {
       const Eigen::Matrix2d cov = to_local[k] * map_->FindLandmark(prior_ids[k])->cov_en_m2 * to_local[k].transpose();
       prior_marginals_[k] = cov;
@@ -96,20 +93,16 @@ absl::Status LandmarkUpdate::AddMapPrior(bool correlated, const MapWindowOptions
     }
     return absl::OkStatus();
   }
-  absl::StatusOr<MapWindow> map_window = MapWindow::Build(*map_, prior_ids, window);
-  if (!map_window.ok()) return map_window.status();
-  absl::StatusOr<Eigen::MatrixXd> columns = map_window->CovarianceColumns(prior_ids);
-  if (!columns.ok()) return columns.status();
-  // The window lists the seeds first: the top rows of the columns are Sigma_OO.
+  absl::StatusOr<Eigen::MatrixXd> anchored = options.passage_prior ? options.passage_prior->Covariance(prior_ids)
+                                                                    : JointCovariance(*map_, prior_ids, options.window);
+  if (!anchored.ok()) return anchored.status();
   Eigen::MatrixXd cov(2 * m, 2 * m);
   for (int k = 0; k < m; ++k) {
     for (int l = 0; l < m; ++l) {
-      cov.block<2, 2>(2 * k, 2 * l) = to_local[k] * columns->block<2, 2>(2 * k, 2 * l) * to_local[l].transpose();
+      cov.block<2, 2>(2 * k, 2 * l) = to_local[k] * anchored->block<2, 2>(2 * k, 2 * l) * to_local[l].transpose();
     }
   }
   for (int k = 0; k < m; ++k) prior_marginals_[k] = cov.block<2, 2>(2 * k, 2 * k);
-  prior_window_ = std::move(*map_window);
-  prior_columns_ = std::move(*columns);
   Eigen::LLT<Eigen::MatrixXd> llt(Symmetrized(cov));
   if (llt.info() != Eigen::Success) {
     return absl::FailedPreconditionError(
@@ -178,8 +171,9 @@ absl::StatusOr<LandmarkUpdateStats> LandmarkUpdate::Commit(const Eigen::MatrixXd
     f.information = WithoutRoundingNegatives(Symmetrized(information - prior), information);
     f.information_vector = information * x - prior_vector - gradient;
     const int64_t factor_id = AddLocalFactor(frame_, x, std::move(f), map_);
-    if (prior_window_ && prior_window_->closed()) {
-      absl::StatusOr<int> conditioned = ConditionWindow(*map_->FindFactor(factor_id), map_->BumpVersion(), touch);
+    if (options.passage_prior) {
+      absl::StatusOr<int> conditioned =
+          options.passage_prior->Condition(*map_->FindFactor(factor_id), map_->BumpVersion(), touch, map_);
       if (!conditioned.ok()) return conditioned.status();
       stats.conditioned = *conditioned;
       stats.covariance_ms = MillisecondsSince(start);
@@ -210,56 +204,6 @@ absl::StatusOr<LandmarkUpdateStats> LandmarkUpdate::Commit(const Eigen::MatrixXd
   stats.conditioned = *conditioned;
   stats.covariance_ms = MillisecondsSince(start);
   return stats;
-}
-
-absl::StatusOr<int> LandmarkUpdate::ConditionWindow(const MapFactor& factor, int64_t version,
-                                                    const std::function<void(Landmark*)>& touch) {
-  const MapWindow& window = *prior_window_;
-  const int n = size(), m = static_cast<int>(prior_index_.size());
-  // The graph's landmarks (the factor's, in ids_ order): the map's marginal on O plus the factor.
-  const Eigen::MatrixXd cov_oo = Symmetrized(prior_columns_.topRows(2 * m));
-  const Eigen::LLT<Eigen::MatrixXd> prior_llt(cov_oo);
-  if (prior_llt.info() != Eigen::Success) return absl::InternalError("map covariance of the graph is not positive definite");
-  const Eigen::MatrixXd prior_info = Symmetrized(prior_llt.solve(Eigen::MatrixXd::Identity(2 * m, 2 * m)));
-  const Eigen::VectorXd mean_o = window.offsets().head(2 * m);
-  Eigen::MatrixXd information = factor.information;
-  Eigen::VectorXd vector = factor.information_vector;
-  const Eigen::VectorXd prior_vector = prior_info * mean_o;
-  for (int k = 0; k < m; ++k) {
-    const int i = prior_index_[k];
-    vector.segment<2>(2 * i) += prior_vector.segment<2>(2 * k);
-    for (int l = 0; l < m; ++l) information.block<2, 2>(2 * i, 2 * prior_index_[l]) += prior_info.block<2, 2>(2 * k, 2 * l);
-  }
-  const Eigen::LLT<Eigen::MatrixXd> llt(Symmetrized(information));
-  if (llt.info() != Eigen::Success) return absl::InternalError("graph landmark information is not positive definite");
-  const Eigen::VectorXd mean_s = llt.solve(vector);
-  const Eigen::MatrixXd cov_s = Symmetrized(llt.solve(Eigen::MatrixXd::Identity(2 * n, 2 * n)));
-  if (!mean_s.allFinite() || !cov_s.allFinite()) return absl::InternalError("graph landmark estimate is not finite");
-
-  // Given O the rest of the map keeps its conditional: it moves by Sigma_WO Sigma_OO^-1 dO.
-  Eigen::VectorXd change_o(2 * m);
-  for (int k = 0; k < m; ++k) change_o.segment<2>(2 * k) = mean_s.segment<2>(2 * prior_index_[k]) - mean_o.segment<2>(2 * k);
-  const Eigen::VectorXd moved = prior_columns_ * prior_llt.solve(change_o);
-  int conditioned = 0;
-  const std::vector<LandmarkId>& window_ids = window.landmarks();
-  for (size_t w = m; w < window_ids.size(); ++w) {
-    const Eigen::Vector2d change = moved.segment<2>(2 * w);
-    if (change.norm() < kMinWrittenChangeM) continue;
-    Landmark record = *map_->FindLandmark(window_ids[w]);
-    record.position = LocalFrame(record.anchor).ToGeo(window.offsets().segment<2>(2 * w) + change);
-    record.version = version;
-    map_->PutLandmark(record);
-    ++conditioned;
-  }
-  for (int i = 0; i < n; ++i) {
-    Landmark record = *map_->FindLandmark(ids_[i]);
-    record.position = LocalFrame(record.anchor).ToGeo(mean_s.segment<2>(2 * i));
-    record.cov_en_m2 = cov_s.block<2, 2>(2 * i, 2 * i);
-    record.version = version;
-    touch(&record);
-    map_->PutLandmark(record);
-  }
-  return conditioned;
 }
 
 int64_t AddLocalFactor(const LocalFrame& frame, const Eigen::VectorXd& local, MapFactor factor, MapOverlay* map) {

@@ -2,7 +2,6 @@
 #define CROWDMAP_CORE_ESTIMATION_LANDMARK_UPDATE_H_
 
 #include <functional>
-#include <optional>
 #include <string>
 #include <vector>
 
@@ -17,8 +16,14 @@
 
 namespace crowdmap {
 
+class PassagePrior;
+
 struct LandmarkUpdateOptions {
   bool correlated = true;  // CC (joint prior, one joint factor) or DC (2x2 priors, one factor per landmark)
+  // CC: where the prior and the conditioning come from. Given, the passage's tracked joint
+  // distribution (exact; it must track every map landmark of the graph); otherwise a window of the
+  // map around the graph's landmarks, factorised for the prior and again after the factor is added.
+  PassagePrior* passage_prior = nullptr;
   MapWindowOptions window;
   std::string vehicle_id;  // provenance of the factor
   std::string passage_id;
@@ -58,9 +63,10 @@ class LandmarkUpdate {
   double* block(int i) { return positions_[i].data(); }
   const Eigen::Vector2d& position(int i) const { return positions_[i]; }
 
-  // Adds the map prior for the landmarks already in the map. FailedPrecondition when the map's
-  // information around them is not positive definite.
-  absl::Status AddMapPrior(bool correlated, const MapWindowOptions& window, ceres::Problem* problem);
+  // Adds the map prior for the landmarks already in the map (options.correlated,
+  // options.passage_prior, options.window). FailedPrecondition when the map's information around
+  // them is not positive definite.
+  absl::Status AddMapPrior(const LandmarkUpdateOptions& options, ceres::Problem* problem);
 
   // For a map landmark after the solve: the squared Mahalanobis length of its move from the prior
   // mean, in the prior's marginal covariance (0 for a new landmark). The move of an honest update
@@ -82,20 +88,10 @@ class LandmarkUpdate {
   std::vector<LandmarkId> ids_;
   std::vector<bool> in_map_;
   std::vector<Eigen::Vector2d> positions_;
-  // After the factor is added: the exact posterior of the graph's landmarks from the prior's
-  // window, and every other window landmark moved by conditioning on their change. Needs a closed
-  // window (the whole connected map), where conditioning is exact. Returns how many landmarks
-  // outside the graph were written.
-  absl::StatusOr<int> ConditionWindow(const MapFactor& factor, int64_t version,
-                                      const std::function<void(Landmark*)>& touch);
-
   std::vector<int> prior_index_;    // indices (into ids_) of the map landmarks O
   Eigen::VectorXd prior_mean_;      // mu_O, local frame
   Eigen::MatrixXd prior_information_;  // P on O, local frame
   std::vector<Eigen::Matrix2d> prior_marginals_;  // the 2x2 marginals of P's inverse
-  // The CC prior's window and its covariance columns for O (anchor offsets), kept for Commit.
-  std::optional<MapWindow> prior_window_;
-  Eigen::MatrixXd prior_columns_;
 };
 
 // Adds `factor` (whose information is over the graph's local-frame positions `local`, stacked as

@@ -19,6 +19,7 @@
 #include "core/estimation/graph_linearization.h"
 #include "core/estimation/landmark_update.h"
 #include "core/estimation/passage_exclusion.h"
+#include "core/estimation/passage_prior.h"
 #include "core/estimation/subdivision.h"
 #include "core/estimation/subgraph_steps.h"
 #include "core/estimation/vehicle_calibration.h"
@@ -114,8 +115,8 @@ std::vector<LandmarkId> LandmarksToSetAside(const LandmarkUpdate& update, const 
 // caller sets them aside and calls again).
 absl::StatusOr<SetAsideRequest> UpdateFromSubgraph(const Passage& passage, const PassageGraph& graph,
                                                    const NodeRange& range, const MapUpdateOptions& options,
-                                                   MapOverlay* map, PassageProgress* progress,
-                                                   PassageUpdateSummary* summary) {
+                                                   PassagePrior* passage_prior, MapOverlay* map,
+                                                   PassageProgress* progress, PassageUpdateSummary* summary) {
   const Calibration& calib = passage.calibration;
   SubgraphLandmarks landmarks = GroupDetections(graph, range, *map);
   summary->detections_dropped += SetAside(progress->held_back, progress->outliers, &landmarks);
@@ -159,10 +160,11 @@ absl::StatusOr<SetAsideRequest> UpdateFromSubgraph(const Passage& passage, const
   const bool correlated = options.strategy != UpdateStrategy::kDecorrelated;
   LandmarkUpdateOptions update_options;
   update_options.correlated = correlated;
+  update_options.passage_prior = passage_prior;
   update_options.window.hops = options.window_hops;
   update_options.vehicle_id = passage.vehicle_id;
   update_options.passage_id = passage.passage_id;
-  if (absl::Status s = update.AddMapPrior(correlated, update_options.window, &problem); !s.ok()) return s;
+  if (absl::Status s = update.AddMapPrior(update_options, &problem); !s.ok()) return s;
 
   ceres::Solver::Summary solver_summary;
   Solve(options, SolverOptions(options.max_solver_iterations), &problem, &solver_summary);
@@ -390,13 +392,26 @@ absl::Status ApplyPassage(const Passage& declared, const MapUpdateOptions& optio
   const int max_dim = options.strategy == UpdateStrategy::kCorrelatedSubdivided ? options.max_subgraph_dim : 0;
   const std::vector<NodeRange> ranges = SubdivideGraph(*graph, max_dim);
   summary->subgraphs = static_cast<int>(ranges.size());
+  // With the exact window (the whole connected map), the map is factorised once for the passage
+  // and its subgraphs condition the joint distribution of the landmarks it sees (PassagePrior).
+  std::optional<PassagePrior> passage_prior;
+  if (options.strategy != UpdateStrategy::kDecorrelated && options.window_hops == 0) {
+    std::vector<LandmarkId> seen;
+    for (const CameraObservation& d : graph->detections) seen.push_back(d.landmark_id);
+    absl::StatusOr<PassagePrior> built = PassagePrior::Build(*overlay, seen);
+    if (!built.ok()) {
+      return absl::Status(built.status().code(), absl::StrCat("passage ", passage.passage_id, ": ", built.status().message()));
+    }
+    passage_prior.emplace(std::move(*built));
+  }
 
   for (const NodeRange& range : ranges) {
     // Each round sets aside at least one more landmark or detection, so this ends.
     for (;;) {
       PassageUpdateSummary attempt = *summary;
       absl::StatusOr<SetAsideRequest> unfit =
-          UpdateFromSubgraph(passage, *graph, range, options, overlay, &progress, &attempt);
+          UpdateFromSubgraph(passage, *graph, range, options, passage_prior ? &*passage_prior : nullptr, overlay,
+                             &progress, &attempt);
       if (!unfit.ok()) {
         return absl::Status(unfit.status().code(), absl::StrCat("passage ", passage.passage_id, " nodes ", range.first,
                                                                 "-", range.last, ": ", unfit.status().message()));
@@ -416,6 +431,14 @@ absl::Status ApplyPassage(const Passage& declared, const MapUpdateOptions& optio
   }
   if (progress.counted.empty()) {
     return absl::InvalidArgumentError("detections: no landmark of the passage could be estimated");
+  }
+  if (passage_prior) {
+    absl::StatusOr<int> conditioned = passage_prior->Finish(overlay->version(), overlay);
+    if (!conditioned.ok()) {
+      return absl::Status(conditioned.status().code(),
+                          absl::StrCat("passage ", passage.passage_id, ": ", conditioned.status().message()));
+    }
+    summary->landmarks_conditioned += *conditioned;
   }
   summary->landmarks_updated = static_cast<int>(progress.updated.size());
   summary->landmarks_created = static_cast<int>(progress.created.size());

@@ -1,9 +1,11 @@
-// Time to apply one thesis-sized passage to a map that already holds the route's landmarks.
+// Time to apply one passage to a map that already holds its landmarks: a thesis-sized loop
+// passage, and a ~2 km route through the default city (6 x 6 blocks, 1009 landmarks).
 //   build/core/map_updater_benchmark --benchmark_repetitions=5 --benchmark_report_aggregates_only=true
 #include <benchmark/benchmark.h>
 
 #include "absl/strings/str_cat.h"
 #include "core/estimation/map_updater.h"
+#include "core/sim/city_scenario.h"
 #include "core/sim/scenario.h"
 
 namespace crowdmap {
@@ -57,6 +59,48 @@ BENCHMARK(BM_ApplyPassage)
     ->Args({100, static_cast<int>(UpdateStrategy::kDecorrelated), 0})
     ->Args({25, static_cast<int>(UpdateStrategy::kCorrelatedSubdivided), 0})
     ->Unit(benchmark::kMillisecond);
+
+// A city passage (the "apply one ~2 km city passage" figure), on a map built from the
+// first `passages` routes with sequential updates only (no joint solves), the service's other
+// defaults. Each iteration applies one of the next 20 routes to that same map.
+void BM_ApplyCityPassage(benchmark::State& state) {
+  CityScenarioOptions city_options;
+  const CityScenario city = *CityScenario::Create(city_options);
+  MapUpdateOptions options;
+  options.warmup_passages = 0;
+  options.relinearize_until_passages = 0;
+  MapState map;
+  MapUpdater updater(options);
+  const int mature = static_cast<int>(state.range(0));
+  for (int i = 0; i < mature; ++i) {
+    const Passage passage = city.MakePassage(i);
+    absl::StatusOr<PassageUpdate> u = updater.Compute(passage, map);
+    if (!u.ok()) continue;
+    map.Apply(u->delta);
+    updater.Applied(passage, u->delta);
+  }
+  std::vector<Passage> passages;
+  for (int i = 0; i < 20; ++i) passages.push_back(city.MakePassage(mature + i));
+  size_t next = 0;
+  double solve_ms = 0.0, covariance_ms = 0.0, subgraphs = 0.0;
+  for (auto _ : state) {
+    absl::StatusOr<PassageUpdate> u = updater.Compute(passages[next++ % passages.size()], map);
+    if (!u.ok()) {
+      state.SkipWithError(u.status().ToString().c_str());
+      break;
+    }
+    solve_ms += u->summary.solve_ms;
+    covariance_ms += u->summary.covariance_ms;
+    subgraphs += u->summary.subgraphs;
+    benchmark::DoNotOptimize(u);
+  }
+  state.counters["solve_ms"] = benchmark::Counter(solve_ms, benchmark::Counter::kAvgIterations);
+  state.counters["covariance_ms"] = benchmark::Counter(covariance_ms, benchmark::Counter::kAvgIterations);
+  state.counters["subgraphs"] = benchmark::Counter(subgraphs, benchmark::Counter::kAvgIterations);
+  state.counters["landmarks"] = static_cast<double>(map.landmark_count());
+}
+
+BENCHMARK(BM_ApplyCityPassage)->ArgNames({"mature_passages"})->Arg(60)->Unit(benchmark::kMillisecond);
 
 }  // namespace
 }  // namespace crowdmap

@@ -4,6 +4,7 @@
 // over all passages; and taking one passage back must give the batch solve without it.
 #include <algorithm>
 #include <memory>
+#include <optional>
 #include <string>
 #include <random>
 #include <vector>
@@ -15,6 +16,7 @@
 #include "core/estimation/graph_linearization.h"
 #include "core/estimation/landmark_update.h"
 #include "core/estimation/passage_exclusion.h"
+#include "core/estimation/passage_prior.h"
 #include "core/map/map_window.h"
 
 namespace crowdmap {
@@ -154,43 +156,66 @@ std::vector<int> InOrder() {
   return order;
 }
 
+// `group` consecutive passages (in `order`) share one overlay and one PassagePrior, as the
+// subgraphs of one passage do in the map updater; 0: no PassagePrior, each update takes a window
+// of the map for its prior and re-solves it after its factor (ResolveAround).
 MapState SequentialSolve(const std::vector<ToyPassage>& passages, bool correlated,
-                         const std::vector<int>& order = InOrder()) {
+                         const std::vector<int>& order = InOrder(), int group = 1) {
   MapState map;
-  for (int j : order) {
-    const ToyPassage& p = passages[j];
+  const size_t step = std::max(group, 1);
+  for (size_t first = 0; first < order.size(); first += step) {
+    const std::vector<int> members(order.begin() + first, order.begin() + std::min(first + step, order.size()));
     MapOverlay overlay(map);
-    std::vector<LandmarkId> ids;
-    for (const auto& o : p.observations) {
-      if (std::find(ids.begin(), ids.end(), o.landmark) == ids.end()) ids.push_back(o.landmark);
+    std::optional<PassagePrior> prior;
+    if (group > 0 && correlated) {
+      std::vector<LandmarkId> seen;
+      for (int j : members) {
+        for (const auto& o : passages[j].observations) seen.push_back(o.landmark);
+      }
+      absl::StatusOr<PassagePrior> built = PassagePrior::Build(overlay, seen);
+      EXPECT_TRUE(built.ok()) << built.status();
+      if (!built.ok()) return map;
+      prior.emplace(std::move(*built));
     }
-    LandmarkUpdate update(ToyFrame(), &overlay, ids);
-    ceres::Problem problem;
-    std::vector<Eigen::Vector2d> poses(p.fixes);
-    AddPassageFactors(
-        p, &poses,
-        [&](int landmark) {
-          const int i = static_cast<int>(std::find(ids.begin(), ids.end(), landmark) - ids.begin());
-          return update.block(i);
-        },
-        &problem);
-    EXPECT_TRUE(update.AddMapPrior(correlated, MapWindowOptions{}, &problem).ok());
-    SolveExactly(&problem);
-    LandmarkUpdateOptions options;
-    options.correlated = correlated;
-    options.vehicle_id = "toy";
-    options.passage_id = "p" + std::to_string(j);
-    std::vector<double*> blocks;
-    for (int i = 0; i < update.size(); ++i) blocks.push_back(update.block(i));
-    absl::StatusOr<GraphLinearization> linearization = GraphLinearization::Compute(&problem, blocks);
-    EXPECT_TRUE(linearization.ok()) << linearization.status();
-    if (!linearization.ok()) return map;
-    // Part of every update; on this linear problem the second-order bias is zero.
-    EXPECT_TRUE(linearization->CorrectSecondOrderBias(&problem, nullptr).ok());
-    absl::StatusOr<LandmarkUpdateStats> stats =
-        update.Commit(linearization->landmark_covariance(), linearization->landmark_gradient(), options,
-                      [](Landmark*) {});
-    EXPECT_TRUE(stats.ok()) << stats.status();
+    for (int j : members) {
+      const ToyPassage& p = passages[j];
+      std::vector<LandmarkId> ids;
+      for (const auto& o : p.observations) {
+        if (std::find(ids.begin(), ids.end(), o.landmark) == ids.end()) ids.push_back(o.landmark);
+      }
+      LandmarkUpdate update(ToyFrame(), &overlay, ids);
+      ceres::Problem problem;
+      std::vector<Eigen::Vector2d> poses(p.fixes);
+      AddPassageFactors(
+          p, &poses,
+          [&](int landmark) {
+            const int i = static_cast<int>(std::find(ids.begin(), ids.end(), landmark) - ids.begin());
+            return update.block(i);
+          },
+          &problem);
+      LandmarkUpdateOptions options;
+      options.correlated = correlated;
+      options.passage_prior = prior ? &*prior : nullptr;
+      options.vehicle_id = "toy";
+      options.passage_id = "p" + std::to_string(j);
+      EXPECT_TRUE(update.AddMapPrior(options, &problem).ok());
+      SolveExactly(&problem);
+      std::vector<double*> blocks;
+      for (int i = 0; i < update.size(); ++i) blocks.push_back(update.block(i));
+      absl::StatusOr<GraphLinearization> linearization = GraphLinearization::Compute(&problem, blocks);
+      EXPECT_TRUE(linearization.ok()) << linearization.status();
+      if (!linearization.ok()) return map;
+      // Part of every update; on this linear problem the second-order bias is zero.
+      EXPECT_TRUE(linearization->CorrectSecondOrderBias(&problem, nullptr).ok());
+      absl::StatusOr<LandmarkUpdateStats> stats =
+          update.Commit(linearization->landmark_covariance(), linearization->landmark_gradient(), options,
+                        [](Landmark*) {});
+      EXPECT_TRUE(stats.ok()) << stats.status();
+    }
+    if (prior) {
+      absl::StatusOr<int> finished = prior->Finish(overlay.version(), &overlay);
+      EXPECT_TRUE(finished.ok()) << finished.status();
+    }
     map.Apply(overlay.TakeDelta());
   }
   return map;
@@ -231,19 +256,24 @@ JointEstimate FromMap(const MapState& map) {
 TEST(SequentialUpdate, CorrelatedEqualsBatchOnALinearProblem) {
   const std::vector<ToyPassage> passages = MakePassages();
   const JointEstimate batch = BatchSolve(passages);
-  const MapState map = SequentialSolve(passages, /*correlated=*/true);
-  const JointEstimate sequential = FromMap(map);
-  // The last passage's landmarks have their marginal stored exactly.
-  for (const auto& o : passages.back().observations) {
-    EXPECT_LT((map.FindLandmark(o.landmark)->cov_en_m2 - batch.cov.block<2, 2>(2 * o.landmark, 2 * o.landmark))
-                  .cwiseAbs()
-                  .maxCoeff(),
-              1e-8);
+  // A window per update; a PassagePrior per update; one shared by 2 and by 3 updates (subgraphs of
+  // one passage, the later ones seeing landmarks the earlier ones created).
+  for (int group : {0, 1, 2, 3}) {
+    SCOPED_TRACE(group);
+    const MapState map = SequentialSolve(passages, /*correlated=*/true, InOrder(), group);
+    const JointEstimate sequential = FromMap(map);
+    // The last passage's landmarks have their marginal stored exactly.
+    for (const auto& o : passages.back().observations) {
+      EXPECT_LT((map.FindLandmark(o.landmark)->cov_en_m2 - batch.cov.block<2, 2>(2 * o.landmark, 2 * o.landmark))
+                    .cwiseAbs()
+                    .maxCoeff(),
+                1e-8);
+    }
+    EXPECT_LT((sequential.mean - batch.mean).cwiseAbs().maxCoeff(), 1e-8)
+        << "sequential\n" << sequential.mean.transpose() << "\nbatch\n" << batch.mean.transpose();
+    EXPECT_LT((sequential.cov - batch.cov).cwiseAbs().maxCoeff(), 1e-8)
+        << "difference\n" << (sequential.cov - batch.cov);
   }
-  EXPECT_LT((sequential.mean - batch.mean).cwiseAbs().maxCoeff(), 1e-8)
-      << "sequential\n" << sequential.mean.transpose() << "\nbatch\n" << batch.mean.transpose();
-  EXPECT_LT((sequential.cov - batch.cov).cwiseAbs().maxCoeff(), 1e-8)
-      << "difference\n" << (sequential.cov - batch.cov);
 }
 
 TEST(SequentialUpdate, OrderOfThePassagesDoesNotChangeTheMap) {
@@ -255,9 +285,11 @@ TEST(SequentialUpdate, OrderOfThePassagesDoesNotChangeTheMap) {
   // Each order gives the batch solve (2e-10 apart when measured).
   const JointEstimate batch = BatchSolve(passages);
   for (const std::vector<int>& order : {InOrder(), reversed, interleaved}) {
-    const JointEstimate other = FromMap(SequentialSolve(passages, true, order));
-    EXPECT_LT((other.mean - batch.mean).cwiseAbs().maxCoeff(), 1e-8);
-    EXPECT_LT((other.cov - batch.cov).cwiseAbs().maxCoeff(), 1e-8);
+    for (int group : {1, 2}) {
+      const JointEstimate other = FromMap(SequentialSolve(passages, true, order, group));
+      EXPECT_LT((other.mean - batch.mean).cwiseAbs().maxCoeff(), 1e-8) << group;
+      EXPECT_LT((other.cov - batch.cov).cwiseAbs().maxCoeff(), 1e-8) << group;
+    }
   }
 }
 

@@ -345,6 +345,24 @@ absl::StatusOr<Eigen::MatrixXd> MapWindow::CovarianceColumns(const std::vector<L
   return columns;
 }
 
+absl::StatusOr<Eigen::VectorXd> MapWindow::CovarianceTimes(const std::vector<LandmarkId>& ids,
+                                                           const Eigen::VectorXd& v) const {
+  const int n = static_cast<int>(ids_.size());
+  if (v.size() != 2 * static_cast<int>(ids.size())) {
+    return absl::InvalidArgumentError("covariance product: the vector needs 2 entries per landmark");
+  }
+  if (n == 0) return Eigen::VectorXd(0);
+  Eigen::VectorXd rhs = Eigen::VectorXd::Zero(2 * n);
+  for (size_t k = 0; k < ids.size(); ++k) {
+    const int at = index(ids[k]);
+    if (at < 0) return absl::InvalidArgumentError(absl::StrCat("landmark ", ids[k], ": outside the window"));
+    rhs.segment<2>(2 * at) += v.segment<2>(2 * k);
+  }
+  Eigen::VectorXd product = covariance_factor_->solve(rhs);
+  if (!product.allFinite()) return absl::InternalError("map covariance is not finite");
+  return product;
+}
+
 absl::StatusOr<Eigen::MatrixXd> MapWindow::Covariance(const std::vector<LandmarkId>& ids) const {
   std::vector<int> rows;
   rows.reserve(2 * ids.size());

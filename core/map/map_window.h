@@ -48,6 +48,10 @@ class MapWindow {
   // Their columns of the window's covariance: 2 rows per window landmark (landmarks() order), 2
   // columns per landmark of `ids`.
   absl::StatusOr<Eigen::MatrixXd> CovarianceColumns(const std::vector<LandmarkId>& ids) const;
+  // The window's covariance columns of `ids` times `v` (2 entries per landmark of `ids`): 2 rows
+  // per window landmark, in landmarks() order. One solve, where CovarianceColumns takes 2 per
+  // landmark.
+  absl::StatusOr<Eigen::VectorXd> CovarianceTimes(const std::vector<LandmarkId>& ids, const Eigen::VectorXd& v) const;
   // 2x2 marginal covariance of every window landmark, in landmarks() order.
   std::vector<Eigen::Matrix2d> Marginals() const;
 
