@@ -61,11 +61,11 @@ struct MapUpdateOptions {
   // with its history. At least the passages the young map's joint solves take again
   // (JointSolvePassages + 1); 0 = keep every factor.
   int retain_passages = 256;
-  // The map is re-estimated after each (sub)graph, and its covariance recovered for the prior,
-  // over the landmarks within this many links (shared factors) of the graph's landmarks; the
-  // rest of the map is held at its estimate, and the covariance is conservative (never smaller
-  // than the exact one). 0 = the whole connected part of the map: exact, with a cost that grows
-  // with it.
+  // The map's covariance is recovered for the prior, and the map re-estimated after the passage,
+  // over the landmarks within this many links (shared factors) of the passage's landmarks (one
+  // window per passage with CC, PassagePrior; per graph with DC); the rest of the map is held at
+  // its estimate, and the covariance is conservative (never smaller than the exact one). 0 = the
+  // whole connected part of the map: exact, with a cost that grows with it.
   int window_hops = 0;
   int max_solver_iterations = 100;
   // Per-vehicle camera yaw calibration (docs/estimation.md, "Per-vehicle camera calibration"):

@@ -392,13 +392,15 @@ absl::Status ApplyPassage(const Passage& declared, const MapUpdateOptions& optio
   const int max_dim = options.strategy == UpdateStrategy::kCorrelatedSubdivided ? options.max_subgraph_dim : 0;
   const std::vector<NodeRange> ranges = SubdivideGraph(*graph, max_dim);
   summary->subgraphs = static_cast<int>(ranges.size());
-  // With the exact window (the whole connected map), the map is factorised once for the passage
-  // and its subgraphs condition the joint distribution of the landmarks it sees (PassagePrior).
+  // CC: the map is factorised once for the passage, and its subgraphs condition the joint
+  // distribution of the landmarks it sees (PassagePrior).
   std::optional<PassagePrior> passage_prior;
-  if (options.strategy != UpdateStrategy::kDecorrelated && options.window_hops == 0) {
+  if (options.strategy != UpdateStrategy::kDecorrelated) {
     std::vector<LandmarkId> seen;
     for (const CameraObservation& d : graph->detections) seen.push_back(d.landmark_id);
-    absl::StatusOr<PassagePrior> built = PassagePrior::Build(*overlay, seen);
+    MapWindowOptions window;
+    window.hops = options.window_hops;
+    absl::StatusOr<PassagePrior> built = PassagePrior::Build(*overlay, seen, window);
     if (!built.ok()) {
       return absl::Status(built.status().code(), absl::StrCat("passage ", passage.passage_id, ": ", built.status().message()));
     }

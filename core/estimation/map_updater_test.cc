@@ -127,14 +127,19 @@ TEST(ComputePassageUpdate, YieldPointIsCalledThroughoutAndChangesNothing) {
 TEST(ComputePassageUpdate, BoundedWindowStaysConservative) {
   // With a window of one link the prior and the written marginals come from windows that do not
   // cover the map: no marginal the map stores may be smaller than the exact marginal of the
-  // information it holds, and the estimate stays close to the exact update's.
-  const Scenario scenario = MakeScenario(25);
+  // information it holds, and the estimate stays close to the exact update's. Partial drives (300
+  // to 600 m of the 2 km loop), so that a passage's window leaves part of the map out.
+  ScenarioOptions scenario_options;
+  scenario_options.landmarks = 50;
+  scenario_options.piece_min_m = 300.0;
+  scenario_options.piece_max_m = 600.0;
+  const Scenario scenario = *Scenario::Create(scenario_options);
   MapUpdateOptions exact, windowed;
   windowed.window_hops = 1;
   windowed.max_subgraph_dim = 60;  // several subgraphs, so that the map is not one clique
   exact.max_subgraph_dim = 60;
   MapState exact_map, windowed_map;
-  for (int p = 0; p < 3; ++p) {
+  for (int p = 0; p < 8; ++p) {
     absl::StatusOr<PassageUpdate> e = ComputePassageUpdate(scenario.MakePassage(p), exact, exact_map);
     absl::StatusOr<PassageUpdate> w = ComputePassageUpdate(scenario.MakePassage(p), windowed, windowed_map);
     ASSERT_TRUE(e.ok() && w.ok()) << e.status() << w.status();

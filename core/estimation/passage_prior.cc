@@ -25,14 +25,14 @@ std::vector<int> Rows(const std::vector<int>& positions) {
 
 PassagePrior::PassagePrior(MapWindow window, int seen) : window_(std::move(window)), seen_(seen) {}
 
-absl::StatusOr<PassagePrior> PassagePrior::Build(const MapReaderInterface& map, const std::vector<LandmarkId>& ids) {
+absl::StatusOr<PassagePrior> PassagePrior::Build(const MapReaderInterface& map, const std::vector<LandmarkId>& ids,
+                                                 const MapWindowOptions& window_options) {
   std::vector<LandmarkId> seen;
   std::unordered_set<LandmarkId> unique;
   for (LandmarkId id : ids) {
     if (map.FindLandmark(id) != nullptr && unique.insert(id).second) seen.push_back(id);
   }
-  // The whole connected map around P (hops 0): closed, so its covariance is exact.
-  absl::StatusOr<MapWindow> window = MapWindow::Build(map, seen, MapWindowOptions{});
+  absl::StatusOr<MapWindow> window = MapWindow::Build(map, seen, window_options);
   if (!window.ok()) return window.status();
   absl::StatusOr<Eigen::MatrixXd> covariance = window->Covariance(seen);
   if (!covariance.ok()) return covariance.status();

@@ -19,10 +19,11 @@ namespace crowdmap {
 constexpr double kMinWrittenChangeM = 1e-6;
 
 // The map's joint Gaussian over the landmarks one passage touches, kept exact as its subgraphs
-// commit, so that a passage factorises the map's information once instead of once per subgraph.
+// commit, so that a passage factorises the map's information once instead of twice per subgraph.
 //
 // Build takes the joint covariance of the map landmarks the passage sees, P, from one
-// factorisation of their whole connected map (a closed window, where it is exact). Each subgraph's
+// factorisation of a window of the map around them; exact when the window is closed (the whole
+// connected map, hops 0). Each subgraph's
 // factor touches only landmarks of P and new ones N, so the posterior over the tracked set
 // T = P u N (plus the new landmarks) follows from T's joint covariance alone (Condition): with O
 // the tracked landmarks the factor touches and R = T \ O,
@@ -31,12 +32,16 @@ constexpr double kMinWrittenChangeM = 1e-6;
 //   T's covariance: Sigma_RR - K (Sigma_OO - Sigma'_OO) K^T, Sigma'_RS = K Sigma'_OS, K = Sigma_RO Sigma_OO^-1.
 // The rest of the map W is conditionally independent of every factor given P, so it moves once, at
 // the end (Finish), by Sigma_WP Sigma_PP^-1 (mu'_P - mu_P) with the covariance from before the
-// passage: a single solve with the factorisation Build made. Exact on a linear problem, as one
-// window per subgraph is (tested against the batch solve).
+// passage: a single solve with the factorisation Build made. Exact on a linear problem with the
+// whole connected map as the window (tested against the batch solve). A bounded window (hops > 0)
+// gives a conservative Sigma_PP (MapWindow), and the window's other landmarks move with their
+// conditional under it; the map beyond the window stays.
 class PassagePrior {
  public:
-  // Over the landmarks of `ids` found in `map` (the others are left to the subgraphs to create).
-  static absl::StatusOr<PassagePrior> Build(const MapReaderInterface& map, const std::vector<LandmarkId>& ids);
+  // Over the landmarks of `ids` found in `map` (the others are left to the subgraphs to create),
+  // from a window of the map around them.
+  static absl::StatusOr<PassagePrior> Build(const MapReaderInterface& map, const std::vector<LandmarkId>& ids,
+                                            const MapWindowOptions& window);
 
   bool Tracks(LandmarkId id) const { return index_.count(id) > 0; }
   // Joint covariance of tracked `ids`, East/North at their anchors (m^2).

@@ -172,7 +172,7 @@ MapState SequentialSolve(const std::vector<ToyPassage>& passages, bool correlate
       for (int j : members) {
         for (const auto& o : passages[j].observations) seen.push_back(o.landmark);
       }
-      absl::StatusOr<PassagePrior> built = PassagePrior::Build(overlay, seen);
+      absl::StatusOr<PassagePrior> built = PassagePrior::Build(overlay, seen, MapWindowOptions{});
       EXPECT_TRUE(built.ok()) << built.status();
       if (!built.ok()) return map;
       prior.emplace(std::move(*built));
