@@ -152,6 +152,11 @@ absl::StatusOr<CityExperimentResult> RunCityExperiment(const CityExperimentOptio
       p.median_error_m = Quantile(errors_m, 0.5);
       p.p50_ms = Quantile(result.passage_ms, 0.5);
       p.p95_ms = Quantile(result.passage_ms, 0.95);
+      const std::vector<double> recent(result.passage_ms.end() - std::min<size_t>(result.passage_ms.size(),
+                                                                                  options.progress_every_passages),
+                                       result.passage_ms.end());
+      p.recent_p50_ms = Quantile(recent, 0.5);
+      p.recent_p95_ms = Quantile(recent, 0.95);
       progress(p);
     }
   }

@@ -46,6 +46,8 @@ struct CityProgress {
   double median_error_m = 0.0;
   double p50_ms = 0.0;        // per passage, so far
   double p95_ms = 0.0;
+  double recent_p50_ms = 0.0;  // per passage, over those since the last progress report
+  double recent_p95_ms = 0.0;
 };
 
 struct CityExperimentResult {

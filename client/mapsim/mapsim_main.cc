@@ -346,8 +346,10 @@ absl::Status RunCityCommand(CityCommand& c) {
   auto progress = [&](const CityProgress& p) {
     if (c.quiet) return;
     std::cerr << absl::StrFormat(
-        "passage %d/%d  landmarks mapped %d  error mean %.3f m median %.3f m  p50 %.1f ms  p95 %.1f ms per passage\n",
-        p.passages_done, p.passages_total, p.landmarks_mapped, p.mean_error_m, p.median_error_m, p.p50_ms, p.p95_ms);
+        "passage %d/%d  landmarks mapped %d  error mean %.3f m median %.3f m  per passage: p50 %.1f ms p95 %.1f ms "
+        "(last %d: p50 %.1f ms p95 %.1f ms)\n",
+        p.passages_done, p.passages_total, p.landmarks_mapped, p.mean_error_m, p.median_error_m, p.p50_ms, p.p95_ms,
+        std::min(p.passages_done, options.progress_every_passages), p.recent_p50_ms, p.recent_p95_ms);
   };
   absl::StatusOr<CityExperimentResult> result = RunCityExperiment(options, progress);
   if (!result.ok()) return result.status();

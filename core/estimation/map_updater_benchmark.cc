@@ -60,15 +60,17 @@ BENCHMARK(BM_ApplyPassage)
     ->Args({25, static_cast<int>(UpdateStrategy::kCorrelatedSubdivided), 0})
     ->Unit(benchmark::kMillisecond);
 
-// A city passage (the "apply one ~2 km city passage" figure), on a map built from the
-// first `passages` routes with sequential updates only (no joint solves), the service's other
-// defaults. Each iteration applies one of the next 20 routes to that same map.
+// A city passage (~2 km), on a map built from the first `mature_passages` routes with
+// sequential updates only (no joint solves), the service's other defaults but the window
+// (`window_hops`, 0 = the whole connected map). Each iteration applies one of the next 20 routes
+// to that same map.
 void BM_ApplyCityPassage(benchmark::State& state) {
   CityScenarioOptions city_options;
   const CityScenario city = *CityScenario::Create(city_options);
   MapUpdateOptions options;
   options.warmup_passages = 0;
   options.relinearize_until_passages = 0;
+  options.window_hops = static_cast<int>(state.range(1));
   MapState map;
   MapUpdater updater(options);
   const int mature = static_cast<int>(state.range(0));
@@ -100,7 +102,11 @@ void BM_ApplyCityPassage(benchmark::State& state) {
   state.counters["landmarks"] = static_cast<double>(map.landmark_count());
 }
 
-BENCHMARK(BM_ApplyCityPassage)->ArgNames({"mature_passages"})->Arg(60)->Unit(benchmark::kMillisecond);
+BENCHMARK(BM_ApplyCityPassage)
+    ->ArgNames({"mature_passages", "window_hops"})
+    ->Args({60, 0})
+    ->Args({60, 2})
+    ->Unit(benchmark::kMillisecond);
 
 }  // namespace
 }  // namespace crowdmap

@@ -269,17 +269,25 @@ absl::StatusOr<MapWindow> MapWindow::Build(const MapReaderInterface& map, const 
   }
   Eigen::SparseMatrix<double> information(2 * n, 2 * n);
   information.setFromTriplets(triplets.begin(), triplets.end());
-  auto mean_llt = std::make_shared<const Factor>(information);
-  if (mean_llt->info() != Eigen::Success) {
-    return absl::FailedPreconditionError(
-        absl::StrCat("map information over ", n, " landmarks is not positive definite"));
-  }
-  w.offsets_ = mean_llt->solve(rhs).col(0);
-  if (!w.offsets_.allFinite()) return absl::InternalError("map estimate is not finite");
   w.closed_ = edge.empty();
+  if (options.estimate || w.closed_) {
+    auto mean_llt = std::make_shared<const Factor>(information);
+    if (mean_llt->info() != Eigen::Success) {
+      return absl::FailedPreconditionError(
+          absl::StrCat("map information over ", n, " landmarks is not positive definite"));
+    }
+    if (w.closed_) w.covariance_factor_ = mean_llt;
+    if (options.estimate) {
+      w.offsets_ = mean_llt->solve(rhs).col(0);
+      if (!w.offsets_.allFinite()) return absl::InternalError("map estimate is not finite");
+    }
+  }
+  if (!options.estimate) {
+    w.offsets_.resize(2 * n);
+    for (int i = 0; i < n; ++i) w.offsets_.segment<2>(2 * i) = map.FindLandmark(w.ids_[i])->Offset();
+  }
   if (w.closed_) {
     w.covariance_information_ = std::move(information);
-    w.covariance_factor_ = std::move(mean_llt);
     return w;
   }
 
@@ -393,7 +401,9 @@ std::vector<Eigen::Matrix2d> MapWindow::Marginals() const {
 
 absl::StatusOr<Eigen::MatrixXd> JointCovariance(const MapReaderInterface& map, const std::vector<LandmarkId>& ids,
                                                 const MapWindowOptions& options) {
-  absl::StatusOr<MapWindow> window = MapWindow::Build(map, ids, options);
+  MapWindowOptions covariance_only = options;
+  covariance_only.estimate = false;
+  absl::StatusOr<MapWindow> window = MapWindow::Build(map, ids, covariance_only);
   if (!window.ok()) return window.status();
   return window->Covariance(ids);
 }

@@ -19,6 +19,9 @@ struct MapWindowOptions {
   // estimated; the rest of the map is held at its estimate. 0 = no limit: the seeds' whole
   // connected part of the map, where estimates and covariances are exact.
   int hops = 0;
+  // Solve the window for its estimate (offsets()). Off, offsets() are the stored estimates and a
+  // window that is not closed is factorised once instead of twice (reads of covariances).
+  bool estimate = true;
 
   absl::Status Validate() const;
 };

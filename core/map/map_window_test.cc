@@ -90,6 +90,21 @@ TEST(MapWindow, BoundedWindowIsConservativeAndConditionsOnTheRest) {
   EXPECT_GT(diff.eigenvalues().minCoeff(), -1e-9);
   // ... and not equal to it: the window lost information.
   EXPECT_GT(diff.eigenvalues().maxCoeff(), 1e-6);
+  // A covariance-only window (reads) gives the same covariance, with the stored estimates.
+  MapWindowOptions covariance_only = options;
+  covariance_only.estimate = false;
+  absl::StatusOr<MapWindow> read = MapWindow::Build(map, {6}, covariance_only);
+  ASSERT_TRUE(read.ok()) << read.status();
+  absl::StatusOr<Eigen::MatrixXd> read_cov = read->Covariance(ids);
+  ASSERT_TRUE(read_cov.ok());
+  EXPECT_LT((*read_cov - *window_cov).cwiseAbs().maxCoeff(), 1e-12);
+  for (size_t k = 0; k < ids.size(); ++k) {
+    EXPECT_EQ(read->offsets().segment<2>(2 * k), map.FindLandmark(read->landmarks()[k])->Offset());
+  }
+  // JointCovariance (reads) builds its window that way.
+  absl::StatusOr<MapWindow> around_ids = MapWindow::Build(map, ids, options);
+  ASSERT_TRUE(around_ids.ok());
+  EXPECT_LT((*JointCovariance(map, ids, options) - *around_ids->Covariance(ids)).cwiseAbs().maxCoeff(), 1e-12);
   // With the rest held at the estimate the window is the conditional solve: with the rest at the
   // exact mean, the window's estimate is the exact mean.
   const Eigen::VectorXd mean = h.ldlt().solve(eta);
