@@ -202,7 +202,15 @@ Eigen::MatrixXd SchurComplement(const Eigen::MatrixXd& info, const std::vector<i
   for (int a = 0; a < o; ++a) {
     for (int b = 0; b < o; ++b) oo(a, b) = info(other[a], other[b]);
   }
-  Eigen::SelfAdjointEigenSolver<Eigen::MatrixXd> eig(0.5 * (oo + oo.transpose()));
+  oo = 0.5 * (oo + oo.transpose());
+  // Usually the eliminated block is well conditioned (estimated reciprocal condition number far
+  // above the pseudo-inverse's floor below): a Cholesky solve. Otherwise the eigen-decomposition.
+  const Eigen::LLT<Eigen::MatrixXd> llt(oo);
+  if (llt.info() == Eigen::Success && llt.rcond() > 1e-9) {
+    const Eigen::MatrixXd schur = kk - ko * llt.solve(ko.transpose());
+    return 0.5 * (schur + schur.transpose());
+  }
+  Eigen::SelfAdjointEigenSolver<Eigen::MatrixXd> eig(oo);
   const double floor = 1e-12 * std::max(1.0, eig.eigenvalues().cwiseAbs().maxCoeff());
   Eigen::VectorXd inverse = eig.eigenvalues();
   for (int i = 0; i < o; ++i) inverse(i) = inverse(i) > floor ? 1.0 / inverse(i) : 0.0;
