@@ -8,7 +8,8 @@
 //                             (MapWindow::Covariance)
 //   BM_BoxCovariance/columns  the same block from full columns of the inverse (both triangular
 //                             solves over the whole map), for comparison
-//   BM_BoxCovarianceBounded   a bounded window (2 links) around the box: conservative, not exact
+//   BM_BoxCovarianceBounded/H a bounded window (H links) around the box: conservative, not exact
+//                             (mapd --window-hops H)
 #include <benchmark/benchmark.h>
 
 #include <cstdio>
@@ -122,7 +123,7 @@ void BM_BoxCovariance(benchmark::State& state) {
 void BM_BoxCovarianceBounded(benchmark::State& state) {
   const CityMap& city = TheMap();
   MapWindowOptions options;
-  options.hops = 2;
+  options.hops = static_cast<int>(state.range(0));
   size_t next = 0;
   for (auto _ : state) {
     absl::StatusOr<Eigen::MatrixXd> cov = JointCovariance(city.map, city.boxes[next++ % city.boxes.size()], options);
@@ -133,7 +134,7 @@ void BM_BoxCovarianceBounded(benchmark::State& state) {
 
 BENCHMARK(BM_Factorise)->Unit(benchmark::kMillisecond);
 BENCHMARK(BM_BoxCovariance)->Arg(0)->Arg(1)->Unit(benchmark::kMillisecond);
-BENCHMARK(BM_BoxCovarianceBounded)->Unit(benchmark::kMillisecond);
+BENCHMARK(BM_BoxCovarianceBounded)->ArgName("hops")->Arg(1)->Arg(2)->Unit(benchmark::kMillisecond);
 
 }  // namespace
 }  // namespace crowdmap
