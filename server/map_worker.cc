@@ -70,16 +70,19 @@ absl::StatusOr<std::unique_ptr<MapWorker>> MapWorker::Create(MapStoreInterface* 
   if (!requeued.ok()) return requeued.status();
   if (*requeued > 0) spdlog::warn("event=requeue passages={} reason=\"processing at start-up\"", *requeued);
   if (auto s = worker->LoadMirror(); !s.ok()) return s;
-  notifier->Publish(worker->map_.version());
+  notifier->Publish(worker->map_->version());
   spdlog::info("event=map_loaded landmarks={} factors={} map_version={} warming_up={} next_joint_solve={}",
-               worker->map_.landmark_count(), worker->map_.factor_count(), worker->map_.version(),
+               worker->map_->landmark_count(), worker->map_->factor_count(), worker->map_->version(),
                worker->updater_->warming_up(), worker->updater_->joint_next());
   return worker;
 }
 
 absl::Status MapWorker::LoadMirror() {
-  MapState map;
-  if (auto s = store_->LoadMap(&map); !s.ok()) return s;
+  map_ = store_->CommittedMap();
+  if (map_ == nullptr) {
+    if (auto s = store_->LoadMap(&own_map_); !s.ok()) return s;
+    map_ = &own_map_;
+  }
   absl::StatusOr<MapStats> stats = store_->GetStats();
   if (!stats.ok()) return stats.status();
   const int64_t applied_count = stats->passages_by_state[static_cast<int>(PassageState::kApplied)];
@@ -100,11 +103,14 @@ absl::Status MapWorker::LoadMirror() {
       kept.push_back(*std::move(passage));
     }
   }
-  map_ = std::move(map);
   MapUpdateOptions update = options_.update;
   if (options_.yield) update.yield_point = [this] { Yield(); };
-  updater_ = std::make_unique<MapUpdater>(update, std::move(kept), applied_count, &map_);
+  updater_ = std::make_unique<MapUpdater>(update, std::move(kept), applied_count, map_);
   return absl::OkStatus();
+}
+
+void MapWorker::Follow(const MapDelta& delta) {
+  if (map_ == &own_map_) own_map_.Apply(delta);
 }
 
 MapWorker::~MapWorker() { Stop(); }
@@ -222,7 +228,7 @@ void MapWorker::PrunePayloadsOfFolded(const std::vector<MapUpdater::PassageKey>&
   std::vector<int64_t> left;
   for (const MapUpdater::PassageKey& key : folding) {
     left.clear();
-    map_.AppendPassageFactorIds(key.first, key.second, &left);
+    map_->AppendPassageFactorIds(key.first, key.second, &left);
     if (left.empty()) folded.push_back(key);
   }
   if (folded.empty()) return;
@@ -244,20 +250,21 @@ void MapWorker::Apply(const ClaimedPassage& claimed, const Passage& passage) {
     MapUpdater::Mode mode;
     mode.vouched = record.released;
     mode.sequential = record.interruptions >= options_.sequential_after_interruptions;
-    auto update = updater_->Compute(passage, map_, mode);
+    auto update = updater_->Compute(passage, *map_, mode);
     if (update.ok()) {
       const PassageResult result = ResultFromSummary(update->summary, options_.update.strategy);
+      // The passages whose factors the commit folds, read before it does.
+      const std::vector<MapUpdater::PassageKey> folding = PassagesOf(*map_, update->delta.folded_factors);
       Yield();
       const auto commit_start = std::chrono::steady_clock::now();
       absl::Status committed = store_->CommitPassageApplied(record.id, update->delta, result);
       const double commit_ms =
           std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - commit_start).count();
       if (committed.ok()) {
-        const std::vector<MapUpdater::PassageKey> folding = PassagesOf(map_, update->delta.folded_factors);
-        map_.Apply(update->delta);
+        Follow(update->delta);
         updater_->Applied(passage, update->delta);
         Yield();
-        notifier_->Publish(map_.version());
+        notifier_->Publish(map_->version());
         PrunePayloadsOfFolded(folding);
         if (options_.on_applied) {
           const auto ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - apply_start);
@@ -269,7 +276,7 @@ void MapWorker::Apply(const ClaimedPassage& claimed, const Passage& passage) {
             "factors_added={} map_version={}",
             record.passage_id, record.vehicle_id, record.id, result.nodes, result.subgraphs,
             result.landmarks_updated, result.landmarks_created, result.landmarks_conditioned, result.solve_ms,
-            result.total_ms, commit_ms, update->delta.added_factors.size(), map_.version());
+            result.total_ms, commit_ms, update->delta.added_factors.size(), map_->version());
         return;
       }
       error = absl::StrCat("commit: ", committed.ToString());
@@ -324,20 +331,20 @@ absl::StatusOr<PassageUpdateSummary> MapWorker::Exclude(const StoredPassage& rec
   absl::StatusOr<PassageUpdateSummary> out = absl::UnavailableError("server is shutting down");
   if (!stopping_) {
     absl::StatusOr<PassageUpdate> exclusion =
-        ComputePassageExclusion(record.vehicle_id, record.passage_id, options_.update, map_);
+        ComputePassageExclusion(record.vehicle_id, record.passage_id, options_.update, *map_);
     if (!exclusion.ok()) {
       out = exclusion.status();
     } else if (absl::Status s = store_->CommitPassageExcluded(record.id, exclusion->delta); !s.ok()) {
       out = s;
     } else {
-      map_.Apply(exclusion->delta);
+      Follow(exclusion->delta);
       updater_->Excluded(record.vehicle_id, record.passage_id);
-      notifier_->Publish(map_.version());
+      notifier_->Publish(map_->version());
       spdlog::info("event=excluded passage={} vehicle={} id={} landmarks_updated={} landmarks_removed={} "
                    "landmarks_conditioned={} total_ms={:.1f} map_version={}",
                    record.passage_id, record.vehicle_id, record.id, exclusion->summary.landmarks_updated,
                    exclusion->summary.landmarks_removed, exclusion->summary.landmarks_conditioned,
-                   exclusion->summary.total_ms, map_.version());
+                   exclusion->summary.total_ms, map_->version());
       out = exclusion->summary;
     }
   }

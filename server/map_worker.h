@@ -103,9 +103,14 @@ class MapWorker {
   VersionNotifier* const notifier_;
   // Loads map_ and updater_ (with the passages its joint solves still need) from the store.
   absl::Status LoadMirror();
+  // After a commit of `delta`: own_map_ follows it (the store's committed map already has).
+  void Follow(const MapDelta& delta);
 
   // Touched only by the thread whose ticket is being served:
-  MapState map_;
+  // The map updates are computed against: the store's committed map when it keeps one
+  // (MapStoreInterface::CommittedMap), otherwise own_map_, which follows each commit.
+  const MapState* map_ = nullptr;
+  MapState own_map_;
   std::unique_ptr<MapUpdater> updater_;
 
 

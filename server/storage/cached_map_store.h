@@ -57,6 +57,7 @@ class CachedMapStore : public MapStoreInterface {
   }
   absl::StatusOr<int> RequeueProcessingPassages() override { return inner_->RequeueProcessingPassages(); }
   absl::Status LoadMap(MapState* map) override { return inner_->LoadMap(map); }
+  const MapState* CommittedMap() const override { return &map_; }
   absl::StatusOr<MapStats> GetStats() override { return inner_->GetStats(); }
   // From the in-memory map.
   absl::StatusOr<LandmarkProvenance> GetLandmarkProvenance(LandmarkId id) override;
