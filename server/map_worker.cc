@@ -1,5 +1,6 @@
 #include "server/map_worker.h"
 
+#include <malloc.h>
 #include <sched.h>
 #include <sys/resource.h>
 #include <sys/syscall.h>
@@ -266,6 +267,17 @@ void MapWorker::Apply(const ClaimedPassage& claimed, const Passage& passage) {
         Yield();
         notifier_->Publish(map_->version());
         PrunePayloadsOfFolded(folding);
+        // An update allocates and frees hundreds of MB of matrices, and glibc keeps freed pages
+        // inside its heaps: at 100k landmarks mapd grew by 2.5 MB per passage (1.45 -> 1.94 GB
+        // over 200 passages, 1.61 GB after a trim). Returning them every kTrimEveryCommits commits
+        // keeps the resident memory near the map's size; a trim takes 14 ms there.
+        double trim_ms = 0.0;
+        if (++commits_since_trim_ >= kTrimEveryCommits) {
+          const auto trim_start = std::chrono::steady_clock::now();
+          malloc_trim(0);
+          trim_ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - trim_start).count();
+          commits_since_trim_ = 0;
+        }
         if (options_.on_applied) {
           const auto ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - apply_start);
           options_.on_applied({ms.count(), result.solve_ms, result.covariance_ms, commit_ms});
@@ -273,10 +285,10 @@ void MapWorker::Apply(const ClaimedPassage& claimed, const Passage& passage) {
         spdlog::info(
             "event=applied passage={} vehicle={} id={} nodes={} subgraphs={} landmarks_updated={} "
             "landmarks_created={} landmarks_conditioned={} solve_ms={:.1f} total_ms={:.1f} commit_ms={:.1f} "
-            "factors_added={} map_version={}",
+            "factors_added={} map_version={} trim_ms={:.1f}",
             record.passage_id, record.vehicle_id, record.id, result.nodes, result.subgraphs,
             result.landmarks_updated, result.landmarks_created, result.landmarks_conditioned, result.solve_ms,
-            result.total_ms, commit_ms, update->delta.added_factors.size(), map_->version());
+            result.total_ms, commit_ms, update->delta.added_factors.size(), map_->version(), trim_ms);
         return;
       }
       error = absl::StrCat("commit: ", committed.ToString());

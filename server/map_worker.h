@@ -112,6 +112,8 @@ class MapWorker {
   const MapState* map_ = nullptr;
   MapState own_map_;
   std::unique_ptr<MapUpdater> updater_;
+  static constexpr int kTrimEveryCommits = 16;
+  int commits_since_trim_ = 0;
 
 
   std::atomic<bool> stopping_{false};

@@ -100,7 +100,6 @@ absl::StatusOr<int> PassagePrior::Condition(const MapFactor& factor, int64_t ver
 
   // T given O keeps its conditional: K^T = Sigma_OO^-1 Sigma_OT.
   const int t = static_cast<int>(mean_.size());
-  const Eigen::VectorXd previous = mean_;
   Eigen::MatrixXd cross(t, 2 * s);  // Sigma'_TS
   if (o > 0) {
     const Eigen::MatrixXd kt = prior_llt.solve(covariance_(o_rows, Eigen::all));
@@ -138,8 +137,9 @@ absl::StatusOr<int> PassagePrior::Condition(const MapFactor& factor, int64_t ver
   int conditioned = 0;
   for (size_t k = 0; k < ids_.size(); ++k) {
     const int r = static_cast<int>(2 * k);
-    if (!in_s[k] && (mean_.segment<2>(r) - previous.segment<2>(r)).norm() < kMinWrittenChangeM) continue;
     Landmark record = *map->FindLandmark(ids_[k]);
+    // Against the stored estimate: a bounded window's own solve may have moved it already.
+    if (!in_s[k] && (mean_.segment<2>(r) - record.Offset()).norm() < kMinWrittenChangeM) continue;
     record.position = LocalFrame(record.anchor).ToGeo(mean_.segment<2>(r));
     record.cov_en_m2 = covariance_.block<2, 2>(r, r);
     record.version = version;
@@ -163,10 +163,10 @@ absl::StatusOr<int> PassagePrior::Finish(int64_t version, MapOverlay* map) const
   if (!moved.ok()) return moved.status();
   int conditioned = 0;
   for (size_t w = seen_; w < window_ids.size(); ++w) {
-    const Eigen::Vector2d step = moved->segment<2>(2 * w);
-    if (step.norm() < kMinWrittenChangeM) continue;
+    const Eigen::Vector2d offset = window_.offsets().segment<2>(2 * w) + moved->segment<2>(2 * w);
     Landmark record = *map->FindLandmark(window_ids[w]);
-    record.position = LocalFrame(record.anchor).ToGeo(window_.offsets().segment<2>(2 * w) + step);
+    if ((offset - record.Offset()).norm() < kMinWrittenChangeM) continue;
+    record.position = LocalFrame(record.anchor).ToGeo(offset);
     record.version = version;
     map->PutLandmark(record);
     ++conditioned;
