@@ -101,9 +101,9 @@ std::unique_ptr<CLI::App> NewMapdCommandLine(MapdConfig* config) {
   AddMapdSetting(app, "max-subgraph-dim", &u.max_subgraph_dim, "largest subgraph state dimension with cc-gsd")
       ->type_name("N");
   AddMapdSetting(app, "window-hops", &u.window_hops,
-                 "after each subgraph the map is re-solved, and covariances are recovered, within N links\n"
-                 "(shared factors) of its landmarks; outside covariances are conservative (0: whole map,\n"
-                 "exact)")
+                 "covariances are recovered, and the map re-solved after each passage, within N links\n"
+                 "(shared factors) of the passage's landmarks (of a read's, for reads); outside covariances\n"
+                 "are conservative (0: whole map, exact; 2 at city scale)")
       ->type_name("N");
   AddMapdSetting(app, "warmup-passages", &u.warmup_passages,
                  "a new map's first N passages are solved jointly, re-solved with each one, so their arrival\n"

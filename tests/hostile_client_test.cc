@@ -6,6 +6,7 @@
 
 #include <algorithm>
 #include <atomic>
+#include <chrono>
 #include <cstdlib>
 #include <fstream>
 #include <functional>
@@ -696,16 +697,19 @@ TEST_F(Hostile, WatchStreamsAreCapped) {
   };
   pb::WatchRegionRequest request;
   *request.mutable_box() = WorldBox();
+  // Opened one after the other: calls started together reach the server in any order, and the
+  // cap admits whichever come first. A deadline turns a watch that should have been refused, and
+  // was not, into a failure instead of a hang.
   std::vector<std::unique_ptr<Watch>> watches;
+  pb::WatchRegionResponse first;
   for (int i = 0; i < 3; ++i) {
     watches.push_back(std::make_unique<Watch>());
     watches[i]->ctx.AddMetadata("authorization", std::string("Bearer ") + kV1Token);
+    watches[i]->ctx.set_deadline(std::chrono::system_clock::now() + std::chrono::seconds(30));
     watches[i]->stream = reader->stub()->WatchRegion(&watches[i]->ctx, request);
+    // The first message always comes (the version) to an admitted watch.
+    EXPECT_EQ(watches[i]->stream->Read(&first), i < 2) << "watch " << i;
   }
-  pb::WatchRegionResponse first;
-  EXPECT_TRUE(watches[0]->stream->Read(&first));  // the first message always comes: the version
-  EXPECT_TRUE(watches[1]->stream->Read(&first));
-  EXPECT_FALSE(watches[2]->stream->Read(&first));
   const grpc::Status third = watches[2]->stream->Finish();
   EXPECT_EQ(third.error_code(), grpc::StatusCode::RESOURCE_EXHAUSTED) << third.error_message();
   EXPECT_TRUE(absl::StrContains(third.error_message(), "--max-watch-streams")) << third.error_message();

@@ -90,7 +90,8 @@ void ScaleNoise(const NoiseScales& scales, ScenarioOptions* scenario) {
 // --max-chi2-per-dof and --max-update-shift-sigmas (experiment and city).
 void AddMapUpdateFlags(CLI::App* command, MapUpdateOptions* update) {
   command->add_option("--window-hops", update->window_hops,
-                      "re-estimate the map within H links of each graph (0 = whole map, exact)")
+                      "recover the map's covariance and re-estimate it within H links of each passage's "
+                      "landmarks (0 = whole map, exact; 2 at city scale)")
       ->type_name("H");
   command->add_option("--warmup-passages", update->warmup_passages,
                       "the map's first B passages are solved jointly, re-solved with each one (0 = off)")
