@@ -1,6 +1,5 @@
 #include "core/estimation/passage_prior.h"
 
-#include <algorithm>
 #include <unordered_set>
 
 #include "absl/strings/str_cat.h"
@@ -100,16 +99,13 @@ absl::StatusOr<int> PassagePrior::Condition(const MapFactor& factor, int64_t ver
 
   // T given O keeps its conditional: K^T = Sigma_OO^-1 Sigma_OT.
   const int t = static_cast<int>(mean_.size());
-  Eigen::MatrixXd cross(t, 2 * s);  // Sigma'_TS
+  Eigen::MatrixXd cross = Eigen::MatrixXd::Zero(t, 2 * s);  // Sigma'_TS
   if (o > 0) {
     const Eigen::MatrixXd kt = prior_llt.solve(covariance_(o_rows, Eigen::all));
     mean_ += kt.transpose() * (mean_s(o_in_s) - mean_o);
     const Eigen::MatrixXd shrink = kt.transpose() * (cov_oo - cov_s(o_in_s, o_in_s));
-    covariance_ -= shrink * kt;
-    covariance_ = Symmetrized(covariance_);
+    covariance_ = Symmetrized(covariance_ - shrink * kt);
     cross = kt.transpose() * cov_s(o_in_s, Eigen::all);
-  } else {
-    cross.setZero();
   }
   // New landmarks join T; S's own rows are its posterior.
   const int added = static_cast<int>(fresh.size());
@@ -125,10 +121,8 @@ absl::StatusOr<int> PassagePrior::Condition(const MapFactor& factor, int64_t ver
   mean_.conservativeResize(grown);
   covariance_.conservativeResize(grown, grown);
   const std::vector<int> s_rows = Rows(s_in_tracked);
-  std::vector<int> old_rows(t);
-  for (int r = 0; r < t; ++r) old_rows[r] = r;
-  covariance_(old_rows, s_rows) = cross;
-  covariance_(s_rows, old_rows) = cross.transpose();
+  covariance_(Eigen::seqN(0, t), s_rows) = cross;
+  covariance_(s_rows, Eigen::seqN(0, t)) = cross.transpose();
   covariance_(s_rows, s_rows) = cov_s;
   mean_(s_rows) = mean_s;
 
@@ -154,7 +148,6 @@ absl::StatusOr<int> PassagePrior::Condition(const MapFactor& factor, int64_t ver
 }
 
 absl::StatusOr<int> PassagePrior::Finish(int64_t version, MapOverlay* map) const {
-  if (seen_ == 0) return 0;
   const std::vector<LandmarkId>& window_ids = window_.landmarks();
   if (window_ids.size() == static_cast<size_t>(seen_)) return 0;
   const Eigen::VectorXd change = mean_.head(2 * seen_) - window_.offsets().head(2 * seen_);
