@@ -71,9 +71,13 @@ class ArenaMessageAllocator : public grpc::MessageAllocator<Request, Response> {
 };
 
 // The map reads (GetTile, QueryRegion) are served from memory and never block, so they use the
-// callback API and run on gRPC's own threads without a hand-off; the other RPCs are synchronous.
-using MapServiceBase =
-    pb::MapService::WithCallbackMethod_GetTile<pb::MapService::WithCallbackMethod_QueryRegion<pb::MapService::Service>>;
+// callback API and run on gRPC's own threads without a hand-off. UploadPassage does too: its
+// handler waits only for the queue's group commit (a few ms), and with the synchronous API gRPC
+// 1.51 left 1-2% of the requests unread in the socket for 40-100 ms before any thread took them
+// (acknowledgement p99 85 ms, 8.8 ms as a callback; docs/results.md). The other RPCs are
+// synchronous.
+using MapServiceBase = pb::MapService::WithRawCallbackMethod_UploadPassage<
+    pb::MapService::WithCallbackMethod_GetTile<pb::MapService::WithCallbackMethod_QueryRegion<pb::MapService::Service>>>;
 
 // The two upload RPCs are served raw (their request bytes parsed in the handler, see wire_parse.h),
 // so that a malformed upload gets INVALID_ARGUMENT naming the field.
@@ -81,7 +85,9 @@ class MapService final : public MapServiceBase {
  public:
   explicit MapService(MapServiceContext* context);
 
-  grpc::Status UploadPassageRaw(grpc::ServerContext* ctx, const grpc::ByteBuffer* request,
+  grpc::ServerUnaryReactor* UploadPassage(grpc::CallbackServerContext* ctx, const grpc::ByteBuffer* request,
+                                          grpc::ByteBuffer* response) override;
+  grpc::Status UploadPassageRaw(grpc::ServerContextBase* ctx, const grpc::ByteBuffer* request,
                                 pb::UploadPassageResponse* response);
   grpc::Status UploadPassageChunkedRaw(
       grpc::ServerContext* ctx, grpc::ServerReaderWriterInterface<pb::UploadPassageResponse, grpc::ByteBuffer>* reader,

@@ -33,7 +33,7 @@ constexpr char kUploadPushbackMs[] = "1000";
 
 // A refusal with its own retry time (a quota) says so (AddRetryTrailers); other refusals of an
 // upload with RESOURCE_EXHAUSTED (queue or disk full) get kUploadPushbackMs.
-void AddPushback(grpc::ServerContext* ctx, const absl::Status& s) {
+void AddPushback(grpc::ServerContextBase* ctx, const absl::Status& s) {
   if (s.code() != absl::StatusCode::kResourceExhausted) return;
   if (RetryAfter(s).count() > 0) {
     AddRetryTrailers(s, ctx);
@@ -91,23 +91,12 @@ absl::Status MapService::AcceptUpload(const Principal& who, const pb::Passage& w
 MapService::MapService(MapServiceContext* context) : context_(context) {
   SetMessageAllocatorFor_GetTile(&tile_allocator_);
   SetMessageAllocatorFor_QueryRegion(&region_allocator_);
-  // The upload methods get handlers that receive the request messages as raw bytes. gRPC serves a
-  // method given its own handler as a stream (MarkMethodStreamed), which the unary handler reads
-  // once and answers once; the clients see the same RPCs.
+  // The chunked upload gets a handler that receives the request messages as raw bytes (the unary
+  // one is a raw callback method). gRPC serves a method given its own handler as a stream
+  // (MarkMethodStreamed); the clients see the same RPC.
   const google::protobuf::ServiceDescriptor* service =
       google::protobuf::DescriptorPool::generated_pool()->FindServiceByName(pb::MapService::service_full_name());
   using Response = pb::UploadPassageResponse;
-  MarkMethodStreamed(
-      service->FindMethodByName("UploadPassage")->index(),
-      new grpc::internal::StreamedUnaryHandler<grpc::ByteBuffer, Response>(
-          [this](grpc::ServerContext* ctx, grpc::ServerUnaryStreamer<grpc::ByteBuffer, Response>* stream) {
-            grpc::ByteBuffer request;
-            if (!stream->Read(&request)) return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, "request: missing");
-            Response response;
-            grpc::Status status = UploadPassageRaw(ctx, &request, &response);
-            if (status.ok()) stream->Write(response);
-            return status;
-          }));
   MarkMethodStreamed(service->FindMethodByName("UploadPassageChunked")->index(),
                      new grpc::internal::BidiStreamingHandler<MapService, grpc::ByteBuffer, Response>(
                          [](MapService* self, grpc::ServerContext* ctx,
@@ -120,7 +109,20 @@ MapService::MapService(MapServiceContext* context) : context_(context) {
                          this));
 }
 
-grpc::Status MapService::UploadPassageRaw(grpc::ServerContext* ctx, const grpc::ByteBuffer* raw,
+grpc::ServerUnaryReactor* MapService::UploadPassage(grpc::CallbackServerContext* ctx, const grpc::ByteBuffer* request,
+                                                   grpc::ByteBuffer* response) {
+  pb::UploadPassageResponse reply;
+  grpc::Status status = UploadPassageRaw(ctx, request, &reply);
+  if (status.ok()) {
+    bool own = false;
+    status = grpc::GenericSerialize<grpc::ProtoBufferWriter, pb::UploadPassageResponse>(reply, response, &own);
+  }
+  grpc::ServerUnaryReactor* reactor = ctx->DefaultReactor();
+  reactor->Finish(status);
+  return reactor;
+}
+
+grpc::Status MapService::UploadPassageRaw(grpc::ServerContextBase* ctx, const grpc::ByteBuffer* raw,
                                           pb::UploadPassageResponse* response) {
   RequestLog log("UploadPassage", ctx);
   absl::StatusOr<Principal> who = CheckAccess(context_->auth, *ctx, Permission::kUpload, &log);
