@@ -130,6 +130,8 @@ absl::StatusOr<std::unique_ptr<MapServer>> MapServer::Start(const MapServerOptio
   // Map reads are served from memory; SQLite stays the source of truth.
   auto store = CachedMapStore::Create(std::move(*sqlite), options.worker.update.window_hops);
   if (!store.ok()) return store.status();
+  // Watchers learn of a version once map reads show it.
+  (*store)->SetPublishedCallback([n = &server->notifier_](int64_t version) { n->Publish(version); });
   server->store_ = std::move(*store);
   MapWorkerOptions worker_options = options.worker;
   if (!options.metrics_listen.empty()) {
@@ -139,7 +141,8 @@ absl::StatusOr<std::unique_ptr<MapServer>> MapServer::Start(const MapServerOptio
     worker_options.on_applied = [m = server->metrics_.get()](const AppliedPassageTimings& t) { m->ObserveApplied(t); };
   }
   server->committer_ = std::make_unique<UploadCommitter>(server->store_.get(), options.max_queue);
-  auto worker = MapWorker::Create(server->store_.get(), worker_options, &server->notifier_);
+  server->notifier_.Publish(server->store_->HoldCommittedMap()->version());
+  auto worker = MapWorker::Create(server->store_.get(), worker_options);
   if (!worker.ok()) return worker.status();
   server->worker_ = std::move(*worker);
 

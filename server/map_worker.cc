@@ -6,7 +6,9 @@
 #include <sys/syscall.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <chrono>
+#include <optional>
 #include <set>
 #include <thread>
 
@@ -63,31 +65,24 @@ absl::Status MapWorkerOptions::Validate() const {
 }
 
 absl::StatusOr<std::unique_ptr<MapWorker>> MapWorker::Create(MapStoreInterface* store,
-                                                             const MapWorkerOptions& options,
-                                                             VersionNotifier* notifier) {
+                                                             const MapWorkerOptions& options) {
   if (auto s = options.Validate(); !s.ok()) return s;
-  std::unique_ptr<MapWorker> worker(new MapWorker(store, options, notifier));
+  std::unique_ptr<MapWorker> worker(new MapWorker(store, options));
   auto requeued = store->RequeueProcessingPassages();
   if (!requeued.ok()) return requeued.status();
   if (*requeued > 0) spdlog::warn("event=requeue passages={} reason=\"processing at start-up\"", *requeued);
-  if (auto s = worker->LoadMirror(); !s.ok()) return s;
-  notifier->Publish(worker->map_->version());
-  spdlog::info("event=map_loaded landmarks={} factors={} map_version={} warming_up={} next_joint_solve={}",
-               worker->map_->landmark_count(), worker->map_->factor_count(), worker->map_->version(),
-               worker->updater_->warming_up(), worker->updater_->joint_next());
+  if (auto s = worker->LoadUpdater(); !s.ok()) return s;
   return worker;
 }
 
-absl::Status MapWorker::LoadMirror() {
-  map_ = store_->CommittedMap();
-  if (map_ == nullptr) {
-    if (auto s = store_->LoadMap(&own_map_); !s.ok()) return s;
-    map_ = &own_map_;
-  }
+absl::Status MapWorker::LoadUpdater() {
+  const std::shared_ptr<const MapState> map = store_->HoldCommittedMap();
+  if (map == nullptr) return absl::InternalError("the map worker needs a store that keeps its map in memory");
   absl::StatusOr<MapStats> stats = store_->GetStats();
   if (!stats.ok()) return stats.status();
   const int64_t applied_count = stats->passages_by_state[static_cast<int>(PassageState::kApplied)];
-  // The joint solves take the map's first passages; passages are applied in arrival (id) order.
+  // The joint solves take the map's first passages, in the order of their ids (with several
+  // workers the order of their commits may differ; a joint solve takes them all at once).
   std::vector<Passage> kept;
   const int needed = JointSolvePassages(options_.update);
   if (applied_count <= needed) {
@@ -106,12 +101,15 @@ absl::Status MapWorker::LoadMirror() {
   }
   MapUpdateOptions update = options_.update;
   if (options_.yield) update.yield_point = [this] { Yield(); };
-  updater_ = std::make_unique<MapUpdater>(update, std::move(kept), applied_count, map_);
+  std::lock_guard<std::mutex> lock(state_mu_);
+  updater_ = std::make_unique<MapUpdater>(update, std::move(kept), applied_count, map.get());
+  committed_.clear();
+  committed_version_ = map->version();
+  committed_last_factor_id_ = map->last_factor_id();
+  spdlog::info("event=map_loaded landmarks={} factors={} map_version={} warming_up={} next_joint_solve={}",
+               map->landmark_count(), map->factor_count(), map->version(), updater_->warming_up(),
+               updater_->joint_next());
   return absl::OkStatus();
-}
-
-void MapWorker::Follow(const MapDelta& delta) {
-  if (map_ == &own_map_) own_map_.Apply(delta);
 }
 
 MapWorker::~MapWorker() { Stop(); }
@@ -129,13 +127,12 @@ void MapWorker::Wake() {
     std::lock_guard<std::mutex> lock(wake_mu_);
     wake_pending_ = true;
   }
-  wake_cv_.notify_one();
+  wake_cv_.notify_all();
 }
 
 void MapWorker::Stop() {
   stopping_ = true;
   wake_cv_.notify_all();
-  turn_cv_.notify_all();
   for (std::thread& t : threads_) t.join();
   threads_.clear();
 }
@@ -154,7 +151,6 @@ void MapWorker::Run() {
   }
   while (!stopping_) {
     std::optional<ClaimedPassage> claimed;
-    uint64_t ticket = 0;
     {
       std::lock_guard<std::mutex> lock(claim_mu_);
       if (stopping_) break;
@@ -163,25 +159,19 @@ void MapWorker::Run() {
         spdlog::error("event=claim_failed error=\"{}\"", next.status().ToString());
       } else if (next->has_value()) {
         claimed = std::move(*next);
-        ticket = next_ticket_++;
       }
     }
     if (!claimed) {
       if (!WaitForWork()) break;
       continue;
     }
-    Process(std::move(*claimed), ticket);
+    Process(std::move(*claimed));
   }
 }
 
-void MapWorker::Process(ClaimedPassage claimed, uint64_t ticket) {
-  // Decoding runs in parallel; the map update waits for this passage's turn.
+void MapWorker::Process(ClaimedPassage claimed) {
   absl::StatusOr<Passage> passage = DecodeStoredPassage(claimed.payload);
   claimed.payload.clear();
-
-  std::unique_lock<std::mutex> lock(turn_mu_);
-  turn_cv_.wait(lock, [&] { return serving_ticket_ == ticket; });
-  lock.unlock();
   const StoredPassage& record = claimed.record;
   if (stopping_ && record.attempts <= options_.max_attempts) {
     Finish(record, PassageState::kQueued, "");  // not started: back to the queue, in order
@@ -198,10 +188,6 @@ void MapWorker::Process(ClaimedPassage claimed, uint64_t ticket) {
   } else {
     Apply(claimed, *passage);
   }
-  lock.lock();
-  ++serving_ticket_;
-  lock.unlock();
-  turn_cv_.notify_all();
 }
 
 namespace {
@@ -212,26 +198,68 @@ bool IsTransientStorageError(const absl::Status& s) {
   return s.code() == absl::StatusCode::kResourceExhausted || s.code() == absl::StatusCode::kUnavailable;
 }
 
-// The passages (vehicle_id, passage_id) that `factors` of `map` came from, each once.
-std::vector<MapUpdater::PassageKey> PassagesOf(const MapReaderInterface& map, const std::vector<int64_t>& factors) {
+// The passages that `folded` (factor ids of `map`) fold wholly into the map's base: all their
+// factors are among them.
+std::vector<MapUpdater::PassageKey> WhollyFolded(const MapReaderInterface& map, const std::vector<int64_t>& folded) {
   std::set<MapUpdater::PassageKey> keys;
-  for (int64_t id : factors) {
+  for (int64_t id : folded) {
     if (const MapFactor* f = map.FindFactor(id); f != nullptr) keys.insert({f->vehicle_id, f->passage_id});
   }
-  return {keys.begin(), keys.end()};
+  const std::set<int64_t> folding(folded.begin(), folded.end());
+  std::vector<MapUpdater::PassageKey> out;
+  std::vector<int64_t> ids;
+  for (const MapUpdater::PassageKey& key : keys) {
+    ids.clear();
+    map.AppendPassageFactorIds(key.first, key.second, &ids);
+    if (std::all_of(ids.begin(), ids.end(), [&](int64_t id) { return folding.count(id) > 0; })) out.push_back(key);
+  }
+  return out;
 }
 
 }  // namespace
 
-void MapWorker::PrunePayloadsOfFolded(const std::vector<MapUpdater::PassageKey>& folding) {
-  // Only passages with no factor left apart: wholly folded into the base.
-  std::vector<MapUpdater::PassageKey> folded;
-  std::vector<int64_t> left;
-  for (const MapUpdater::PassageKey& key : folding) {
-    left.clear();
-    map_->AppendPassageFactorIds(key.first, key.second, &left);
-    if (left.empty()) folded.push_back(key);
+MapWorker::Computation MapWorker::ComputeOnHeldMap(
+    const std::function<absl::StatusOr<PassageUpdate>(const MapReaderInterface&)>& compute,
+    const std::function<void()>& plan) {
+  const std::shared_ptr<const MapState> map = store_->HoldCommittedMap();
+  Computation c;
+  c.base_version = map->version();
+  c.last_factor_id = map->last_factor_id();
+  if (plan) plan();
+  MapReadRecorder recorder(*map);
+  c.update = compute(recorder);
+  c.read = recorder.TakeRead();
+  return c;
+}
+
+bool MapWorker::StillValid(const Computation& c) const {
+  if (c.base_version == committed_version_) return true;
+  // A joint solve takes all the map's passages: it is valid only if none came in since.
+  if (c.plan && (c.plan->joint || updater_->joint_next()) && c.plan->applied_count != updater_->applied_count()) {
+    return false;
   }
+  // The changes since its base must all be known, and none may touch what it read.
+  if (committed_.empty() || committed_.front().base_version > c.base_version) return false;
+  for (const CommittedChange& change : committed_) {
+    if (change.version > c.base_version && Overlaps(c.read, change.written)) return false;
+  }
+  return true;
+}
+
+void MapWorker::RebaseOntoCommitted(Computation* c) {
+  RebaseDelta(c->last_factor_id, committed_version_, committed_last_factor_id_, &c->update->delta);
+  c->last_factor_id = committed_last_factor_id_;
+  c->update->summary.map_version = c->update->delta.version;
+}
+
+void MapWorker::RecordCommitted(const MapDelta& delta, const MapReaderInterface& map) {
+  committed_.push_back({delta.base_version, delta.version, WriteSetOf(delta, map)});
+  if (committed_.size() > kCommittedChangesKept) committed_.pop_front();
+  committed_version_ = std::max(delta.version, delta.base_version);
+  for (const auto& [id, factor] : delta.added_factors) committed_last_factor_id_ = std::max(committed_last_factor_id_, id);
+}
+
+void MapWorker::PrunePayloads(const std::vector<MapUpdater::PassageKey>& folded) {
   if (folded.empty()) return;
   absl::StatusOr<int> pruned = store_->PrunePassagePayloads(folded);
   if (!pruned.ok()) {  // the uploads stay: nothing is lost, the queue file is only larger
@@ -244,77 +272,113 @@ void MapWorker::PrunePayloadsOfFolded(const std::vector<MapUpdater::PassageKey>&
 void MapWorker::Apply(const ClaimedPassage& claimed, const Passage& passage) {
   const StoredPassage& record = claimed.record;
   int attempts = record.attempts;
+  int recomputed = 0;
   std::chrono::milliseconds pause(500);
+  MapUpdater::Mode mode;
+  mode.vouched = record.released;
+  mode.sequential = record.interruptions >= options_.sequential_after_interruptions;
+  std::optional<Computation> computed;
+  const auto apply_start = std::chrono::steady_clock::now();
   while (true) {
-    std::string error;
-    const auto apply_start = std::chrono::steady_clock::now();
-    MapUpdater::Mode mode;
-    mode.vouched = record.released;
-    mode.sequential = record.interruptions >= options_.sequential_after_interruptions;
-    auto update = updater_->Compute(passage, *map_, mode);
-    if (update.ok()) {
-      const PassageResult result = ResultFromSummary(update->summary, options_.update.strategy);
-      // The passages whose factors the commit folds, read before it does.
-      const std::vector<MapUpdater::PassageKey> folding = PassagesOf(*map_, update->delta.folded_factors);
+    if (!computed) {
+      MapUpdater::Plan plan;
+      computed = ComputeOnHeldMap(
+          [&](const MapReaderInterface& map) { return MapUpdater::ComputePlanned(plan, passage, map); },
+          [&] {
+            std::lock_guard<std::mutex> lock(state_mu_);
+            plan = updater_->PlanFor(mode);
+          });
+      computed->plan = std::move(plan);
       Yield();
-      const auto commit_start = std::chrono::steady_clock::now();
-      absl::Status committed = store_->CommitPassageApplied(record.id, update->delta, result);
-      const double commit_ms =
-          std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - commit_start).count();
-      if (committed.ok()) {
-        Follow(update->delta);
-        updater_->Applied(passage, update->delta);
-        Yield();
-        notifier_->Publish(map_->version());
-        PrunePayloadsOfFolded(folding);
-        // An update allocates and frees hundreds of MB of matrices, and glibc keeps freed pages
-        // inside its heaps: at 100k landmarks mapd grew by 2.5 MB per passage (1.45 -> 1.94 GB
-        // over 200 passages, 1.61 GB after a trim). Returning them every kTrimEveryCommits commits
-        // keeps the resident memory near the map's size; a trim takes 14 to 26 ms there.
-        double trim_ms = 0.0;
-        if (++commits_since_trim_ >= kTrimEveryCommits) {
-          const auto trim_start = std::chrono::steady_clock::now();
-          malloc_trim(0);
-          trim_ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - trim_start).count();
-          commits_since_trim_ = 0;
+    }
+    std::string error;
+    bool transient = false;
+    {
+      const std::shared_ptr<const MapState> map = store_->HoldCommittedMap();
+      std::unique_lock<std::mutex> state(state_mu_);
+      if (!StillValid(*computed)) {
+        // A change committed meanwhile touched what it read: computed again against the map with it.
+        state.unlock();
+        computed.reset();
+        ++recomputed;
+        if (stopping_) {
+          Finish(record, PassageState::kQueued, "");
+          return;
         }
-        if (options_.on_applied) {
-          const auto ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - apply_start);
-          options_.on_applied({ms.count(), result.solve_ms, result.covariance_ms, commit_ms});
-        }
-        spdlog::info(
-            "event=applied passage={} vehicle={} id={} nodes={} subgraphs={} landmarks_updated={} "
-            "landmarks_created={} landmarks_conditioned={} solve_ms={:.1f} total_ms={:.1f} commit_ms={:.1f} "
-            "factors_added={} map_version={} trim_ms={:.1f}",
-            record.passage_id, record.vehicle_id, record.id, result.nodes, result.subgraphs,
-            result.landmarks_updated, result.landmarks_created, result.landmarks_conditioned, result.solve_ms,
-            result.total_ms, commit_ms, update->delta.added_factors.size(), map_->version(), trim_ms);
+        continue;
+      }
+      const absl::Status& status = computed->update.status();
+      if (status.code() == absl::StatusCode::kInvalidArgument) {
+        state.unlock();
+        Finish(record, PassageState::kRejected, std::string(status.message()));
         return;
       }
-      error = absl::StrCat("commit: ", committed.ToString());
-      if (IsTransientStorageError(committed) && !stopping_) {
-        spdlog::warn("event=commit_deferred passage={} vehicle={} id={} retry_in_ms={} error=\"{}\"", record.passage_id,
-                     record.vehicle_id, record.id, pause.count(), committed.ToString());
-        for (auto waited = std::chrono::milliseconds(0); waited < pause && !stopping_; waited += std::chrono::milliseconds(100)) {
-          std::this_thread::sleep_for(std::chrono::milliseconds(100));
+      if (status.code() == absl::StatusCode::kFailedPrecondition) {
+        // The map's checks refused it (see ComputePassageUpdate): the same data would be refused
+        // again, so it waits for an operator (ResolvePassage) instead of being retried.
+        state.unlock();
+        Finish(record, PassageState::kQuarantined, std::string(status.message()));
+        return;
+      }
+      if (!status.ok()) {
+        error = status.ToString();
+        computed.reset();
+      } else {
+        RebaseOntoCommitted(&*computed);
+        MapDelta& delta = computed->update->delta;
+        const PassageUpdateSummary& summary = computed->update->summary;
+        delta.folded_factors.clear();
+        updater_->AddFolding(*map, &delta);
+        const std::vector<MapUpdater::PassageKey> folded = WhollyFolded(*map, delta.folded_factors);
+        const PassageResult result = ResultFromSummary(summary, options_.update.strategy);
+        const auto commit_start = std::chrono::steady_clock::now();
+        absl::Status committed = store_->CommitPassageApplied(record.id, delta, result);
+        const double commit_ms =
+            std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - commit_start).count();
+        if (committed.ok()) {
+          RecordCommitted(delta, *map);
+          updater_->Applied(passage, delta);
+          const bool trim = ++commits_since_trim_ >= kTrimEveryCommits;
+          if (trim) commits_since_trim_ = 0;
+          state.unlock();
+          Yield();
+          PrunePayloads(folded);
+          // An update allocates and frees hundreds of MB of matrices, and glibc keeps freed pages
+          // inside its heaps: at 100k landmarks mapd grew by 2.5 MB per passage (1.45 -> 1.94 GB
+          // over 200 passages, 1.61 GB after a trim). Returning them every kTrimEveryCommits
+          // commits keeps the resident memory near the map's size; a trim takes 14 to 26 ms there.
+          double trim_ms = 0.0;
+          if (trim) {
+            const auto trim_start = std::chrono::steady_clock::now();
+            malloc_trim(0);
+            trim_ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - trim_start).count();
+          }
+          if (options_.on_applied) {
+            const auto ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - apply_start);
+            options_.on_applied({ms.count(), result.solve_ms, result.covariance_ms, commit_ms});
+          }
+          spdlog::info(
+              "event=applied passage={} vehicle={} id={} nodes={} subgraphs={} landmarks_updated={} "
+              "landmarks_created={} landmarks_conditioned={} solve_ms={:.1f} total_ms={:.1f} commit_ms={:.1f} "
+              "factors_added={} map_version={} recomputed={} trim_ms={:.1f}",
+              record.passage_id, record.vehicle_id, record.id, result.nodes, result.subgraphs,
+              result.landmarks_updated, result.landmarks_created, result.landmarks_conditioned, result.solve_ms,
+              result.total_ms, commit_ms, delta.added_factors.size(), delta.version, recomputed, trim_ms);
+          return;
         }
-        pause = std::min<std::chrono::milliseconds>(2 * pause, std::chrono::seconds(30));
-        continue;  // the same passage again, no attempt counted
+        error = absl::StrCat("commit: ", committed.ToString());
+        transient = IsTransientStorageError(committed) && !stopping_;
+        if (!transient) computed.reset();
       }
-      if (committed.code() == absl::StatusCode::kFailedPrecondition) {
-        // The mirror disagrees with the store: reload it before the next attempt.
-        if (absl::Status s = LoadMirror(); !s.ok()) spdlog::error("event=reload_failed error=\"{}\"", s.ToString());
+    }  // the map's hold ends: a pause below must not keep commits from reaching it
+    if (transient) {  // the same passage again, no attempt counted
+      spdlog::warn("event=commit_deferred passage={} vehicle={} id={} retry_in_ms={} error=\"{}\"", record.passage_id,
+                   record.vehicle_id, record.id, pause.count(), error);
+      for (auto waited = std::chrono::milliseconds(0); waited < pause && !stopping_; waited += std::chrono::milliseconds(100)) {
+        std::this_thread::sleep_for(std::chrono::milliseconds(100));
       }
-    } else if (update.status().code() == absl::StatusCode::kInvalidArgument) {
-      Finish(record, PassageState::kRejected, std::string(update.status().message()));
-      return;
-    } else if (update.status().code() == absl::StatusCode::kFailedPrecondition) {
-      // The map's checks refused it (see ComputePassageUpdate): the same data would be refused
-      // again, so it waits for an operator (ResolvePassage) instead of being retried.
-      Finish(record, PassageState::kQuarantined, std::string(update.status().message()));
-      return;
-    } else {
-      error = update.status().ToString();
+      pause = std::min<std::chrono::milliseconds>(2 * pause, std::chrono::seconds(30));
+      continue;
     }
     spdlog::warn("event=attempt_failed passage={} vehicle={} id={} attempt={} error=\"{}\"", record.passage_id,
                  record.vehicle_id, record.id, attempts, error);
@@ -332,39 +396,27 @@ void MapWorker::Apply(const ClaimedPassage& claimed, const Passage& passage) {
 }
 
 absl::StatusOr<PassageUpdateSummary> MapWorker::Exclude(const StoredPassage& record) {
-  uint64_t ticket = 0;
-  {
-    std::lock_guard<std::mutex> lock(claim_mu_);
-    ticket = next_ticket_++;
+  while (!stopping_) {
+    Computation c = ComputeOnHeldMap([&](const MapReaderInterface& map) {
+      return ComputePassageExclusion(record.vehicle_id, record.passage_id, options_.update, map);
+    });
+    const std::shared_ptr<const MapState> map = store_->HoldCommittedMap();
+    std::lock_guard<std::mutex> state(state_mu_);
+    if (!StillValid(c)) continue;
+    if (!c.update.ok()) return c.update.status();
+    RebaseOntoCommitted(&c);
+    const MapDelta& delta = c.update->delta;
+    if (absl::Status s = store_->CommitPassageExcluded(record.id, delta); !s.ok()) return s;
+    RecordCommitted(delta, *map);
+    updater_->Excluded(record.vehicle_id, record.passage_id);
+    const PassageUpdateSummary& summary = c.update->summary;
+    spdlog::info("event=excluded passage={} vehicle={} id={} landmarks_updated={} landmarks_removed={} "
+                 "landmarks_conditioned={} total_ms={:.1f} map_version={}",
+                 record.passage_id, record.vehicle_id, record.id, summary.landmarks_updated, summary.landmarks_removed,
+                 summary.landmarks_conditioned, summary.total_ms, delta.version);
+    return summary;
   }
-  std::unique_lock<std::mutex> lock(turn_mu_);
-  turn_cv_.wait(lock, [&] { return serving_ticket_ == ticket || stopping_.load(); });
-  lock.unlock();
-  absl::StatusOr<PassageUpdateSummary> out = absl::UnavailableError("server is shutting down");
-  if (!stopping_) {
-    absl::StatusOr<PassageUpdate> exclusion =
-        ComputePassageExclusion(record.vehicle_id, record.passage_id, options_.update, *map_);
-    if (!exclusion.ok()) {
-      out = exclusion.status();
-    } else if (absl::Status s = store_->CommitPassageExcluded(record.id, exclusion->delta); !s.ok()) {
-      out = s;
-    } else {
-      Follow(exclusion->delta);
-      updater_->Excluded(record.vehicle_id, record.passage_id);
-      notifier_->Publish(map_->version());
-      spdlog::info("event=excluded passage={} vehicle={} id={} landmarks_updated={} landmarks_removed={} "
-                   "landmarks_conditioned={} total_ms={:.1f} map_version={}",
-                   record.passage_id, record.vehicle_id, record.id, exclusion->summary.landmarks_updated,
-                   exclusion->summary.landmarks_removed, exclusion->summary.landmarks_conditioned,
-                   exclusion->summary.total_ms, map_->version());
-      out = exclusion->summary;
-    }
-  }
-  lock.lock();
-  if (serving_ticket_ == ticket) ++serving_ticket_;
-  lock.unlock();
-  turn_cv_.notify_all();
-  return out;
+  return absl::UnavailableError("server is shutting down");
 }
 
 void MapWorker::Finish(const StoredPassage& record, PassageState state, const std::string& reason) {

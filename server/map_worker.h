@@ -5,17 +5,19 @@
 #include <chrono>
 #include <condition_variable>
 #include <cstdint>
+#include <deque>
 #include <functional>
 #include <memory>
 #include <mutex>
+#include <optional>
 #include <thread>
 #include <vector>
 
 #include "absl/status/statusor.h"
 #include "core/estimation/map_updater.h"
+#include "core/map/map_access.h"
 #include "core/map/map_state.h"
 #include "server/storage/map_store.h"
-#include "server/version_notifier.h"
 
 namespace crowdmap {
 
@@ -29,8 +31,12 @@ struct AppliedPassageTimings {
 
 struct MapWorkerOptions {
   MapUpdateOptions update;
-  // Worker threads. They claim and decode passages in parallel, but the map update itself is
-  // serialized in arrival order, so any count gives exactly the sequential result.
+  // Worker threads. Each claims a passage and computes its update against the map as committed
+  // when it began; an update is committed only if no change committed meanwhile touched what it
+  // read (core/map/map_access.h), and is computed again otherwise. With one worker, passages are
+  // applied in arrival order; with more, passages whose neighbourhoods do not overlap are applied
+  // concurrently, and the map is the one the same passages applied one at a time in their commit
+  // order would give. Each worker's computation holds its own copy of the passage's matrices.
   int workers = 1;
   // Attempts (including start-ups interrupted while processing) before a passage is failed.
   int max_attempts = 3;
@@ -58,17 +64,16 @@ struct MapWorkerOptions {
   absl::Status Validate() const;
 };
 
-// Applies queued passages to the map, in arrival order. Keeps an in-memory mirror of the stored
-// map (this process owns the database): each passage's update is computed against the mirror,
-// committed with the passage's result and the new version in one transaction, and only then
-// applied to the mirror. While the map is young (MapUpdateOptions::warmup_passages, then at each
+// Applies queued passages to the map. Computes each update against the store's committed map
+// (MapStoreInterface::HoldCommittedMap), commits it with the passage's result and the new version
+// in one transaction. While the map is young (MapUpdateOptions::warmup_passages, then at each
 // doubling of its passage count up to relinearize_until_passages) an update re-solves the passages
 // applied so far together with the new one; after a restart they are read back from the store.
 class MapWorker {
  public:
-  // Loads the map and puts passages left processing by an earlier run back on the queue.
-  static absl::StatusOr<std::unique_ptr<MapWorker>> Create(MapStoreInterface* store, const MapWorkerOptions& options,
-                                                          VersionNotifier* notifier);
+  // Loads the map and puts passages left processing by an earlier run back on the queue. The store
+  // must keep its committed map in memory (HoldCommittedMap).
+  static absl::StatusOr<std::unique_ptr<MapWorker>> Create(MapStoreInterface* store, const MapWorkerOptions& options);
   ~MapWorker();
   MapWorker(const MapWorker&) = delete;
   MapWorker& operator=(const MapWorker&) = delete;
@@ -76,56 +81,74 @@ class MapWorker {
   void Start();
   // A new passage was queued.
   void Wake();
-  // Finishes the passages being applied, returns claimed but unstarted ones to the queue, joins.
+  // Finishes the passages being applied (a passage that must be computed again goes back to the
+  // queue), joins.
   void Stop();
   // Takes an applied passage out of the map (ComputePassageExclusion, then CommitPassageExcluded),
-  // after the passages already claimed; runs on the calling thread. Unavailable when stopping.
+  // like an update; runs on the calling thread. Unavailable when stopping.
   absl::StatusOr<PassageUpdateSummary> Exclude(const StoredPassage& record);
 
  private:
-  MapWorker(MapStoreInterface* store, const MapWorkerOptions& options, VersionNotifier* notifier)
-      : store_(store), options_(options), notifier_(notifier) {}
+  MapWorker(MapStoreInterface* store, const MapWorkerOptions& options) : store_(store), options_(options) {}
+
+  // One change computed against a held map, with what it read there.
+  struct Computation {
+    absl::StatusOr<PassageUpdate> update = absl::UnknownError("not computed");
+    MapReadSet read;
+    int64_t base_version = 0;    // of the map it read
+    int64_t last_factor_id = 0;  // of the map its delta's new factor ids follow
+    std::optional<MapUpdater::Plan> plan;  // a passage's (an exclusion has none)
+  };
+  // What a commit changed, kept while computations begun before it may still commit.
+  struct CommittedChange {
+    int64_t base_version = 0;
+    int64_t version = 0;
+    MapWriteSet written;
+  };
+  static constexpr size_t kCommittedChangesKept = 64;
 
   void Run();
   // Waits for a wake-up or the idle poll; false when stopping.
   bool WaitForWork();
-  void Process(ClaimedPassage claimed, uint64_t ticket);
+  void Process(ClaimedPassage claimed);
   void Apply(const ClaimedPassage& claimed, const Passage& passage);
-  // Deletes the stored uploads of those of `folding` whose factors are now all folded into the
-  // map's base (MapStoreInterface::PrunePassagePayloads); a failure is logged, never fatal.
-  void PrunePayloadsOfFolded(const std::vector<MapUpdater::PassageKey>& folding);
+  // Runs `compute` against the committed map, held, and records what it read.
+  Computation ComputeOnHeldMap(const std::function<absl::StatusOr<PassageUpdate>(const MapReaderInterface&)>& compute,
+                               const std::function<void()>& plan = nullptr);
+  // Under state_mu_: whether `c`'s outcome still holds (nothing committed since its base touched
+  // what it read, and a joint solve's passages are still the map's).
+  bool StillValid(const Computation& c) const;
+  // Under state_mu_: moves `c`'s delta onto the committed map (RebaseDelta).
+  void RebaseOntoCommitted(Computation* c);
+  // Under state_mu_, after a commit of `delta` to the held map `map` (not yet showing it).
+  void RecordCommitted(const MapDelta& delta, const MapReaderInterface& map);
+  // Deletes the stored uploads of `folded` passages (MapStoreInterface::PrunePassagePayloads); a
+  // failure is logged, never fatal.
+  void PrunePayloads(const std::vector<MapUpdater::PassageKey>& folded);
   void Finish(const StoredPassage& record, PassageState state, const std::string& reason);
   // sched_yield() when options_.yield.
   void Yield() const;
+  // Loads updater_ (with the passages its joint solves still need) from the store.
+  absl::Status LoadUpdater();
 
   MapStoreInterface* const store_;
   const MapWorkerOptions options_;
-  VersionNotifier* const notifier_;
-  // Loads map_ and updater_ (with the passages its joint solves still need) from the store.
-  absl::Status LoadMirror();
-  // After a commit of `delta`: own_map_ follows it (the store's committed map already has).
-  void Follow(const MapDelta& delta);
 
-  // Touched only by the thread whose ticket is being served:
-  // The map updates are computed against: the store's committed map when it keeps one
-  // (MapStoreInterface::CommittedMap), otherwise own_map_, which follows each commit.
-  const MapState* map_ = nullptr;
-  MapState own_map_;
+  // The updater and what was committed. Taken after a hold of the map, never before one: a hold
+  // waits for the holds before it to go.
+  std::mutex state_mu_;
   std::unique_ptr<MapUpdater> updater_;
+  std::deque<CommittedChange> committed_;
+  int64_t committed_version_ = 0;
+  int64_t committed_last_factor_id_ = 0;
   static constexpr int kTrimEveryCommits = 16;
   int commits_since_trim_ = 0;
-
 
   std::atomic<bool> stopping_{false};
   std::mutex wake_mu_;
   std::condition_variable wake_cv_;
   bool wake_pending_ = false;
-
-  std::mutex claim_mu_;  // claim + ticket assignment, so tickets follow arrival order
-  uint64_t next_ticket_ = 0;
-  std::mutex turn_mu_;
-  std::condition_variable turn_cv_;
-  uint64_t serving_ticket_ = 0;
+  std::mutex claim_mu_;  // one claim at a time
 
   std::vector<std::thread> threads_;
 };

@@ -559,26 +559,38 @@ size_t MapUpdater::Leaving() const {
   return retain == 0 || retained_.size() < retain ? 0 : retained_.size() + 1 - retain;
 }
 
+MapUpdater::Plan MapUpdater::PlanFor(Mode mode) const {
+  Plan plan;
+  plan.options = options_;
+  if (mode.vouched) {
+    plan.options.max_chi2_per_dof = 0.0;
+    plan.options.max_landmark_shift_mahalanobis2 = 0.0;
+    plan.options.max_update_shift_mahalanobis2 = 0.0;
+  }
+  plan.joint = joint_next() && !mode.sequential;
+  if (plan.joint) plan.kept = kept_;
+  plan.applied_count = applied_count_;
+  return plan;
+}
+
+absl::StatusOr<PassageUpdate> MapUpdater::ComputePlanned(const Plan& plan, const Passage& passage,
+                                                         const MapReaderInterface& map) {
+  if (!plan.joint) return ComputePassageUpdate(passage, plan.options, map);
+  std::vector<Passage> batch = plan.kept;
+  batch.push_back(passage);
+  return ComputeBatchUpdate(batch, plan.options, map);
+}
+
+void MapUpdater::AddFolding(const MapReaderInterface& map, MapDelta* delta) const {
+  for (size_t i = 0; i < Leaving(); ++i) {
+    map.AppendPassageFactorIds(retained_[i].first, retained_[i].second, &delta->folded_factors);
+  }
+}
+
 absl::StatusOr<PassageUpdate> MapUpdater::Compute(const Passage& passage, const MapReaderInterface& map,
                                                   Mode mode) const {
-  MapUpdateOptions options = options_;
-  if (mode.vouched) {
-    options.max_chi2_per_dof = 0.0;
-    options.max_landmark_shift_mahalanobis2 = 0.0;
-    options.max_update_shift_mahalanobis2 = 0.0;
-  }
-  absl::StatusOr<PassageUpdate> update;
-  if (joint_next() && !mode.sequential) {
-    std::vector<Passage> batch = kept_;
-    batch.push_back(passage);
-    update = ComputeBatchUpdate(batch, options, map);
-  } else {
-    update = ComputePassageUpdate(passage, options, map);
-  }
-  if (!update.ok()) return update;
-  for (size_t i = 0; i < Leaving(); ++i) {
-    map.AppendPassageFactorIds(retained_[i].first, retained_[i].second, &update->delta.folded_factors);
-  }
+  absl::StatusOr<PassageUpdate> update = ComputePlanned(PlanFor(mode), passage, map);
+  if (update.ok()) AddFolding(map, &update->delta);
   return update;
 }
 

@@ -130,6 +130,24 @@ class MapUpdater {
   absl::StatusOr<PassageUpdate> Compute(const Passage& passage, const MapReaderInterface& map) const {
     return Compute(passage, map, Mode());
   }
+
+  // Compute in three steps, for a caller that reads and changes the updater under a lock but
+  // computes outside it (the service's parallel workers): Plan reads the updater, ComputePlanned
+  // only the map, and AddFolding, called when the change is committed, the updater as it is then.
+  struct Plan {
+    MapUpdateOptions options;     // with the Mode applied
+    bool joint = false;           // a joint solve of `kept` and the new passage; otherwise sequential
+    std::vector<Passage> kept;    // the map's passages before the new one, for the joint solve
+    int64_t applied_count = 0;    // passages the map had taken when planned
+  };
+  Plan PlanFor(Mode mode) const;
+  static absl::StatusOr<PassageUpdate> ComputePlanned(const Plan& plan, const Passage& passage,
+                                                      const MapReaderInterface& map);
+  // Appends to delta->folded_factors the factors of the passages that one more passage pushes out of
+  // the retention (MapUpdateOptions::retain_passages), as `map` holds them.
+  void AddFolding(const MapReaderInterface& map, MapDelta* delta) const;
+  int64_t applied_count() const { return applied_count_; }
+
   using PassageKey = std::pair<std::string, std::string>;  // vehicle_id, passage_id
 
   // Records that the delta Compute returned for `passage` was applied to the map.

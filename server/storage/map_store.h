@@ -171,11 +171,12 @@ class MapStoreInterface {
 
   // Loads the whole map (landmarks, factors, version) into `map`.
   virtual absl::Status LoadMap(MapState* map) = 0;
-  // The map as last committed, when the store keeps it in memory (CachedMapStore) and updates it
-  // with each of its commits; nullptr otherwise. The map updater computes against it instead of a
-  // copy of its own (at city scale the map's information is the process's largest structure). Only
-  // the store's commits change it, so their one caller may read it without a lock between them.
-  virtual const MapState* CommittedMap() const { return nullptr; }
+  // A hold on the map as last committed, when the store keeps it in memory (CachedMapStore);
+  // nullptr otherwise. The map updater computes against it instead of a copy of its own (at city
+  // scale the map's information is the process's largest structure). While any hold is alive the
+  // held map does not change: commits are durable at once, and reach it (and the store's map
+  // reads) when the last hold is released; a new hold waits for them.
+  virtual std::shared_ptr<const MapState> HoldCommittedMap() { return nullptr; }
   // Landmarks inside `box` with id > after_id, at most `limit` (0 = all), with their cross-covariances on request.
   virtual absl::StatusOr<LandmarkPage> QueryRegion(const BoundingBox& box, LandmarkId after_id, int limit,
                                                    bool include_cross) = 0;

@@ -1,0 +1,107 @@
+#include "core/map/map_access.h"
+
+namespace crowdmap {
+namespace {
+
+template <typename Set>
+bool Intersect(const Set& a, const Set& b) {
+  const Set& small = a.size() <= b.size() ? a : b;
+  const Set& large = a.size() <= b.size() ? b : a;
+  for (const auto& x : small) {
+    if (large.count(x) > 0) return true;
+  }
+  return false;
+}
+
+}  // namespace
+
+bool Overlaps(const MapReadSet& read, const MapWriteSet& written) {
+  return Intersect(read.landmarks, written.landmarks) || Intersect(read.factor_lists, written.factor_lists) ||
+         Intersect(read.passage_factor_lists, written.passages) || Intersect(read.vehicles, written.vehicles);
+}
+
+MapWriteSet WriteSetOf(const MapDelta& delta, const MapReaderInterface& map) {
+  MapWriteSet out;
+  auto factor_changes = [&](const MapFactor& f, bool information) {
+    for (LandmarkId l : f.landmarks) {
+      out.factor_lists.insert(l);
+      if (information) out.landmarks.insert(l);
+    }
+    out.passages.insert({f.vehicle_id, f.passage_id});
+  };
+  for (const auto& [id, landmark] : delta.landmarks) out.landmarks.insert(id);
+  out.landmarks.insert(delta.removed_landmarks.begin(), delta.removed_landmarks.end());
+  for (const auto& [id, factor] : delta.added_factors) factor_changes(factor, true);
+  for (int64_t id : delta.removed_factors) {
+    if (const MapFactor* f = map.FindFactor(id); f != nullptr) factor_changes(*f, true);
+  }
+  // A folded factor's information stays in the map: only the factor lists change.
+  for (int64_t id : delta.folded_factors) {
+    if (const MapFactor* f = map.FindFactor(id); f != nullptr) factor_changes(*f, false);
+  }
+  for (const auto& [id, vehicle] : delta.vehicles) out.vehicles.insert(id);
+  return out;
+}
+
+void RebaseDelta(int64_t from_last_factor_id, int64_t version, int64_t last_factor_id, MapDelta* delta) {
+  const int64_t from_version = delta->base_version;
+  const int64_t shift = version - from_version;
+  auto moved = [&](int64_t v) { return v > from_version ? v + shift : v; };
+  delta->base_version = version;
+  delta->version = moved(delta->version);
+  for (auto& [id, landmark] : delta->landmarks) landmark.version = moved(landmark.version);
+  for (auto& [id, vehicle] : delta->vehicles) vehicle.version = moved(vehicle.version);
+  std::map<int64_t, MapFactor> factors;
+  for (auto& [id, factor] : delta->added_factors) {
+    factor.id = id > from_last_factor_id ? id - from_last_factor_id + last_factor_id : id;
+    factors.emplace(factor.id, std::move(factor));
+  }
+  delta->added_factors = std::move(factors);
+}
+
+const Landmark* MapReadRecorder::FindLandmark(LandmarkId id) const {
+  read_.landmarks.insert(id);
+  return map_.FindLandmark(id);
+}
+
+InformationBlock MapReadRecorder::Information(LandmarkId a, LandmarkId b) const {
+  read_.landmarks.insert(a);
+  read_.landmarks.insert(b);
+  return map_.Information(a, b);
+}
+
+Eigen::Vector2d MapReadRecorder::InformationVector(LandmarkId id) const {
+  read_.landmarks.insert(id);
+  return map_.InformationVector(id);
+}
+
+void MapReadRecorder::ForEachLink(LandmarkId id,
+                                  const std::function<void(LandmarkId, const InformationBlock&)>& fn) const {
+  // A block (id, b) changes only with a factor on both: one on id, which records id's row.
+  read_.landmarks.insert(id);
+  map_.ForEachLink(id, fn);
+}
+
+const MapFactor* MapReadRecorder::FindFactor(int64_t id) const {
+  const MapFactor* f = map_.FindFactor(id);
+  if (f != nullptr) read_.factor_lists.insert(f->landmarks.begin(), f->landmarks.end());
+  return f;
+}
+
+void MapReadRecorder::AppendFactorIds(LandmarkId id, std::vector<int64_t>* out) const {
+  read_.factor_lists.insert(id);
+  map_.AppendFactorIds(id, out);
+}
+
+void MapReadRecorder::AppendPassageFactorIds(const std::string& vehicle_id, const std::string& passage_id,
+                                             std::vector<int64_t>* out) const {
+  read_.passage_factor_lists.insert({vehicle_id, passage_id});
+  map_.AppendPassageFactorIds(vehicle_id, passage_id, out);
+}
+
+const VehicleCalibration* MapReadRecorder::FindVehicle(const std::string& vehicle_id) const {
+  read_.vehicles.insert(vehicle_id);
+  return map_.FindVehicle(vehicle_id);
+}
+
+}  // namespace crowdmap

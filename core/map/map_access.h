@@ -1,0 +1,88 @@
+#ifndef CROWDMAP_CORE_MAP_MAP_ACCESS_H_
+#define CROWDMAP_CORE_MAP_MAP_ACCESS_H_
+
+#include <cstdint>
+#include <set>
+#include <string>
+#include <unordered_set>
+#include <utility>
+
+#include "core/map/map_state.h"
+
+namespace crowdmap {
+
+// Map updates computed concurrently against one version of the map (the service's workers). An
+// update reads a neighbourhood of the map; another update committed meanwhile changed another
+// part. When the part it changed holds nothing the first one read, the first one's computation
+// would have read exactly the same against the map with the other's change, and so produced the
+// same change: it is committed after the other once its version numbers and new factor ids are
+// moved past the other's (RebaseDelta). Otherwise it is computed again.
+
+// The passage factors came from: vehicle_id, passage_id.
+using FactorSource = std::pair<std::string, std::string>;
+
+// What a computation read from a map (MapReadRecorder).
+struct MapReadSet {
+  // Landmarks whose record, information blocks or information vector were read (a block (a, b)
+  // counts for both a and b, a row of ForEachLink for its landmark).
+  std::unordered_set<LandmarkId> landmarks;
+  // Landmarks whose list of factors was read, and the landmarks of every factor read by id.
+  std::unordered_set<LandmarkId> factor_lists;
+  std::set<FactorSource> passage_factor_lists;  // AppendPassageFactorIds
+  std::set<std::string> vehicles;             // FindVehicle
+};
+
+// What committing a delta changes in a map (WriteSetOf).
+struct MapWriteSet {
+  // Landmarks whose record, information blocks or information vector change: the landmark
+  // records written or removed, and the landmarks of every factor added or removed.
+  std::unordered_set<LandmarkId> landmarks;
+  // Landmarks whose list of factors changes (factors added, removed or folded), and the
+  // passages whose factors do.
+  std::unordered_set<LandmarkId> factor_lists;
+  std::set<FactorSource> passages;
+  std::set<std::string> vehicles;
+};
+
+// Whether a computation that read `read` could have read differently after `written` was committed.
+bool Overlaps(const MapReadSet& read, const MapWriteSet& written);
+
+// What committing `delta` to `map` (the map it was computed against, or a later one that still
+// holds the factors it removes and folds) changes.
+MapWriteSet WriteSetOf(const MapDelta& delta, const MapReaderInterface& map);
+
+// Moves a delta computed against a map whose last factor id was `from_last_factor_id` onto a map
+// at `version` whose last factor id is `last_factor_id`: its versions (the delta's and its
+// records') shift by version - delta.base_version, its new factors' ids by last_factor_id -
+// from_last_factor_id. Meant for a delta that Overlaps none of the changes committed in between.
+void RebaseDelta(int64_t from_last_factor_id, int64_t version, int64_t last_factor_id, MapDelta* delta);
+
+// A MapReaderInterface that forwards to another and records what was read. Not thread-safe: one
+// per computation.
+class MapReadRecorder : public MapReaderInterface {
+ public:
+  explicit MapReadRecorder(const MapReaderInterface& map) : map_(map) {}
+
+  const Landmark* FindLandmark(LandmarkId id) const override;
+  InformationBlock Information(LandmarkId a, LandmarkId b) const override;
+  Eigen::Vector2d InformationVector(LandmarkId id) const override;
+  void ForEachLink(LandmarkId id, const std::function<void(LandmarkId, const InformationBlock&)>& fn) const override;
+  const MapFactor* FindFactor(int64_t id) const override;
+  void AppendFactorIds(LandmarkId id, std::vector<int64_t>* out) const override;
+  void AppendPassageFactorIds(const std::string& vehicle_id, const std::string& passage_id,
+                              std::vector<int64_t>* out) const override;
+  int64_t last_factor_id() const override { return map_.last_factor_id(); }
+  int64_t version() const override { return map_.version(); }
+  const VehicleCalibration* FindVehicle(const std::string& vehicle_id) const override;
+
+  const MapReadSet& read() const { return read_; }
+  MapReadSet TakeRead() { return std::move(read_); }
+
+ private:
+  const MapReaderInterface& map_;
+  mutable MapReadSet read_;
+};
+
+}  // namespace crowdmap
+
+#endif  // CROWDMAP_CORE_MAP_MAP_ACCESS_H_

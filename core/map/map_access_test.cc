@@ -1,0 +1,158 @@
+#include "core/map/map_access.h"
+
+#include <gtest/gtest.h>
+
+namespace crowdmap {
+namespace {
+
+Landmark At(LandmarkId id, int64_t version) {
+  Landmark l;
+  l.id = id;
+  l.anchor = {48.0 + 0.001 * id, 2.0};
+  l.position = l.anchor;
+  l.version = version;
+  return l;
+}
+
+MapFactor On(std::vector<LandmarkId> ids, const std::string& passage) {
+  MapFactor f;
+  f.vehicle_id = "v";
+  f.passage_id = passage;
+  f.landmarks = std::move(ids);
+  const int n = 2 * static_cast<int>(f.landmarks.size());
+  f.information = Eigen::MatrixXd::Identity(n, n);
+  f.information_vector = Eigen::VectorXd::Ones(n);
+  return f;
+}
+
+// Landmarks 1..6 at version 2; factors 1 = {1, 2} (passage a), 2 = {3, 4} (b), 3 = {5, 6} (c).
+class MapAccessTest : public testing::Test {
+ protected:
+  MapAccessTest() {
+    for (LandmarkId id = 1; id <= 6; ++id) map_.PutLandmark(At(id, 2));
+    int64_t id = 0;
+    for (const auto& [ids, passage] : std::vector<std::pair<std::vector<LandmarkId>, std::string>>{
+             {{1, 2}, "a"}, {{3, 4}, "b"}, {{5, 6}, "c"}}) {
+      MapFactor f = On(ids, passage);
+      f.id = ++id;
+      map_.PutFactor(f);
+    }
+    map_.set_last_factor_id(3);
+    map_.set_version(2);
+  }
+  MapState map_;
+};
+
+TEST_F(MapAccessTest, TheRecorderRecordsEveryKindOfRead) {
+  MapReadRecorder recorder(map_);
+  recorder.FindLandmark(1);
+  recorder.FindLandmark(99);  // a miss counts: a landmark created meanwhile changes the answer
+  recorder.Information(2, 3);
+  recorder.InformationVector(4);
+  int links = 0;
+  recorder.ForEachLink(5, [&](LandmarkId, const InformationBlock&) { ++links; });
+  EXPECT_EQ(links, 1);
+  std::vector<int64_t> ids;
+  recorder.AppendFactorIds(6, &ids);
+  recorder.FindFactor(1);
+  recorder.AppendPassageFactorIds("v", "b", &ids);
+  recorder.FindVehicle("car");
+  EXPECT_EQ(recorder.version(), 2);
+  EXPECT_EQ(recorder.last_factor_id(), 3);
+
+  const MapReadSet read = recorder.TakeRead();
+  EXPECT_EQ(read.landmarks, (std::unordered_set<LandmarkId>{1, 99, 2, 3, 4, 5}));
+  EXPECT_EQ(read.factor_lists, (std::unordered_set<LandmarkId>{6, 1, 2}));
+  EXPECT_EQ(read.passage_factor_lists, (std::set<FactorSource>{{"v", "b"}}));
+  EXPECT_EQ(read.vehicles, (std::set<std::string>{"car"}));
+}
+
+TEST_F(MapAccessTest, WriteSetsSeparateInformationFromFactorLists) {
+  MapOverlay overlay(map_);
+  overlay.BumpVersion();
+  overlay.PutLandmark(At(7, overlay.version()));
+  overlay.AddFactor(On({6, 7}, "d"));
+  overlay.RemoveFactor(2);
+  overlay.FoldFactor(1);
+  VehicleCalibration car;
+  car.vehicle_id = "car";
+  overlay.PutVehicle(car);
+  const MapWriteSet written = WriteSetOf(overlay.delta(), map_);
+  EXPECT_EQ(written.landmarks, (std::unordered_set<LandmarkId>{7, 6, 3, 4})) << "folding keeps the information";
+  EXPECT_EQ(written.factor_lists, (std::unordered_set<LandmarkId>{6, 7, 3, 4, 1, 2}));
+  EXPECT_EQ(written.passages, (std::set<FactorSource>{{"v", "a"}, {"v", "b"}, {"v", "d"}}));
+  EXPECT_EQ(written.vehicles, (std::set<std::string>{"car"}));
+
+  // Each kind of read meets its kind of write, and only that.
+  MapReadSet read;
+  EXPECT_FALSE(Overlaps(read, written));
+  read.landmarks = {1, 2, 5};
+  EXPECT_FALSE(Overlaps(read, written)) << "1 and 2 were folded: their information is unchanged";
+  read.factor_lists = {1};
+  EXPECT_TRUE(Overlaps(read, written));
+  read.factor_lists.clear();
+  read.landmarks.insert(3);
+  EXPECT_TRUE(Overlaps(read, written));
+  read.landmarks.clear();
+  read.passage_factor_lists = {{"v", "c"}};
+  EXPECT_FALSE(Overlaps(read, written));
+  read.passage_factor_lists.insert({"v", "a"});
+  EXPECT_TRUE(Overlaps(read, written));
+  read.passage_factor_lists.clear();
+  read.vehicles = {"car"};
+  EXPECT_TRUE(Overlaps(read, written));
+}
+
+// A change computed against version 2, moved past another committed meanwhile, equals the same
+// change computed against the map with the other one.
+TEST_F(MapAccessTest, ARebasedDeltaEqualsTheDeltaComputedAfterTheOtherChange) {
+  auto change = [](const MapReaderInterface& map) {
+    MapOverlay overlay(map);
+    overlay.BumpVersion();
+    overlay.AddFactor(On({1, 2}, "e"));
+    Landmark l = *map.FindLandmark(1);
+    l.version = overlay.BumpVersion();
+    overlay.PutLandmark(l);
+    overlay.AddFactor(On({1, 8}, "e"));
+    overlay.PutLandmark(At(8, overlay.version()));
+    return overlay.TakeDelta();
+  };
+  MapOverlay other(map_);
+  other.BumpVersion();
+  other.AddFactor(On({5, 6}, "f"));
+  other.AddFactor(On({6}, "f"));
+  other.PutLandmark(At(6, other.version()));
+  const MapDelta committed = other.TakeDelta();
+
+  MapDelta rebased = change(map_);
+  MapState after = map_;
+  after.Apply(committed);
+  RebaseDelta(map_.last_factor_id(), after.version(), after.last_factor_id(), &rebased);
+  const MapDelta direct = change(after);
+
+  EXPECT_EQ(rebased.base_version, 3);
+  EXPECT_EQ(rebased.version, direct.version);
+  EXPECT_EQ(rebased.version, 5);
+  ASSERT_EQ(rebased.landmarks.size(), direct.landmarks.size());
+  for (const auto& [id, l] : direct.landmarks) EXPECT_EQ(rebased.landmarks.at(id).version, l.version) << id;
+  ASSERT_EQ(rebased.added_factors.size(), direct.added_factors.size());
+  auto r = rebased.added_factors.begin();
+  for (const auto& [id, f] : direct.added_factors) {
+    EXPECT_EQ(r->first, id);
+    EXPECT_EQ(r->second.id, id);
+    EXPECT_EQ(r->second.landmarks, f.landmarks);
+    ++r;
+  }
+  EXPECT_EQ(rebased.added_factors.begin()->first, 6) << "after the other change's factors 4 and 5";
+  // Landmark records the delta copies unchanged keep their version.
+  MapDelta old;
+  old.base_version = 2;
+  old.version = 3;
+  old.landmarks[1] = At(1, 1);
+  RebaseDelta(3, 4, 5, &old);
+  EXPECT_EQ(old.landmarks[1].version, 1);
+  EXPECT_EQ(old.version, 5);
+}
+
+}  // namespace
+}  // namespace crowdmap

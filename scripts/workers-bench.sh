@@ -1,0 +1,67 @@
+#!/bin/bash
+# Applies the same passages to copies of one map with mapd --workers 1, 2, ...: prints, for each,
+# the passages applied per second (first upload to last passage finished), how many updates were
+# computed again because another worker's commit touched what they read, and mapd's peak
+# resident memory; then each count's speed-up over the first.
+#
+#   scripts/workers-bench.sh MAP_DB PASSAGE_DIR [WORKERS...]     (default: 1 2)
+#
+# MAP_DB is copied (with MAP_DB.queue) to a scratch directory for each run and left untouched.
+# PASSAGE_DIR holds passage files not yet applied to it (e.g. `mapsim city ... --seed 2
+# --export-passages DIR --export-format binary`). mapd gets MAPD_ARGS (default: the city settings
+# below, which must be the map's). Needs a build (scripts/setup.sh); load stays on loopback.
+set -euo pipefail
+if [[ $# -lt 2 || "$1" == -h || "$1" == --help ]]; then
+  sed -n '2,13p' "$0" | sed 's/^# \{0,1\}//'
+  exit 2
+fi
+MAP_DB=$1
+PASSAGES=$2
+shift 2
+WORKERS=("${@:-1}")
+[[ $# -eq 0 ]] && WORKERS=(1 2)
+ROOT=$(cd "$(dirname "$0")/.." && pwd)
+BUILD=${BUILD:-$ROOT/build}
+MAPD_ARGS=${MAPD_ARGS:---window-hops 2 --warmup-passages 0 --relinearize-until-passages 0}
+PORT=${PORT:-50291}
+SCRATCH=$(mktemp -d /tmp/workers-bench.XXXXXX)
+trap 'rm -rf "$SCRATCH"' EXIT
+FILES=("$PASSAGES"/passage-*)
+N=${#FILES[@]}
+[[ -e "${FILES[0]}" ]] || { echo "no passage files in $PASSAGES" >&2; exit 1; }
+
+declare -A RATE
+for W in "${WORKERS[@]}"; do
+  DIR=$SCRATCH/w$W
+  mkdir -p "$DIR"
+  cp "$MAP_DB" "$DIR/map.db"
+  [[ -f "$MAP_DB.queue" ]] && cp "$MAP_DB.queue" "$DIR/map.db.queue"
+  # shellcheck disable=SC2086
+  "$BUILD/server/mapd" --db "$DIR/map.db" --listen "127.0.0.1:$PORT" --workers "$W" $MAPD_ARGS > "$DIR/mapd.log" 2>&1 &
+  PID=$!
+  until grep -q "event=started" "$DIR/mapd.log"; do
+    kill -0 $PID 2>/dev/null || { cat "$DIR/mapd.log" >&2; exit 1; }
+    sleep 0.2
+  done
+  START=$(date +%s.%N)
+  "$BUILD/client/mapctl" upload --server "127.0.0.1:$PORT" "${FILES[@]}" > "$DIR/upload.log"
+  while (( $(grep -c -E "event=(applied|rejected|quarantined|failed) " "$DIR/mapd.log") < N )); do
+    sleep 0.2
+    echo -ne "\rworkers=$W finished $(grep -c -E "event=(applied|rejected|quarantined|failed) " "$DIR/mapd.log")/$N" >&2
+  done
+  END=$(date +%s.%N)
+  echo >&2
+  HWM=$(awk '/VmHWM/ {print $2}' /proc/$PID/status)
+  kill -INT $PID
+  wait $PID || true
+  APPLIED=$(grep -c "event=applied " "$DIR/mapd.log")
+  RECOMPUTED=$(grep -o "recomputed=[0-9]*" "$DIR/mapd.log" | awk -F= '{s += $2} END {print s + 0}')
+  SECONDS_TAKEN=$(awk -v a="$START" -v b="$END" 'BEGIN {print b - a}')
+  RATE[$W]=$(awk -v n="$N" -v s="$SECONDS_TAKEN" 'BEGIN {print n / s}')
+  printf 'workers=%d passages=%d applied=%d seconds=%.1f passages_per_s=%.3f recomputed=%d peak_rss_mb=%d\n' \
+    "$W" "$N" "$APPLIED" "$SECONDS_TAKEN" "${RATE[$W]}" "$RECOMPUTED" $((HWM / 1024))
+done
+FIRST=${WORKERS[0]}
+for W in "${WORKERS[@]:1}"; do
+  printf 'speedup workers=%d over workers=%d: %.2fx\n' "$W" "$FIRST" "$(awk -v a="${RATE[$W]}" -v b="${RATE[$FIRST]}" 'BEGIN {print a / b}')"
+done

@@ -1,0 +1,134 @@
+// mapd with two workers: passages are computed concurrently, and the map it commits is exactly
+// the one the same passages give applied one at a time in the order of their commits.
+#include <algorithm>
+#include <utility>
+#include <vector>
+
+#include "core/sim/city_scenario.h"
+#include "server/storage/sqlite_map_store.h"
+#include "server/testing/temp_dir.h"
+#include "tests/support/mock_vehicle.h"
+#include "tests/support/test_server.h"
+
+namespace crowdmap {
+namespace {
+
+// The passages in the order the service committed them (their results' map versions).
+std::vector<Passage> InCommitOrder(MockVehicle* vehicle, const std::vector<Passage>& passages) {
+  std::vector<std::pair<int64_t, const Passage*>> by_version;
+  for (const Passage& p : passages) {
+    absl::StatusOr<pb::PassageStatus> status = vehicle->GetPassage(p.vehicle_id, p.passage_id);
+    EXPECT_TRUE(status.ok()) << status.status();
+    if (!status.ok()) continue;
+    EXPECT_EQ(status->state(), pb::PASSAGE_STATE_APPLIED) << p.passage_id << ": " << status->error();
+    by_version.emplace_back(status->result().map_version(), &p);
+  }
+  std::sort(by_version.begin(), by_version.end(),
+            [](const auto& a, const auto& b) { return a.first < b.first; });
+  std::vector<Passage> out;
+  for (const auto& [version, p] : by_version) out.push_back(*p);
+  return out;
+}
+
+MapState ApplyInOrder(const std::vector<Passage>& passages, const MapUpdateOptions& options) {
+  MapState map;
+  MapUpdater updater(options);
+  for (const Passage& passage : passages) {
+    absl::StatusOr<PassageUpdate> update = updater.Compute(passage, map);
+    EXPECT_TRUE(update.ok()) << passage.passage_id << ": " << update.status();
+    if (!update.ok()) continue;
+    map.Apply(update->delta);
+    updater.Applied(passage, update->delta);
+  }
+  return map;
+}
+
+// Same landmarks, versions and factors (ids, landmarks, information), to the bit; the same
+// information vector to rounding.
+void ExpectSameMap(const MapState& expected, const MapState& actual) {
+  EXPECT_EQ(actual.version(), expected.version());
+  EXPECT_EQ(actual.last_factor_id(), expected.last_factor_id());
+  ASSERT_EQ(actual.landmark_count(), expected.landmark_count());
+  ASSERT_EQ(actual.factor_count(), expected.factor_count());
+  int differing = 0;
+  expected.ForEachLandmark([&](const Landmark& l) {
+    const Landmark* a = actual.FindLandmark(l.id);
+    ASSERT_NE(a, nullptr) << l.id;
+    const bool same = a->position.lat_deg == l.position.lat_deg && a->position.lon_deg == l.position.lon_deg &&
+                      a->cov_en_m2 == l.cov_en_m2 && a->version == l.version && a->passages_seen == l.passages_seen;
+    if (!same && ++differing <= 5) ADD_FAILURE() << "landmark " << l.id << " differs";
+    // The assembled sums may be added up in another order (a map loaded from its store): rounding.
+    const Eigen::Vector2d eta = expected.InformationVector(l.id);
+    EXPECT_LE((actual.InformationVector(l.id) - eta).norm(), 1e-9 * (1.0 + eta.norm())) << l.id;
+  });
+  expected.ForEachFactor([&](const MapFactor& f) {
+    const MapFactor* a = actual.FindFactor(f.id);
+    ASSERT_NE(a, nullptr) << "factor " << f.id;
+    EXPECT_EQ(a->landmarks, f.landmarks) << f.id;
+    EXPECT_EQ(a->information, f.information) << f.id;
+    EXPECT_EQ(a->passage_id, f.passage_id) << f.id;
+  });
+  EXPECT_EQ(differing, 0);
+}
+
+void RunWithTwoWorkers(const std::vector<Passage>& passages, const MapUpdateOptions& update) {
+  TempDir dir;
+  MapServerOptions options = TestServerOptions(dir.File("map.db"));
+  options.worker.workers = 2;
+  options.worker.update = update;
+  options.limits.vehicle_uploads_per_s = 0;  // the test's uploads come as fast as they can
+  auto server = StartTestServer(options);
+  ASSERT_NE(server, nullptr);
+  MockVehicle vehicle(server->address());
+  for (const Passage& p : passages) {
+    auto r = vehicle.Upload(p);
+    ASSERT_TRUE(r.ok()) << r.status();
+  }
+  auto info = vehicle.WaitUntilIdle();
+  ASSERT_TRUE(info.ok()) << info.status();
+  ASSERT_EQ(info->passages_applied(), static_cast<int64_t>(passages.size()));
+  const MapState expected = ApplyInOrder(InCommitOrder(&vehicle, passages), update);
+  {
+    SCOPED_TRACE("served map");
+    ExpectSameMap(expected, *server->store()->HoldCommittedMap());
+  }
+  server->Shutdown(std::chrono::milliseconds(0));
+  server.reset();
+  auto store = CreateSqliteMapStore(dir.File("map.db"));
+  ASSERT_TRUE(store.ok()) << store.status();
+  MapState stored;
+  ASSERT_TRUE((*store)->LoadMap(&stored).ok());
+  SCOPED_TRACE("stored map");
+  ExpectSameMap(expected, stored);
+}
+
+// A street grid, short partial routes, two links of window, a retention of 6 passages so that
+// commits also fold factors while the other worker computes.
+TEST(ParallelWorkers, CityPassagesGiveTheMapOfTheirCommitOrder) {
+  CityScenarioOptions city;
+  city.blocks_x = 10;
+  city.blocks_y = 10;
+  city.route_length_m = 600.0;
+  auto scenario = CityScenario::Create(city);
+  ASSERT_TRUE(scenario.ok()) << scenario.status();
+  std::vector<Passage> passages;
+  for (int i = 0; i < 24; ++i) passages.push_back(scenario->MakePassage(i));
+  MapUpdateOptions update;
+  update.warmup_passages = 0;
+  update.relinearize_until_passages = 0;
+  update.window_hops = 2;
+  update.retain_passages = 6;
+  RunWithTwoWorkers(passages, update);
+}
+
+// The loop with the defaults: the young map's joint solves take all passages before them, so a
+// worker's joint solve is computed again whenever the other committed first.
+TEST(ParallelWorkers, JointSolvesOfTheYoungMapGiveTheMapOfTheirCommitOrder) {
+  const Scenario scenario = ShortScenario(8, 60.0);
+  std::vector<Passage> passages;
+  for (int i = 0; i < 20; ++i) passages.push_back(scenario.MakePassage(i));
+  RunWithTwoWorkers(passages, MapUpdateOptions());
+}
+
+}  // namespace
+}  // namespace crowdmap
