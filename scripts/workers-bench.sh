@@ -25,7 +25,7 @@ BUILD=${BUILD:-$ROOT/build}
 MAPD_ARGS=${MAPD_ARGS:---window-hops 2 --warmup-passages 0 --relinearize-until-passages 0}
 PORT=${PORT:-50291}
 SCRATCH=$(mktemp -d /tmp/workers-bench.XXXXXX)
-trap 'rm -rf "$SCRATCH"' EXIT
+[[ -n "${KEEP:-}" ]] || trap 'rm -rf "$SCRATCH"' EXIT
 FILES=("$PASSAGES"/passage-*)
 N=${#FILES[@]}
 [[ -e "${FILES[0]}" ]] || { echo "no passage files in $PASSAGES" >&2; exit 1; }

@@ -141,7 +141,7 @@ absl::StatusOr<std::unique_ptr<MapServer>> MapServer::Start(const MapServerOptio
     worker_options.on_applied = [m = server->metrics_.get()](const AppliedPassageTimings& t) { m->ObserveApplied(t); };
   }
   server->committer_ = std::make_unique<UploadCommitter>(server->store_.get(), options.max_queue);
-  server->notifier_.Publish(server->store_->HoldCommittedMap()->version());
+  server->store_->ReadCommittedMap([&](const MapState& map) { server->notifier_.Publish(map.version()); });
   auto worker = MapWorker::Create(server->store_.get(), worker_options);
   if (!worker.ok()) return worker.status();
   server->worker_ = std::move(*worker);

@@ -76,8 +76,6 @@ absl::StatusOr<std::unique_ptr<MapWorker>> MapWorker::Create(MapStoreInterface* 
 }
 
 absl::Status MapWorker::LoadUpdater() {
-  const std::shared_ptr<const MapState> map = store_->HoldCommittedMap();
-  if (map == nullptr) return absl::InternalError("the map worker needs a store that keeps its map in memory");
   absl::StatusOr<MapStats> stats = store_->GetStats();
   if (!stats.ok()) return stats.status();
   const int64_t applied_count = stats->passages_by_state[static_cast<int>(PassageState::kApplied)];
@@ -102,13 +100,16 @@ absl::Status MapWorker::LoadUpdater() {
   MapUpdateOptions update = options_.update;
   if (options_.yield) update.yield_point = [this] { Yield(); };
   std::lock_guard<std::mutex> lock(state_mu_);
-  updater_ = std::make_unique<MapUpdater>(update, std::move(kept), applied_count, map.get());
-  committed_.clear();
-  committed_version_ = map->version();
-  committed_last_factor_id_ = map->last_factor_id();
-  spdlog::info("event=map_loaded landmarks={} factors={} map_version={} warming_up={} next_joint_solve={}",
-               map->landmark_count(), map->factor_count(), map->version(), updater_->warming_up(),
-               updater_->joint_next());
+  const bool kept_in_memory = store_->ReadCommittedMap([&](const MapState& map) {
+    updater_ = std::make_unique<MapUpdater>(update, std::move(kept), applied_count, &map);
+    committed_.clear();
+    committed_version_ = map.version();
+    committed_last_factor_id_ = map.last_factor_id();
+    spdlog::info("event=map_loaded landmarks={} factors={} map_version={} warming_up={} next_joint_solve={}",
+                 map.landmark_count(), map.factor_count(), map.version(), updater_->warming_up(),
+                 updater_->joint_next());
+  });
+  if (!kept_in_memory) return absl::InternalError("the map worker needs a store that keeps its map in memory");
   return absl::OkStatus();
 }
 
@@ -218,17 +219,23 @@ std::vector<MapUpdater::PassageKey> WhollyFolded(const MapReaderInterface& map, 
 
 }  // namespace
 
-MapWorker::Computation MapWorker::ComputeOnHeldMap(
+MapWorker::Computation MapWorker::ComputeOnCommittedMap(
     const std::function<absl::StatusOr<PassageUpdate>(const MapReaderInterface&)>& compute,
     const std::function<void()>& plan) {
-  const std::shared_ptr<const MapState> map = store_->HoldCommittedMap();
+  std::optional<MapReadRecorder> recorder;
+  {
+    // The plan and the version it is computed against, together: commits hold state_mu_.
+    std::lock_guard<std::mutex> lock(state_mu_);
+    if (plan) plan();
+    recorder.emplace([this](const std::function<void(const MapReaderInterface&)>& read) {
+      store_->ReadCommittedMap([&](const MapState& map) { read(map); });
+    });
+  }
   Computation c;
-  c.base_version = map->version();
-  c.last_factor_id = map->last_factor_id();
-  if (plan) plan();
-  MapReadRecorder recorder(*map);
-  c.update = compute(recorder);
-  c.read = recorder.TakeRead();
+  c.base_version = recorder->version();
+  c.last_factor_id = recorder->last_factor_id();
+  c.update = compute(*recorder);
+  c.read = recorder->TakeRead();
   return c;
 }
 
@@ -252,8 +259,8 @@ void MapWorker::RebaseOntoCommitted(Computation* c) {
   c->update->summary.map_version = c->update->delta.version;
 }
 
-void MapWorker::RecordCommitted(const MapDelta& delta, const MapReaderInterface& map) {
-  committed_.push_back({delta.base_version, delta.version, WriteSetOf(delta, map)});
+void MapWorker::RecordCommitted(const MapDelta& delta, MapWriteSet written) {
+  committed_.push_back({delta.base_version, delta.version, std::move(written)});
   if (committed_.size() > kCommittedChangesKept) committed_.pop_front();
   committed_version_ = std::max(delta.version, delta.base_version);
   for (const auto& [id, factor] : delta.added_factors) committed_last_factor_id_ = std::max(committed_last_factor_id_, id);
@@ -282,19 +289,15 @@ void MapWorker::Apply(const ClaimedPassage& claimed, const Passage& passage) {
   while (true) {
     if (!computed) {
       MapUpdater::Plan plan;
-      computed = ComputeOnHeldMap(
+      computed = ComputeOnCommittedMap(
           [&](const MapReaderInterface& map) { return MapUpdater::ComputePlanned(plan, passage, map); },
-          [&] {
-            std::lock_guard<std::mutex> lock(state_mu_);
-            plan = updater_->PlanFor(mode);
-          });
+          [&] { plan = updater_->PlanFor(mode); });
       computed->plan = std::move(plan);
       Yield();
     }
     std::string error;
     bool transient = false;
     {
-      const std::shared_ptr<const MapState> map = store_->HoldCommittedMap();
       std::unique_lock<std::mutex> state(state_mu_);
       if (!StillValid(*computed)) {
         // A change committed meanwhile touched what it read: computed again against the map with it.
@@ -328,15 +331,20 @@ void MapWorker::Apply(const ClaimedPassage& claimed, const Passage& passage) {
         MapDelta& delta = computed->update->delta;
         const PassageUpdateSummary& summary = computed->update->summary;
         delta.folded_factors.clear();
-        updater_->AddFolding(*map, &delta);
-        const std::vector<MapUpdater::PassageKey> folded = WhollyFolded(*map, delta.folded_factors);
+        std::vector<MapUpdater::PassageKey> folded;
+        MapWriteSet written;
+        store_->ReadCommittedMap([&](const MapState& map) {  // as before this commit: commits hold state_mu_
+          updater_->AddFolding(map, &delta);
+          folded = WhollyFolded(map, delta.folded_factors);
+          written = WriteSetOf(delta, map);
+        });
         const PassageResult result = ResultFromSummary(summary, options_.update.strategy);
         const auto commit_start = std::chrono::steady_clock::now();
         absl::Status committed = store_->CommitPassageApplied(record.id, delta, result);
         const double commit_ms =
             std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - commit_start).count();
         if (committed.ok()) {
-          RecordCommitted(delta, *map);
+          RecordCommitted(delta, std::move(written));
           updater_->Applied(passage, delta);
           const bool trim = ++commits_since_trim_ >= kTrimEveryCommits;
           if (trim) commits_since_trim_ = 0;
@@ -370,7 +378,7 @@ void MapWorker::Apply(const ClaimedPassage& claimed, const Passage& passage) {
         transient = IsTransientStorageError(committed) && !stopping_;
         if (!transient) computed.reset();
       }
-    }  // the map's hold ends: a pause below must not keep commits from reaching it
+    }
     if (transient) {  // the same passage again, no attempt counted
       spdlog::warn("event=commit_deferred passage={} vehicle={} id={} retry_in_ms={} error=\"{}\"", record.passage_id,
                    record.vehicle_id, record.id, pause.count(), error);
@@ -397,17 +405,18 @@ void MapWorker::Apply(const ClaimedPassage& claimed, const Passage& passage) {
 
 absl::StatusOr<PassageUpdateSummary> MapWorker::Exclude(const StoredPassage& record) {
   while (!stopping_) {
-    Computation c = ComputeOnHeldMap([&](const MapReaderInterface& map) {
+    Computation c = ComputeOnCommittedMap([&](const MapReaderInterface& map) {
       return ComputePassageExclusion(record.vehicle_id, record.passage_id, options_.update, map);
     });
-    const std::shared_ptr<const MapState> map = store_->HoldCommittedMap();
     std::lock_guard<std::mutex> state(state_mu_);
     if (!StillValid(c)) continue;
     if (!c.update.ok()) return c.update.status();
     RebaseOntoCommitted(&c);
     const MapDelta& delta = c.update->delta;
+    MapWriteSet written;
+    store_->ReadCommittedMap([&](const MapState& map) { written = WriteSetOf(delta, map); });
     if (absl::Status s = store_->CommitPassageExcluded(record.id, delta); !s.ok()) return s;
-    RecordCommitted(delta, *map);
+    RecordCommitted(delta, std::move(written));
     updater_->Excluded(record.vehicle_id, record.passage_id);
     const PassageUpdateSummary& summary = c.update->summary;
     spdlog::info("event=excluded passage={} vehicle={} id={} landmarks_updated={} landmarks_removed={} "

@@ -65,14 +65,14 @@ struct MapWorkerOptions {
 };
 
 // Applies queued passages to the map. Computes each update against the store's committed map
-// (MapStoreInterface::HoldCommittedMap), commits it with the passage's result and the new version
+// (MapStoreInterface::ReadCommittedMap, through a MapReadRecorder), commits it with the passage's result and the new version
 // in one transaction. While the map is young (MapUpdateOptions::warmup_passages, then at each
 // doubling of its passage count up to relinearize_until_passages) an update re-solves the passages
 // applied so far together with the new one; after a restart they are read back from the store.
 class MapWorker {
  public:
   // Loads the map and puts passages left processing by an earlier run back on the queue. The store
-  // must keep its committed map in memory (HoldCommittedMap).
+  // must keep its committed map in memory (ReadCommittedMap).
   static absl::StatusOr<std::unique_ptr<MapWorker>> Create(MapStoreInterface* store, const MapWorkerOptions& options);
   ~MapWorker();
   MapWorker(const MapWorker&) = delete;
@@ -91,7 +91,7 @@ class MapWorker {
  private:
   MapWorker(MapStoreInterface* store, const MapWorkerOptions& options) : store_(store), options_(options) {}
 
-  // One change computed against a held map, with what it read there.
+  // One change computed against the committed map, with what it read there.
   struct Computation {
     absl::StatusOr<PassageUpdate> update = absl::UnknownError("not computed");
     MapReadSet read;
@@ -112,16 +112,19 @@ class MapWorker {
   bool WaitForWork();
   void Process(ClaimedPassage claimed);
   void Apply(const ClaimedPassage& claimed, const Passage& passage);
-  // Runs `compute` against the committed map, held, and records what it read.
-  Computation ComputeOnHeldMap(const std::function<absl::StatusOr<PassageUpdate>(const MapReaderInterface&)>& compute,
-                               const std::function<void()>& plan = nullptr);
+  // Runs `compute` against the committed map, which other workers' commits may change meanwhile,
+  // and records what it read; `plan`, if given, runs first, under state_mu_ and at the version
+  // the computation starts from.
+  Computation ComputeOnCommittedMap(
+      const std::function<absl::StatusOr<PassageUpdate>(const MapReaderInterface&)>& compute,
+      const std::function<void()>& plan = nullptr);
   // Under state_mu_: whether `c`'s outcome still holds (nothing committed since its base touched
   // what it read, and a joint solve's passages are still the map's).
   bool StillValid(const Computation& c) const;
   // Under state_mu_: moves `c`'s delta onto the committed map (RebaseDelta).
   void RebaseOntoCommitted(Computation* c);
-  // Under state_mu_, after a commit of `delta` to the held map `map` (not yet showing it).
-  void RecordCommitted(const MapDelta& delta, const MapReaderInterface& map);
+  // Under state_mu_, after a commit of `delta`, which changed `written`.
+  void RecordCommitted(const MapDelta& delta, MapWriteSet written);
   // Deletes the stored uploads of `folded` passages (MapStoreInterface::PrunePassagePayloads); a
   // failure is logged, never fatal.
   void PrunePayloads(const std::vector<MapUpdater::PassageKey>& folded);
@@ -134,8 +137,8 @@ class MapWorker {
   MapStoreInterface* const store_;
   const MapWorkerOptions options_;
 
-  // The updater and what was committed. Taken after a hold of the map, never before one: a hold
-  // waits for the holds before it to go.
+  // The updater and what was committed; held across a commit (commits are one at a time). Taken
+  // before the store's map lock (ReadCommittedMap), never inside it.
   std::mutex state_mu_;
   std::unique_ptr<MapUpdater> updater_;
   std::deque<CommittedChange> committed_;

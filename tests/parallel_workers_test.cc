@@ -90,7 +90,7 @@ void RunWithTwoWorkers(const std::vector<Passage>& passages, const MapUpdateOpti
   const MapState expected = ApplyInOrder(InCommitOrder(&vehicle, passages), update);
   {
     SCOPED_TRACE("served map");
-    ExpectSameMap(expected, *server->store()->HoldCommittedMap());
+    ASSERT_TRUE(server->store()->ReadCommittedMap([&](const MapState& map) { ExpectSameMap(expected, map); }));
   }
   server->Shutdown(std::chrono::milliseconds(0));
   server.reset();

@@ -59,49 +59,87 @@ void RebaseDelta(int64_t from_last_factor_id, int64_t version, int64_t last_fact
   delta->added_factors = std::move(factors);
 }
 
+MapReadRecorder::MapReadRecorder(MapAccess access) : access_(std::move(access)) {
+  access_([this](const MapReaderInterface& map) {
+    last_factor_id_ = map.last_factor_id();
+    version_ = map.version();
+  });
+}
+
+MapReadRecorder::MapReadRecorder(const MapReaderInterface& map)
+    : MapReadRecorder([&map](const std::function<void(const MapReaderInterface&)>& read) { read(map); }) {}
+
+namespace {
+
+// The copy in `cache` of what `find` returns, made through `access` on the first call.
+template <typename Key, typename Record, typename Find>
+const Record* Cached(const MapAccess& access, const Key& key, std::unordered_map<Key, std::optional<Record>>* cache,
+                     const Find& find) {
+  auto it = cache->find(key);
+  if (it == cache->end()) {
+    std::optional<Record> copy;
+    access([&](const MapReaderInterface& map) {
+      if (const Record* r = find(map); r != nullptr) copy = *r;
+    });
+    it = cache->emplace(key, std::move(copy)).first;
+  }
+  return it->second ? &*it->second : nullptr;
+}
+
+}  // namespace
+
 const Landmark* MapReadRecorder::FindLandmark(LandmarkId id) const {
   read_.landmarks.insert(id);
-  return map_.FindLandmark(id);
+  return Cached(access_, id, &landmarks_, [id](const MapReaderInterface& map) { return map.FindLandmark(id); });
 }
 
 InformationBlock MapReadRecorder::Information(LandmarkId a, LandmarkId b) const {
   read_.landmarks.insert(a);
   read_.landmarks.insert(b);
-  return map_.Information(a, b);
+  InformationBlock out;
+  access_([&](const MapReaderInterface& map) { out = map.Information(a, b); });
+  return out;
 }
 
 Eigen::Vector2d MapReadRecorder::InformationVector(LandmarkId id) const {
   read_.landmarks.insert(id);
-  return map_.InformationVector(id);
+  Eigen::Vector2d out;
+  access_([&](const MapReaderInterface& map) { out = map.InformationVector(id); });
+  return out;
 }
 
 void MapReadRecorder::ForEachLink(LandmarkId id,
                                   const std::function<void(LandmarkId, const InformationBlock&)>& fn) const {
   // A block (id, b) changes only with a factor on both: one on id, which records id's row.
   read_.landmarks.insert(id);
-  map_.ForEachLink(id, fn);
+  std::vector<std::pair<LandmarkId, InformationBlock>> row;
+  access_([&](const MapReaderInterface& map) {
+    map.ForEachLink(id, [&](LandmarkId b, const InformationBlock& block) { row.emplace_back(b, block); });
+  });
+  for (const auto& [b, block] : row) fn(b, block);  // outside the access: fn may read again
 }
 
 const MapFactor* MapReadRecorder::FindFactor(int64_t id) const {
-  const MapFactor* f = map_.FindFactor(id);
+  const MapFactor* f = Cached(access_, id, &factors_, [id](const MapReaderInterface& map) { return map.FindFactor(id); });
   if (f != nullptr) read_.factor_lists.insert(f->landmarks.begin(), f->landmarks.end());
   return f;
 }
 
 void MapReadRecorder::AppendFactorIds(LandmarkId id, std::vector<int64_t>* out) const {
   read_.factor_lists.insert(id);
-  map_.AppendFactorIds(id, out);
+  access_([&](const MapReaderInterface& map) { map.AppendFactorIds(id, out); });
 }
 
 void MapReadRecorder::AppendPassageFactorIds(const std::string& vehicle_id, const std::string& passage_id,
                                              std::vector<int64_t>* out) const {
   read_.passage_factor_lists.insert({vehicle_id, passage_id});
-  map_.AppendPassageFactorIds(vehicle_id, passage_id, out);
+  access_([&](const MapReaderInterface& map) { map.AppendPassageFactorIds(vehicle_id, passage_id, out); });
 }
 
 const VehicleCalibration* MapReadRecorder::FindVehicle(const std::string& vehicle_id) const {
   read_.vehicles.insert(vehicle_id);
-  return map_.FindVehicle(vehicle_id);
+  return Cached(access_, vehicle_id, &vehicles_,
+                [&vehicle_id](const MapReaderInterface& map) { return map.FindVehicle(vehicle_id); });
 }
 
 }  // namespace crowdmap

@@ -2,6 +2,9 @@
 #define CROWDMAP_CORE_MAP_MAP_ACCESS_H_
 
 #include <cstdint>
+#include <functional>
+#include <optional>
+#include <unordered_map>
 #include <set>
 #include <string>
 #include <unordered_set>
@@ -57,11 +60,20 @@ MapWriteSet WriteSetOf(const MapDelta& delta, const MapReaderInterface& map);
 // from_last_factor_id. Meant for a delta that Overlaps none of the changes committed in between.
 void RebaseDelta(int64_t from_last_factor_id, int64_t version, int64_t last_factor_id, MapDelta* delta);
 
-// A MapReaderInterface that forwards to another and records what was read. Not thread-safe: one
-// per computation.
+// Runs a function with a map under whatever lock keeps it from changing during the call.
+using MapAccess = std::function<void(const std::function<void(const MapReaderInterface&)>&)>;
+
+// A MapReaderInterface over a map that may change between its calls (other workers' commits), that
+// records what was read. Each call reads through `access` (one short lock per call) and copies
+// what it returns, so that the pointers it hands out stay valid; a record read once is read again
+// from that copy. Reads of one computation can thus come from several versions of the map, but
+// only where a commit changed what it read, which Overlaps tells: such a computation is discarded.
+// Not thread-safe: one per computation.
 class MapReadRecorder : public MapReaderInterface {
  public:
-  explicit MapReadRecorder(const MapReaderInterface& map) : map_(map) {}
+  explicit MapReadRecorder(MapAccess access);
+  // Over a map that does not change meanwhile.
+  explicit MapReadRecorder(const MapReaderInterface& map);
 
   const Landmark* FindLandmark(LandmarkId id) const override;
   InformationBlock Information(LandmarkId a, LandmarkId b) const override;
@@ -71,16 +83,23 @@ class MapReadRecorder : public MapReaderInterface {
   void AppendFactorIds(LandmarkId id, std::vector<int64_t>* out) const override;
   void AppendPassageFactorIds(const std::string& vehicle_id, const std::string& passage_id,
                               std::vector<int64_t>* out) const override;
-  int64_t last_factor_id() const override { return map_.last_factor_id(); }
-  int64_t version() const override { return map_.version(); }
+  // As when the recorder was made.
+  int64_t last_factor_id() const override { return last_factor_id_; }
+  int64_t version() const override { return version_; }
   const VehicleCalibration* FindVehicle(const std::string& vehicle_id) const override;
 
   const MapReadSet& read() const { return read_; }
   MapReadSet TakeRead() { return std::move(read_); }
 
  private:
-  const MapReaderInterface& map_;
+  MapAccess access_;
+  int64_t last_factor_id_ = 0;
+  int64_t version_ = 0;
   mutable MapReadSet read_;
+  // Copies of what was read (nullopt: absent), node-based so that pointers into them stay valid.
+  mutable std::unordered_map<LandmarkId, std::optional<Landmark>> landmarks_;
+  mutable std::unordered_map<int64_t, std::optional<MapFactor>> factors_;
+  mutable std::unordered_map<std::string, std::optional<VehicleCalibration>> vehicles_;
 };
 
 }  // namespace crowdmap

@@ -48,54 +48,39 @@ std::shared_ptr<const CachedMapStore::View> CachedMapStore::CurrentView() const 
 absl::Status CachedMapStore::CommitPassageApplied(int64_t id, const MapDelta& delta, const PassageResult& result) {
   std::lock_guard<std::mutex> lock(writer_mu_);
   if (auto s = inner_->CommitPassageApplied(id, delta, result); !s.ok()) return s;
-  PublishOrDefer(delta);
+  Publish(delta);
   return absl::OkStatus();
 }
 
 absl::Status CachedMapStore::CommitPassageExcluded(int64_t id, const MapDelta& delta) {
   std::lock_guard<std::mutex> lock(writer_mu_);
   if (auto s = inner_->CommitPassageExcluded(id, delta); !s.ok()) return s;
-  PublishOrDefer(delta);
+  Publish(delta);
   return absl::OkStatus();
 }
 
-void CachedMapStore::PublishOrDefer(const MapDelta& delta) {
-  std::lock_guard<std::mutex> lock(publish_mu_);
-  if (holds_ > 0) {
-    unpublished_.push_back(delta);
-    return;
-  }
-  Publish(delta);
-  if (on_published_) on_published_(map_.version());
-}
-
-std::shared_ptr<const MapState> CachedMapStore::HoldCommittedMap() {
-  std::unique_lock<std::mutex> lock(publish_mu_);
-  published_.wait(lock, [this] { return unpublished_.empty(); });
-  ++holds_;
-  return std::shared_ptr<const MapState>(&map_, [this](const MapState*) { ReleaseHold(); });
-}
-
-void CachedMapStore::ReleaseHold() {
-  std::lock_guard<std::mutex> lock(publish_mu_);
-  if (--holds_ > 0 || unpublished_.empty()) return;
-  for (const MapDelta& delta : unpublished_) Publish(delta);
-  unpublished_.clear();
-  if (on_published_) on_published_(map_.version());
-  published_.notify_all();
+bool CachedMapStore::ReadCommittedMap(const std::function<void(const MapState&)>& read) {
+  std::shared_lock<std::shared_mutex> lock(map_mu_);
+  read(map_);
+  return true;
 }
 
 void CachedMapStore::SetPublishedCallback(std::function<void(int64_t)> fn) {
-  std::lock_guard<std::mutex> lock(publish_mu_);
+  std::lock_guard<std::mutex> lock(writer_mu_);
   on_published_ = std::move(fn);
 }
 
 void CachedMapStore::Publish(const MapDelta& delta) {
   std::shared_ptr<const View> next = ApplyToView(delta);
-  std::unique_lock<std::shared_mutex> map_lock(map_mu_);
-  map_.Apply(delta);
-  std::lock_guard<std::mutex> publish(view_mu_);
-  view_ = std::move(next);
+  int64_t version = 0;
+  {
+    std::unique_lock<std::shared_mutex> map_lock(map_mu_);
+    map_.Apply(delta);
+    version = map_.version();
+    std::lock_guard<std::mutex> publish(view_mu_);
+    view_ = std::move(next);
+  }
+  if (on_published_) on_published_(version);
 }
 
 absl::StatusOr<LandmarkProvenance> CachedMapStore::GetLandmarkProvenance(LandmarkId id) {

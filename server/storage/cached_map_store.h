@@ -1,7 +1,6 @@
 #ifndef CROWDMAP_SERVER_STORAGE_CACHED_MAP_STORE_H_
 #define CROWDMAP_SERVER_STORAGE_CACHED_MAP_STORE_H_
 
-#include <condition_variable>
 #include <cstdint>
 #include <functional>
 #include <memory>
@@ -24,8 +23,7 @@ namespace crowdmap {
 // successful CommitPassageApplied by applying the same delta, so a read sees either the map before
 // or after a commit, never a mixture, and never a change that is not yet durable. Readers take a
 // reference to the current copy and never wait for the writer or for SQLite. A commit copies only
-// the tiles it touches (plus the table of tile pointers). While the map is held
-// (HoldCommittedMap), commits wait in order and are applied when the last hold goes.
+// the tiles it touches (plus the table of tile pointers).
 class CachedMapStore : public MapStoreInterface {
  public:
   // `covariance_window_hops`: see SqliteMapStoreOptions::covariance_window_hops.
@@ -60,9 +58,9 @@ class CachedMapStore : public MapStoreInterface {
   }
   absl::StatusOr<int> RequeueProcessingPassages() override { return inner_->RequeueProcessingPassages(); }
   absl::Status LoadMap(MapState* map) override { return inner_->LoadMap(map); }
-  std::shared_ptr<const MapState> HoldCommittedMap() override;
-  // Called with the map's version each time commits reach the map's reads (under the store's
-  // publication lock: keep it short).
+  bool ReadCommittedMap(const std::function<void(const MapState&)>& read) override;
+  // Called with the map's version each time a commit reaches the map's reads (by the committing
+  // thread, in commit order).
   void SetPublishedCallback(std::function<void(int64_t)> fn);
   absl::StatusOr<MapStats> GetStats() override { return inner_->GetStats(); }
   // From the in-memory map.
@@ -96,9 +94,9 @@ class CachedMapStore : public MapStoreInterface {
 
   static TileKey KeyOf(const TileId& tile) { return (static_cast<uint64_t>(tile.x) << 32) | static_cast<uint32_t>(tile.y); }
   std::shared_ptr<const View> CurrentView() const;
-  // After a commit of `delta`: applies it to the map and publishes the new view (publish_mu_ held).
+  // After a commit of `delta`: applies it to the map and publishes the new view (writer only).
   void Publish(const MapDelta& delta);
-  // Builds the view that results from applying `delta` to the current one (publish_mu_ held).
+  // Builds the view that results from applying `delta` to the current one (writer only).
   std::shared_ptr<const View> ApplyToView(const MapDelta& delta);
   // The landmarks of `view` inside `box` that pass `keep`, in increasing id order.
   template <typename Keep>
@@ -120,18 +118,9 @@ class CachedMapStore : public MapStoreInterface {
   mutable int64_t window_version_ = -1;
   mutable std::mutex view_mu_;  // guards the pointer only; held for a copy of it
   std::shared_ptr<const View> view_;
-  std::mutex writer_mu_;  // orders commits
-  // Publication: holds of the map, the committed deltas waiting for the last hold to go, and
-  // tile_of_, the writer's index of where each landmark is. Taken after writer_mu_.
-  std::mutex publish_mu_;
-  std::condition_variable published_;
-  int holds_ = 0;
-  std::vector<MapDelta> unpublished_;
-  std::function<void(int64_t)> on_published_;
-  std::unordered_map<LandmarkId, TileKey> tile_of_;
-  // Publishes `delta`, or keeps it for the end of the holds (publish_mu_ held).
-  void PublishOrDefer(const MapDelta& delta);
-  void ReleaseHold();
+  std::mutex writer_mu_;                             // orders commits and their publication
+  std::unordered_map<LandmarkId, TileKey> tile_of_;  // writer's index: where each landmark is
+  std::function<void(int64_t)> on_published_;        // set before the first commit
 };
 
 }  // namespace crowdmap

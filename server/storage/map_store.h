@@ -171,12 +171,12 @@ class MapStoreInterface {
 
   // Loads the whole map (landmarks, factors, version) into `map`.
   virtual absl::Status LoadMap(MapState* map) = 0;
-  // A hold on the map as last committed, when the store keeps it in memory (CachedMapStore);
-  // nullptr otherwise. The map updater computes against it instead of a copy of its own (at city
-  // scale the map's information is the process's largest structure). While any hold is alive the
-  // held map does not change: commits are durable at once, and reach it (and the store's map
-  // reads) when the last hold is released; a new hold waits for them.
-  virtual std::shared_ptr<const MapState> HoldCommittedMap() { return nullptr; }
+  // Calls `read` with the map as last committed, when the store keeps it in memory
+  // (CachedMapStore), and returns true; false otherwise. The map updater reads it this way instead
+  // of keeping a copy of its own (at city scale the map's information is the process's largest
+  // structure). `read` runs under the store's read lock, which commits wait for: keep it short,
+  // copy what must outlive it (MapReadRecorder), and do not call the store from it.
+  virtual bool ReadCommittedMap(const std::function<void(const MapState&)>& read) { return false; }
   // Landmarks inside `box` with id > after_id, at most `limit` (0 = all), with their cross-covariances on request.
   virtual absl::StatusOr<LandmarkPage> QueryRegion(const BoundingBox& box, LandmarkId after_id, int limit,
                                                    bool include_cross) = 0;
