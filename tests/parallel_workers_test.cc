@@ -1,5 +1,5 @@
 // mapd with two workers: passages are computed concurrently, and the map it commits is exactly
-// the one the same passages give applied one at a time in the order of their commits.
+// the one the same passages give applied one at a time in the order of their commits (to rounding).
 #include <algorithm>
 #include <utility>
 #include <vector>
@@ -43,32 +43,44 @@ MapState ApplyInOrder(const std::vector<Passage>& passages, const MapUpdateOptio
   return map;
 }
 
-// Same landmarks, versions and factors (ids, landmarks, information), to the bit; the same
-// information vector to rounding.
+// Relative difference of two matrices or vectors.
+template <typename A, typename B>
+double Relative(const A& a, const B& b) {
+  return (a - b).norm() / (1.0 + b.norm());
+}
+
+// Same landmarks, versions and factors (ids, landmarks, provenance), and the same numbers to
+// rounding: a map computed twice from the same passages in the same order need not be equal to
+// the bit (the dense kernels under CHOLMOD split their work by the threads free at the moment).
 void ExpectSameMap(const MapState& expected, const MapState& actual) {
+  constexpr double kRounding = 1e-9;
   EXPECT_EQ(actual.version(), expected.version());
   EXPECT_EQ(actual.last_factor_id(), expected.last_factor_id());
   ASSERT_EQ(actual.landmark_count(), expected.landmark_count());
   ASSERT_EQ(actual.factor_count(), expected.factor_count());
-  int differing = 0;
+  double worst_position_m = 0.0;
+  double worst_covariance = 0.0;
+  double worst_information = 0.0;
   expected.ForEachLandmark([&](const Landmark& l) {
     const Landmark* a = actual.FindLandmark(l.id);
     ASSERT_NE(a, nullptr) << l.id;
-    const bool same = a->position.lat_deg == l.position.lat_deg && a->position.lon_deg == l.position.lon_deg &&
-                      a->cov_en_m2 == l.cov_en_m2 && a->version == l.version && a->passages_seen == l.passages_seen;
-    if (!same && ++differing <= 5) ADD_FAILURE() << "landmark " << l.id << " differs";
-    // The assembled sums may be added up in another order (a map loaded from its store): rounding.
-    const Eigen::Vector2d eta = expected.InformationVector(l.id);
-    EXPECT_LE((actual.InformationVector(l.id) - eta).norm(), 1e-9 * (1.0 + eta.norm())) << l.id;
+    EXPECT_EQ(a->version, l.version) << l.id;
+    EXPECT_EQ(a->passages_seen, l.passages_seen) << l.id;
+    worst_position_m = std::max(worst_position_m, (a->Offset() - l.Offset()).norm());
+    worst_covariance = std::max(worst_covariance, Relative(a->cov_en_m2, l.cov_en_m2));
+    worst_information = std::max(worst_information, Relative(actual.InformationVector(l.id), expected.InformationVector(l.id)));
   });
   expected.ForEachFactor([&](const MapFactor& f) {
     const MapFactor* a = actual.FindFactor(f.id);
     ASSERT_NE(a, nullptr) << "factor " << f.id;
     EXPECT_EQ(a->landmarks, f.landmarks) << f.id;
-    EXPECT_EQ(a->information, f.information) << f.id;
     EXPECT_EQ(a->passage_id, f.passage_id) << f.id;
+    worst_information = std::max(worst_information, Relative(a->information, f.information));
+    worst_information = std::max(worst_information, Relative(a->information_vector, f.information_vector));
   });
-  EXPECT_EQ(differing, 0);
+  EXPECT_LE(worst_position_m, kRounding);
+  EXPECT_LE(worst_covariance, kRounding);
+  EXPECT_LE(worst_information, kRounding);
 }
 
 void RunWithTwoWorkers(const std::vector<Passage>& passages, const MapUpdateOptions& update) {
