@@ -363,7 +363,7 @@ void MapWorker::Apply(const ClaimedPassage& claimed, const Passage& passage) {
           }
           if (options_.on_applied) {
             const auto ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - apply_start);
-            options_.on_applied({ms.count(), result.solve_ms, result.covariance_ms, commit_ms});
+            options_.on_applied({ms.count(), result.solve_ms, result.covariance_ms, commit_ms, recomputed});
           }
           spdlog::info(
               "event=applied passage={} vehicle={} id={} nodes={} subgraphs={} landmarks_updated={} "

@@ -27,6 +27,7 @@ struct AppliedPassageTimings {
   double solve_ms = 0.0;       // the estimator's solves (PassageUpdateSummary::solve_ms)
   double covariance_ms = 0.0;  // its covariance recoveries (PassageUpdateSummary::covariance_ms)
   double commit_ms = 0.0;      // the durable transaction
+  int recomputed = 0;          // times the update was computed again (MapWorkerOptions::workers)
 };
 
 struct MapWorkerOptions {

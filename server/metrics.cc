@@ -149,6 +149,11 @@ absl::StatusOr<std::unique_ptr<ServerMetrics>> ServerMetrics::Start(const std::s
   m->solve_ = work("mapd_passage_solve_seconds", "the estimator's solves for one applied passage");
   m->covariance_ = work("mapd_passage_covariance_seconds", "the estimator's covariance recovery for one applied passage");
   m->commit_ = work("mapd_passage_commit_seconds", "the durable commit of one applied passage");
+  m->recomputed_ = &prometheus::BuildCounter()
+                         .Name("mapd_passage_recomputed_total")
+                         .Help("updates computed again because another worker's commit changed what they read (--workers)")
+                         .Register(r)
+                         .Add({});
   m->upload_bytes_ = &prometheus::BuildCounter()
                           .Name("mapd_upload_bytes_total")
                           .Help("serialized passage bytes of acknowledged uploads, duplicates included")
@@ -205,6 +210,7 @@ void ServerMetrics::ObserveApplied(const AppliedPassageTimings& t) {
   solve_->Observe(t.solve_ms / 1000.0);
   covariance_->Observe(t.covariance_ms / 1000.0);
   commit_->Observe(t.commit_ms / 1000.0);
+  recomputed_->Increment(t.recomputed);
 }
 
 std::unique_ptr<grpc::experimental::ServerInterceptorFactoryInterface> ServerMetrics::InterceptorFactory() {

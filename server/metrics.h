@@ -68,6 +68,7 @@ class ServerMetrics {
   prometheus::Histogram* solve_ = nullptr;
   prometheus::Histogram* covariance_ = nullptr;
   prometheus::Histogram* commit_ = nullptr;
+  prometheus::Counter* recomputed_ = nullptr;
   prometheus::Counter* upload_bytes_ = nullptr;
   prometheus::Counter* uploads_new_ = nullptr;
   prometheus::Counter* uploads_duplicate_ = nullptr;

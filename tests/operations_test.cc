@@ -114,6 +114,8 @@ TEST(Metrics, ScrapedValuesMatchTheRpcsUploadsAndAppliedPassages) {
   }
   EXPECT_GT(m["mapd_passage_apply_seconds_sum"], m["mapd_passage_commit_seconds_sum"]);
   EXPECT_GE(m["mapd_passage_apply_seconds_sum"], m["mapd_passage_solve_seconds_sum"]);
+  ASSERT_EQ(m.count("mapd_passage_recomputed_total"), 1u);
+  EXPECT_EQ(m["mapd_passage_recomputed_total"], 0) << "one worker never computes an update again";
   EXPECT_GT(info->landmark_count(), 0);
   EXPECT_EQ(m["mapd_map_landmarks"], info->landmark_count());
   EXPECT_EQ(m["mapd_map_factors"], info->factor_count());
