@@ -297,6 +297,7 @@ void MapWorker::Apply(const ClaimedPassage& claimed, const Passage& passage) {
     }
     std::string error;
     bool transient = false;
+    bool reload = false;
     {
       std::unique_lock<std::mutex> state(state_mu_);
       if (!StillValid(*computed)) {
@@ -376,8 +377,13 @@ void MapWorker::Apply(const ClaimedPassage& claimed, const Passage& passage) {
         }
         error = absl::StrCat("commit: ", committed.ToString());
         transient = IsTransientStorageError(committed) && !stopping_;
+        // The store's map is not at the version the worker counted on: read it again.
+        reload = committed.code() == absl::StatusCode::kFailedPrecondition;
         if (!transient) computed.reset();
       }
+    }
+    if (reload) {
+      if (absl::Status s = LoadUpdater(); !s.ok()) spdlog::error("event=reload_failed error=\"{}\"", s.ToString());
     }
     if (transient) {  // the same passage again, no attempt counted
       spdlog::warn("event=commit_deferred passage={} vehicle={} id={} retry_in_ms={} error=\"{}\"", record.passage_id,

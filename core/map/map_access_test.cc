@@ -2,39 +2,20 @@
 
 #include <gtest/gtest.h>
 
+#include "core/map/map_testing.h"
+
 namespace crowdmap {
 namespace {
-
-Landmark At(LandmarkId id, int64_t version) {
-  Landmark l;
-  l.id = id;
-  l.anchor = {48.0 + 0.001 * id, 2.0};
-  l.position = l.anchor;
-  l.version = version;
-  return l;
-}
-
-MapFactor On(std::vector<LandmarkId> ids, const std::string& passage) {
-  MapFactor f;
-  f.vehicle_id = "v";
-  f.passage_id = passage;
-  f.landmarks = std::move(ids);
-  const int n = 2 * static_cast<int>(f.landmarks.size());
-  f.information = Eigen::MatrixXd::Identity(n, n);
-  f.information_vector = Eigen::VectorXd::Ones(n);
-  return f;
-}
 
 // Landmarks 1..6 at version 2; factors 1 = {1, 2} (passage a), 2 = {3, 4} (b), 3 = {5, 6} (c).
 class MapAccessTest : public testing::Test {
  protected:
   MapAccessTest() {
-    for (LandmarkId id = 1; id <= 6; ++id) map_.PutLandmark(At(id, 2));
+    for (LandmarkId id = 1; id <= 6; ++id) map_.PutLandmark(MakeLandmark(id, 2));
     int64_t id = 0;
     for (const auto& [ids, passage] : std::vector<std::pair<std::vector<LandmarkId>, std::string>>{
              {{1, 2}, "a"}, {{3, 4}, "b"}, {{5, 6}, "c"}}) {
-      MapFactor f = On(ids, passage);
-      f.id = ++id;
+      MapFactor f = MakeFactor(++id, ids, passage);
       map_.PutFactor(f);
     }
     map_.set_last_factor_id(3);
@@ -70,8 +51,8 @@ TEST_F(MapAccessTest, TheRecorderRecordsEveryKindOfRead) {
 TEST_F(MapAccessTest, WriteSetsSeparateInformationFromFactorLists) {
   MapOverlay overlay(map_);
   overlay.BumpVersion();
-  overlay.PutLandmark(At(7, overlay.version()));
-  overlay.AddFactor(On({6, 7}, "d"));
+  overlay.PutLandmark(MakeLandmark(7, overlay.version()));
+  overlay.AddFactor(MakeFactor(0, {6, 7}, "d"));
   overlay.RemoveFactor(2);
   overlay.FoldFactor(1);
   VehicleCalibration car;
@@ -109,19 +90,19 @@ TEST_F(MapAccessTest, ARebasedDeltaEqualsTheDeltaComputedAfterTheOtherChange) {
   auto change = [](const MapReaderInterface& map) {
     MapOverlay overlay(map);
     overlay.BumpVersion();
-    overlay.AddFactor(On({1, 2}, "e"));
+    overlay.AddFactor(MakeFactor(0, {1, 2}, "e"));
     Landmark l = *map.FindLandmark(1);
     l.version = overlay.BumpVersion();
     overlay.PutLandmark(l);
-    overlay.AddFactor(On({1, 8}, "e"));
-    overlay.PutLandmark(At(8, overlay.version()));
+    overlay.AddFactor(MakeFactor(0, {1, 8}, "e"));
+    overlay.PutLandmark(MakeLandmark(8, overlay.version()));
     return overlay.TakeDelta();
   };
   MapOverlay other(map_);
   other.BumpVersion();
-  other.AddFactor(On({5, 6}, "f"));
-  other.AddFactor(On({6}, "f"));
-  other.PutLandmark(At(6, other.version()));
+  other.AddFactor(MakeFactor(0, {5, 6}, "f"));
+  other.AddFactor(MakeFactor(0, {6}, "f"));
+  other.PutLandmark(MakeLandmark(6, other.version()));
   const MapDelta committed = other.TakeDelta();
 
   MapDelta rebased = change(map_);
@@ -148,7 +129,7 @@ TEST_F(MapAccessTest, ARebasedDeltaEqualsTheDeltaComputedAfterTheOtherChange) {
   MapDelta old;
   old.base_version = 2;
   old.version = 3;
-  old.landmarks[1] = At(1, 1);
+  old.landmarks[1] = MakeLandmark(1, 1);
   RebaseDelta(3, 4, 5, &old);
   EXPECT_EQ(old.landmarks[1].version, 1);
   EXPECT_EQ(old.version, 5);

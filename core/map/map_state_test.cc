@@ -5,32 +5,10 @@
 
 #include <gtest/gtest.h>
 
+#include "core/map/map_testing.h"
+
 namespace crowdmap {
 namespace {
-
-Landmark MakeLandmark(LandmarkId id, int64_t version) {
-  Landmark l;
-  l.id = id;
-  l.anchor = {48.0 + 0.001 * id, 2.0};
-  l.position = l.anchor;
-  l.cov_en_m2 = Eigen::Matrix2d::Identity() * id;
-  l.version = version;
-  return l;
-}
-
-// A factor on `ids` with information (i + 1) * I + 0.1 off the diagonal and vector 1, 2, ...
-MapFactor MakeFactor(int64_t id, std::vector<LandmarkId> ids, const std::string& passage = "p") {
-  MapFactor f;
-  f.id = id;
-  f.vehicle_id = "v";
-  f.passage_id = passage;
-  f.landmarks = std::move(ids);
-  const int n = 2 * static_cast<int>(f.landmarks.size());
-  f.information = Eigen::MatrixXd::Constant(n, n, 0.1);
-  for (int i = 0; i < n; ++i) f.information(i, i) = i + 1.0;
-  f.information_vector = Eigen::VectorXd::LinSpaced(n, 1.0, n);
-  return f;
-}
 
 std::vector<LandmarkId> SortedLinked(const MapReaderInterface& map, LandmarkId id) {
   std::vector<LandmarkId> n;
