@@ -143,6 +143,9 @@ class MapService final : public MapServiceBase {
 // other filters is refused instead of silently continuing a different listing.
 std::string MakePageToken(int64_t last_id, std::string_view query);
 absl::StatusOr<int64_t> ParsePageToken(const std::string& token, std::string_view query);
+// The same for listings in the order of a string key (vehicle_id); an empty token gives "".
+std::string MakeKeyPageToken(std::string_view last_key, std::string_view query);
+absl::StatusOr<std::string> ParseKeyPageToken(const std::string& token, std::string_view query);
 
 }  // namespace crowdmap
 

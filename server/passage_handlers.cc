@@ -3,6 +3,8 @@
 #include <google/protobuf/descriptor.h>
 #include <spdlog/spdlog.h>
 
+#include "absl/strings/ascii.h"
+#include "absl/strings/escaping.h"
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_split.h"
@@ -48,24 +50,55 @@ std::string PassageListQuery(const pb::ListPassagesRequest& request) {
 
 }  // namespace
 
-std::string MakePageToken(int64_t last_id, std::string_view query) {
-  return absl::StrCat(kPageTokenPrefix, ":", last_id, ":", absl::Hex(Fingerprint(query), absl::kZeroPad16));
+namespace {
+
+// "after:<key>:<fingerprint of the query>", `key` free of ':'.
+std::string MakeToken(const std::string& key, std::string_view query) {
+  return absl::StrCat(kPageTokenPrefix, ":", key, ":", absl::Hex(Fingerprint(query), absl::kZeroPad16));
 }
 
-absl::StatusOr<int64_t> ParsePageToken(const std::string& token, std::string_view query) {
-  if (token.empty()) return 0;
+// The key of a token MakeToken made for `query`.
+absl::StatusOr<std::string> ParseToken(const std::string& token, std::string_view query) {
   const std::vector<absl::string_view> parts = absl::StrSplit(token, ':');
-  int64_t id = 0;
   uint64_t fingerprint = 0;
-  if (parts.size() != 3 || parts[0] != kPageTokenPrefix || !absl::SimpleAtoi(parts[1], &id) || id < 0 ||
-      parts[2].size() != 16 || !absl::SimpleHexAtoi(parts[2], &fingerprint)) {
+  if (parts.size() != 3 || parts[0] != kPageTokenPrefix || parts[2].size() != 16 ||
+      !absl::SimpleHexAtoi(parts[2], &fingerprint)) {
     return absl::InvalidArgumentError("page_token: malformed; pass the next_page_token of a previous response");
   }
   if (fingerprint != Fingerprint(query)) {
     return absl::InvalidArgumentError(
         "page_token: issued for a request with other filters; repeat them unchanged, or start again without a token");
   }
+  return std::string(parts[1]);
+}
+
+}  // namespace
+
+std::string MakePageToken(int64_t last_id, std::string_view query) { return MakeToken(absl::StrCat(last_id), query); }
+
+absl::StatusOr<int64_t> ParsePageToken(const std::string& token, std::string_view query) {
+  if (token.empty()) return 0;
+  absl::StatusOr<std::string> key = ParseToken(token, query);
+  if (!key.ok()) return key.status();
+  int64_t id = 0;
+  if (!absl::SimpleAtoi(*key, &id) || id < 0) {
+    return absl::InvalidArgumentError("page_token: malformed; pass the next_page_token of a previous response");
+  }
   return id;
+}
+
+std::string MakeKeyPageToken(std::string_view last_key, std::string_view query) {
+  return MakeToken(absl::BytesToHexString(absl::string_view(last_key.data(), last_key.size())), query);
+}
+
+absl::StatusOr<std::string> ParseKeyPageToken(const std::string& token, std::string_view query) {
+  if (token.empty()) return std::string();
+  absl::StatusOr<std::string> key = ParseToken(token, query);
+  if (!key.ok()) return key.status();
+  if (key->size() % 2 != 0 || !std::all_of(key->begin(), key->end(), absl::ascii_isxdigit)) {
+    return absl::InvalidArgumentError("page_token: malformed; pass the next_page_token of a previous response");
+  }
+  return absl::HexStringToBytes(*key);
 }
 
 absl::Status MapService::AcceptUpload(const Principal& who, const pb::Passage& wire, size_t wire_bytes,

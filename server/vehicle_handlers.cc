@@ -4,6 +4,12 @@
 #include "server/request_log.h"
 
 namespace crowdmap {
+namespace {
+
+constexpr int kDefaultVehiclePage = 100;
+constexpr int kMaxVehiclePage = 1000;
+
+}  // namespace
 
 grpc::Status MapService::GetVehicle(grpc::ServerContext* ctx, const pb::GetVehicleRequest* request,
                                     pb::Vehicle* response) {
@@ -31,10 +37,21 @@ grpc::Status MapService::ListVehicles(grpc::ServerContext* ctx, const pb::ListVe
     return log.Done(absl::PermissionDeniedError(absl::StrCat(
         "role vehicle: lists no other vehicles; GetVehicle with vehicle_id '", who->name, "' reads its own")));
   }
-  absl::StatusOr<std::vector<VehicleCalibration>> vehicles = context_->store->ListVehicles();
+  if (request->page_size() < 0 || request->page_size() > kMaxVehiclePage) {
+    return log.Done(absl::InvalidArgumentError(absl::StrCat("page_size: must lie in [0, ", kMaxVehiclePage, "]")));
+  }
+  constexpr char kQuery[] = "vehicles";
+  absl::StatusOr<std::string> after = ParseKeyPageToken(request->page_token(), kQuery);
+  if (!after.ok()) return log.Done(after.status());
+  const int limit = request->page_size() == 0 ? kDefaultVehiclePage : request->page_size();
+  // One more than asked: whether another page follows.
+  absl::StatusOr<std::vector<VehicleCalibration>> vehicles = context_->store->ListVehicles(*after, limit + 1);
   if (!vehicles.ok()) return log.Done(vehicles.status());
+  const bool more = static_cast<int>(vehicles->size()) > limit;
+  if (more) vehicles->resize(limit);
   for (const VehicleCalibration& v : *vehicles) VehicleToProto(v, response->add_vehicles());
-  log.Add(absl::StrCat("vehicles=", vehicles->size()));
+  if (more) response->set_next_page_token(MakeKeyPageToken(vehicles->back().vehicle_id, kQuery));
+  log.Add(absl::StrCat("vehicles=", vehicles->size(), " more=", more ? "true" : "false"));
   return log.Done(absl::OkStatus());
 }
 

@@ -5,9 +5,11 @@
 #include <future>
 #include <set>
 #include <thread>
+#include <tuple>
 
 #include "core/estimation/passage_exclusion.h"
 #include "core/map/map_window.h"
+#include "server/map_service.h"
 #include "server/testing/temp_dir.h"
 #include "server/wire_convert.h"
 #include "tests/support/map_compare.h"
@@ -198,6 +200,36 @@ TEST_F(ServiceRpc, GetVehicleAndListVehiclesServeTheEstimatedCameraYaw) {
   EXPECT_EQ(list->vehicles(0).camera_yaw_offset_rad(), v0->camera_yaw_offset_rad());
   EXPECT_EQ(list->vehicles(1).vehicle_id(), "sim-v1");
   EXPECT_EQ(list->vehicles(1).passages(), 1);
+
+  // Pages of one vehicle: the token carries on after the last one given.
+  std::vector<std::string> paged;
+  std::string token;
+  int pages = 0;
+  do {
+    grpc::ClientContext ctx;
+    pb::ListVehiclesRequest request;
+    request.set_page_size(1);
+    request.set_page_token(token);
+    pb::ListVehiclesResponse page;
+    ASSERT_TRUE(client_->stub()->ListVehicles(&ctx, request, &page).ok());
+    ASSERT_LE(page.vehicles_size(), 1);
+    for (const pb::Vehicle& v : page.vehicles()) paged.push_back(v.vehicle_id());
+    token = page.next_page_token();
+    ASSERT_LE(++pages, 3);
+  } while (!token.empty());
+  EXPECT_EQ(paged, (std::vector<std::string>{"sim-v0", "sim-v1"}));
+  for (const auto& [size, bad_token, field] : std::vector<std::tuple<int, std::string, std::string>>{
+           {-1, "", "page_size"}, {1001, "", "page_size"}, {1, "after:zz:0000000000000000", "page_token"},
+           {1, MakePageToken(3, "passages|0|"), "page_token"}}) {
+    grpc::ClientContext ctx;
+    pb::ListVehiclesRequest request;
+    request.set_page_size(size);
+    request.set_page_token(bad_token);
+    pb::ListVehiclesResponse page;
+    const grpc::Status refused = client_->stub()->ListVehicles(&ctx, request, &page);
+    EXPECT_EQ(refused.error_code(), grpc::StatusCode::INVALID_ARGUMENT) << size << " " << bad_token;
+    EXPECT_EQ(refused.error_message().rfind(field + ":", 0), 0u) << refused.error_message();
+  }
 }
 
 TEST_F(ServiceRpc, QueryRegionPagesCoverTheMapWithCovariances) {

@@ -200,13 +200,20 @@ absl::StatusOr<pb::Vehicle> MapClient::GetVehicle(const std::string& vehicle_id)
 }
 
 absl::StatusOr<pb::ListVehiclesResponse> MapClient::ListVehicles() {
-  grpc::ClientContext ctx;
-  SetDeadline(&ctx);
-  pb::ListVehiclesResponse response;
-  if (absl::Status s = FromGrpcStatus(stub_->ListVehicles(&ctx, pb::ListVehiclesRequest(), &response)); !s.ok()) {
-    return s;
-  }
-  return response;
+  pb::ListVehiclesResponse all;
+  std::string token;
+  do {
+    grpc::ClientContext ctx;
+    SetDeadline(&ctx);
+    pb::ListVehiclesRequest request;
+    request.set_page_size(1000);
+    request.set_page_token(token);
+    pb::ListVehiclesResponse response;
+    if (absl::Status s = FromGrpcStatus(stub_->ListVehicles(&ctx, request, &response)); !s.ok()) return s;
+    all.mutable_vehicles()->MergeFrom(response.vehicles());
+    token = response.next_page_token();
+  } while (!token.empty());
+  return all;
 }
 
 absl::StatusOr<pb::LocalizePassageResponse> MapClient::LocalizePassage(const pb::Passage& passage) {

@@ -78,7 +78,7 @@ class MapClient {
   absl::StatusOr<pb::PassageStatus> GetPassage(int64_t id);
   // One landmark and the passages that shaped it.
   absl::StatusOr<pb::GetLandmarkResponse> GetLandmark(int64_t id);
-  // A vehicle's estimated camera calibration; every vehicle's (operators).
+  // A vehicle's estimated camera calibration; every vehicle's (operators), all pages of them.
   absl::StatusOr<pb::Vehicle> GetVehicle(const std::string& vehicle_id);
   absl::StatusOr<pb::ListVehiclesResponse> ListVehicles();
   // Localises a passage against the map (read-only).

@@ -68,7 +68,9 @@ class CachedMapStore : public MapStoreInterface {
   absl::StatusOr<VehicleCalibration> GetVehicle(const std::string& vehicle_id) override {
     return inner_->GetVehicle(vehicle_id);
   }
-  absl::StatusOr<std::vector<VehicleCalibration>> ListVehicles() override { return inner_->ListVehicles(); }
+  absl::StatusOr<std::vector<VehicleCalibration>> ListVehicles(const std::string& after, int limit) override {
+    return inner_->ListVehicles(after, limit);
+  }
 
   // Commits through the inner store, then publishes the new copy.
   absl::Status CommitPassageApplied(int64_t id, const MapDelta& delta, const PassageResult& result) override;

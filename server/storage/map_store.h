@@ -190,8 +190,8 @@ class MapStoreInterface {
   // The camera calibration estimated for `vehicle_id` (written with the map's changes). NotFound
   // when none of its passages estimated one.
   virtual absl::StatusOr<VehicleCalibration> GetVehicle(const std::string& vehicle_id) = 0;
-  // Every vehicle's, in increasing vehicle_id.
-  virtual absl::StatusOr<std::vector<VehicleCalibration>> ListVehicles() = 0;
+  // The vehicles' with vehicle_id > `after`, in increasing vehicle_id, at most `limit` (0 = all).
+  virtual absl::StatusOr<std::vector<VehicleCalibration>> ListVehicles(const std::string& after = "", int limit = 0) = 0;
 };
 
 struct SqliteMapStoreOptions {

@@ -260,7 +260,7 @@ absl::StatusOr<std::vector<VehicleCalibration>> SqliteMapStore::ReadVehicles(
       "SELECT vehicle_id, camera_yaw_offset_rad, camera_yaw_variance_rad2, camera_yaw_information, "
       "camera_yaw_map_term, passages, version, updated_unix_ms "
       "FROM vehicles ",
-      where, " ORDER BY vehicle_id"));
+      where));
   if (!stmt.ok()) return stmt.status();
   bind(*stmt);
   std::vector<VehicleCalibration> out;
@@ -294,10 +294,13 @@ absl::StatusOr<VehicleCalibration> SqliteMapStore::GetVehicle(const std::string&
   return found->front();
 }
 
-absl::StatusOr<std::vector<VehicleCalibration>> SqliteMapStore::ListVehicles() {
+absl::StatusOr<std::vector<VehicleCalibration>> SqliteMapStore::ListVehicles(const std::string& after, int limit) {
   auto db = map_->AcquireReader();
   if (!db.ok()) return db.status();
-  return ReadVehicles(db->get(), "", [](SqliteStatement&) {});
+  return ReadVehicles(db->get(), "WHERE vehicle_id > ?1 ORDER BY vehicle_id LIMIT ?2", [&](SqliteStatement& s) {
+    s.Bind(1, after);
+    s.Bind(2, limit > 0 ? static_cast<int64_t>(limit) : int64_t{-1});  // SQLite: a negative limit is none
+  });
 }
 
 absl::Status SqliteMapStore::FoldFactor(SqliteConnection* db, int64_t id) {

@@ -46,7 +46,7 @@ class SqliteMapStore : public MapStoreInterface {
   absl::StatusOr<MapStats> GetStats() override;
   absl::StatusOr<LandmarkProvenance> GetLandmarkProvenance(LandmarkId id) override;
   absl::StatusOr<VehicleCalibration> GetVehicle(const std::string& vehicle_id) override;
-  absl::StatusOr<std::vector<VehicleCalibration>> ListVehicles() override;
+  absl::StatusOr<std::vector<VehicleCalibration>> ListVehicles(const std::string& after, int limit) override;
 
  private:
   SqliteMapStore(const SqliteMapStoreOptions& options, std::unique_ptr<SqliteFile> map,

@@ -814,6 +814,18 @@ TEST(SqliteMapStore, VehicleCalibrationsAreWrittenWithTheMapChangeAndReadBackAft
     ASSERT_EQ(all->size(), 2u);
     EXPECT_EQ((*all)[0].vehicle_id, "veh-a");
     ExpectSameVehicle((*all)[1], MakeVehicle("veh-b", 0.009, 1, 1));
+    // Pages: after a vehicle_id, at most a limit.
+    auto first = store->ListVehicles("", 1);
+    ASSERT_TRUE(first.ok()) << first.status();
+    ASSERT_EQ(first->size(), 1u);
+    EXPECT_EQ(first->front().vehicle_id, "veh-a");
+    auto rest = store->ListVehicles("veh-a", 1);
+    ASSERT_TRUE(rest.ok()) << rest.status();
+    ASSERT_EQ(rest->size(), 1u);
+    EXPECT_EQ(rest->front().vehicle_id, "veh-b");
+    auto past = store->ListVehicles("veh-b", 10);
+    ASSERT_TRUE(past.ok()) << past.status();
+    EXPECT_TRUE(past->empty());
     MapState map;
     ASSERT_TRUE(store->LoadMap(&map).ok());
     ASSERT_NE(map.FindVehicle("veh-b"), nullptr);
