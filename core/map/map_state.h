@@ -72,7 +72,9 @@ struct VehicleCalibration {
 // One 2x2 block (a, b) of the map's information matrix: the sum of its factors' blocks, rows in
 // a's offsets, columns in b's.
 struct InformationBlock {
-  Eigen::Matrix2d value = Eigen::Matrix2d::Zero();
+  // Unaligned: a map's rows hold millions of blocks, and a 16-byte aligned Matrix2d would pad
+  // each LinkedBlock from 48 to 64 bytes (210 MB at 100k landmarks).
+  Eigen::Matrix<double, 2, 2, Eigen::DontAlign> value = Eigen::Matrix2d::Zero();
   int factors = 0;  // factors contributing to it; 0 = the block is structurally zero
 };
 
