@@ -51,7 +51,11 @@ absl::StatusOr<Passage> DecodeStoredPassage(const std::string& payload) {
 }  // namespace
 
 absl::Status MapWorkerOptions::Validate() const {
-  if (workers < 1) return absl::InvalidArgumentError(absl::StrCat("workers: must be >= 1, got ", workers));
+  // Each worker holds a passage's matrices (100-200 MB at 100k landmarks): more than the cores
+  // only costs memory and computations done again.
+  if (workers < 1 || workers > kMaxWorkers) {
+    return absl::InvalidArgumentError(absl::StrCat("workers: must lie in [1, ", kMaxWorkers, "], got ", workers));
+  }
   if (max_attempts < 1) return absl::InvalidArgumentError(absl::StrCat("max_attempts: must be >= 1, got ", max_attempts));
   if (sequential_after_interruptions < 1) {
     return absl::InvalidArgumentError(

@@ -39,6 +39,7 @@ struct MapWorkerOptions {
   // concurrently, and the map is the one the same passages applied one at a time in their commit
   // order would give. Each worker's computation holds its own copy of the passage's matrices.
   int workers = 1;
+  static constexpr int kMaxWorkers = 64;
   // Attempts (including start-ups interrupted while processing) before a passage is failed.
   int max_attempts = 3;
   // A passage interrupted this many times while being applied (restarts, crashes) is marked failed,

@@ -91,6 +91,9 @@ TEST(MapdConfig, RejectsUnknownFlagsAndBadValues) {
   EXPECT_FALSE(ParseWithEnvironment({"--bogus", "1"}, {}).ok());
   EXPECT_FALSE(ParseWithEnvironment({"--workers", "many"}, {}).ok());
   EXPECT_FALSE(ParseWithEnvironment({"--workers", "0"}, {}).ok());
+  auto many = ParseWithEnvironment({"--workers", "65"}, {});
+  ASSERT_FALSE(many.ok());
+  EXPECT_NE(many.status().message().find("workers: must lie in [1, 64]"), std::string::npos) << many.status();
   EXPECT_FALSE(ParseWithEnvironment({"--strategy", "best"}, {}).ok());
   EXPECT_FALSE(ParseWithEnvironment({"--max-message-mb=0"}, {}).ok());
   auto nice = ParseWithEnvironment({"--worker-nice", "20"}, {});
