@@ -267,7 +267,9 @@ void MapWorker::RecordCommitted(const MapDelta& delta, MapWriteSet written) {
   committed_.push_back({delta.base_version, delta.version, std::move(written)});
   if (committed_.size() > kCommittedChangesKept) committed_.pop_front();
   committed_version_ = std::max(delta.version, delta.base_version);
-  for (const auto& [id, factor] : delta.added_factors) committed_last_factor_id_ = std::max(committed_last_factor_id_, id);
+  for (const auto& [id, factor] : delta.added_factors) {
+    committed_last_factor_id_ = std::max(committed_last_factor_id_, id);
+  }
 }
 
 void MapWorker::PrunePayloads(const std::vector<MapUpdater::PassageKey>& folded) {

@@ -67,10 +67,11 @@ struct MapWorkerOptions {
 };
 
 // Applies queued passages to the map. Computes each update against the store's committed map
-// (MapStoreInterface::ReadCommittedMap, through a MapReadRecorder), commits it with the passage's result and the new version
-// in one transaction. While the map is young (MapUpdateOptions::warmup_passages, then at each
-// doubling of its passage count up to relinearize_until_passages) an update re-solves the passages
-// applied so far together with the new one; after a restart they are read back from the store.
+// (MapStoreInterface::ReadCommittedMap, through a MapReadRecorder) and commits it with the
+// passage's result and the new version in one transaction. While the map is young
+// (MapUpdateOptions::warmup_passages, then at each doubling of its passage count up to
+// relinearize_until_passages) an update re-solves the passages applied so far together with the
+// new one; after a restart they are read back from the store.
 class MapWorker {
  public:
   // Loads the map and puts passages left processing by an earlier run back on the queue. The store

@@ -68,7 +68,8 @@ void ExpectSameMap(const MapState& expected, const MapState& actual) {
     EXPECT_EQ(a->passages_seen, l.passages_seen) << l.id;
     worst_position_m = std::max(worst_position_m, (a->Offset() - l.Offset()).norm());
     worst_covariance = std::max(worst_covariance, Relative(a->cov_en_m2, l.cov_en_m2));
-    worst_information = std::max(worst_information, Relative(actual.InformationVector(l.id), expected.InformationVector(l.id)));
+    worst_information =
+        std::max(worst_information, Relative(actual.InformationVector(l.id), expected.InformationVector(l.id)));
   });
   expected.ForEachFactor([&](const MapFactor& f) {
     const MapFactor* a = actual.FindFactor(f.id);

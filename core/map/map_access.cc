@@ -120,7 +120,8 @@ void MapReadRecorder::ForEachLink(LandmarkId id,
 }
 
 const MapFactor* MapReadRecorder::FindFactor(int64_t id) const {
-  const MapFactor* f = Cached(access_, id, &factors_, [id](const MapReaderInterface& map) { return map.FindFactor(id); });
+  const MapFactor* f =
+      Cached(access_, id, &factors_, [id](const MapReaderInterface& map) { return map.FindFactor(id); });
   if (f != nullptr) read_.factor_lists.insert(f->landmarks.begin(), f->landmarks.end());
   return f;
 }
