@@ -4,9 +4,13 @@
 #include <utility>
 #include <vector>
 
+#include <csignal>
+
 #include "core/sim/city_scenario.h"
+#include "server/mapd_config.h"
 #include "server/storage/sqlite_map_store.h"
 #include "server/testing/temp_dir.h"
+#include "tests/support/mapd_process.h"
 #include "tests/support/mock_vehicle.h"
 #include "tests/support/test_server.h"
 
@@ -115,23 +119,80 @@ void RunWithTwoWorkers(const std::vector<Passage>& passages, const MapUpdateOpti
   ExpectSameMap(expected, stored);
 }
 
-// A street grid, short partial routes, two links of window, a retention of 6 passages so that
-// commits also fold factors while the other worker computes.
-TEST(ParallelWorkers, CityPassagesGiveTheMapOfTheirCommitOrder) {
+// Short partial routes on a street grid.
+std::vector<Passage> CityPassages(int count) {
   CityScenarioOptions city;
   city.blocks_x = 10;
   city.blocks_y = 10;
   city.route_length_m = 600.0;
   auto scenario = CityScenario::Create(city);
-  ASSERT_TRUE(scenario.ok()) << scenario.status();
+  EXPECT_TRUE(scenario.ok()) << scenario.status();
   std::vector<Passage> passages;
-  for (int i = 0; i < 24; ++i) passages.push_back(scenario->MakePassage(i));
+  if (scenario.ok()) {
+    for (int i = 0; i < count; ++i) passages.push_back(scenario->MakePassage(i));
+  }
+  return passages;
+}
+
+// Two links of window, a retention of 6 passages so that commits also fold factors while the
+// other worker computes.
+MapUpdateOptions CityUpdateOptions() {
   MapUpdateOptions update;
   update.warmup_passages = 0;
   update.relinearize_until_passages = 0;
   update.window_hops = 2;
   update.retain_passages = 6;
-  RunWithTwoWorkers(passages, update);
+  return update;
+}
+
+TEST(ParallelWorkers, CityPassagesGiveTheMapOfTheirCommitOrder) {
+  RunWithTwoWorkers(CityPassages(24), CityUpdateOptions());
+}
+
+// mapd with two workers killed (SIGKILL) while they apply, restarted on the same file, every
+// passage sent again: each ends applied once, and the map is the one of the commit order.
+TEST(ParallelWorkers, AKillWhileTwoWorkersApplyLosesNothingAndAppliesNothingTwice) {
+  const std::vector<Passage> passages = CityPassages(20);
+  const std::vector<std::string> flags = {"--workers", "2", "--window-hops", "2", "--warmup-passages", "0",
+                                          "--relinearize-until-passages", "0", "--retain-passages", "6",
+                                          "--vehicle-upload-rate", "0"};
+  TempDir dir;
+  const std::string db = dir.File("map.db");
+  int applied_before_kill = 0;
+  {
+    MapdProcess mapd(db, dir.File("mapd.log"), /*port=*/0, flags);
+    ASSERT_TRUE(mapd.WaitReady());
+    MockVehicle client(mapd.address());
+    for (const Passage& p : passages) ASSERT_TRUE(client.Upload(p).ok());
+    for (int i = 0; i < 20000 && applied_before_kill < 4; ++i) {
+      auto info = client.GetMapInfo();
+      if (info.ok()) applied_before_kill = static_cast<int>(info->passages_applied());
+    }
+    const int status = mapd.Kill(SIGKILL);
+    ASSERT_TRUE(WIFSIGNALED(status));
+  }
+  MapdProcess mapd(db, dir.File("mapd.log"), /*port=*/0, flags);
+  ASSERT_TRUE(mapd.WaitReady());
+  MockVehicle client(mapd.address());
+  for (const Passage& p : passages) ASSERT_TRUE(client.Upload(p).ok());  // acknowledgements lost
+  auto info = client.WaitUntilIdle();
+  ASSERT_TRUE(info.ok()) << info.status();
+  EXPECT_EQ(info->passages_applied(), static_cast<int64_t>(passages.size()));
+  EXPECT_EQ(info->passages_failed() + info->passages_rejected() + info->passages_quarantined(), 0);
+  // mapd's own defaults (e.g. the camera yaw estimated) with the flags above.
+  MapUpdateOptions replay = MapdDefaultUpdateOptions();
+  replay.warmup_passages = 0;
+  replay.relinearize_until_passages = 0;
+  replay.window_hops = 2;
+  replay.retain_passages = 6;
+  const MapState expected = ApplyInOrder(InCommitOrder(&client, passages), replay);
+  EXPECT_EQ(mapd.Kill(SIGTERM), 0);
+  auto store = CreateSqliteMapStore(db);
+  ASSERT_TRUE(store.ok()) << store.status();
+  MapState stored;
+  ASSERT_TRUE((*store)->LoadMap(&stored).ok());
+  ExpectSameMap(expected, stored);
+  std::printf("applied before the kill: %d of %zu\n", applied_before_kill, passages.size());
 }
 
 // The loop with the defaults: the young map's joint solves take all passages before them, so a
