@@ -12,7 +12,7 @@
 # below, which must be the map's). Needs a build (scripts/setup.sh); load stays on loopback.
 set -euo pipefail
 if [[ $# -lt 2 || "$1" == -h || "$1" == --help ]]; then
-  sed -n '2,13p' "$0" | sed 's/^# \{0,1\}//'
+  sed -n '2,12p' "$0" | sed 's/^# \{0,1\}//'
   exit 2
 fi
 MAP_DB=$1

@@ -48,9 +48,7 @@ std::string PassageListQuery(const pb::ListPassagesRequest& request) {
   return absl::StrCat("passages|", request.state(), "|", request.vehicle_id());
 }
 
-}  // namespace
-
-namespace {
+constexpr char kMalformedToken[] = "page_token: malformed; pass the next_page_token of a previous response";
 
 // "after:<key>:<fingerprint of the query>", `key` free of ':'.
 std::string MakeToken(const std::string& key, std::string_view query) {
@@ -63,7 +61,7 @@ absl::StatusOr<std::string> ParseToken(const std::string& token, std::string_vie
   uint64_t fingerprint = 0;
   if (parts.size() != 3 || parts[0] != kPageTokenPrefix || parts[2].size() != 16 ||
       !absl::SimpleHexAtoi(parts[2], &fingerprint)) {
-    return absl::InvalidArgumentError("page_token: malformed; pass the next_page_token of a previous response");
+    return absl::InvalidArgumentError(kMalformedToken);
   }
   if (fingerprint != Fingerprint(query)) {
     return absl::InvalidArgumentError(
@@ -82,7 +80,7 @@ absl::StatusOr<int64_t> ParsePageToken(const std::string& token, std::string_vie
   if (!key.ok()) return key.status();
   int64_t id = 0;
   if (!absl::SimpleAtoi(*key, &id) || id < 0) {
-    return absl::InvalidArgumentError("page_token: malformed; pass the next_page_token of a previous response");
+    return absl::InvalidArgumentError(kMalformedToken);
   }
   return id;
 }
@@ -96,7 +94,7 @@ absl::StatusOr<std::string> ParseKeyPageToken(const std::string& token, std::str
   absl::StatusOr<std::string> key = ParseToken(token, query);
   if (!key.ok()) return key.status();
   if (key->size() % 2 != 0 || !std::all_of(key->begin(), key->end(), absl::ascii_isxdigit)) {
-    return absl::InvalidArgumentError("page_token: malformed; pass the next_page_token of a previous response");
+    return absl::InvalidArgumentError(kMalformedToken);
   }
   return absl::HexStringToBytes(*key);
 }

@@ -134,10 +134,9 @@ std::vector<Passage> CityPassages(int count) {
   return passages;
 }
 
-// Two links of window, a retention of 6 passages so that commits also fold factors while the
-// other worker computes.
-MapUpdateOptions CityUpdateOptions() {
-  MapUpdateOptions update;
+// `update` with two links of window, a retention of 6 passages so that commits also fold factors
+// while the other worker computes, and no joint solves.
+MapUpdateOptions CityUpdateOptions(MapUpdateOptions update = MapUpdateOptions()) {
   update.warmup_passages = 0;
   update.relinearize_until_passages = 0;
   update.window_hops = 2;
@@ -153,6 +152,7 @@ TEST(ParallelWorkers, CityPassagesGiveTheMapOfTheirCommitOrder) {
 // passage sent again: each ends applied once, and the map is the one of the commit order.
 TEST(ParallelWorkers, AKillWhileTwoWorkersApplyLosesNothingAndAppliesNothingTwice) {
   const std::vector<Passage> passages = CityPassages(20);
+  // The flags of CityUpdateOptions.
   const std::vector<std::string> flags = {"--workers", "2", "--window-hops", "2", "--warmup-passages", "0",
                                           "--relinearize-until-passages", "0", "--retain-passages", "6",
                                           "--vehicle-upload-rate", "0"};
@@ -180,12 +180,8 @@ TEST(ParallelWorkers, AKillWhileTwoWorkersApplyLosesNothingAndAppliesNothingTwic
   EXPECT_EQ(info->passages_applied(), static_cast<int64_t>(passages.size()));
   EXPECT_EQ(info->passages_failed() + info->passages_rejected() + info->passages_quarantined(), 0);
   // mapd's own defaults (e.g. the camera yaw estimated) with the flags above.
-  MapUpdateOptions replay = MapdDefaultUpdateOptions();
-  replay.warmup_passages = 0;
-  replay.relinearize_until_passages = 0;
-  replay.window_hops = 2;
-  replay.retain_passages = 6;
-  const MapState expected = ApplyInOrder(InCommitOrder(&client, passages), replay);
+  const MapState expected =
+      ApplyInOrder(InCommitOrder(&client, passages), CityUpdateOptions(MapdDefaultUpdateOptions()));
   EXPECT_EQ(mapd.Kill(SIGTERM), 0);
   auto store = CreateSqliteMapStore(db);
   ASSERT_TRUE(store.ok()) << store.status();
