@@ -134,10 +134,12 @@ struct MapUpdateOptions {
   // covariances ignore the correlations, so its map is too confident to take a re-solve (the
   // guard below would refuse every one).
   int relinearize_until_passages = 128;
-  // Guard of the warm-up: a joint solution that puts any landmark further than this (squared
-  // Mahalanobis distance) from the sequential update's estimate is not used; the sequential update
-  // is. With white noise the two differ by a squared distance below 5 (4.2 at most in the measured
-  // runs); a joint solve caught in a wrong minimum by far more. Under coloured GNSS noise the
+  // Guard of the warm-up: a joint solution that does not fit its passages (the consistency test
+  // inflated a passage's variance) and puts any landmark further than this (squared Mahalanobis
+  // distance) from the sequential update's estimate is not used; the sequential update is. With
+  // white noise the two differ by a squared distance below 5 (4.2 at most in the measured runs); a
+  // joint solve caught in a wrong minimum by far more. A joint solution that fits every passage is
+  // used whatever it moves (joint_solve.cc, FitsEveryPassage). Under coloured GNSS noise the
   // passages do not declare they often differ by more, and the sequential update is used; with it
   // declared, 10 of the 96 joint solves of 8 x 100 loop passages (N = 50) were still refused.
   double max_joint_mahalanobis2 = 36.0;

@@ -438,6 +438,7 @@ TEST(ComputeBatchUpdate, FallsBackToTheSequentialUpdateWhenTheJointSolutionLeave
   map.Apply(updater.Compute(passages[0], map)->delta);
   MapUpdateOptions strict;
   strict.max_joint_mahalanobis2 = 1e-12;  // no two solutions agree that closely
+  strict.inflation_test_sigmas = 0.0;     // and nothing tells whether the joint solution fits its passages
   absl::StatusOr<PassageUpdate> guarded = ComputeBatchUpdate(passages, strict, map);
   absl::StatusOr<PassageUpdate> sequential = ComputePassageUpdate(passages[1], strict, map);
   ASSERT_TRUE(guarded.ok() && sequential.ok());
@@ -451,6 +452,34 @@ TEST(ComputeBatchUpdate, FallsBackToTheSequentialUpdateWhenTheJointSolutionLeave
   ASSERT_TRUE(joint.ok());
   EXPECT_FALSE(joint->summary.joint_rejected);
   EXPECT_EQ(joint->delta.version, map.version() + 1);
+}
+
+// The guard judges joint solutions that do not fit their passages (a solve in a wrong minimum): one
+// that fits every passage's measurements is used even where it moves the map beyond the guard, and
+// one that leaves a passage's residuals far beyond its noise is not.
+TEST(ComputeBatchUpdate, TheGuardJudgesOnlyJointSolutionsThatDoNotFitTheirPassages) {
+  const Scenario scenario = MakeScenario(25);
+  MapState map;
+  MapUpdater updater(MapUpdateOptions{});
+  map.Apply(updater.Compute(scenario.MakePassage(0), map)->delta);
+  MapUpdateOptions strict;
+  strict.max_joint_mahalanobis2 = 1e-12;
+  const std::vector<Passage> clean = {scenario.MakePassage(0), scenario.MakePassage(1)};
+  absl::StatusOr<PassageUpdate> fits = ComputeBatchUpdate(clean, strict, map);
+  ASSERT_TRUE(fits.ok()) << fits.status();
+  EXPECT_FALSE(fits->summary.joint_rejected);
+  EXPECT_EQ(fits->summary.max_variance_factor, 1.0);
+  EXPECT_EQ(fits->summary.joint_passages, 2);
+
+  // The second passage's fixes 40 m north for a minute, declared as usual.
+  Passage burst = scenario.MakePassage(1);
+  const double t0 = burst.gnss.front().t_s;
+  for (GnssFix& fix : burst.gnss) {
+    if (fix.t_s > t0 + 30.0 && fix.t_s < t0 + 90.0) fix.lat_deg += 40.0 / 111320.0;
+  }
+  absl::StatusOr<PassageUpdate> misfit = ComputeBatchUpdate({clean[0], burst}, strict, map);
+  ASSERT_TRUE(misfit.ok()) << misfit.status();
+  EXPECT_TRUE(misfit->summary.joint_rejected);
 }
 
 TEST(MapUpdater, RestoredFromTheAppliedPassagesItContinuesExactlyAsBefore) {

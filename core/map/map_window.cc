@@ -258,19 +258,21 @@ absl::StatusOr<MapWindow> MapWindow::Build(const MapReaderInterface& map, const 
   // The window's information, with the landmarks outside held at their estimate.
   const int n = static_cast<int>(w.ids_.size());
   if (n == 0) return w;
+  // The right-hand side only for an estimate: a landmark's offset is a geodesic computation, and a
+  // covariance read visits every link that leaves the window.
   Triplets triplets;
-  Eigen::VectorXd rhs(2 * n);
+  Eigen::VectorXd rhs = Eigen::VectorXd::Zero(options.estimate ? 2 * n : 0);
   std::unordered_set<LandmarkId> edge;  // window landmarks linked to the outside
   for (int i = 0; i < n; ++i) {
     const LandmarkId a = w.ids_[i];
-    rhs.segment<2>(2 * i) = map.InformationVector(a);
+    if (options.estimate) rhs.segment<2>(2 * i) = map.InformationVector(a);
     AddBlock(2 * i, 2 * i, map.Information(a, a).value, &triplets);
     map.ForEachLink(a, [&](LandmarkId b, const InformationBlock& block) {
       const int j = w.index(b);
       if (j >= 0) {
         AddBlock(2 * i, 2 * j, block.value, &triplets);
       } else {
-        rhs.segment<2>(2 * i) -= block.value * map.FindLandmark(b)->Offset();
+        if (options.estimate) rhs.segment<2>(2 * i) -= block.value * map.FindLandmark(b)->Offset();
         edge.insert(a);
       }
     });
