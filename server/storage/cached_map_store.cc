@@ -60,7 +60,7 @@ absl::Status CachedMapStore::CommitPassageExcluded(int64_t id, const MapDelta& d
 }
 
 bool CachedMapStore::ReadCommittedMap(const std::function<void(const MapState&)>& read) {
-  std::shared_lock<std::shared_mutex> lock(map_mu_);
+  std::shared_lock<WriterPreferringMutex> lock(map_mu_);
   read(map_);
   return true;
 }
@@ -74,7 +74,7 @@ void CachedMapStore::Publish(const MapDelta& delta) {
   std::shared_ptr<const View> next = ApplyToView(delta);
   int64_t version = 0;
   {
-    std::unique_lock<std::shared_mutex> map_lock(map_mu_);
+    std::unique_lock<WriterPreferringMutex> map_lock(map_mu_);
     map_.Apply(delta);
     version = map_.version();
     std::lock_guard<std::mutex> publish(view_mu_);
@@ -84,7 +84,7 @@ void CachedMapStore::Publish(const MapDelta& delta) {
 }
 
 absl::StatusOr<LandmarkProvenance> CachedMapStore::GetLandmarkProvenance(LandmarkId id) {
-  std::shared_lock<std::shared_mutex> lock(map_mu_);
+  std::shared_lock<WriterPreferringMutex> lock(map_mu_);
   return ProvenanceOf(map_, id);
 }
 
@@ -180,7 +180,7 @@ absl::Status CachedMapStore::AppendCovariances(LandmarkPage* page) const {
 absl::StatusOr<LandmarkPage> CachedMapStore::QueryRegion(const BoundingBox& box, LandmarkId after_id, int limit,
                                                          bool include_cross) {
   // With covariances, the view and the map are read under the map's lock: the same version.
-  std::shared_lock<std::shared_mutex> map_lock(map_mu_, std::defer_lock);
+  std::shared_lock<WriterPreferringMutex> map_lock(map_mu_, std::defer_lock);
   if (include_cross) map_lock.lock();
   const std::shared_ptr<const View> view = CurrentView();
   LandmarkPage page;
@@ -198,7 +198,7 @@ absl::StatusOr<LandmarkPage> CachedMapStore::QueryRegion(const BoundingBox& box,
 
 absl::StatusOr<LandmarkPage> CachedMapStore::GetTile(const TileId& tile, bool include_cross) {
   if (tile.z != kStorageZoom || !IsValidTile(tile)) return inner_->GetTile(tile, include_cross);
-  std::shared_lock<std::shared_mutex> map_lock(map_mu_, std::defer_lock);
+  std::shared_lock<WriterPreferringMutex> map_lock(map_mu_, std::defer_lock);
   if (include_cross) map_lock.lock();
   const std::shared_ptr<const View> view = CurrentView();
   LandmarkPage page;

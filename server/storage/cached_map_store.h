@@ -11,6 +11,7 @@
 
 #include "core/map/map_window.h"
 #include "server/storage/map_store.h"
+#include "server/storage/writer_preferring_mutex.h"
 
 namespace crowdmap {
 
@@ -107,8 +108,9 @@ class CachedMapStore : public MapStoreInterface {
   const std::unique_ptr<MapStoreInterface> inner_;
   const int covariance_window_hops_;
   // The map with its factors, for covariance reads; written under an exclusive lock by commits,
-  // together with the view's publication.
-  mutable std::shared_mutex map_mu_;
+  // together with the view's publication. Writer-preferring: reads with covariances hold it for a
+  // whole recovery, and a stream of them must not hold a commit's publication back.
+  mutable WriterPreferringMutex map_mu_;
   MapState map_;
   // Over the whole map at one version, for reads with covariances (covariance_window_hops_ 0): one
   // factorisation serves every such read until the next commit. Built by the first read that needs
