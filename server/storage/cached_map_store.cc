@@ -210,6 +210,23 @@ absl::StatusOr<LandmarkPage> CachedMapStore::GetTile(const TileId& tile, bool in
   return page;
 }
 
+absl::StatusOr<LandmarkPage> CachedMapStore::GetLandmarks(const std::vector<LandmarkId>& ids, bool include_cross) {
+  std::vector<LandmarkId> sorted = ids;
+  std::sort(sorted.begin(), sorted.end());
+  sorted.erase(std::unique(sorted.begin(), sorted.end()), sorted.end());
+  // The records and the covariances from the map, under its lock: one version.
+  std::shared_lock<WriterPreferringMutex> map_lock(map_mu_);
+  LandmarkPage page;
+  page.map_version = map_.version();
+  for (LandmarkId id : sorted) {
+    if (const Landmark* l = map_.FindLandmark(id)) page.landmarks.push_back(*l);
+  }
+  if (include_cross) {
+    if (auto s = AppendCovariances(&page); !s.ok()) return s;
+  }
+  return page;
+}
+
 absl::StatusOr<LandmarkPage> CachedMapStore::ChangedLandmarks(const BoundingBox& box, int64_t since_version) {
   const std::shared_ptr<const View> view = CurrentView();
   LandmarkPage page;

@@ -81,6 +81,7 @@ class CachedMapStore : public MapStoreInterface {
   absl::StatusOr<LandmarkPage> QueryRegion(const BoundingBox& box, LandmarkId after_id, int limit,
                                            bool include_cross) override;
   absl::StatusOr<LandmarkPage> GetTile(const TileId& tile, bool include_cross) override;
+  absl::StatusOr<LandmarkPage> GetLandmarks(const std::vector<LandmarkId>& ids, bool include_cross) override;
   absl::StatusOr<LandmarkPage> ChangedLandmarks(const BoundingBox& box, int64_t since_version) override;
 
  private:

@@ -182,6 +182,9 @@ class MapStoreInterface {
                                                    bool include_cross) = 0;
   // Landmarks stored in the storage-zoom tile, with cross blocks on request.
   virtual absl::StatusOr<LandmarkPage> GetTile(const TileId& tile, bool include_cross) = 0;
+  // The landmarks of `ids` that the map holds (increasing id; the others are left out), with their
+  // cross-covariances on request, as QueryRegion gives them for the landmarks of a box.
+  virtual absl::StatusOr<LandmarkPage> GetLandmarks(const std::vector<LandmarkId>& ids, bool include_cross) = 0;
   // Landmarks inside `box` whose version is greater than `since_version`.
   virtual absl::StatusOr<LandmarkPage> ChangedLandmarks(const BoundingBox& box, int64_t since_version) = 0;
   virtual absl::StatusOr<MapStats> GetStats() = 0;

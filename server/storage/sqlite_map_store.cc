@@ -563,6 +563,15 @@ absl::StatusOr<LandmarkPage> SqliteMapStore::GetTile(const TileId& tile, bool in
       0, include_cross);
 }
 
+absl::StatusOr<LandmarkPage> SqliteMapStore::GetLandmarks(const std::vector<LandmarkId>& ids, bool include_cross) {
+  std::string list = "[";
+  for (size_t i = 0; i < ids.size(); ++i) absl::StrAppend(&list, i ? "," : "", ids[i]);
+  list += "]";
+  return ReadPage(
+      "WHERE l.id IN (SELECT value FROM json_each(?1)) ORDER BY l.id",
+      [&](SqliteStatement& stmt) { stmt.Bind(1, list); }, 0, include_cross);
+}
+
 absl::StatusOr<LandmarkPage> SqliteMapStore::ChangedLandmarks(const BoundingBox& box, int64_t since_version) {
   return ReadPage(
       absl::StrCat(kInBox, "AND l.version > ?5 ORDER BY l.id"),

@@ -42,6 +42,7 @@ class SqliteMapStore : public MapStoreInterface {
   absl::StatusOr<LandmarkPage> QueryRegion(const BoundingBox& box, LandmarkId after_id, int limit,
                                            bool include_cross) override;
   absl::StatusOr<LandmarkPage> GetTile(const TileId& tile, bool include_cross) override;
+  absl::StatusOr<LandmarkPage> GetLandmarks(const std::vector<LandmarkId>& ids, bool include_cross) override;
   absl::StatusOr<LandmarkPage> ChangedLandmarks(const BoundingBox& box, int64_t since_version) override;
   absl::StatusOr<MapStats> GetStats() override;
   absl::StatusOr<LandmarkProvenance> GetLandmarkProvenance(LandmarkId id) override;

@@ -1043,6 +1043,34 @@ TEST_P(SqliteMapStoreReads, ChangedLandmarksAreThoseAboveTheVersion) {
   EXPECT_EQ(page->landmarks.size(), 5u);  // row i = 2
 }
 
+TEST_P(SqliteMapStoreReads, GetLandmarksReturnsTheMappedOnesOfTheIdsWithTheirCovariance) {
+  // Unordered, repeated, and two ids the map does not hold.
+  auto page = store_->GetLandmarks({107, 101, 99, 100, 101, 500}, true);
+  ASSERT_TRUE(page.ok()) << page.status();
+  EXPECT_EQ(page->map_version, 3);
+  std::vector<LandmarkId> ids;
+  for (const Landmark& l : page->landmarks) ids.push_back(l.id);
+  EXPECT_EQ(ids, (std::vector<LandmarkId>{100, 101, 107}));
+  // The same blocks as a box read of them gives: only 100 and 101 are correlated.
+  ASSERT_EQ(page->cross.size(), 3u);
+  for (const auto& [pair, block] : page->cross) {
+    EXPECT_LT(pair.first, pair.second);
+    const double expected = pair == LandmarkPair{100, 101} ? 0.01 : 0.0;
+    EXPECT_LT((block - Eigen::Matrix2d::Constant(expected)).cwiseAbs().maxCoeff(), 1e-12)
+        << pair.first << "," << pair.second;
+  }
+  for (const Landmark& l : page->landmarks) {
+    EXPECT_LT((l.cov_en_m2 - MakeLandmark(l.id, 0, 0, 0).cov_en_m2).cwiseAbs().maxCoeff(), 1e-12) << l.id;
+  }
+  auto without = store_->GetLandmarks({124}, false);
+  ASSERT_TRUE(without.ok());
+  ASSERT_EQ(without->landmarks.size(), 1u);
+  EXPECT_TRUE(without->cross.empty());
+  auto none = store_->GetLandmarks({}, true);
+  ASSERT_TRUE(none.ok());
+  EXPECT_TRUE(none->landmarks.empty());
+}
+
 INSTANTIATE_TEST_SUITE_P(Store, SqliteMapStoreReads, ::testing::Values(false, true),
                          [](const ::testing::TestParamInfo<bool>& info) { return info.param ? "Cached" : "Sqlite"; });
 
