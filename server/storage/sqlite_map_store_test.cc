@@ -970,6 +970,20 @@ class SqliteMapStoreReads : public ::testing::TestWithParam<bool> {
   std::unique_ptr<MapStoreInterface> store_;
 };
 
+// The covariance SqliteMapStoreReads' map gives a page of its landmarks: each landmark's own, and
+// every cross block zero but that of 100 and 101 (their joint factor).
+void ExpectTheReadsCovariance(const LandmarkPage& page) {
+  for (const auto& [pair, block] : page.cross) {
+    EXPECT_LT(pair.first, pair.second);
+    const double expected = pair == LandmarkPair{100, 101} ? 0.01 : 0.0;
+    EXPECT_LT((block - Eigen::Matrix2d::Constant(expected)).cwiseAbs().maxCoeff(), 1e-12)
+        << pair.first << "," << pair.second;
+  }
+  for (const Landmark& l : page.landmarks) {
+    EXPECT_LT((l.cov_en_m2 - MakeLandmark(l.id, 0, 0, 0).cov_en_m2).cwiseAbs().maxCoeff(), 1e-12) << l.id;
+  }
+}
+
 TEST_P(SqliteMapStoreReads, QueryRegionReturnsExactlyTheLandmarksInsideTheBox) {
   // Rows 0..1 and columns 0..2.
   BoundingBox box{48.6995, 2.1695, 48.7015, 2.1735};
@@ -982,15 +996,7 @@ TEST_P(SqliteMapStoreReads, QueryRegionReturnsExactlyTheLandmarksInsideTheBox) {
   EXPECT_EQ(page->map_version, 3);
   // Every pair among them, from the factors: only 100 and 101 are correlated.
   ASSERT_EQ(page->cross.size(), 15u);
-  for (const auto& [pair, block] : page->cross) {
-    EXPECT_LT(pair.first, pair.second);
-    const double expected = pair == LandmarkPair{100, 101} ? 0.01 : 0.0;
-    EXPECT_LT((block - Eigen::Matrix2d::Constant(expected)).cwiseAbs().maxCoeff(), 1e-12)
-        << pair.first << "," << pair.second;
-  }
-  for (const Landmark& l : page->landmarks) {
-    EXPECT_LT((l.cov_en_m2 - MakeLandmark(l.id, 0, 0, 0).cov_en_m2).cwiseAbs().maxCoeff(), 1e-12) << l.id;
-  }
+  ExpectTheReadsCovariance(*page);
 }
 
 TEST_P(SqliteMapStoreReads, ProvenanceListsThePassagesOfTheLandmarksFactors) {
@@ -1053,15 +1059,7 @@ TEST_P(SqliteMapStoreReads, GetLandmarksReturnsTheMappedOnesOfTheIdsWithTheirCov
   EXPECT_EQ(ids, (std::vector<LandmarkId>{100, 101, 107}));
   // The same blocks as a box read of them gives: only 100 and 101 are correlated.
   ASSERT_EQ(page->cross.size(), 3u);
-  for (const auto& [pair, block] : page->cross) {
-    EXPECT_LT(pair.first, pair.second);
-    const double expected = pair == LandmarkPair{100, 101} ? 0.01 : 0.0;
-    EXPECT_LT((block - Eigen::Matrix2d::Constant(expected)).cwiseAbs().maxCoeff(), 1e-12)
-        << pair.first << "," << pair.second;
-  }
-  for (const Landmark& l : page->landmarks) {
-    EXPECT_LT((l.cov_en_m2 - MakeLandmark(l.id, 0, 0, 0).cov_en_m2).cwiseAbs().maxCoeff(), 1e-12) << l.id;
-  }
+  ExpectTheReadsCovariance(*page);
   auto without = store_->GetLandmarks({124}, false);
   ASSERT_TRUE(without.ok());
   ASSERT_EQ(without->landmarks.size(), 1u);
