@@ -30,6 +30,10 @@ PACKAGES=(
   python3 python3-yaml
   libssl-dev openssl
   libcli11-dev nlohmann-json3-dev
+  # The BLAS and LAPACK behind CHOLMOD (libblas.so.3 and liblapack.so.3 alternatives): OpenBLAS,
+  # single-threaded, instead of the generic ATLAS that Ceres pulls in (city passage 175 -> 154 ms,
+  # docs/results.md "BLAS").
+  libopenblas0-serial
 )
 # Only for the tests: GoogleTest, Google Benchmark, the map viewer's browser test (headless
 # chromium through chromedriver and selenium) and the Python client example's gRPC runtime.
