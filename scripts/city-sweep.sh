@@ -7,13 +7,17 @@
 #   scripts/city-sweep.sh [OUT_DIR]        (default out/city-sweep; JOBS=2 runs two at a time,
 #                                           EXTRA_FLAGS="..." adds mapsim city flags to every run)
 # About 15 minutes with JOBS=2 on a 2-core machine. Runs already in OUT_DIR are kept.
+# SEEDS, NOISES, ROUTES and CAMERA_ERRORS (per-vehicle yaw sigmas, rad) replace the sweep's lists,
+# e.g. a Monte Carlo of one configuration over many seeds:
+#   SEEDS="$(seq 1 10)" NOISES=gnss-ar1 CAMERA_ERRORS=0 JOBS=2 scripts/city-sweep.sh out/ar1-mc
 set -euo pipefail
 cd "$(dirname "$0")/.."
 OUT="${1:-out/city-sweep}"
 MAPSIM="${MAPSIM:-build/client/mapsim}"
 JOBS="${JOBS:-1}"
 mkdir -p "$OUT"
-for seed in 1 2; do for noise in white gnss-ar1 yaw-bias ar1+yaw; do for route in 400 1000; do for vy in 0 0.0087; do
+for seed in ${SEEDS:-1 2}; do for noise in ${NOISES:-white gnss-ar1 yaw-bias ar1+yaw}; do
+for route in ${ROUTES:-400 1000}; do for vy in ${CAMERA_ERRORS:-0 0.0087}; do
   echo "$noise-r$route-v$vy-s$seed $route $noise $vy $seed"
 done; done; done; done | xargs -P "$JOBS" -L 1 bash -c '
   name=$0 route=$1 noise=$2 vy=$3 seed=$4
@@ -30,9 +34,14 @@ passages = sum(r["passages"] for r in runs)
 refused = sum(r["passages_failed"] for r in runs)
 quarantined = sum(r["passages_quarantined"] for r in runs)
 print(f"{len(runs)} runs, {passages} passages, {refused} refused ({100.0 * refused / max(passages, 1):.2f}%; {quarantined} of them quarantined)")
+def line(label, sel):
+    nees = [r["nees_per_dof"] for r in sel]
+    print(f"{label}: mean error {sum(r['mean_error_m'] for r in sel) / len(sel):.3f} m, "
+          f"NEES/dof {sum(nees) / len(nees):.2f} (runs {min(nees):.2f} to {max(nees):.2f}) over {len(sel)} runs")
 for noise in ("white", "gnss-ar1", "yaw-bias", "ar1+yaw"):
     sel = [r for r in runs if r["name"].startswith(noise + "-r")]
     if sel:
-        print(f"  {noise}: mean error {sum(r['mean_error_m'] for r in sel) / len(sel):.3f} m, "
-              f"NEES/dof {sum(r['nees_per_dof'] for r in sel) / len(sel):.2f} over {len(sel)} runs")
+        line(f"  {noise}", sel)
+        for route in sorted({int(r["name"][len(noise) + 2:].split("-")[0]) for r in sel}):
+            line(f"    {route} m routes", [r for r in sel if r["name"].startswith(f"{noise}-r{route}-")])
 PY
