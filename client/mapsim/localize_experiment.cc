@@ -10,6 +10,7 @@
 
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
+#include "client/mapsim/experiment.h"
 #include "core/estimation/factors.h"
 #include "core/estimation/map_updater.h"
 #include "core/estimation/vehicle_calibration.h"
@@ -52,17 +53,24 @@ LocalizationMap ThesisMap(const Scenario& scenario, const LocalizeExperimentOpti
   return map;
 }
 
-// crowdmap's own map of the scenario after `passages` passages (indices 100000 + i, so none is a
-// localised passage), applied in order by the in-process updater with mapd's default options:
-// the camera yaw of each vehicle (sim-<i % 1000>: the localised passage i's vehicle drove map
-// passage 100000 + i) estimated.
-absl::StatusOr<MapState> OwnMap(const Scenario& scenario, int passages, const LocalizeProgress& progress) {
-  MapState map;
+// The first passage index of crowdmap's own map: none of its passages is a localised one.
+constexpr int kOwnMapFirstPassage = 100000;
+
+// mapd's default options, with the camera yaw of each vehicle estimated.
+MapUpdateOptions OwnMapOptions() {
   MapUpdateOptions options;
   options.estimate_camera_yaw = true;
-  MapUpdater updater{options};
+  return options;
+}
+
+// crowdmap's own map of the scenario after `passages` passages (indices kOwnMapFirstPassage + i),
+// applied in order by the in-process updater with OwnMapOptions(): the localised passage i's
+// vehicle (sim-<i % 1000>) drove map passage kOwnMapFirstPassage + i.
+absl::StatusOr<MapState> OwnMap(const Scenario& scenario, int passages, const LocalizeProgress& progress) {
+  MapState map;
+  MapUpdater updater{OwnMapOptions()};
   for (int i = 0; i < passages; ++i) {
-    const Passage passage = scenario.MakePassage(100000 + i);
+    const Passage passage = scenario.MakePassage(kOwnMapFirstPassage + i);
     absl::StatusOr<PassageUpdate> update = updater.Compute(passage, map);
     if (!update.ok()) {
       spdlog::warn("own map: passage {} not applied: {}", i, std::string(update.status().message()));
@@ -154,11 +162,20 @@ absl::StatusOr<std::vector<LocalizeRow>> RunLocalizeExperiment(const LocalizeExp
       RunErrors without, with;
       LocalizeCell cell;
       cell.landmarks = landmarks;
-      cell.map_error_m = cell.map_nees_per_dof = kNaN;
+      cell.map_error_m = cell.map_nees_per_dof = cell.map_crlb_m = kNaN;
       if (own) {
         const MapErrorMetrics metrics = EvaluateMap(*own, scenario->landmarks());
         cell.map_error_m = metrics.mean_dist_err_m;
         cell.map_nees_per_dof = metrics.nees_per_dof;
+        std::vector<int> indices(cases[c].own_map_passages);
+        for (size_t i = 0; i < indices.size(); ++i) indices[i] = kOwnMapFirstPassage + static_cast<int>(i);
+        const MapUpdateOptions update = OwnMapOptions();
+        GraphOptions graph;
+        graph.detections_per_landmark = update.detections_per_landmark;
+        absl::StatusOr<double> bound =
+            LoopCramerRaoMeanError(*scenario, indices, graph, update.camera_yaw_prior_sigma_rad);
+        if (!bound.ok()) return bound.status();
+        cell.map_crlb_m = *bound;
       }
       for (int run = 0; run < options.runs; ++run) {
         const Passage passage = scenario->MakePassage(run);
@@ -223,8 +240,10 @@ std::string LocalizeMarkdown(const LocalizeExperimentOptions& options, const std
   for (const LocalizeRow& row : rows) {
     for (const LocalizeCell& cell : row.cells) {
       if (std::isnan(cell.map_error_m)) continue;
-      out += absl::StrFormat("\n%s, N=%d: the map's mean landmark error %.2f m, landmark NEES/dof %.2f.", row.config.name,
-                             cell.landmarks, cell.map_error_m, cell.map_nees_per_dof);
+      out += absl::StrFormat(
+          "\n%s, N=%d: the map's mean landmark error %.2f m (Cramer-Rao bound of its passages %.2f m), landmark "
+          "NEES/dof %.2f.",
+          row.config.name, cell.landmarks, cell.map_error_m, cell.map_crlb_m, cell.map_nees_per_dof);
     }
   }
   out += "\n";

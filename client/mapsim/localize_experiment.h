@@ -56,9 +56,11 @@ struct LocalizeCell {
   double thesis_without_m = 0.0;       // NaN when the thesis has no such cell
   double thesis_with_m = 0.0;
   int rejected_detections = 0;         // summed over the runs
-  // crowdmap's own map against the truth (NaN for the thesis's map model).
+  // crowdmap's own map against the truth (NaN for the thesis's map model), and the Cramer-Rao bound
+  // on its mean landmark error from the same passages (LoopCramerRaoMeanError).
   double map_error_m = 0.0;
   double map_nees_per_dof = 0.0;
+  double map_crlb_m = 0.0;
 };
 
 struct LocalizeRow {
