@@ -15,6 +15,7 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
 #include "core/localization/pose_covariance.h"
+#include "core/map/dense_kernels.h"
 
 namespace crowdmap {
 namespace {
@@ -57,29 +58,12 @@ void SolveManyInPlace(const SparseMatrix& l, RowMatrix* x) {
   }
 }
 
-// L^-1 for a lower-triangular L, by column blocks: the inverse is lower triangular, so a block of
-// its columns is solved only on the rows at and below the block (a third of the flops of a solve
-// against the whole identity).
-template <typename Lower>
-Eigen::MatrixXd LowerTriangularInverse(const Lower& l) {
-  const int n = static_cast<int>(l.rows());
-  constexpr int kBlock = 64;
-  Eigen::MatrixXd x = Eigen::MatrixXd::Zero(n, n);
-  for (int j = 0; j < n; j += kBlock) {
-    const int b = std::min(kBlock, n - j);
-    auto block = x.block(j, j, n - j, b);
-    block.topRows(b).setIdentity();
-    l.bottomRightCorner(n - j, n - j).template triangularView<Eigen::Lower>().solveInPlace(block);
-  }
-  return x;
-}
-
-// A^-1 from A = L L^T: L^-T L^-1, the product of the triangular inverse with itself.
-Eigen::MatrixXd InverseFromLLT(const Eigen::LLT<Eigen::MatrixXd>& llt) {
-  const Eigen::MatrixXd l_inverse = LowerTriangularInverse(Eigen::MatrixXd(llt.matrixL()));
-  Eigen::MatrixXd out = Eigen::MatrixXd::Zero(l_inverse.rows(), l_inverse.cols());
-  out.selfadjointView<Eigen::Lower>().rankUpdate(l_inverse.transpose());
-  return out.selfadjointView<Eigen::Lower>();
+// L^-1 for the lower triangle L of `factor` (CholeskyInPlace's), zero above the diagonal.
+Eigen::MatrixXd LowerInverse(const Eigen::MatrixXd& factor) {
+  Eigen::MatrixXd out = factor;
+  LowerInverseInPlace(out);
+  out.triangularView<Eigen::StrictlyUpper>().setZero();
+  return out;
 }
 
 // The Gauss-Newton information at one point, poses eliminated: H = [A B; B^T C], C = D + prior
@@ -106,8 +90,7 @@ class Linearization {
     s_ = prior_information;
     s_ += SparseMatrix(jl.transpose() * jl);
     s_.noalias() -= pb_.transpose() * pw_;
-    s_llt_.compute(s_);
-    if (s_llt_.info() != Eigen::Success) {
+    if (!CholeskyInPlace(s_)) {
       return absl::FailedPreconditionError("localization: the landmarks are not observable");
     }
     return absl::OkStatus();
@@ -118,7 +101,10 @@ class Linearization {
     const int np = static_cast<int>(pw_.rows()), nl = static_cast<int>(pw_.cols());
     const Eigen::VectorXd p_a_inv_gp = a_llt_.permutationP() * a_llt_.solve(gradient.head(np));
     Eigen::VectorXd step(np + nl);
-    step.tail(nl) = -s_llt_.solve(gradient.tail(nl) - pb_.transpose() * p_a_inv_gp);
+    Eigen::VectorXd landmarks = pb_.transpose() * p_a_inv_gp - gradient.tail(nl);
+    s_.triangularView<Eigen::Lower>().solveInPlace(landmarks);
+    s_.triangularView<Eigen::Lower>().transpose().solveInPlace(landmarks);
+    step.tail(nl) = landmarks;
     step.head(np) = a_llt_.permutationPinv() * (-p_a_inv_gp - pw_ * step.tail(nl));
     return step;
   }
@@ -128,7 +114,7 @@ class Linearization {
     const int np = static_cast<int>(pw_.rows()), nl = static_cast<int>(pw_.cols());
     std::vector<Eigen::Matrix3d> out = PoseBlocksOfInverse(a_llt_, np / 3);
     if (nl == 0) return out;
-    const Eigen::MatrixXd l_inverse = LowerTriangularInverse(Eigen::MatrixXd(s_llt_.matrixL()));
+    const Eigen::MatrixXd l_inverse = LowerInverse(s_);
     RowMatrix pz = pb_ * l_inverse.transpose();
     SolveManyInPlace(l_, &pz);
     const Eigen::VectorXi& p = a_llt_.permutationP().indices();
@@ -145,8 +131,7 @@ class Linearization {
   SparseMatrix l_;  // a_llt_'s factor
   SparseMatrix pb_;
   RowMatrix pw_;
-  Eigen::MatrixXd s_;
-  Eigen::LLT<Eigen::MatrixXd> s_llt_;
+  Eigen::MatrixXd s_;  // S, then its Cholesky factor L (lower triangle)
 };
 
 }  // namespace
@@ -170,11 +155,11 @@ absl::StatusOr<DensePriorSolution> SolveWithDensePrior(ceres::Problem* problem, 
   if (prior.mean.size() != nl || prior.cov.rows() != nl || prior.cov.cols() != nl) {
     return absl::InvalidArgumentError(absl::StrCat("dense prior: mean and covariance must have ", nl, " entries"));
   }
-  const Eigen::LLT<Eigen::MatrixXd> prior_llt(prior.cov);
-  if (prior_llt.info() != Eigen::Success) {
+  Eigen::MatrixXd prior_information = prior.cov;
+  if (!CholeskyInPlace(prior_information)) {
     return absl::FailedPreconditionError("localization: the map covariance is not positive definite");
   }
-  const Eigen::MatrixXd prior_information = InverseFromLLT(prior_llt);
+  InverseFromCholeskyInPlace(prior_information);
 
   ceres::Problem::EvaluateOptions evaluate;
   for (Pose2& p : *poses) evaluate.parameter_blocks.push_back(p.data());

@@ -8,6 +8,7 @@
 #include <Eigen/Eigenvalues>
 
 #include "absl/strings/str_cat.h"
+#include "core/map/dense_kernels.h"
 #include "core/map/selected_inverse.h"
 
 namespace crowdmap {
@@ -27,8 +28,8 @@ class MapWindow::Factor {
  public:
   explicit Factor(const Eigen::SparseMatrix<double>& a) {
     if (a.rows() <= kDenseWindowDims) {
-      dense_.compute(Eigen::MatrixXd(a));
-      ok_ = dense_.info() == Eigen::Success;
+      dense_ = Eigen::MatrixXd(a);
+      ok_ = CholeskyInPlace(dense_);
       return;
     }
     sparse_ = std::make_unique<SupernodalLLT>(a);
@@ -38,7 +39,11 @@ class MapWindow::Factor {
   Eigen::ComputationInfo info() const { return ok_ ? Eigen::Success : Eigen::NumericalIssue; }
   template <typename Rhs>
   Eigen::MatrixXd solve(const Rhs& b) const {
-    return sparse_ ? Eigen::MatrixXd(sparse_->solve(b)) : Eigen::MatrixXd(dense_.solve(b));
+    if (sparse_) return sparse_->solve(b);
+    Eigen::MatrixXd x = b;
+    SolveLowerInPlace(dense_, x);
+    dense_.triangularView<Eigen::Lower>().transpose().solveInPlace(x);
+    return x;
   }
 
   // The inverse's block over `rows` (rows of the factorised matrix): X^T X with X = L^-1 P E,
@@ -57,8 +62,10 @@ class MapWindow::Factor {
     if (!sparse_) {
       Eigen::MatrixXd x = Eigen::MatrixXd::Zero(dense_.rows(), m);
       for (int c = 0; c < m; ++c) x(rows[c], c) = 1.0;
-      dense_.matrixL().solveInPlace(x);
-      return Gram(x);
+      SolveLowerInPlace(dense_, x);
+      Eigen::MatrixXd gram = Eigen::MatrixXd::Zero(m, m);
+      AddGramLower(x, gram);
+      return gram.selfadjointView<Eigen::Lower>();
     }
     const cholmod_factor& l = sparse_->factor();
     const int* super = static_cast<const int*>(l.super);
@@ -112,11 +119,11 @@ class MapWindow::Factor {
       const int ncols = super[s + 1] - super[s], nrows = pi[s + 1] - pi[s];
       const Eigen::Map<const Eigen::MatrixXd> block(lx + px[s], nrows, ncols);
       auto xs = x.block(start[s], lo, ncols, hi - lo);
-      block.topRows(ncols).triangularView<Eigen::Lower>().solveInPlace(xs);
+      SolveLowerInPlace(block.topRows(ncols), xs);
       // X's rows at s are final: their share of X^T X.
-      gram.block(lo, lo, hi - lo, hi - lo).selfadjointView<Eigen::Lower>().rankUpdate(xs.transpose());
+      AddGramLower(xs, gram.block(lo, lo, hi - lo, hi - lo));
       if (nrows == ncols) continue;
-      below.noalias() = block.bottomRows(nrows - ncols) * xs;
+      Multiply(block.bottomRows(nrows - ncols), xs, &below);
       for (int t = 0; t < nrows - ncols; ++t) {
         x.block(position(ls[pi[s] + ncols + t]), lo, 1, hi - lo) -= below.row(t);
       }
@@ -132,12 +139,6 @@ class MapWindow::Factor {
   }
 
  private:
-  static Eigen::MatrixXd Gram(const Eigen::MatrixXd& x) {
-    Eigen::MatrixXd g = Eigen::MatrixXd::Zero(x.cols(), x.cols());
-    g.selfadjointView<Eigen::Lower>().rankUpdate(x.transpose());
-    return g.selfadjointView<Eigen::Lower>();
-  }
-
   // The supernode of each column of L, each supernode's parent in the elimination tree (-1 for
   // a root) and the inverse of the fill-reducing permutation.
   void IndexSupernodes() {
@@ -171,7 +172,7 @@ class MapWindow::Factor {
     for (int s = 0; s < nsuper; ++s) postordered_ = postordered_ && size[s] == s - first_descendant_[s] + 1;
   }
 
-  Eigen::LLT<Eigen::MatrixXd> dense_;
+  Eigen::MatrixXd dense_;  // L of a small window (lower triangle)
   std::unique_ptr<SupernodalLLT> sparse_;
   bool ok_ = false;
   std::vector<int> column_super_, parent_, permuted_, first_descendant_;

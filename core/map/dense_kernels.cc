@@ -1,0 +1,76 @@
+#include "core/map/dense_kernels.h"
+
+extern "C" {
+void dpotrf_(const char* uplo, const int* n, double* a, const int* lda, int* info);
+void dpotri_(const char* uplo, const int* n, double* a, const int* lda, int* info);
+void dtrtri_(const char* uplo, const char* diag, const int* n, double* a, const int* lda, int* info);
+void dtrsm_(const char* side, const char* uplo, const char* transa, const char* diag, const int* m, const int* n,
+            const double* alpha, const double* a, const int* lda, double* b, const int* ldb);
+void dgemm_(const char* transa, const char* transb, const int* m, const int* n, const int* k, const double* alpha,
+            const double* a, const int* lda, const double* b, const int* ldb, const double* beta, double* c,
+            const int* ldc);
+void dsyrk_(const char* uplo, const char* trans, const int* n, const int* k, const double* alpha, const double* a,
+            const int* lda, const double* beta, double* c, const int* ldc);
+}
+
+namespace crowdmap {
+namespace {
+
+// A leading dimension BLAS accepts (at least 1, also for an empty matrix).
+int Leading(Eigen::Index stride) { return stride > 0 ? static_cast<int>(stride) : 1; }
+
+}  // namespace
+
+bool CholeskyInPlace(MatrixRef a) {
+  const int n = static_cast<int>(a.rows()), lda = Leading(a.outerStride());
+  if (n == 0) return true;
+  int info = 0;
+  dpotrf_("L", &n, a.data(), &lda, &info);
+  return info == 0;
+}
+
+void InverseFromCholeskyInPlace(MatrixRef l) {
+  const int n = static_cast<int>(l.rows()), lda = Leading(l.outerStride());
+  if (n == 0) return;
+  int info = 0;
+  dpotri_("L", &n, l.data(), &lda, &info);  // info != 0 only for a zero on L's diagonal
+  l.triangularView<Eigen::StrictlyUpper>() = l.transpose();
+}
+
+void LowerInverseInPlace(MatrixRef l) {
+  const int n = static_cast<int>(l.rows()), lda = Leading(l.outerStride());
+  if (n == 0) return;
+  int info = 0;
+  dtrtri_("L", "N", &n, l.data(), &lda, &info);
+}
+
+void SolveLowerInPlace(ConstMatrixRef l, MatrixRef x) {
+  const int m = static_cast<int>(x.rows()), n = static_cast<int>(x.cols());
+  if (m == 0 || n == 0) return;
+  const int lda = Leading(l.outerStride()), ldb = Leading(x.outerStride());
+  const double one = 1.0;
+  dtrsm_("L", "L", "N", "N", &m, &n, &one, l.data(), &lda, x.data(), &ldb);
+}
+
+void AddGramLower(ConstMatrixRef x, MatrixRef c) {
+  const int n = static_cast<int>(x.cols()), k = static_cast<int>(x.rows());
+  if (n == 0 || k == 0) return;
+  const int lda = Leading(x.outerStride()), ldc = Leading(c.outerStride());
+  const double one = 1.0;
+  dsyrk_("L", "T", &n, &k, &one, x.data(), &lda, &one, c.data(), &ldc);
+}
+
+void Multiply(ConstMatrixRef a, ConstMatrixRef b, Eigen::MatrixXd* c) {
+  const int m = static_cast<int>(a.rows()), n = static_cast<int>(b.cols()), k = static_cast<int>(a.cols());
+  c->resize(m, n);
+  if (m == 0 || n == 0) return;
+  if (k == 0) {
+    c->setZero();
+    return;
+  }
+  const int lda = Leading(a.outerStride()), ldb = Leading(b.outerStride()), ldc = Leading(c->outerStride());
+  const double one = 1.0, zero = 0.0;
+  dgemm_("N", "N", &m, &n, &k, &one, a.data(), &lda, b.data(), &ldb, &zero, c->data(), &ldc);
+}
+
+}  // namespace crowdmap

@@ -1,0 +1,80 @@
+#include "core/map/dense_kernels.h"
+
+#include <Eigen/Cholesky>
+#include <Eigen/LU>
+#include <gtest/gtest.h>
+
+namespace crowdmap {
+namespace {
+
+// A symmetric positive definite n x n matrix.
+Eigen::MatrixXd SpdMatrix(int n, int seed) {
+  std::srand(seed);
+  const Eigen::MatrixXd r = Eigen::MatrixXd::Random(n, n);
+  return r * r.transpose() + n * Eigen::MatrixXd::Identity(n, n);
+}
+
+double RelativeError(const Eigen::MatrixXd& got, const Eigen::MatrixXd& want) {
+  return (got - want).norm() / want.norm();
+}
+
+// Every kernel on a block inside a larger matrix (an outer stride that is not the block's rows),
+// against Eigen's own result.
+TEST(DenseKernels, MatchEigenOnBlocksOfLargerMatrices) {
+  const int n = 70, m = 45;
+  const Eigen::MatrixXd a = SpdMatrix(n, 1);
+  const Eigen::LLT<Eigen::MatrixXd> llt(a);
+  const Eigen::MatrixXd l = llt.matrixL();
+
+  Eigen::MatrixXd big = Eigen::MatrixXd::Constant(n + 9, n + 4, 7.0);
+  big.block(3, 2, n, n) = a;
+  ASSERT_TRUE(CholeskyInPlace(big.block(3, 2, n, n)));
+  const Eigen::MatrixXd factor = big.block(3, 2, n, n).triangularView<Eigen::Lower>();
+  EXPECT_LT(RelativeError(factor, l), 1e-13);
+  EXPECT_EQ(big(2, 2), 7.0);  // outside the block: untouched
+
+  InverseFromCholeskyInPlace(big.block(3, 2, n, n));
+  EXPECT_LT(RelativeError(big.block(3, 2, n, n), a.inverse()), 1e-12);
+
+  Eigen::MatrixXd inverse = l;
+  LowerInverseInPlace(inverse);
+  const Eigen::MatrixXd lower_inverse = inverse.triangularView<Eigen::Lower>();
+  EXPECT_LT(RelativeError(lower_inverse, l.inverse()), 1e-12);
+
+  const Eigen::MatrixXd x = Eigen::MatrixXd::Random(n, m);
+  Eigen::MatrixXd wide = Eigen::MatrixXd::Zero(n + 5, m + 3);
+  wide.block(5, 3, n, m) = x;
+  SolveLowerInPlace(l, wide.block(5, 3, n, m));
+  EXPECT_LT(RelativeError(wide.block(5, 3, n, m), l.triangularView<Eigen::Lower>().solve(x)), 1e-12);
+
+  Eigen::MatrixXd gram = Eigen::MatrixXd::Identity(m, m);
+  AddGramLower(wide.block(5, 3, n, m), gram);
+  const Eigen::MatrixXd solved = wide.block(5, 3, n, m);
+  const Eigen::MatrixXd want = Eigen::MatrixXd::Identity(m, m) + solved.transpose() * solved;
+  const Eigen::MatrixXd got = gram.selfadjointView<Eigen::Lower>();
+  EXPECT_LT(RelativeError(got, want), 1e-13);
+
+  Eigen::MatrixXd product;
+  Multiply(a.topRows(30), wide.block(5, 3, n, m), &product);
+  EXPECT_LT(RelativeError(product, a.topRows(30) * solved), 1e-13);
+}
+
+TEST(DenseKernels, CholeskyRefusesAMatrixThatIsNotPositiveDefinite) {
+  Eigen::MatrixXd a = SpdMatrix(12, 2);
+  a(5, 5) = -1.0;
+  EXPECT_FALSE(CholeskyInPlace(a));
+}
+
+TEST(DenseKernels, EmptyMatricesAreNoOps) {
+  Eigen::MatrixXd empty(0, 0), rows(4, 0), product;
+  EXPECT_TRUE(CholeskyInPlace(empty));
+  InverseFromCholeskyInPlace(empty);
+  LowerInverseInPlace(empty);
+  SolveLowerInPlace(Eigen::MatrixXd::Identity(4, 4), rows);
+  AddGramLower(rows, empty);
+  Multiply(Eigen::MatrixXd(3, 0), Eigen::MatrixXd(0, 2), &product);
+  EXPECT_EQ(product, Eigen::MatrixXd::Zero(3, 2));
+}
+
+}  // namespace
+}  // namespace crowdmap
