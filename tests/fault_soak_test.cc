@@ -4,10 +4,9 @@
 // to an in-process replay of the same passages in the same order), and uploads on a full disk
 // must be refused with a retryable code and a message.
 //
-// CI runs a short version; the full run (see README, "Faults and recovery"):
-//   CROWDMAP_SOAK_KILLS=24 CROWDMAP_SOAK_PASSAGES=130 CROWDMAP_SOAK_LANDMARKS=25 CROWDMAP_SOAK_PASSAGE_S=200 \
-//   CROWDMAP_SOAK_FULL_DISK_S=60 CROWDMAP_SOAK_DISK_PASSAGES=60 \
-//     ./build/tests/service_fault_soak_test
+// CI runs a short version; the full run (see README, "Faults and recovery"), one command:
+//   CROWDMAP_SOAK_KILLS=24 CROWDMAP_SOAK_PASSAGES=130 CROWDMAP_SOAK_LANDMARKS=25 CROWDMAP_SOAK_PASSAGE_S=200
+//   CROWDMAP_SOAK_FULL_DISK_S=60 CROWDMAP_SOAK_DISK_PASSAGES=60 ./build/tests/service_fault_soak_test
 #include <sys/mount.h>
 
 #include <algorithm>

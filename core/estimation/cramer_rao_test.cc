@@ -68,7 +68,9 @@ TEST(CramerRaoBound, AnEstimatedCameraYawLoosensTheBoundByWhatItsPriorLeavesOpen
     for (int i = 0; i < passages; ++i) {
       const PassageFisherInformation info = Information(loop, i, yaw);
       EXPECT_EQ(info.camera_yaw_vehicle.has_value(), yaw);
-      if (yaw) EXPECT_EQ(info.information.rows(), 2 * static_cast<int>(info.landmarks.size()) + 1);
+      if (yaw) {
+        EXPECT_EQ(info.information.rows(), 2 * static_cast<int>(info.landmarks.size()) + 1);
+      }
       bound.Add(info);
     }
     const auto cov = bound.Covariances();

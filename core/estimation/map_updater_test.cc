@@ -825,7 +825,9 @@ TEST(MapUpdater, RelinearizesTheStalestPassageOnceTheMapHasMovedAwayFromIt) {
     ASSERT_TRUE(update.ok()) << update.status();
     map.Apply(update->delta);
     updater.Applied(applied.back(), update->delta);
-    if (i == 0) EXPECT_FALSE(updater.StalestPassage(map).has_value()) << "nothing moved since the first passage";
+    if (i == 0) {
+      EXPECT_FALSE(updater.StalestPassage(map).has_value()) << "nothing moved since the first passage";
+    }
     relinearized += RelinearizeStaleInMemory(passage_of, &updater, &map);
   }
   // The first passages' landmarks move by about a sigma with each of the next ones.

@@ -152,7 +152,9 @@ TEST(SubdivideGraph, CorrelatedGnssKeepsEveryRangeThreeCorrelationTimesLong) {
   EXPECT_EQ(ranges.front().first, 0);
   EXPECT_EQ(ranges.back().last, graph.node_count() - 1);
   for (size_t k = 0; k < ranges.size(); ++k) {
-    if (k > 0) EXPECT_EQ(ranges[k].first, ranges[k - 1].last + 1);
+    if (k > 0) {
+      EXPECT_EQ(ranges[k].first, ranges[k - 1].last + 1);
+    }
     const double span_s = graph.node_times_s[ranges[k].last] - graph.node_times_s[ranges[k].first];
     EXPECT_GT(span_s, 2.0 * tau) << k;  // balanced by dimension, so about 250 s each
   }

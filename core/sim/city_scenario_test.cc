@@ -150,7 +150,9 @@ TEST(CityScenario, RouteHasTheRequestedLengthAndStaysOnTheStreets) {
       const OdometrySample& in = drive.inputs[j];
       EXPECT_LE(std::abs(in.steering_rad), options.max_steering_rad + 1e-12);
       // Smooth curvature: the lane's arcs are followed without steering jumps.
-      if (j > 0) EXPECT_LT(std::abs(in.steering_rad - drive.inputs[j - 1].steering_rad) / drive.dt_s, 0.5);
+      if (j > 0) {
+        EXPECT_LT(std::abs(in.steering_rad - drive.inputs[j - 1].steering_rad) / drive.dt_s, 0.5);
+      }
       EXPECT_GE(in.speed_mps, std::min(options.turn_speed_mps, options.speed_min_mps) - 1e-9);
       EXPECT_LE(in.speed_mps, options.speed_max_mps + 1e-9);
     }
