@@ -279,9 +279,11 @@ absl::StatusOr<MapWindow> MapWindow::Build(const MapReaderInterface& map, const 
     });
   }
   Eigen::SparseMatrix<double> information(2 * n, 2 * n);
-  information.setFromTriplets(triplets.begin(), triplets.end());
   w.closed_ = edge.empty();
   if (options.estimate || w.closed_) {
+    // The information with the landmarks outside held (a covariance read of an open window needs
+    // only the conservative one below).
+    information.setFromTriplets(triplets.begin(), triplets.end());
     auto mean_llt = std::make_shared<const Factor>(information);
     if (mean_llt->info() != Eigen::Success) {
       return absl::FailedPreconditionError(
