@@ -20,6 +20,8 @@ MAP_DB=$1
 PASSAGES=$2
 READERS=${3:-2}
 ROOT=$(cd "$(dirname "$0")/.." && pwd)
+# shellcheck source=lib/mapd-bench.sh
+source "$ROOT/scripts/lib/mapd-bench.sh"
 MAPD=${MAPD:-$ROOT/build/server/mapd}
 MAPCTL=${MAPCTL:-$ROOT/build/client/mapctl}
 MAPD_ARGS=${MAPD_ARGS:---warmup-passages 0 --relinearize-until-passages 0}
@@ -37,14 +39,10 @@ trap cleanup EXIT
 FILES=("$PASSAGES"/passage-*)
 N=${#FILES[@]}
 [[ -e "${FILES[0]}" ]] || { echo "no passage files in $PASSAGES" >&2; exit 1; }
-cp "$MAP_DB" "$SCRATCH/map.db"
-[[ -f "$MAP_DB.queue" ]] && cp "$MAP_DB.queue" "$SCRATCH/map.db.queue"
+copy_map "$MAP_DB" "$SCRATCH"
 # shellcheck disable=SC2086
-"$MAPD" --db "$SCRATCH/map.db" --listen "127.0.0.1:$PORT" --vehicle-upload-rate 1000 \
-  --vehicle-upload-burst 1000 $MAPD_ARGS > "$SCRATCH/mapd.log" 2>&1 &
-MAPD_PID=$!
-for _ in $(seq 300); do grep -q "event=started" "$SCRATCH/mapd.log" && break; sleep 1; done
-grep -q "event=started" "$SCRATCH/mapd.log" || { echo "mapd did not start: $SCRATCH/mapd.log" >&2; exit 1; }
+start_mapd "$MAPD" "$SCRATCH/mapd.log" --db "$SCRATCH/map.db" --listen "127.0.0.1:$PORT" \
+  --vehicle-upload-rate 1000 --vehicle-upload-burst 1000 $MAPD_ARGS
 for r in $(seq "$READERS"); do
   PYTHONPATH=$GEN /usr/bin/python3 "$ROOT/scripts/query-region-bench.py" "127.0.0.1:$PORT" 1000000 \
     > "$SCRATCH/reader$r.txt" 2>&1 &
@@ -53,14 +51,14 @@ done
 sleep 3  # the readers list the map's landmarks first
 START=$(date +%s.%N)
 "$MAPCTL" upload --server "127.0.0.1:$PORT" "${FILES[@]}" > "$SCRATCH/upload.log" 2>&1
-until [[ $(grep -cE "event=(applied|failed|quarantined) " "$SCRATCH/mapd.log") -ge $N ]]; do sleep 0.5; done
+wait_finished "$SCRATCH/mapd.log" "$N"
 END=$(date +%s.%N)
 /usr/bin/python3 - "$SCRATCH/mapd.log" "$START" "$END" "$READERS" <<'PY'
 import re, sys
 log, start, end, readers = sys.argv[1], float(sys.argv[2]), float(sys.argv[3]), sys.argv[4]
 c = sorted(float(m) for m in re.findall(r"event=applied .*?commit_ms=([0-9.]+)", open(log).read()))
 q = lambda p: c[min(len(c) - 1, int(p * len(c)))]
-refused = len(re.findall(r"event=(?:failed|quarantined) ", open(log).read()))
+refused = len(re.findall(r"event=(?:rejected|failed|quarantined) ", open(log).read()))
 print(f"readers={readers} applied={len(c)} refused={refused} seconds={end - start:.1f} commit_ms_p50={q(0.5):.1f} "
       f"commit_ms_p95={q(0.95):.1f} commit_ms_max={c[-1]:.1f}")
 PY

@@ -21,6 +21,8 @@ shift 2
 WORKERS=("${@:-1}")
 [[ $# -eq 0 ]] && WORKERS=(1 2)
 ROOT=$(cd "$(dirname "$0")/.." && pwd)
+# shellcheck source=lib/mapd-bench.sh
+source "$ROOT/scripts/lib/mapd-bench.sh"
 BUILD=${BUILD:-$ROOT/build}
 MAPD_ARGS=${MAPD_ARGS:---window-hops 2 --warmup-passages 0 --relinearize-until-passages 0}
 PORT=${PORT:-50291}
@@ -34,23 +36,14 @@ declare -A RATE
 for W in "${WORKERS[@]}"; do
   DIR=$SCRATCH/w$W
   mkdir -p "$DIR"
-  cp "$MAP_DB" "$DIR/map.db"
-  [[ -f "$MAP_DB.queue" ]] && cp "$MAP_DB.queue" "$DIR/map.db.queue"
+  copy_map "$MAP_DB" "$DIR"
   # shellcheck disable=SC2086
-  "$BUILD/server/mapd" --db "$DIR/map.db" --listen "127.0.0.1:$PORT" --workers "$W" $MAPD_ARGS > "$DIR/mapd.log" 2>&1 &
-  PID=$!
-  until grep -q "event=started" "$DIR/mapd.log"; do
-    kill -0 $PID 2>/dev/null || { cat "$DIR/mapd.log" >&2; exit 1; }
-    sleep 0.2
-  done
+  start_mapd "$BUILD/server/mapd" "$DIR/mapd.log" --db "$DIR/map.db" --listen "127.0.0.1:$PORT" --workers "$W" $MAPD_ARGS
+  PID=$MAPD_PID
   START=$(date +%s.%N)
   "$BUILD/client/mapctl" upload --server "127.0.0.1:$PORT" "${FILES[@]}" > "$DIR/upload.log"
-  while (( $(grep -c -E "event=(applied|rejected|quarantined|failed) " "$DIR/mapd.log") < N )); do
-    sleep 0.2
-    echo -ne "\rworkers=$W finished $(grep -c -E "event=(applied|rejected|quarantined|failed) " "$DIR/mapd.log")/$N" >&2
-  done
+  wait_finished "$DIR/mapd.log" "$N"
   END=$(date +%s.%N)
-  echo >&2
   HWM=$(awk '/VmHWM/ {print $2}' /proc/$PID/status)
   kill -INT $PID
   wait $PID || true

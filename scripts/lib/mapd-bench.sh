@@ -1,0 +1,35 @@
+# Shared by the benches that apply passages through a real mapd on loopback (source it).
+#   copy_map MAP_DB DIR       MAP_DB (and MAP_DB.queue) copied to DIR/map.db, the original untouched
+#   start_mapd MAPD LOG ARGS  mapd started in the background on ARGS, its log in LOG; returns once it
+#                             listens (MAPD_PID), or exits with its log when it stops first
+#   finished_count LOG        passages that reached a final state (applied, rejected, failed, quarantined)
+#   wait_finished LOG N       waits until N passages are final, the count on stderr as it goes
+
+copy_map() {
+  cp "$1" "$2/map.db"
+  if [[ -f "$1.queue" ]]; then cp "$1.queue" "$2/map.db.queue"; fi
+}
+
+start_mapd() {
+  local mapd=$1 log=$2
+  shift 2
+  "$mapd" "$@" > "$log" 2>&1 &
+  MAPD_PID=$!
+  until grep -q "event=started" "$log"; do
+    kill -0 "$MAPD_PID" 2>/dev/null || { cat "$log" >&2; exit 1; }
+    sleep 0.2
+  done
+}
+
+finished_count() {
+  grep -c -E "event=(applied|rejected|failed|quarantined) " "$1" || true
+}
+
+wait_finished() {
+  local log=$1 n=$2
+  while (( $(finished_count "$log") < n )); do
+    sleep 0.2
+    echo -ne "\rfinished $(finished_count "$log")/$n" >&2
+  done
+  echo >&2
+}
