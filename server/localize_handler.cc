@@ -1,5 +1,4 @@
 // MapService::LocalizePassage: a passage localised against the map, read-only.
-#include <algorithm>
 #include <unordered_map>
 #include <vector>
 
@@ -45,12 +44,10 @@ grpc::Status MapService::LocalizePassage(grpc::ServerContext* ctx, const pb::Loc
   absl::StatusOr<Passage> passage = PassageFromProto(request->passage());
   if (!passage.ok()) return log.Done(passage.status());
   log.Add(absl::StrCat("vehicle=", passage->vehicle_id, " passage=", passage->passage_id));
-  // The map landmarks the passage detects, with their joint covariance.
+  // The map landmarks the passage detects, with their joint covariance (the store takes each once).
   std::vector<LandmarkId> detected;
   detected.reserve(passage->detections.size());
   for (const Detection& d : passage->detections) detected.push_back(d.landmark_id);
-  std::sort(detected.begin(), detected.end());
-  detected.erase(std::unique(detected.begin(), detected.end()), detected.end());
   absl::StatusOr<LandmarkPage> page = context_->store->GetLandmarks(detected, /*include_cross=*/true);
   if (!page.ok()) return log.Done(page.status());
   // The vehicle's camera yaw as its uploads estimated it, when they did.
