@@ -351,6 +351,9 @@ absl::StatusOr<PassageLocalization> LocalizePassage(const Passage& passage, cons
   if (absl::Status s = map.Validate(); !s.ok()) return s;
   GraphOptions graph_options;
   graph_options.detections_per_landmark = 0;
+  // InitializePoses refines the aligned dead reckoning against the GNSS and the map's bearings in
+  // one solve: the graph's own GNSS-only refinement before it would be undone.
+  graph_options.refine_initial_poses = false;
   absl::StatusOr<PassageGraph> graph = BuildPassageGraph(passage, graph_options);
   if (!graph.ok()) return graph.status();
 
@@ -395,28 +398,21 @@ absl::StatusOr<PassageLocalization> LocalizePassage(const Passage& passage, cons
     out.rejected.push_back({graph->node_times_s[d.observation->node], d.observation->landmark_id, d.observation->u_px,
                             r, false});
   }
-  // Round 0 is robust; later rounds solve the kept detections plainly, until the gates reject
-  // nothing more (or the rounds run out: then the last rejections are solved without). A
-  // correlated map's joint prior enters the last solve.
+  // Round 0 is robust and only feeds the gates; later rounds solve the kept detections plainly
+  // (a correlated map's with its joint prior) until the gates reject nothing more, or the rounds
+  // run out: then the last rejections are solved without.
   JointProblem problem;
-  ceres::Solver::Summary summary;
-  bool solved_after_gating = false;
-  for (int round = 0; round < options.max_gating_rounds && !solved_after_gating; ++round) {
-    problem = BuildProblem(*graph, passage, prior, detections, round == 0 ? options.robust_loss_scale_sigmas : 0.0,
-                           /*marginal_priors=*/true, &poses, &landmarks);
-    // The robust round only feeds the gates: its last digits do not change a decision (its
-    // reweighting converges linearly, a dozen iterations to 1e-12).
-    if (absl::Status s = Solve(options, round == 0 ? kGatingTolerance : kFinalTolerance, problem.problem.get(), &summary);
-        !s.ok()) {
-      return s;
-    }
-    const int rejected = Gate(*graph, passage, prior, poses, landmarks, options, &detections, &out.rejected);
-    solved_after_gating = round > 0 && rejected == 0;
-  }
-  std::vector<Eigen::Matrix3d> covariances;
+  std::vector<Eigen::Matrix3d> covariances;  // a correlated map's, from its solve
   double cost = 0.0;
-  if (prior.correlated) {
-    problem = BuildProblem(*graph, passage, prior, detections, 0.0, /*marginal_priors=*/false, &poses, &landmarks);
+  auto solve_plainly = [&]() -> absl::Status {
+    problem = BuildProblem(*graph, passage, prior, detections, 0.0, /*marginal_priors=*/!prior.correlated, &poses,
+                           &landmarks);
+    if (!prior.correlated) {
+      ceres::Solver::Summary summary;
+      if (absl::Status s = Solve(options, kFinalTolerance, problem.problem.get(), &summary); !s.ok()) return s;
+      cost = summary.final_cost;
+      return absl::OkStatus();
+    }
     std::vector<double*> blocks;
     for (int k : problem.seen) blocks.push_back(landmarks[k].data());
     DensePriorSolverOptions dense_options;
@@ -426,15 +422,29 @@ absl::StatusOr<PassageLocalization> LocalizePassage(const Passage& passage, cons
     if (!solution.ok()) return solution.status();
     covariances = std::move(solution->pose_covariances);
     cost = solution->cost;
-  } else {
-    if (!solved_after_gating) {
-      problem = BuildProblem(*graph, passage, prior, detections, 0.0, /*marginal_priors=*/true, &poses, &landmarks);
-      if (absl::Status s = Solve(options, kFinalTolerance, problem.problem.get(), &summary); !s.ok()) return s;
-    }
+    return absl::OkStatus();
+  };
+  {
+    problem = BuildProblem(*graph, passage, prior, detections, options.robust_loss_scale_sigmas,
+                           /*marginal_priors=*/true, &poses, &landmarks);
+    // Its last digits do not change a decision (the robust reweighting converges linearly, a
+    // dozen iterations to 1e-12).
+    ceres::Solver::Summary summary;
+    if (absl::Status s = Solve(options, kGatingTolerance, problem.problem.get(), &summary); !s.ok()) return s;
+    Gate(*graph, passage, prior, poses, landmarks, options, &detections, &out.rejected);
+  }
+  bool gated = false;
+  for (int round = 1; round < options.max_gating_rounds && !gated; ++round) {
+    if (absl::Status s = solve_plainly(); !s.ok()) return s;
+    gated = Gate(*graph, passage, prior, poses, landmarks, options, &detections, &out.rejected) == 0;
+  }
+  if (!gated) {
+    if (absl::Status s = solve_plainly(); !s.ok()) return s;
+  }
+  if (!prior.correlated) {
     absl::StatusOr<std::vector<Eigen::Matrix3d>> marginals = PoseCovariances(problem.problem.get(), &poses, &landmarks);
     if (!marginals.ok()) return marginals.status();
     covariances = *std::move(marginals);
-    cost = summary.final_cost;
   }
 
   out.chi2 = 2.0 * cost;
