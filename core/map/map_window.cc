@@ -399,6 +399,14 @@ absl::StatusOr<Eigen::MatrixXd> MapWindow::Covariance(const std::vector<Landmark
   return cov;
 }
 
+absl::StatusOr<Eigen::MatrixXd> MapWindow::FullCovariance() const {
+  Eigen::MatrixXd cov(covariance_information_);
+  if (!CholeskyInPlace(cov)) return absl::FailedPreconditionError("map information is not positive definite");
+  InverseFromCholeskyInPlace(cov);
+  if (!cov.allFinite()) return absl::InternalError("map covariance is not finite");
+  return cov;
+}
+
 std::vector<Eigen::Matrix2d> MapWindow::Marginals() const {
   if (ids_.empty()) return {};
   // Takahashi's recursion runs on a simplicial factor (Build checked positive definiteness).

@@ -48,6 +48,9 @@ class MapWindow {
   const Eigen::VectorXd& offsets() const { return offsets_; }
   // Joint covariance of `ids` (all in the window), East/North at their anchors.
   absl::StatusOr<Eigen::MatrixXd> Covariance(const std::vector<LandmarkId>& ids) const;
+  // The covariance of every window landmark (landmarks() order): one dense inversion of the
+  // window's information, (2n)^2 doubles; for windows small enough to keep it whole.
+  absl::StatusOr<Eigen::MatrixXd> FullCovariance() const;
   // Their columns of the window's covariance: 2 rows per window landmark (landmarks() order), 2
   // columns per landmark of `ids`.
   absl::StatusOr<Eigen::MatrixXd> CovarianceColumns(const std::vector<LandmarkId>& ids) const;

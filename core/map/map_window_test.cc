@@ -185,6 +185,18 @@ TEST(MapWindow, CovarianceOfAnySubsetIsTheInverseBlock) {
     }
     EXPECT_EQ(w->Covariance({}).value().size(), 0);
     EXPECT_EQ(w->Covariance({static_cast<LandmarkId>(n + 1)}).status().code(), absl::StatusCode::kInvalidArgument);
+    // The whole covariance, in the window's order.
+    absl::StatusOr<Eigen::MatrixXd> full = w->FullCovariance();
+    ASSERT_TRUE(full.ok()) << full.status();
+    ASSERT_EQ(full->rows(), 2 * n);
+    const std::vector<LandmarkId>& order = w->landmarks();
+    for (int a = 0; a < n; ++a) {
+      for (int b = 0; b < n; ++b) {
+        const Eigen::Matrix2d expected = cov.block<2, 2>(2 * (order[a] - 1), 2 * (order[b] - 1));
+        ASSERT_LT((full->block<2, 2>(2 * a, 2 * b) - expected).cwiseAbs().maxCoeff(), 1e-9 * cov.diagonal().maxCoeff())
+            << "side " << side << ", landmarks " << order[a] << " and " << order[b];
+      }
+    }
   }
 }
 

@@ -18,9 +18,14 @@ bool ById(const Landmark& a, const Landmark& b) { return a.id < b.id; }
 }  // namespace
 
 absl::StatusOr<std::unique_ptr<CachedMapStore>> CachedMapStore::Create(std::unique_ptr<MapStoreInterface> inner,
-                                                                       int covariance_window_hops) {
+                                                                       int covariance_window_hops,
+                                                                       int covariance_cache_landmarks) {
   if (inner == nullptr) return absl::InvalidArgumentError("CachedMapStore needs a store to wrap");
-  std::unique_ptr<CachedMapStore> store(new CachedMapStore(std::move(inner), covariance_window_hops));
+  if (covariance_cache_landmarks < 0) {
+    return absl::InvalidArgumentError("covariance_cache_landmarks: must be >= 0");
+  }
+  std::unique_ptr<CachedMapStore> store(
+      new CachedMapStore(std::move(inner), covariance_window_hops, covariance_cache_landmarks));
   MapState& map = store->map_;
   if (auto s = store->inner_->LoadMap(&map); !s.ok()) return s;
   if (auto s = CheckStoredMap(map); !s.ok()) return s;
@@ -156,22 +161,29 @@ std::vector<Landmark> CachedMapStore::Select(const View& view, const BoundingBox
   return out;
 }
 
-std::shared_ptr<const MapWindow> CachedMapStore::WholeMapWindow() const {
+CachedMapStore::WholeMap CachedMapStore::WholeMapWindow() const {
   std::lock_guard<std::mutex> lock(window_mu_);
-  if (window_ == nullptr || window_version_ != map_.version()) {
-    window_.reset();
+  if (whole_map_.window == nullptr || window_version_ != map_.version()) {
+    whole_map_ = {};
     absl::StatusOr<MapWindow> window = MapWindow::Build(map_, map_.LandmarkIds(), MapWindowOptions());
-    if (!window.ok()) return nullptr;  // the caller falls back to a window of its own, with the error
-    window_ = std::make_shared<const MapWindow>(*std::move(window));
+    if (!window.ok()) return {};  // the caller falls back to a window of its own, with the error
+    whole_map_.window = std::make_shared<const MapWindow>(*std::move(window));
     window_version_ = map_.version();
+    if (static_cast<int>(whole_map_.window->landmarks().size()) <= covariance_cache_landmarks_) {
+      // Without it (an error), each read recovers its own blocks and reports the error.
+      if (absl::StatusOr<Eigen::MatrixXd> cov = whole_map_.window->FullCovariance(); cov.ok()) {
+        whole_map_.covariance = std::make_shared<const Eigen::MatrixXd>(*std::move(cov));
+      }
+    }
   }
-  return window_;
+  return whole_map_;
 }
 
 absl::Status CachedMapStore::AppendCovariances(LandmarkPage* page) const {
   if (covariance_window_hops_ == 0 && !page->landmarks.empty()) {
-    if (std::shared_ptr<const MapWindow> window = WholeMapWindow(); window != nullptr) {
-      return AppendCrossCovariances(*window, page);
+    if (const WholeMap whole = WholeMapWindow(); whole.window != nullptr) {
+      return whole.covariance != nullptr ? AppendCrossCovariances(*whole.window, *whole.covariance, page)
+                                         : AppendCrossCovariances(*whole.window, page);
     }
   }
   return AppendCrossCovariances(map_, covariance_window_hops_, page);

@@ -27,9 +27,17 @@ namespace crowdmap {
 // the tiles it touches (plus the table of tile pointers).
 class CachedMapStore : public MapStoreInterface {
  public:
+  // Maps of at most this many landmarks keep their whole covariance (8 (2n)^2 bytes: 32 MiB at
+  // 1,024) per version, for reads with covariances when covariance_window_hops is 0.
+  static constexpr int kDefaultCovarianceCacheLandmarks = 1024;
+
   // `covariance_window_hops`: see SqliteMapStoreOptions::covariance_window_hops.
-  static absl::StatusOr<std::unique_ptr<CachedMapStore>> Create(std::unique_ptr<MapStoreInterface> inner,
-                                                                int covariance_window_hops = 0);
+  // `covariance_cache_landmarks`: up to this map size (0: never), the first read with covariances
+  // after a commit inverts the map's information once, and the version's later such reads copy
+  // their blocks from it.
+  static absl::StatusOr<std::unique_ptr<CachedMapStore>> Create(
+      std::unique_ptr<MapStoreInterface> inner, int covariance_window_hops = 0,
+      int covariance_cache_landmarks = kDefaultCovarianceCacheLandmarks);
 
   absl::StatusOr<std::vector<absl::StatusOr<EnqueueOutcome>>> EnqueuePassages(const std::vector<NewPassage>& passages,
                                                                               int64_t max_queue) override {
@@ -93,8 +101,10 @@ class CachedMapStore : public MapStoreInterface {
     std::unordered_map<TileKey, std::shared_ptr<const Bucket>> tiles;
   };
 
-  CachedMapStore(std::unique_ptr<MapStoreInterface> inner, int covariance_window_hops)
-      : inner_(std::move(inner)), covariance_window_hops_(covariance_window_hops) {}
+  CachedMapStore(std::unique_ptr<MapStoreInterface> inner, int covariance_window_hops, int covariance_cache_landmarks)
+      : inner_(std::move(inner)),
+        covariance_window_hops_(covariance_window_hops),
+        covariance_cache_landmarks_(covariance_cache_landmarks) {}
 
   static TileKey KeyOf(const TileId& tile) { return (static_cast<uint64_t>(tile.x) << 32) | static_cast<uint32_t>(tile.y); }
   std::shared_ptr<const View> CurrentView() const;
@@ -108,18 +118,24 @@ class CachedMapStore : public MapStoreInterface {
 
   const std::unique_ptr<MapStoreInterface> inner_;
   const int covariance_window_hops_;
+  const int covariance_cache_landmarks_;
   // The map with its factors, for covariance reads; written under an exclusive lock by commits,
   // together with the view's publication. Writer-preferring: reads with covariances hold it for a
   // whole recovery, and a stream of them must not hold a commit's publication back.
   mutable WriterPreferringMutex map_mu_;
   MapState map_;
   // Over the whole map at one version, for reads with covariances (covariance_window_hops_ 0): one
-  // factorisation serves every such read until the next commit. Built by the first read that needs
-  // it, under map_mu_ shared; window_mu_ orders its building.
-  std::shared_ptr<const MapWindow> WholeMapWindow() const;
+  // factorisation serves every such read until the next commit, and on a small map (up to
+  // covariance_cache_landmarks_) its whole covariance too. Built by the first read that needs it,
+  // under map_mu_ shared; window_mu_ orders its building.
+  struct WholeMap {
+    std::shared_ptr<const MapWindow> window;       // null when it cannot be built
+    std::shared_ptr<const Eigen::MatrixXd> covariance;  // null on a larger map
+  };
+  WholeMap WholeMapWindow() const;
   absl::Status AppendCovariances(LandmarkPage* page) const;
   mutable std::mutex window_mu_;
-  mutable std::shared_ptr<const MapWindow> window_;
+  mutable WholeMap whole_map_;
   mutable int64_t window_version_ = -1;
   mutable std::mutex view_mu_;  // guards the pointer only; held for a copy of it
   std::shared_ptr<const View> view_;

@@ -41,6 +41,22 @@ absl::Status AppendCrossCovariances(const MapWindow& window, LandmarkPage* page)
   return absl::OkStatus();
 }
 
+absl::Status AppendCrossCovariances(const MapWindow& window, const Eigen::MatrixXd& window_covariance,
+                                    LandmarkPage* page) {
+  if (page->landmarks.empty()) return absl::OkStatus();
+  const std::vector<LandmarkId> ids = IdsOf(*page);
+  std::vector<int> rows;
+  rows.reserve(2 * ids.size());
+  for (LandmarkId id : ids) {
+    const int k = window.index(id);
+    if (k < 0) return absl::InternalError(absl::StrCat("covariance read: landmark ", id, " is not in the window"));
+    rows.push_back(2 * k);
+    rows.push_back(2 * k + 1);
+  }
+  PutCovariance(ids, window_covariance(rows, rows), page);
+  return absl::OkStatus();
+}
+
 namespace {
 
 void PutCovariance(const std::vector<LandmarkId>& ids, const Eigen::MatrixXd& cov_matrix, LandmarkPage* page) {

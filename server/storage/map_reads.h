@@ -14,6 +14,10 @@ namespace crowdmap {
 absl::Status AppendCrossCovariances(const MapReaderInterface& map, int window_hops, LandmarkPage* page);
 // The same from a window that holds every landmark of the page (e.g. one over the whole map).
 absl::Status AppendCrossCovariances(const MapWindow& window, LandmarkPage* page);
+// The same from the whole covariance of such a window (MapWindow::Covariance of all its landmarks,
+// 2 rows and columns per landmark in the window's order): copies of its blocks.
+absl::Status AppendCrossCovariances(const MapWindow& window, const Eigen::MatrixXd& window_covariance,
+                                    LandmarkPage* page);
 
 // Landmark `id` of `map` and the passages whose factors it is in. NotFound when it is not mapped.
 absl::StatusOr<LandmarkProvenance> ProvenanceOf(const MapReaderInterface& map, LandmarkId id);

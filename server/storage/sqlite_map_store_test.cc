@@ -1150,12 +1150,16 @@ TEST(CachedMapStore, AnswersLikeSqliteAcrossCommitsThatMoveLandmarksBetweenTiles
   ExpectSamePage((*reopened)->QueryRegion(around, 0, 0, false), (*cached)->QueryRegion(around, 0, 0, false));
 }
 
-// Reads with covariances share one factorisation of the whole map per version: after every commit
-// (each changes the information), twice in a row, they equal SQLite's, which factorises per read.
-TEST(CachedMapStore, CovarianceReadsFollowEveryCommit) {
+// Reads with covariances share one factorisation of the whole map per version, and on a small
+// map its whole covariance (the parameter: the largest map that keeps it; 0 = never): after every
+// commit (each changes the information), twice in a row, they equal SQLite's, which factorises per
+// read.
+class CachedMapStoreCovariance : public ::testing::TestWithParam<int> {};
+
+TEST_P(CachedMapStoreCovariance, ReadsFollowEveryCommit) {
   TempDir dir;
   const std::string path = dir.File("map.db");
-  auto cached = CachedMapStore::Create(OpenStore(path));
+  auto cached = CachedMapStore::Create(OpenStore(path), /*covariance_window_hops=*/0, GetParam());
   ASSERT_TRUE(cached.ok()) << cached.status();
   auto sqlite = OpenStore(path);
   const BoundingBox box{48.69, 2.16, 48.72, 2.18};
@@ -1184,8 +1188,26 @@ TEST(CachedMapStore, CovarianceReadsFollowEveryCommit) {
         EXPECT_EQ(got->cross[k].first, want->cross[k].first);
         EXPECT_LT((got->cross[k].second - want->cross[k].second).cwiseAbs().maxCoeff(), 1e-12);
       }
+      // Two of the three, out of order: the same blocks.
+      auto some = (*cached)->GetLandmarks({3, 1}, true);
+      auto some_want = sqlite->GetLandmarks({3, 1}, true);
+      ASSERT_TRUE(some.ok() && some_want.ok()) << some.status() << some_want.status();
+      ASSERT_EQ(some->landmarks.size(), 2u);
+      ASSERT_EQ(some->cross.size(), 1u);
+      EXPECT_EQ(some->cross[0].first, some_want->cross[0].first);
+      EXPECT_LT((some->cross[0].second - some_want->cross[0].second).cwiseAbs().maxCoeff(), 1e-12);
+      EXPECT_LT((some->landmarks[1].cov_en_m2 - some_want->landmarks[1].cov_en_m2).cwiseAbs().maxCoeff(), 1e-12);
     }
   }
+}
+
+INSTANTIATE_TEST_SUITE_P(CacheSize, CachedMapStoreCovariance,
+                         ::testing::Values(0, 2, CachedMapStore::kDefaultCovarianceCacheLandmarks));
+
+TEST(CachedMapStore, RefusesANegativeCovarianceCacheSize) {
+  TempDir dir;
+  EXPECT_EQ(CachedMapStore::Create(OpenStore(dir.File("map.db")), 0, -1).status().code(),
+            absl::StatusCode::kInvalidArgument);
 }
 
 }  // namespace
