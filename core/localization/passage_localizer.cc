@@ -417,6 +417,9 @@ absl::StatusOr<PassageLocalization> LocalizePassage(const Passage& passage, cons
     for (int k : problem.seen) blocks.push_back(landmarks[k].data());
     DensePriorSolverOptions dense_options;
     dense_options.max_iterations = options.max_solver_iterations;
+    // A micrometre (microradian): far below any pose's uncertainty; the chord steps converge
+    // linearly, so each further digit costs about one more step.
+    dense_options.step_tolerance = 1e-6;
     absl::StatusOr<DensePriorSolution> solution =
         SolveWithDensePrior(problem.problem.get(), &poses, blocks, JointPrior(prior, problem.seen), dense_options);
     if (!solution.ok()) return solution.status();
