@@ -21,8 +21,12 @@
 namespace crowdmap {
 namespace {
 
-// Relative cost decrease at which the robust (gating) and the final solves stop.
-constexpr double kGatingTolerance = 1e-6;
+// Relative cost decrease at which the robust (gating) and the final solves stop. The robust solve
+// only places the gates: 1e-4 instead of 1e-6 left the Table 5.5 reproduction as it was (`mapsim
+// localize --runs 10`, seeds 1 to 5: the with-map errors within 0.01 m, but on seed 3 with 44
+// landmarks one passage's solve lands in a wrong minimum under one coloured configuration or
+// another, before as after).
+constexpr double kGatingTolerance = 1e-4;
 constexpr double kFinalTolerance = 1e-12;
 
 // One detection of a map landmark: its graph observation and the landmark's index in the map.
