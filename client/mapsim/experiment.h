@@ -7,6 +7,7 @@
 #include <vector>
 
 #include "absl/status/statusor.h"
+#include "core/estimation/cramer_rao.h"
 #include "core/estimation/graph_builder.h"
 #include "core/estimation/map_updater.h"
 #include "core/map/map_state.h"
@@ -67,6 +68,11 @@ struct ExperimentResult {
   // The Cramer-Rao bound on the mean distance error after the last passage (NaN when not computed
   // or not defined), with white noise the floor of final_mean_dist_err_m.
   double crlb_mean_dist_err_m = std::numeric_limits<double>::quiet_NaN();
+  // The final map's errors against the bound's joint covariance instead of its own, e^T C^-1 e /
+  // 2N: about 1 when the map's error is what an efficient estimator's would be (NaN as above).
+  // Beside the final map's own joint NEES (the last record's), it tells an error larger than the
+  // bound from a covariance smaller than it.
+  double crlb_joint_nees_per_dof = std::numeric_limits<double>::quiet_NaN();
   // With a fleet (ScenarioOptions::vehicles): each vehicle's estimated camera yaw offset against
   // its true one (empty estimates without MapUpdateOptions::estimate_camera_yaw).
   VehicleYawMetrics vehicle_yaw;
@@ -79,18 +85,20 @@ std::vector<std::pair<std::string, double>> FleetYawTruth(const Scenario& scenar
 // Called after each passage with the record; used for progress output.
 using ExperimentProgress = std::function<void(const PassageRecord&)>;
 
-// 0..passages-1 with the passages from `from` on shuffled within consecutive groups of `window`
-// (as concurrent vehicles would reorder them); deterministic for a given seed. window <= 1 keeps
-// the order.
 // The Cramer-Rao bound on the mean distance error of the map built from `scenario`'s passages
 // `indices` (mean over the landmarks seen of the bound's expected distance; see cramer_rao.h), and
 // `progress` called with the bound after each passage's information is added, if given.
 // `camera_yaw_prior_sigma_rad` > 0: the estimator estimates each vehicle's camera yaw offset with
 // this prior, and the bound holds these offsets as states (0: the calibration taken as known).
+// `bound`, if given, receives the summed information (for the bound's joint covariance).
 absl::StatusOr<double> LoopCramerRaoMeanError(const Scenario& scenario, const std::vector<int>& indices,
                                               const GraphOptions& graph, double camera_yaw_prior_sigma_rad = 0.0,
-                                              const std::function<void(int, double)>& progress = nullptr);
+                                              const std::function<void(int, double)>& progress = nullptr,
+                                              CramerRaoBound* bound = nullptr);
 
+// 0..passages-1 with the passages from `from` on shuffled within consecutive groups of `window`
+// (as concurrent vehicles would reorder them); deterministic for a given seed. window <= 1 keeps
+// the order.
 std::vector<int> ShuffledOrder(int passages, int window, int from, uint64_t seed);
 
 // An order file holds one scenario passage index per line (e.g. the arrival order of a

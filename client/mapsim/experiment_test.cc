@@ -32,6 +32,10 @@ TEST(Experiment, ErrorFallsAndCovarianceStaysConsistentOverThirtyPassages) {
     EXPECT_LT(r.metrics.nees_per_dof, 3.0) << "passage " << r.passage;
     EXPECT_GE(r.subgraphs, 1);
   }
+  // Its errors against the bound's joint covariance (chi-square with 50 degrees of freedom, per
+  // degree of freedom, for an efficient estimator).
+  EXPECT_GT(result->crlb_joint_nees_per_dof, 0.3);
+  EXPECT_LT(result->crlb_joint_nees_per_dof, 3.0);
 }
 
 TEST(Experiment, ModellingTheDeclaredGnssProcessMakesTheAr1MapConsistent) {

@@ -192,17 +192,38 @@ void CramerRaoBound::Add(const PassageFisherInformation& passage) {
   }
 }
 
-absl::StatusOr<std::map<LandmarkId, Eigen::Matrix2d>> CramerRaoBound::Covariances() const {
-  std::map<LandmarkId, Eigen::Matrix2d> out;
-  if (landmark_offset_.empty()) return out;
+absl::StatusOr<Eigen::MatrixXd> CramerRaoBound::Inverse() const {
   const auto information = information_.topLeftCorner(dim_, dim_);
   const Eigen::LLT<Eigen::MatrixXd> llt(0.5 * (information + information.transpose()));
   if (llt.info() != Eigen::Success) {
     return absl::FailedPreconditionError("Cramer-Rao bound: the passages' information does not determine every landmark");
   }
-  const Eigen::MatrixXd cov = llt.solve(Eigen::MatrixXd::Identity(dim_, dim_));
-  for (const auto& [id, i] : landmark_offset_) out[id] = cov.block<2, 2>(i, i);
+  return Eigen::MatrixXd(llt.solve(Eigen::MatrixXd::Identity(dim_, dim_)));
+}
+
+absl::StatusOr<std::map<LandmarkId, Eigen::Matrix2d>> CramerRaoBound::Covariances() const {
+  std::map<LandmarkId, Eigen::Matrix2d> out;
+  if (landmark_offset_.empty()) return out;
+  absl::StatusOr<Eigen::MatrixXd> cov = Inverse();
+  if (!cov.ok()) return cov.status();
+  for (const auto& [id, i] : landmark_offset_) out[id] = cov->block<2, 2>(i, i);
   return out;
+}
+
+absl::StatusOr<Eigen::MatrixXd> CramerRaoBound::JointCovariance(const std::vector<LandmarkId>& ids) const {
+  std::vector<int> rows;
+  for (LandmarkId id : ids) {
+    const auto it = landmark_offset_.find(id);
+    if (it == landmark_offset_.end()) {
+      return absl::InvalidArgumentError(absl::StrCat("Cramer-Rao bound: no passage saw landmark ", id));
+    }
+    rows.push_back(it->second);
+    rows.push_back(it->second + 1);
+  }
+  if (rows.empty()) return Eigen::MatrixXd(0, 0);
+  absl::StatusOr<Eigen::MatrixXd> cov = Inverse();
+  if (!cov.ok()) return cov.status();
+  return Eigen::MatrixXd((*cov)(rows, rows));
 }
 
 double ExpectedDistance(const Eigen::Matrix2d& cov) {

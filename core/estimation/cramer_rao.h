@@ -59,8 +59,15 @@ class CramerRaoBound {
   // information. FailedPrecondition when the information is singular (a landmark the passages do
   // not determine).
   absl::StatusOr<std::map<LandmarkId, Eigen::Matrix2d>> Covariances() const;
+  // The bound's joint covariance of `ids` (2 rows and columns each, in that order): with it, a
+  // map's stacked errors e give e^T C^-1 e, chi-square with 2 n degrees of freedom for an efficient
+  // unbiased estimator. InvalidArgument for a landmark no passage saw; FailedPrecondition as
+  // Covariances().
+  absl::StatusOr<Eigen::MatrixXd> JointCovariance(const std::vector<LandmarkId>& ids) const;
 
  private:
+  // The inverse of the summed information (every landmark and yaw state).
+  absl::StatusOr<Eigen::MatrixXd> Inverse() const;
   // Offset of each landmark (2 rows) and of each vehicle's camera yaw (1 row) in information_.
   int Grow(int rows);  // a new variable's offset
   std::map<LandmarkId, int> landmark_offset_;

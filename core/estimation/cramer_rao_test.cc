@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <random>
 
 #include <gtest/gtest.h>
 
@@ -85,6 +86,40 @@ TEST(CramerRaoBound, AnEstimatedCameraYawLoosensTheBoundByWhatItsPriorLeavesOpen
   // (to 1e-4: the known-calibration bound is taken at the declared camera yaw, the other at the
   // true one, about 0.01 rad apart)
   EXPECT_NEAR(tight / known, 1.0, 1e-4);
+}
+
+// Two passages' information over overlapping landmarks, one with a yaw state: the joint
+// covariance of any landmarks, in any order, is their block of the inverse of the sum.
+TEST(CramerRaoBound, JointCovarianceIsTheBlockOfTheInverseOfTheSummedInformation) {
+  std::mt19937 rng(3);
+  std::normal_distribution<double> n(0.0, 1.0);
+  auto random_information = [&](int dim) {
+    Eigen::MatrixXd a(dim, dim + 2);
+    for (int i = 0; i < a.size(); ++i) a.data()[i] = n(rng);
+    return Eigen::MatrixXd(a * a.transpose());
+  };
+  PassageFisherInformation first{{7, 3}, std::nullopt, random_information(4)};
+  PassageFisherInformation second{{3, 9}, std::string("v"), random_information(5)};
+  CramerRaoBound bound;
+  bound.Add(first);
+  bound.Add(second);
+  // The sum over (7, 3, 9, yaw) by hand.
+  Eigen::MatrixXd sum = Eigen::MatrixXd::Zero(7, 7);
+  sum.topLeftCorner(4, 4) += first.information;
+  const std::vector<int> at = {2, 3, 4, 5, 6};
+  for (int a = 0; a < 5; ++a) {
+    for (int b = 0; b < 5; ++b) sum(at[a], at[b]) += second.information(a, b);
+  }
+  const Eigen::MatrixXd inverse = sum.inverse();
+  absl::StatusOr<Eigen::MatrixXd> joint = bound.JointCovariance({9, 7});
+  ASSERT_TRUE(joint.ok()) << joint.status();
+  const std::vector<int> rows = {4, 5, 0, 1};
+  EXPECT_LT((*joint - inverse(rows, rows)).cwiseAbs().maxCoeff(), 1e-9 * inverse.cwiseAbs().maxCoeff());
+  absl::StatusOr<std::map<LandmarkId, Eigen::Matrix2d>> marginals = bound.Covariances();
+  ASSERT_TRUE(marginals.ok());
+  EXPECT_LT((marginals->at(3) - inverse.block<2, 2>(2, 2)).norm(), 1e-9 * inverse.norm());
+  EXPECT_EQ(bound.JointCovariance({}).value().size(), 0);
+  EXPECT_EQ(bound.JointCovariance({7, 8}).status().code(), absl::StatusCode::kInvalidArgument);
 }
 
 TEST(CramerRaoBound, TheSamePassageTwiceHalvesTheBound) {
