@@ -70,6 +70,7 @@ TEST(MapsimExitCodes, UsageErrorsExitWithTwoAndOneLine) {
       {{"experiment", "--noise", "pink"}, "unknown 'pink'"},
       {{"experiment", "--strategy", "foo"}, "unknown 'foo'"},
       {{"experiment", "--gnss-noise-scale", "0"}, "gnss-noise-scale: must be > 0"},
+      {{"experiment", "--relinearize-until-passages", "64", "--retain-passages", "32"}, "retain_passages: must be 0"},
       {{"city", "--strategy", "foo"}, "unknown 'foo'"},
       {{"city", "--mislabel-rate", "2"}, "mislabel"},
       {{"crlb", "--passages", "0"}, "passages: must be >= 1"},

@@ -85,9 +85,10 @@ void ScaleNoise(const NoiseScales& scales, ScenarioOptions* scenario) {
   ScaleNoise(scales, &scenario->noise_model, &scenario->gnss_sigma_m);
 }
 
-// --warmup-passages, --relinearize-until-passages, --window-hops, --relinearize-sigmas and
-// --relinearizations-per-passage, --estimate-camera-yaw, --max-landmark-shift-sigmas,
-// --max-chi2-per-dof and --max-update-shift-sigmas (experiment and city).
+// --warmup-passages, --relinearize-until-passages, --window-hops, --retain-passages,
+// --relinearize-sigmas and --relinearizations-per-passage, --estimate-camera-yaw,
+// --max-landmark-shift-sigmas, --max-chi2-per-dof and --max-update-shift-sigmas (experiment and
+// city).
 void AddMapUpdateFlags(CLI::App* command, MapUpdateOptions* update) {
   command->add_option("--window-hops", update->window_hops,
                       "recover the map's covariance and re-estimate it within H links of each passage's "
@@ -100,6 +101,10 @@ void AddMapUpdateFlags(CLI::App* command, MapUpdateOptions* update) {
                       "after the warm-up, re-solve all the map's passages jointly each time their count\n"
                       "doubles (2B, 4B, ...) up to R passages (0 = off)")
       ->type_name("R");
+  command->add_option("--retain-passages", update->retain_passages,
+                      "keep the factors of the last N passages apart (removable, re-linearisable), as mapd's\n"
+                      "flag of that name; older ones are folded into the base (0 = keep all)")
+      ->type_name("N");
   command->add_option("--relinearize-sigmas", update->relinearize_sigmas,
                       "after each passage, take again (at today's estimate) the retained passage whose\n"
                       "landmarks moved furthest since its factors were taken, if more than X of their\n"
