@@ -90,11 +90,11 @@ using ExperimentProgress = std::function<void(const PassageRecord&)>;
 // `progress` called with the bound after each passage's information is added, if given.
 // `camera_yaw_prior_sigma_rad` > 0: the estimator estimates each vehicle's camera yaw offset with
 // this prior, and the bound holds these offsets as states (0: the calibration taken as known).
-// `bound`, if given, receives the summed information (for the bound's joint covariance).
+// `bound_out`, if given, receives the summed information (for the bound's joint covariance).
 absl::StatusOr<double> LoopCramerRaoMeanError(const Scenario& scenario, const std::vector<int>& indices,
                                               const GraphOptions& graph, double camera_yaw_prior_sigma_rad = 0.0,
                                               const std::function<void(int, double)>& progress = nullptr,
-                                              CramerRaoBound* bound = nullptr);
+                                              CramerRaoBound* bound_out = nullptr);
 
 // 0..passages-1 with the passages from `from` on shuffled within consecutive groups of `window`
 // (as concurrent vehicles would reorder them); deterministic for a given seed. window <= 1 keeps
