@@ -129,7 +129,7 @@ class CachedMapStore : public MapStoreInterface {
   // covariance_cache_landmarks_) its whole covariance too. Built by the first read that needs it,
   // under map_mu_ shared; window_mu_ orders its building.
   struct WholeMap {
-    std::shared_ptr<const MapWindow> window;       // null when it cannot be built
+    std::shared_ptr<const MapWindow> window;            // null when it cannot be built
     std::shared_ptr<const Eigen::MatrixXd> covariance;  // null on a larger map
   };
   WholeMap WholeMapWindow() const;
