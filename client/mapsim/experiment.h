@@ -7,7 +7,6 @@
 #include <vector>
 
 #include "absl/status/statusor.h"
-#include "core/estimation/cramer_rao.h"
 #include "core/estimation/graph_builder.h"
 #include "core/estimation/map_updater.h"
 #include "core/map/map_state.h"
@@ -15,6 +14,8 @@
 #include "core/sim/scenario.h"
 
 namespace crowdmap {
+
+class CramerRaoBound;
 
 // One simulated crowdsourcing run: P passages of the thesis scenario applied in order to an
 // initially empty map with one strategy (cc, dc, cc-gsd, or the triangulation baseline).
