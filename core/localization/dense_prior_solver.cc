@@ -139,6 +139,8 @@ class Linearization {
 absl::Status DensePriorSolverOptions::Validate() const {
   if (max_iterations < 1) return absl::InvalidArgumentError("max_iterations: must be >= 1");
   if (!(step_tolerance > 0.0)) return absl::InvalidArgumentError("step_tolerance: must be > 0");
+  if (!(covariance_tolerance_m >= 0.0)) return absl::InvalidArgumentError("covariance_tolerance_m: must be >= 0");
+  if (!(covariance_tolerance_rad >= 0.0)) return absl::InvalidArgumentError("covariance_tolerance_rad: must be >= 0");
   return absl::OkStatus();
 }
 
@@ -207,6 +209,16 @@ absl::StatusOr<DensePriorSolution> SolveWithDensePrior(ceres::Problem* problem, 
   if (absl::Status s = evaluate_at(&cost, &gradient, nullptr); !s.ok()) return s;
   bool relinearize = true;
   bool fresh = false;  // the linearisation is at the current state
+  Eigen::VectorXd linearized_at;
+  // Whether the linearisation counts as taken at the current state.
+  auto near = [&]() {
+    const Eigen::VectorXd moved = (state() - linearized_at).cwiseAbs();
+    for (int i = 0; i < np + nl; ++i) {
+      const bool heading = i < np && i % 3 == 2;
+      if (moved[i] > (heading ? options.covariance_tolerance_rad : options.covariance_tolerance_m)) return false;
+    }
+    return true;
+  };
   double previous_step = 0.0;
   for (; out.iterations < options.max_iterations; ++out.iterations) {
     if (relinearize) {
@@ -214,17 +226,22 @@ absl::StatusOr<DensePriorSolution> SolveWithDensePrior(ceres::Problem* problem, 
       if (absl::Status s = evaluate_at(&cost, &gradient, &jacobian); !s.ok()) return s;
       if (absl::Status s = linearization.Factorize(jacobian, np, prior_information); !s.ok()) return s;
       ++out.factorizations;
+      linearized_at = state();
       relinearize = false;
       fresh = true;
     }
     const Eigen::VectorXd step = linearization.Step(gradient);
     const double step_size = step.lpNorm<Eigen::Infinity>();
-    // A chord step that has converged (the covariance wants the information here) or that
-    // converges slowly: linearise here.
-    if (!fresh && (step_size <= options.step_tolerance || step_size > 0.25 * previous_step)) {
-      relinearize = true;
-      continue;
+    const bool converged = step_size <= options.step_tolerance;
+    if (!fresh) {
+      const bool here = near();
+      if (converged && here) break;
+      // A chord step that has converged (the covariance wants the information here), or that
+      // converges slowly from a linearisation elsewhere (or very slowly): linearise here.
+      const double rate = step_size / previous_step;
+      relinearize = converged || rate > 0.5 || (rate > 0.25 && !here);
     }
+    if (relinearize) continue;
     // The step, halved while it increases the cost (from a fresh linearisation; a stale one is
     // renewed instead).
     const Eigen::VectorXd x = state();
@@ -236,8 +253,7 @@ absl::StatusOr<DensePriorSolution> SolveWithDensePrior(ceres::Problem* problem, 
       set_state(x + scale * step);
       // A step that takes a landmark behind a camera cannot be evaluated: as if the cost rose.
       if (!evaluate_at(&new_cost, &new_gradient, nullptr).ok()) new_cost = std::numeric_limits<double>::infinity();
-      decreased = std::isfinite(new_cost) &&
-                  (new_cost <= cost + 1e-12 * std::abs(cost) || step_size <= options.step_tolerance);
+      decreased = std::isfinite(new_cost) && (new_cost <= cost + 1e-12 * std::abs(cost) || converged);
       if (!fresh) break;
     }
     if (!decreased) {
@@ -248,7 +264,7 @@ absl::StatusOr<DensePriorSolution> SolveWithDensePrior(ceres::Problem* problem, 
     }
     cost = new_cost;
     gradient = std::move(new_gradient);
-    if (fresh && step_size <= options.step_tolerance) break;
+    if (fresh && converged) break;
     fresh = false;
     previous_step = step_size;
   }

@@ -24,6 +24,12 @@ struct DensePriorSolverOptions {
   int max_iterations = 100;
   // Converged when no pose or landmark coordinate moves by more than this (m, rad).
   double step_tolerance = 1e-9;
+  // A linearisation counts as taken at the current state when no position (of a pose or a
+  // landmark) is further than `covariance_tolerance_m` from its point and no heading further than
+  // `covariance_tolerance_rad`: the solve then ends on it, and its pose covariances are returned,
+  // without a last factorisation at the solution. 0: always at the solution.
+  double covariance_tolerance_m = 0.0;
+  double covariance_tolerance_rad = 0.0;
 
   absl::Status Validate() const;
 };
@@ -43,7 +49,8 @@ struct DensePriorSolution {
 // hundreds of landmarks at every iteration. The poses are eliminated on their sparse (banded)
 // information, leaving one dense Schur complement on the landmarks, factorised once per
 // linearisation; between factorisations the steps reuse the last one (chord steps on the exact
-// gradient, so the fixed point is the exact optimum), and the final one is at the solution. The
+// gradient, so the fixed point is the exact optimum), and the final one is at the solution (or
+// within the covariance tolerances of it). The
 // pose covariances are the marginals of the Gauss-Newton information there:
 // A^-1 + W S^-1 W^T (A the pose block, W = A^-1 B, S the Schur complement), the second term as
 // the row blocks of A^-1 B L^-T (S = L L^T), with B sparse.

@@ -1,5 +1,7 @@
 #include "core/localization/dense_prior_solver.h"
 
+#include <cmath>
+
 #include <Eigen/Geometry>
 #include <gtest/gtest.h>
 
@@ -96,6 +98,33 @@ TEST(SolveWithDensePrior, MatchesCeresWithThePriorAsAFactor) {
   }
 }
 
+// With covariance tolerances the solve ends on a linearisation taken near the solution: the same
+// optimum, covariances close to those at the optimum, fewer factorisations.
+TEST(SolveWithDensePrior, CovarianceToleranceSavesTheLastFactorization) {
+  const DenseLandmarkPrior prior = CorrelatedPrior();
+  SmallProblem exact, tolerant;
+  std::vector<double*> exact_blocks, tolerant_blocks;
+  for (Eigen::Vector2d& l : exact.landmarks) exact_blocks.push_back(l.data());
+  for (Eigen::Vector2d& l : tolerant.landmarks) tolerant_blocks.push_back(l.data());
+  absl::StatusOr<DensePriorSolution> reference = SolveWithDensePrior(&exact.problem, &exact.poses, exact_blocks, prior);
+  ASSERT_TRUE(reference.ok()) << reference.status();
+  DensePriorSolverOptions options;
+  options.covariance_tolerance_m = 1.0;
+  options.covariance_tolerance_rad = 0.1;
+  absl::StatusOr<DensePriorSolution> solution =
+      SolveWithDensePrior(&tolerant.problem, &tolerant.poses, tolerant_blocks, prior, options);
+  ASSERT_TRUE(solution.ok()) << solution.status();
+
+  EXPECT_LT(solution->factorizations, reference->factorizations);
+  EXPECT_NEAR(solution->cost, reference->cost, 1e-9 * reference->cost);
+  for (size_t k = 0; k < exact.poses.size(); ++k) {
+    EXPECT_LT((tolerant.poses[k] - exact.poses[k]).norm(), 1e-7) << "pose " << k;
+    const Eigen::Matrix3d& cov = reference->pose_covariances[k];
+    EXPECT_LT((solution->pose_covariances[k] - cov).norm(), 0.05 * cov.norm()) << "pose " << k;
+    EXPECT_GT((solution->pose_covariances[k] - cov).norm(), 0.0) << "pose " << k << ": not from an earlier point";
+  }
+}
+
 TEST(SolveWithDensePrior, RefusesAPriorThatIsNotPositiveDefinite) {
   DenseLandmarkPrior prior = CorrelatedPrior();
   prior.cov(2, 2) = -1.0;
@@ -123,6 +152,12 @@ TEST(DensePriorSolverOptions, RejectsInvalidValues) {
   EXPECT_FALSE(options.Validate().ok());
   options = {};
   options.step_tolerance = 0.0;
+  EXPECT_FALSE(options.Validate().ok());
+  options = {};
+  options.covariance_tolerance_m = -1.0;
+  EXPECT_FALSE(options.Validate().ok());
+  options = {};
+  options.covariance_tolerance_rad = std::nan("");
   EXPECT_FALSE(options.Validate().ok());
 }
 
