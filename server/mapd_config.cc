@@ -160,6 +160,10 @@ std::unique_ptr<CLI::App> NewMapdCommandLine(MapdConfig* config) {
                  "prior, and keep it (GetVehicle, mapctl vehicles; false: declared calibrations are taken\n"
                  "as exact)")
       ->type_name("BOOL");
+  AddMapdSetting(app, "fleet-yaw-prior-vehicles", &u.fleet_camera_yaw_prior_vehicles,
+                 "with estimate-camera-yaw: once the map has N vehicles' records, a new vehicle's camera\n"
+                 "yaw prior is the fleet's (their mean and spread) instead of 0 +- 1 degree (0 = off)")
+      ->type_name("N");
   app->add_flag("--create", o.create_db,
                 "create a new, empty map when --db does not exist yet (or is an empty file), with its\n"
                 "directory; without it mapd refuses to start there, so that a mistyped path cannot start\n"
@@ -246,6 +250,7 @@ std::string DescribeMapdConfig(const MapdConfig& config) {
       " max-update-shift-sigmas=", std::sqrt(u.max_update_shift_mahalanobis2),
       " max-new-landmark-ray-sigma-m=", u.max_new_landmark_ray_sigma_m, " max-chi2-per-dof=", u.max_chi2_per_dof,
       " estimate-camera-yaw=", u.estimate_camera_yaw ? "true" : "false",
+      " fleet-yaw-prior-vehicles=", u.fleet_camera_yaw_prior_vehicles,
       " metrics-listen=", o.metrics_listen.empty() ? "none" : EscapeForLog(o.metrics_listen),
       " http-listen=", o.http_listen.empty() ? "none" : EscapeForLog(o.http_listen),
       " viewer-basemap=", o.viewer_basemap.empty() ? "none" : EscapeForLog(o.viewer_basemap),

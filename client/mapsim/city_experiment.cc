@@ -239,6 +239,7 @@ absl::Status WriteCityOutputs(const CityExperimentOptions& options, const CityEx
       {"p50_ms_per_passage", result.p50_ms},
       {"p95_ms_per_passage", result.p95_ms},
       {"estimate_camera_yaw", options.update.estimate_camera_yaw},
+      {"fleet_camera_yaw_prior_vehicles", options.update.fleet_camera_yaw_prior_vehicles},
       {"vehicle_yaw_bias_sigma_rad", options.city.vehicle_yaw_bias_sigma_rad},
       {"vehicle_yaw_within_2sigma", result.vehicle_yaw.within_2sigma_fraction},
       {"vehicle_yaw_nees", result.vehicle_yaw.nees},

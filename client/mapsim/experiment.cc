@@ -323,6 +323,7 @@ absl::Status WriteExperimentOutputs(const ExperimentOptions& options, const Expe
       {"crlb_joint_nees_per_dof", result.crlb_joint_nees_per_dof},
       {"median_passage_ms", result.median_passage_ms},
       {"estimate_camera_yaw", options.update.estimate_camera_yaw},
+      {"fleet_camera_yaw_prior_vehicles", options.update.fleet_camera_yaw_prior_vehicles},
       {"vehicles", options.scenario.vehicles},
       {"vehicle_yaw_bias_sigma_rad", options.scenario.vehicle_yaw_bias_sigma_rad},
       {"vehicle_yaw_within_2sigma", result.vehicle_yaw.within_2sigma_fraction},

@@ -87,6 +87,7 @@ void ScaleNoise(const NoiseScales& scales, ScenarioOptions* scenario) {
 
 // --warmup-passages, --relinearize-until-passages, --window-hops, --retain-passages,
 // --relinearize-sigmas and --relinearizations-per-passage, --estimate-camera-yaw,
+// --fleet-yaw-prior-vehicles,
 // --max-landmark-shift-sigmas, --max-chi2-per-dof and --max-update-shift-sigmas (experiment and
 // city).
 void AddMapUpdateFlags(CLI::App* command, MapUpdateOptions* update) {
@@ -116,6 +117,12 @@ void AddMapUpdateFlags(CLI::App* command, MapUpdateOptions* update) {
   command->add_flag("--estimate-camera-yaw", update->estimate_camera_yaw,
                     "estimate each vehicle's camera yaw offset, its history the prior, as mapd does\n"
                     "(summary.json: vehicle_yaw, estimate against truth per vehicle)");
+  command->add_option("--fleet-yaw-prior-vehicles", update->fleet_camera_yaw_prior_vehicles,
+                      "with --estimate-camera-yaw: once the map has N vehicles' records, a new vehicle's\n"
+                      "camera yaw prior is the fleet's (their mean and spread) instead of 0 +- 1 degree, as\n"
+                      "mapd's flag of that name (0 = off)")
+      ->check(NonNegative())
+      ->type_name("N");
   // Gates given in sigmas, kept as squared Mahalanobis distances.
   const auto add_sigmas = [command](const std::string& flag, double* mahalanobis2, const std::string& description) {
     command->add_option_function<double>(flag, [mahalanobis2](double sigmas) { *mahalanobis2 = sigmas * sigmas; },

@@ -44,10 +44,17 @@ struct PassageProgress {
 };
 
 // The prior of a subgraph's camera yaw offset: the vehicle's estimate so far (earlier subgraphs
-// of the passage included), or mean 0 with options.camera_yaw_prior_sigma_rad for a new vehicle.
+// of the passage included), or for a new vehicle the fleet's prior (when asked for and the fleet
+// is large enough), else mean 0 with options.camera_yaw_prior_sigma_rad.
 VehicleCalibration VehicleYawPrior(const std::string& vehicle_id, const MapUpdateOptions& options,
                                    const MapReaderInterface& map) {
   if (const VehicleCalibration* known = map.FindVehicle(vehicle_id)) return *known;
+  if (options.fleet_camera_yaw_prior_vehicles > 0) {
+    if (std::optional<VehicleCalibration> fleet =
+            FleetCameraYawPrior(map, vehicle_id, options.fleet_camera_yaw_prior_vehicles)) {
+      return *fleet;
+    }
+  }
   return NewVehicleCalibration(vehicle_id, options.camera_yaw_prior_sigma_rad);
 }
 
@@ -343,6 +350,10 @@ absl::Status MapUpdateOptions::Validate() const {
   if (!(camera_yaw_prior_sigma_rad > 0.0 && camera_yaw_prior_sigma_rad < 1.0)) {
     return absl::InvalidArgumentError(
         absl::StrCat("camera_yaw_prior_sigma_rad: must lie in (0, 1), got ", camera_yaw_prior_sigma_rad));
+  }
+  if (fleet_camera_yaw_prior_vehicles < 0) {
+    return absl::InvalidArgumentError(absl::StrCat("fleet_camera_yaw_prior_vehicles: must be >= 0 (0 = off), got ",
+                                                   fleet_camera_yaw_prior_vehicles));
   }
   if (max_solver_iterations < 1) {
     return absl::InvalidArgumentError(absl::StrCat("max_solver_iterations: must be >= 1, got ", max_solver_iterations));

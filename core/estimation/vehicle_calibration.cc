@@ -2,6 +2,8 @@
 
 #include <algorithm>
 #include <cmath>
+#include <numeric>
+#include <vector>
 
 namespace crowdmap {
 
@@ -11,6 +13,29 @@ VehicleCalibration NewVehicleCalibration(const std::string& vehicle_id, double p
   v.camera_yaw_variance_rad2 = prior_sigma_rad * prior_sigma_rad;
   v.camera_yaw_information = 1.0 / v.camera_yaw_variance_rad2;
   return v;
+}
+
+std::optional<VehicleCalibration> FleetCameraYawPrior(const MapReaderInterface& map, const std::string& vehicle_id,
+                                                      int min_vehicles) {
+  std::vector<double> offsets;
+  double mean_variance = 0.0;
+  map.ForEachVehicle([&](const VehicleCalibration& v) {
+    offsets.push_back(v.camera_yaw_offset_rad);
+    mean_variance += v.camera_yaw_variance_rad2;
+  });
+  const int n = static_cast<int>(offsets.size());
+  if (n < std::max(2, min_vehicles)) return std::nullopt;
+  mean_variance /= n;
+  const double mean = std::accumulate(offsets.begin(), offsets.end(), 0.0) / n;
+  double sample_variance = 0.0;
+  for (double x : offsets) sample_variance += (x - mean) * (x - mean) / (n - 1);
+  const double spread = (sample_variance + mean_variance) * (1.0 + 2.0 * std::sqrt(2.0 / (n - 1)));
+  VehicleCalibration prior;
+  prior.vehicle_id = vehicle_id;
+  prior.camera_yaw_offset_rad = mean;
+  prior.camera_yaw_variance_rad2 = spread + mean_variance / n;
+  prior.camera_yaw_information = 1.0 / prior.camera_yaw_variance_rad2;
+  return prior;
 }
 
 VehicleCalibration ConsiderCameraYawSolve(const VehicleCalibration& prior, double posterior_offset_rad,

@@ -5,6 +5,7 @@
 // calibration"). Every solve of one of its (sub)graphs estimates the offset with the vehicle's
 // record as prior; these functions turn the solve's result into the vehicle's new record.
 
+#include <optional>
 #include <string>
 
 #include "core/map/map_state.h"
@@ -14,6 +15,23 @@ namespace crowdmap {
 
 // The record a vehicle without one starts from: offset 0 with variance prior_sigma_rad^2.
 VehicleCalibration NewVehicleCalibration(const std::string& vehicle_id, double prior_sigma_rad);
+
+// The prior of the camera yaw offset of a vehicle without a record, from the records of the fleet
+// (`map`'s vehicles) once it has at least `min_vehicles` of them; nullopt before.
+//
+// An empirical-Bayes prior: the vehicles' offsets taken as draws of one distribution, whose mean
+// is the records' mean m and whose variance is that of the true offsets around it. Each record is
+// a posterior mean x_i with variance v_i, so the true offsets vary by about
+//   tau^2 = s^2 + mean(v)   (s^2 the records' sample variance; total variance: a posterior mean
+//                            varies less than what it estimates, by its own variance),
+// which is never below the records' own uncertainty: a fleet whose cameras share one error is
+// not taken as known better than one passage measures it. The prior's variance is tau^2 at about
+// its 95% upper bound from n records, tau^2 (1 + 2 sqrt(2 / (n - 1))), plus the uncertainty of m,
+// mean(v) / n. When every vehicle's camera has the same error (a fleet of one model and mount), a
+// new vehicle then starts from that error instead of 0, and the map no longer inherits the part
+// of it that each new vehicle's prior would pull back toward 0.
+std::optional<VehicleCalibration> FleetCameraYawPrior(const MapReaderInterface& map, const std::string& vehicle_id,
+                                                      int min_vehicles);
 
 // The vehicle's record after a solve that took `prior` as its yaw prior and found the offset
 // `posterior_offset_rad`, with marginal variance given_landmarks_rad2 + from_landmarks_rad2

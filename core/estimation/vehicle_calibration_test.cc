@@ -2,9 +2,13 @@
 
 #include <algorithm>
 #include <cmath>
+#include <optional>
+#include <string>
 #include <vector>
 
 #include <gtest/gtest.h>
+
+#include "core/map/map_state.h"
 
 namespace crowdmap {
 namespace {
@@ -86,6 +90,58 @@ TEST(ConsiderCameraYawSolve, ASolveThatSaysNothingAboutTheYawKeepsTheRecord) {
   EXPECT_EQ(after.camera_yaw_variance_rad2, v.camera_yaw_variance_rad2);
   EXPECT_EQ(after.camera_yaw_information, v.camera_yaw_information);
   EXPECT_EQ(after.passages, 3);
+}
+
+VehicleCalibration Record(const std::string& id, double offset, double variance) {
+  VehicleCalibration v;
+  v.vehicle_id = id;
+  v.camera_yaw_offset_rad = offset;
+  v.camera_yaw_variance_rad2 = variance;
+  v.camera_yaw_information = 1.0 / variance;
+  return v;
+}
+
+TEST(FleetCameraYawPrior, NoneBeforeTheFleetIsLargeEnough) {
+  MapState map;
+  for (int k = 0; k < 4; ++k) map.PutVehicle(Record("v" + std::to_string(k), 0.01, 1e-6));
+  EXPECT_FALSE(FleetCameraYawPrior(map, "new", 5).has_value());
+  EXPECT_TRUE(FleetCameraYawPrior(map, "new", 4).has_value());
+  MapState one;
+  one.PutVehicle(Record("v", 0.01, 1e-6));
+  EXPECT_FALSE(FleetCameraYawPrior(one, "new", 1).has_value()) << "one record has no spread";
+}
+
+TEST(FleetCameraYawPrior, TheRecordsMeanWithTheirSpreadAndUncertaintyAsVariance) {
+  MapState map;
+  const double offsets[] = {0.010, 0.012, 0.007, 0.011, 0.009, 0.013, 0.008, 0.010, 0.006, 0.014};
+  const double variances[] = {1e-6, 2e-6, 1e-6, 3e-6, 1e-6, 2e-6, 1e-6, 1e-6, 4e-6, 1e-6};
+  double mean = 0.0, mean_variance = 0.0;
+  for (int k = 0; k < 10; ++k) {
+    map.PutVehicle(Record("v" + std::to_string(k), offsets[k], variances[k]));
+    mean += offsets[k] / 10;
+    mean_variance += variances[k] / 10;
+  }
+  double sample_variance = 0.0;
+  for (double x : offsets) sample_variance += (x - mean) * (x - mean) / 9;
+  const std::optional<VehicleCalibration> prior = FleetCameraYawPrior(map, "new", 10);
+  ASSERT_TRUE(prior.has_value());
+  EXPECT_EQ(prior->vehicle_id, "new");
+  EXPECT_NEAR(prior->camera_yaw_offset_rad, mean, 1e-15);
+  const double expected = (sample_variance + mean_variance) * (1.0 + 2.0 * std::sqrt(2.0 / 9.0)) + mean_variance / 10;
+  EXPECT_NEAR(prior->camera_yaw_variance_rad2, expected, 1e-12 * expected);
+  EXPECT_NEAR(prior->camera_yaw_information * prior->camera_yaw_variance_rad2, 1.0, 1e-12);
+  EXPECT_EQ(prior->camera_yaw_map_term, 0.0);
+  EXPECT_EQ(prior->passages, 0);
+}
+
+TEST(FleetCameraYawPrior, CamerasThatShareOneErrorAreNotKnownBetterThanTheirRecords) {
+  MapState map;
+  for (int k = 0; k < 200; ++k) map.PutVehicle(Record("v" + std::to_string(k), 0.009, 4e-6));
+  const std::optional<VehicleCalibration> prior = FleetCameraYawPrior(map, "new", 10);
+  ASSERT_TRUE(prior.has_value());
+  EXPECT_NEAR(prior->camera_yaw_offset_rad, 0.009, 1e-15);
+  EXPECT_GE(prior->camera_yaw_variance_rad2, 4e-6);
+  EXPECT_LT(prior->camera_yaw_variance_rad2, 1.5 * 4e-6);
 }
 
 }  // namespace

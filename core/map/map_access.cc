@@ -17,7 +17,8 @@ bool Intersect(const Set& a, const Set& b) {
 
 bool Overlaps(const MapReadSet& read, const MapWriteSet& written) {
   return Intersect(read.landmarks, written.landmarks) || Intersect(read.factor_lists, written.factor_lists) ||
-         Intersect(read.passage_factor_lists, written.passages) || Intersect(read.vehicles, written.vehicles);
+         Intersect(read.passage_factor_lists, written.passages) || Intersect(read.vehicles, written.vehicles) ||
+         (read.all_vehicles && !written.vehicles.empty());
 }
 
 MapWriteSet WriteSetOf(const MapDelta& delta, const MapReaderInterface& map) {
@@ -141,6 +142,15 @@ const VehicleCalibration* MapReadRecorder::FindVehicle(const std::string& vehicl
   read_.vehicles.insert(vehicle_id);
   return Cached(access_, vehicle_id, &vehicles_,
                 [&vehicle_id](const MapReaderInterface& map) { return map.FindVehicle(vehicle_id); });
+}
+
+void MapReadRecorder::ForEachVehicle(const std::function<void(const VehicleCalibration&)>& fn) const {
+  read_.all_vehicles = true;
+  std::vector<VehicleCalibration> vehicles;  // copied under the lock, handed out after it
+  access_([&](const MapReaderInterface& map) {
+    map.ForEachVehicle([&](const VehicleCalibration& v) { vehicles.push_back(v); });
+  });
+  for (const VehicleCalibration& v : vehicles) fn(v);
 }
 
 }  // namespace crowdmap

@@ -33,6 +33,7 @@ struct MapReadSet {
   std::unordered_set<LandmarkId> factor_lists;
   std::set<FactorSource> passage_factor_lists;  // AppendPassageFactorIds
   std::set<std::string> vehicles;             // FindVehicle
+  bool all_vehicles = false;                  // ForEachVehicle
 };
 
 // What committing a delta changes in a map (WriteSetOf).
@@ -87,6 +88,7 @@ class MapReadRecorder : public MapReaderInterface {
   int64_t last_factor_id() const override { return last_factor_id_; }
   int64_t version() const override { return version_; }
   const VehicleCalibration* FindVehicle(const std::string& vehicle_id) const override;
+  void ForEachVehicle(const std::function<void(const VehicleCalibration&)>& fn) const override;
 
   const MapReadSet& read() const { return read_; }
   MapReadSet TakeRead() { return std::move(read_); }

@@ -46,6 +46,28 @@ TEST_F(MapAccessTest, TheRecorderRecordsEveryKindOfRead) {
   EXPECT_EQ(read.factor_lists, (std::unordered_set<LandmarkId>{6, 1, 2}));
   EXPECT_EQ(read.passage_factor_lists, (std::set<FactorSource>{{"v", "b"}}));
   EXPECT_EQ(read.vehicles, (std::set<std::string>{"car"}));
+  EXPECT_FALSE(read.all_vehicles);
+}
+
+// A computation that read the whole fleet (a new vehicle's fleet prior) could have read
+// differently after any vehicle's record changed.
+TEST_F(MapAccessTest, ReadingEveryVehicleOverlapsAnyVehiclesChange) {
+  VehicleCalibration car;
+  car.vehicle_id = "car";
+  map_.PutVehicle(car);
+  MapReadRecorder recorder(map_);
+  std::vector<std::string> listed;
+  recorder.ForEachVehicle([&](const VehicleCalibration& v) { listed.push_back(v.vehicle_id); });
+  EXPECT_EQ(listed, std::vector<std::string>{"car"});
+  const MapReadSet read = recorder.TakeRead();
+  EXPECT_TRUE(read.all_vehicles);
+  MapWriteSet written;
+  EXPECT_FALSE(Overlaps(read, written));
+  written.vehicles.insert("bus");
+  EXPECT_TRUE(Overlaps(read, written));
+  MapReadSet one;
+  one.vehicles.insert("car");
+  EXPECT_FALSE(Overlaps(one, written));
 }
 
 TEST_F(MapAccessTest, WriteSetsSeparateInformationFromFactorLists) {

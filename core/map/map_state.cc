@@ -210,6 +210,20 @@ const VehicleCalibration* MapOverlay::FindVehicle(const std::string& vehicle_id)
   return it != delta_.vehicles.end() ? &it->second : base_.FindVehicle(vehicle_id);
 }
 
+void MapOverlay::ForEachVehicle(const std::function<void(const VehicleCalibration&)>& fn) const {
+  // The base's records merged with the delta's, which replace them.
+  auto next = delta_.vehicles.begin();
+  base_.ForEachVehicle([&](const VehicleCalibration& vehicle) {
+    for (; next != delta_.vehicles.end() && next->first < vehicle.vehicle_id; ++next) fn(next->second);
+    if (next != delta_.vehicles.end() && next->first == vehicle.vehicle_id) {
+      fn((next++)->second);
+    } else {
+      fn(vehicle);
+    }
+  });
+  for (; next != delta_.vehicles.end(); ++next) fn(next->second);
+}
+
 const Landmark* MapOverlay::FindLandmark(LandmarkId id) const {
   if (std::find(delta_.removed_landmarks.begin(), delta_.removed_landmarks.end(), id) != delta_.removed_landmarks.end()) {
     return nullptr;

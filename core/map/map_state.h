@@ -106,6 +106,8 @@ class MapReaderInterface {
   virtual int64_t version() const = 0;
   // The vehicle's camera calibration; nullptr when none of its passages estimated one.
   virtual const VehicleCalibration* FindVehicle(const std::string& vehicle_id) const = 0;
+  // Calls fn for every vehicle's calibration, in increasing vehicle_id.
+  virtual void ForEachVehicle(const std::function<void(const VehicleCalibration&)>& fn) const = 0;
 };
 
 // One stored block of a row of the information: (row landmark, `id`).
@@ -198,8 +200,7 @@ class MapState : public MapReaderInterface {
   size_t factor_count() const { return factors_.size(); }
   void ForEachLandmark(const std::function<void(const Landmark&)>& fn) const;
   void ForEachFactor(const std::function<void(const MapFactor&)>& fn) const;
-  // In increasing vehicle_id.
-  void ForEachVehicle(const std::function<void(const VehicleCalibration&)>& fn) const;
+  void ForEachVehicle(const std::function<void(const VehicleCalibration&)>& fn) const override;
   // Ids in increasing order.
   std::vector<LandmarkId> LandmarkIds() const;
 
@@ -251,6 +252,7 @@ class MapOverlay : public MapReaderInterface {
   int64_t last_factor_id() const override { return last_factor_id_; }
   int64_t version() const override { return delta_.version; }
   const VehicleCalibration* FindVehicle(const std::string& vehicle_id) const override;
+  void ForEachVehicle(const std::function<void(const VehicleCalibration&)>& fn) const override;
 
   void PutLandmark(const Landmark& landmark);
   void PutVehicle(const VehicleCalibration& vehicle) { delta_.vehicles[vehicle.vehicle_id] = vehicle; }

@@ -141,6 +141,25 @@ TEST_F(MapOverlayTest, ReadsThroughToTheBaseBeforeAnyWrite) {
   EXPECT_TRUE(overlay.delta().empty());
 }
 
+TEST_F(MapOverlayTest, ListsTheVehiclesOfTheBaseAndItsOwnInOrderItsRecordsReplacingTheBases) {
+  auto vehicle = [](const std::string& id, double offset) {
+    VehicleCalibration v;
+    v.vehicle_id = id;
+    v.camera_yaw_offset_rad = offset;
+    return v;
+  };
+  for (const char* id : {"b", "d", "f"}) base_.PutVehicle(vehicle(id, 1.0));
+  MapOverlay overlay(base_);
+  for (const char* id : {"a", "d", "e", "g"}) overlay.PutVehicle(vehicle(id, 2.0));
+  std::vector<std::pair<std::string, double>> listed;
+  overlay.ForEachVehicle([&](const VehicleCalibration& v) { listed.emplace_back(v.vehicle_id, v.camera_yaw_offset_rad); });
+  EXPECT_EQ(listed, (std::vector<std::pair<std::string, double>>{
+                        {"a", 2.0}, {"b", 1.0}, {"d", 2.0}, {"e", 2.0}, {"f", 1.0}, {"g", 2.0}}));
+  int in_base = 0;
+  base_.ForEachVehicle([&](const VehicleCalibration& v) { in_base += v.camera_yaw_offset_rad == 1.0; });
+  EXPECT_EQ(in_base, 3);
+}
+
 TEST_F(MapOverlayTest, AddsAndRemovesFactorsOverTheBaseAndLeavesItUntouched) {
   MapOverlay overlay(base_);
   EXPECT_EQ(overlay.AddFactor(MakeFactor(0, {4, 5})), 3) << "the next id";
