@@ -51,7 +51,8 @@ VehicleCalibration VehicleYawPrior(const std::string& vehicle_id, const MapUpdat
   if (const VehicleCalibration* known = map.FindVehicle(vehicle_id)) return *known;
   if (options.fleet_camera_yaw_prior_vehicles > 0) {
     if (std::optional<VehicleCalibration> fleet =
-            FleetCameraYawPrior(map, vehicle_id, options.fleet_camera_yaw_prior_vehicles)) {
+            FleetCameraYawPrior(map, vehicle_id, options.fleet_camera_yaw_prior_vehicles,
+                                options.camera_yaw_prior_sigma_rad)) {
       return *fleet;
     }
   }

@@ -16,7 +16,7 @@ VehicleCalibration NewVehicleCalibration(const std::string& vehicle_id, double p
 }
 
 std::optional<VehicleCalibration> FleetCameraYawPrior(const MapReaderInterface& map, const std::string& vehicle_id,
-                                                      int min_vehicles) {
+                                                      int min_vehicles, double min_sigma_rad) {
   std::vector<double> offsets;
   double mean_variance = 0.0;
   map.ForEachVehicle([&](const VehicleCalibration& v) {
@@ -33,7 +33,7 @@ std::optional<VehicleCalibration> FleetCameraYawPrior(const MapReaderInterface& 
   VehicleCalibration prior;
   prior.vehicle_id = vehicle_id;
   prior.camera_yaw_offset_rad = mean;
-  prior.camera_yaw_variance_rad2 = spread + mean_variance / n;
+  prior.camera_yaw_variance_rad2 = std::max(min_sigma_rad * min_sigma_rad, spread + mean_variance / n);
   prior.camera_yaw_information = 1.0 / prior.camera_yaw_variance_rad2;
   return prior;
 }

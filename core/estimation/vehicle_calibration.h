@@ -27,11 +27,14 @@ VehicleCalibration NewVehicleCalibration(const std::string& vehicle_id, double p
 // which is never below the records' own uncertainty: a fleet whose cameras share one error is
 // not taken as known better than one passage measures it. The prior's variance is tau^2 at about
 // its 95% upper bound from n records, tau^2 (1 + 2 sqrt(2 / (n - 1))), plus the uncertainty of m,
-// mean(v) / n. When every vehicle's camera has the same error (a fleet of one model and mount), a
-// new vehicle then starts from that error instead of 0, and the map no longer inherits the part
-// of it that each new vehicle's prior would pull back toward 0.
+// mean(v) / n, and never below min_sigma_rad^2 (the fixed prior's): the records' variances hold
+// the priors they were made with, so a prior narrowed to the fleet's would count the fleet again
+// in every new record, and narrow itself further with each generation (measured: over-confident
+// maps under AR(1) GNSS noise). When every vehicle's camera has the same error (a fleet of one
+// model and mount), a new vehicle then starts from that error instead of 0, and the map no longer
+// inherits the part of it that each new vehicle's prior would pull back toward 0.
 std::optional<VehicleCalibration> FleetCameraYawPrior(const MapReaderInterface& map, const std::string& vehicle_id,
-                                                      int min_vehicles);
+                                                      int min_vehicles, double min_sigma_rad);
 
 // The vehicle's record after a solve that took `prior` as its yaw prior and found the offset
 // `posterior_offset_rad`, with marginal variance given_landmarks_rad2 + from_landmarks_rad2

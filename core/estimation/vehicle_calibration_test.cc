@@ -104,11 +104,11 @@ VehicleCalibration Record(const std::string& id, double offset, double variance)
 TEST(FleetCameraYawPrior, NoneBeforeTheFleetIsLargeEnough) {
   MapState map;
   for (int k = 0; k < 4; ++k) map.PutVehicle(Record("v" + std::to_string(k), 0.01, 1e-6));
-  EXPECT_FALSE(FleetCameraYawPrior(map, "new", 5).has_value());
-  EXPECT_TRUE(FleetCameraYawPrior(map, "new", 4).has_value());
+  EXPECT_FALSE(FleetCameraYawPrior(map, "new", 5, 0.0).has_value());
+  EXPECT_TRUE(FleetCameraYawPrior(map, "new", 4, 0.0).has_value());
   MapState one;
   one.PutVehicle(Record("v", 0.01, 1e-6));
-  EXPECT_FALSE(FleetCameraYawPrior(one, "new", 1).has_value()) << "one record has no spread";
+  EXPECT_FALSE(FleetCameraYawPrior(one, "new", 1, 0.0).has_value()) << "one record has no spread";
 }
 
 TEST(FleetCameraYawPrior, TheRecordsMeanWithTheirSpreadAndUncertaintyAsVariance) {
@@ -123,7 +123,7 @@ TEST(FleetCameraYawPrior, TheRecordsMeanWithTheirSpreadAndUncertaintyAsVariance)
   }
   double sample_variance = 0.0;
   for (double x : offsets) sample_variance += (x - mean) * (x - mean) / 9;
-  const std::optional<VehicleCalibration> prior = FleetCameraYawPrior(map, "new", 10);
+  const std::optional<VehicleCalibration> prior = FleetCameraYawPrior(map, "new", 10, 0.0);
   ASSERT_TRUE(prior.has_value());
   EXPECT_EQ(prior->vehicle_id, "new");
   EXPECT_NEAR(prior->camera_yaw_offset_rad, mean, 1e-15);
@@ -132,12 +132,18 @@ TEST(FleetCameraYawPrior, TheRecordsMeanWithTheirSpreadAndUncertaintyAsVariance)
   EXPECT_NEAR(prior->camera_yaw_information * prior->camera_yaw_variance_rad2, 1.0, 1e-12);
   EXPECT_EQ(prior->camera_yaw_map_term, 0.0);
   EXPECT_EQ(prior->passages, 0);
+  // Never narrower than the fixed prior.
+  const std::optional<VehicleCalibration> floored = FleetCameraYawPrior(map, "new", 10, 0.01);
+  ASSERT_TRUE(floored.has_value());
+  EXPECT_NEAR(floored->camera_yaw_offset_rad, mean, 1e-15);
+  EXPECT_EQ(floored->camera_yaw_variance_rad2, 1e-4);
+  EXPECT_EQ(floored->camera_yaw_information, 1e4);
 }
 
 TEST(FleetCameraYawPrior, CamerasThatShareOneErrorAreNotKnownBetterThanTheirRecords) {
   MapState map;
   for (int k = 0; k < 200; ++k) map.PutVehicle(Record("v" + std::to_string(k), 0.009, 4e-6));
-  const std::optional<VehicleCalibration> prior = FleetCameraYawPrior(map, "new", 10);
+  const std::optional<VehicleCalibration> prior = FleetCameraYawPrior(map, "new", 10, 0.0);
   ASSERT_TRUE(prior.has_value());
   EXPECT_NEAR(prior->camera_yaw_offset_rad, 0.009, 1e-15);
   EXPECT_GE(prior->camera_yaw_variance_rad2, 4e-6);
