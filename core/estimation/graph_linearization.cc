@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <chrono>
+#include <unordered_set>
 
 #include "core/estimation/factors.h"
 
@@ -60,10 +61,22 @@ absl::StatusOr<LandmarkInformation> EliminateToLandmarks(ceres::Problem* problem
 absl::StatusOr<GraphLinearization> GraphLinearization::Compute(ceres::Problem* problem,
                                                                 const std::vector<double*>& landmarks) {
   GraphLinearization g;
-  std::vector<double*> all;
-  problem->GetParameterBlocks(&all);
+  problem->GetResidualBlocks(&g.residuals_);
+  // The other blocks in the order the residuals first use them (the order they were added in),
+  // then any no residual uses. Not GetParameterBlocks' order: that is by address, which differs
+  // from run to run (a pose vector on the heap, a yaw state on the stack), and with it the
+  // rounding of the sparse factorisation below.
+  std::vector<double*> all, blocks;
+  for (ceres::ResidualBlockId id : g.residuals_) {
+    problem->GetParameterBlocksForResidualBlock(id, &blocks);
+    all.insert(all.end(), blocks.begin(), blocks.end());
+  }
+  std::vector<double*> unused;
+  problem->GetParameterBlocks(&unused);
+  all.insert(all.end(), unused.begin(), unused.end());
+  std::unordered_set<const double*> placed(landmarks.begin(), landmarks.end());
   for (double* block : all) {
-    if (std::find(landmarks.begin(), landmarks.end(), block) != landmarks.end()) continue;
+    if (!placed.insert(block).second) continue;
     g.offset_[block] = g.other_dim_;
     g.ordered_.push_back(block);
     g.other_dim_ += problem->ParameterBlockSize(block);
@@ -75,7 +88,6 @@ absl::StatusOr<GraphLinearization> GraphLinearization::Compute(ceres::Problem* p
     dim += 2;
   }
   g.landmark_dim_ = dim - g.other_dim_;
-  problem->GetResidualBlocks(&g.residuals_);
 
   ceres::Problem::EvaluateOptions evaluate;
   evaluate.parameter_blocks = g.ordered_;

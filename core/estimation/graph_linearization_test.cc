@@ -140,5 +140,57 @@ TEST(GraphLinearization, ScalarMarginalSplitsIntoTheVarianceGivenTheLandmarksAnd
   EXPECT_GT(m.from_landmarks, 0.0);
 }
 
+// Two scalar states and a landmark, a residual on all three.
+struct ChainResidual {
+  ChainResidual(double a, double b, double c, double d, double y) : a(a), b(b), c(c), d(d), y(y) {}
+  template <typename T>
+  bool operator()(const T* x0, const T* x1, const T* l, T* r) const {
+    r[0] = T(a) * x0[0] + T(b) * x1[0] + T(c) * l[0] + T(d) * l[1] - T(y);
+    return true;
+  }
+  double a, b, c, d, y;
+};
+
+// The same problem, its states stored at addresses in the opposite order: bit for bit the same
+// linearisation (the blocks' order comes from the residuals, not from their addresses, which
+// differ from run to run).
+TEST(GraphLinearization, DoesNotDependOnWhereTheStatesAreStored) {
+  const int n = 40;
+  auto linearize = [&](bool reversed) {
+    std::mt19937 rng(5);
+    std::uniform_real_distribution<double> u(0.5, 1.5);
+    std::vector<double> storage(n, 0.0);
+    std::vector<Eigen::Vector2d> landmarks(3, Eigen::Vector2d::Zero());
+    auto state = [&](int k) { return &storage[reversed ? n - 1 - k : k]; };
+    ceres::Problem problem;
+    for (int k = 0; k + 1 < n; ++k) {
+      for (int l = 0; l < 3; ++l) {
+        if ((k + l) % 2 != 0) continue;
+        problem.AddResidualBlock(new ceres::AutoDiffCostFunction<ChainResidual, 1, 1, 1, 2>(
+                                     new ChainResidual(u(rng), -u(rng), u(rng), u(rng), u(rng))),
+                                 nullptr, state(k), state(k + 1), landmarks[l].data());
+      }
+    }
+    problem.AddResidualBlock(new ceres::AutoDiffCostFunction<ChainResidual, 1, 1, 1, 2>(
+                                 new ChainResidual(1.0, 0.0, 0.0, 0.0, 0.0)),
+                             nullptr, state(0), state(1), landmarks[0].data());
+    for (int l = 0; l < 3; ++l) {
+      for (int k = 0; k < 2; ++k) {
+        problem.AddResidualBlock(new ceres::AutoDiffCostFunction<ChainResidual, 1, 1, 1, 2>(
+                                     new ChainResidual(0.0, 0.0, k == 0 ? 1.0 : 0.0, k == 1 ? 1.0 : 0.0, 0.0)),
+                                 nullptr, state(0), state(1), landmarks[l].data());
+      }
+    }
+    std::vector<double*> landmark_blocks;
+    for (Eigen::Vector2d& l : landmarks) landmark_blocks.push_back(l.data());
+    absl::StatusOr<GraphLinearization> lin = GraphLinearization::Compute(&problem, landmark_blocks);
+    EXPECT_TRUE(lin.ok()) << lin.status();
+    return lin.ok() ? lin->landmark_covariance() : Eigen::MatrixXd();
+  };
+  const Eigen::MatrixXd forward = linearize(false), backward = linearize(true);
+  ASSERT_EQ(forward.rows(), 6);
+  EXPECT_TRUE(forward == backward) << (forward - backward).cwiseAbs().maxCoeff();
+}
+
 }  // namespace
 }  // namespace crowdmap
