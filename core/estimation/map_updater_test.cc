@@ -999,7 +999,7 @@ TEST(CameraYawEstimation, AFleetThatSharesOneCameraErrorTeachesItToNewVehicles) 
   double fixed_error = 0.0, fixed_nees = 0.0, fleet_error = 0.0, fleet_nees = 0.0;
   const MapErrorMetrics fixed = run(0, &fixed_error, &fixed_nees);
   const MapErrorMetrics fleet = run(5, &fleet_error, &fleet_nees);
-  // Measured: records 0.0076 -> 0.0065 rad off (NEES 2.2 -> 1.7), map 0.385 -> 0.364 m (NEES/dof
+  // Measured: records 0.0076 -> 0.0065 rad off (NEES 2.2 -> 1.7), map 0.385 -> 0.363 m (NEES/dof
   // 1.46 -> 1.30). The map absorbs most of an error every camera shares, so the records stay far
   // from it at 120 passages; by 1000 the fleet prior takes the map to its bound (mapsim, README).
   EXPECT_LT(fleet_error, 0.9 * fixed_error) << "fixed prior: " << fixed_error;

@@ -2,7 +2,6 @@
 
 #include <algorithm>
 #include <cmath>
-#include <numeric>
 #include <vector>
 
 namespace crowdmap {
@@ -17,16 +16,20 @@ VehicleCalibration NewVehicleCalibration(const std::string& vehicle_id, double p
 
 std::optional<VehicleCalibration> FleetCameraYawPrior(const MapReaderInterface& map, const std::string& vehicle_id,
                                                       int min_vehicles, double min_sigma_rad) {
-  std::vector<double> offsets;
-  double mean_variance = 0.0;
+  std::vector<double> offsets, variances;
   map.ForEachVehicle([&](const VehicleCalibration& v) {
     offsets.push_back(v.camera_yaw_offset_rad);
-    mean_variance += v.camera_yaw_variance_rad2;
+    variances.push_back(v.camera_yaw_variance_rad2);
   });
   const int n = static_cast<int>(offsets.size());
   if (n < std::max(2, min_vehicles)) return std::nullopt;
-  mean_variance /= n;
-  const double mean = std::accumulate(offsets.begin(), offsets.end(), 0.0) / n;
+  double weights = 0.0, weighted = 0.0, mean_variance = 0.0;
+  for (int i = 0; i < n; ++i) {
+    weights += 1.0 / variances[i];
+    weighted += offsets[i] / variances[i];
+    mean_variance += variances[i] / n;
+  }
+  const double mean = weighted / weights;
   double sample_variance = 0.0;
   for (double x : offsets) sample_variance += (x - mean) * (x - mean) / (n - 1);
   const double spread = (sample_variance + mean_variance) * (1.0 + 2.0 * std::sqrt(2.0 / (n - 1)));

@@ -20,10 +20,11 @@ VehicleCalibration NewVehicleCalibration(const std::string& vehicle_id, double p
 // (`map`'s vehicles) once it has at least `min_vehicles` of them; nullopt before.
 //
 // An empirical-Bayes prior: the vehicles' offsets taken as draws of one distribution, whose mean
-// is the records' mean m and whose variance is that of the true offsets around it. Each record is
-// a posterior mean x_i with variance v_i, so the true offsets vary by about
-//   tau^2 = s^2 + mean(v)   (s^2 the records' sample variance; total variance: a posterior mean
-//                            varies less than what it estimates, by its own variance),
+// is the records' mean m (weighted by their precisions 1/v_i: a vehicle seen once on a young map
+// counts less than one the map knows well) and whose variance is that of the true offsets around
+// it. Each record is a posterior mean x_i with variance v_i, so the true offsets vary by about
+//   tau^2 = s^2 + mean(v)   (s^2 the records' sample variance about m; total variance: a posterior
+//                            mean varies less than what it estimates, by its own variance),
 // which is never below the records' own uncertainty: a fleet whose cameras share one error is
 // not taken as known better than one passage measures it. The prior's variance is tau^2 at about
 // its 95% upper bound from n records, tau^2 (1 + 2 sqrt(2 / (n - 1))), plus the uncertainty of m,

@@ -111,16 +111,18 @@ TEST(FleetCameraYawPrior, NoneBeforeTheFleetIsLargeEnough) {
   EXPECT_FALSE(FleetCameraYawPrior(one, "new", 1, 0.0).has_value()) << "one record has no spread";
 }
 
-TEST(FleetCameraYawPrior, TheRecordsMeanWithTheirSpreadAndUncertaintyAsVariance) {
+TEST(FleetCameraYawPrior, TheRecordsWeightedMeanWithTheirSpreadAndUncertaintyAsVariance) {
   MapState map;
   const double offsets[] = {0.010, 0.012, 0.007, 0.011, 0.009, 0.013, 0.008, 0.010, 0.006, 0.014};
   const double variances[] = {1e-6, 2e-6, 1e-6, 3e-6, 1e-6, 2e-6, 1e-6, 1e-6, 4e-6, 1e-6};
-  double mean = 0.0, mean_variance = 0.0;
+  double weights = 0.0, mean = 0.0, mean_variance = 0.0;
   for (int k = 0; k < 10; ++k) {
     map.PutVehicle(Record("v" + std::to_string(k), offsets[k], variances[k]));
-    mean += offsets[k] / 10;
+    weights += 1.0 / variances[k];
+    mean += offsets[k] / variances[k];
     mean_variance += variances[k] / 10;
   }
+  mean /= weights;  // precision-weighted: 0.01 and 0.006 (variances 3e-6, 4e-6) count less
   double sample_variance = 0.0;
   for (double x : offsets) sample_variance += (x - mean) * (x - mean) / 9;
   const std::optional<VehicleCalibration> prior = FleetCameraYawPrior(map, "new", 10, 0.0);
