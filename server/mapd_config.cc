@@ -162,7 +162,8 @@ std::unique_ptr<CLI::App> NewMapdCommandLine(MapdConfig* config) {
       ->type_name("BOOL");
   AddMapdSetting(app, "fleet-yaw-prior-vehicles", &u.fleet_camera_yaw_prior_vehicles,
                  "with estimate-camera-yaw: once the map has N vehicles' records, a new vehicle's camera\n"
-                 "yaw prior is the fleet's (their mean and spread) instead of 0 +- 1 degree (0 = off)")
+                 "yaw prior is centred on the fleet's mean (width their spread, at least 1 degree) instead\n"
+                 "of 0 (0 = off)")
       ->type_name("N");
   app->add_flag("--create", o.create_db,
                 "create a new, empty map when --db does not exist yet (or is an empty file), with its\n"
@@ -232,6 +233,7 @@ absl::StatusOr<MapdConfig> ParseMapdConfig(const std::vector<std::string>& args)
 MapUpdateOptions MapdDefaultUpdateOptions() {
   MapUpdateOptions u;
   u.estimate_camera_yaw = true;
+  u.fleet_camera_yaw_prior_vehicles = 10;
   return u;
 }
 
