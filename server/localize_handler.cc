@@ -1,4 +1,5 @@
 // MapService::LocalizePassage: a passage localised against the map, read-only.
+#include <optional>
 #include <unordered_map>
 #include <vector>
 
@@ -50,9 +51,20 @@ grpc::Status MapService::LocalizePassage(grpc::ServerContext* ctx, const pb::Loc
   for (const Detection& d : passage->detections) detected.push_back(d.landmark_id);
   absl::StatusOr<LandmarkPage> page = context_->store->GetLandmarks(detected, /*include_cross=*/true);
   if (!page.ok()) return log.Done(page.status());
-  // The vehicle's camera yaw as its uploads estimated it, when they did.
+  // The vehicle's camera yaw as its uploads estimated it, when they did; for a vehicle never seen,
+  // the fleet's mean where the map update would start it from there (FleetCameraYawPrior).
+  absl::StatusOr<VehicleCalibration> vehicle = context_->store->GetVehicle(passage->vehicle_id);
+  if (absl::IsNotFound(vehicle.status()) && context_->update.fleet_camera_yaw_prior_vehicles > 0) {
+    absl::StatusOr<std::vector<VehicleCalibration>> fleet = context_->store->ListVehicles();
+    if (!fleet.ok()) return log.Done(fleet.status());
+    if (std::optional<VehicleCalibration> prior =
+            FleetCameraYawPrior(*fleet, passage->vehicle_id, context_->update.fleet_camera_yaw_prior_vehicles,
+                                context_->update.camera_yaw_prior_sigma_rad)) {
+      vehicle = *std::move(prior);
+    }
+  }
   double camera_yaw_offset_rad = 0.0;
-  if (absl::StatusOr<VehicleCalibration> vehicle = context_->store->GetVehicle(passage->vehicle_id); vehicle.ok()) {
+  if (vehicle.ok()) {
     camera_yaw_offset_rad = vehicle->camera_yaw_offset_rad;
     *passage = WithVehicleCameraYaw(*passage, *vehicle);
   } else if (!absl::IsNotFound(vehicle.status())) {

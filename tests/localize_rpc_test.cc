@@ -79,5 +79,47 @@ TEST_F(LocalizeRpc, RefusesAnInvalidPassage) {
   EXPECT_NE(response.status().message().find("gnss[3].lat_deg"), std::string::npos) << response.status();
 }
 
+// A vehicle never seen is localised with the fleet's mean camera yaw (the precision-weighted mean
+// of the records, as the map update would start it), once the map has enough vehicles.
+TEST(LocalizeRpcFleet, AVehicleNeverSeenTakesTheFleetsMeanCameraYaw) {
+  TempDir dir;
+  MapServerOptions options = TestServerOptions(dir.File("map.db"), /*worker=*/true);
+  options.worker.update.estimate_camera_yaw = true;
+  options.worker.update.fleet_camera_yaw_prior_vehicles = 3;
+  auto server = StartTestServer(options);
+  ASSERT_NE(server, nullptr);
+  MockVehicle client(server->address());
+  ScenarioOptions yaw_bias = ShortScenario().options();
+  yaw_bias.noise = NoiseConfig::kYawBias;  // every camera turned alike
+  const Scenario scenario = *Scenario::Create(yaw_bias);
+  pb::Passage wire;
+  PassageToProto(scenario.MakePassage(10), &wire);
+  auto localize = [&]() {
+    absl::StatusOr<pb::LocalizePassageResponse> response = client.client()->LocalizePassage(wire);
+    EXPECT_TRUE(response.ok()) << response.status();
+    return response.ok() ? response->camera_yaw_offset_rad() : std::nan("");
+  };
+  for (int i = 0; i < 2; ++i) ASSERT_TRUE(client.Upload(scenario.MakePassage(i)).ok());
+  ASSERT_TRUE(client.WaitUntilIdle().ok());
+  EXPECT_EQ(localize(), 0.0) << "two vehicles are not a fleet of three";
+
+  ASSERT_TRUE(client.Upload(scenario.MakePassage(2)).ok());
+  ASSERT_TRUE(client.WaitUntilIdle().ok());
+  absl::StatusOr<pb::ListVehiclesResponse> list = client.client()->ListVehicles();
+  ASSERT_TRUE(list.ok()) << list.status();
+  ASSERT_EQ(list->vehicles_size(), 3);
+  double weights = 0.0, weighted = 0.0;
+  for (const pb::Vehicle& v : list->vehicles()) {
+    const double variance = v.camera_yaw_sigma_rad() * v.camera_yaw_sigma_rad();
+    weights += 1.0 / variance;
+    weighted += v.camera_yaw_offset_rad() / variance;
+  }
+  const double offset = localize();
+  EXPECT_NE(offset, 0.0);
+  EXPECT_NEAR(offset, weighted / weights, 1e-9);
+  EXPECT_EQ(client.client()->GetVehicle(wire.vehicle_id()).status().code(), absl::StatusCode::kNotFound)
+      << "localising records nothing";
+}
+
 }  // namespace
 }  // namespace crowdmap

@@ -14,24 +14,22 @@ VehicleCalibration NewVehicleCalibration(const std::string& vehicle_id, double p
   return v;
 }
 
-std::optional<VehicleCalibration> FleetCameraYawPrior(const MapReaderInterface& map, const std::string& vehicle_id,
-                                                      int min_vehicles, double min_sigma_rad) {
-  std::vector<double> offsets, variances;
-  map.ForEachVehicle([&](const VehicleCalibration& v) {
-    offsets.push_back(v.camera_yaw_offset_rad);
-    variances.push_back(v.camera_yaw_variance_rad2);
-  });
-  const int n = static_cast<int>(offsets.size());
+std::optional<VehicleCalibration> FleetCameraYawPrior(const std::vector<VehicleCalibration>& fleet,
+                                                      const std::string& vehicle_id, int min_vehicles,
+                                                      double min_sigma_rad) {
+  const int n = static_cast<int>(fleet.size());
   if (n < std::max(2, min_vehicles)) return std::nullopt;
   double weights = 0.0, weighted = 0.0, mean_variance = 0.0;
-  for (int i = 0; i < n; ++i) {
-    weights += 1.0 / variances[i];
-    weighted += offsets[i] / variances[i];
-    mean_variance += variances[i] / n;
+  for (const VehicleCalibration& v : fleet) {
+    weights += 1.0 / v.camera_yaw_variance_rad2;
+    weighted += v.camera_yaw_offset_rad / v.camera_yaw_variance_rad2;
+    mean_variance += v.camera_yaw_variance_rad2 / n;
   }
   const double mean = weighted / weights;
   double sample_variance = 0.0;
-  for (double x : offsets) sample_variance += (x - mean) * (x - mean) / (n - 1);
+  for (const VehicleCalibration& v : fleet) {
+    sample_variance += (v.camera_yaw_offset_rad - mean) * (v.camera_yaw_offset_rad - mean) / (n - 1);
+  }
   const double spread = (sample_variance + mean_variance) * (1.0 + 2.0 * std::sqrt(2.0 / (n - 1)));
   VehicleCalibration prior;
   prior.vehicle_id = vehicle_id;
@@ -39,6 +37,13 @@ std::optional<VehicleCalibration> FleetCameraYawPrior(const MapReaderInterface& 
   prior.camera_yaw_variance_rad2 = std::max(min_sigma_rad * min_sigma_rad, spread + mean_variance / n);
   prior.camera_yaw_information = 1.0 / prior.camera_yaw_variance_rad2;
   return prior;
+}
+
+std::optional<VehicleCalibration> FleetCameraYawPrior(const MapReaderInterface& map, const std::string& vehicle_id,
+                                                      int min_vehicles, double min_sigma_rad) {
+  std::vector<VehicleCalibration> fleet;
+  map.ForEachVehicle([&](const VehicleCalibration& v) { fleet.push_back(v); });
+  return FleetCameraYawPrior(fleet, vehicle_id, min_vehicles, min_sigma_rad);
 }
 
 VehicleCalibration ConsiderCameraYawSolve(const VehicleCalibration& prior, double posterior_offset_rad,

@@ -7,6 +7,7 @@
 
 #include <optional>
 #include <string>
+#include <vector>
 
 #include "core/map/map_state.h"
 #include "core/model/passage.h"
@@ -34,6 +35,10 @@ VehicleCalibration NewVehicleCalibration(const std::string& vehicle_id, double p
 // maps under AR(1) GNSS noise). When every vehicle's camera has the same error (a fleet of one
 // model and mount), a new vehicle then starts from that error instead of 0, and the map no longer
 // inherits the part of it that each new vehicle's prior would pull back toward 0.
+std::optional<VehicleCalibration> FleetCameraYawPrior(const std::vector<VehicleCalibration>& fleet,
+                                                      const std::string& vehicle_id, int min_vehicles,
+                                                      double min_sigma_rad);
+// The same over `map`'s vehicles.
 std::optional<VehicleCalibration> FleetCameraYawPrior(const MapReaderInterface& map, const std::string& vehicle_id,
                                                       int min_vehicles, double min_sigma_rad);
 
