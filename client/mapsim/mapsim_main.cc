@@ -119,8 +119,8 @@ void AddMapUpdateFlags(CLI::App* command, MapUpdateOptions* update) {
                     "(summary.json: vehicle_yaw, estimate against truth per vehicle)");
   command->add_option("--fleet-yaw-prior-vehicles", update->fleet_camera_yaw_prior_vehicles,
                       "with --estimate-camera-yaw: once the map has N vehicles' records, a new vehicle's\n"
-                      "camera yaw prior is the fleet's (their mean and spread) instead of 0 +- 1 degree, as\n"
-                      "mapd's flag of that name (0 = off)")
+                      "camera yaw prior is centred on the fleet's mean (width their spread, at least 1\n"
+                      "degree) instead of 0, as mapd's flag of that name (mapd: 10; here 0 = off)")
       ->check(NonNegative())
       ->type_name("N");
   // Gates given in sigmas, kept as squared Mahalanobis distances.

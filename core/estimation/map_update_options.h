@@ -79,9 +79,9 @@ struct MapUpdateOptions {
   // (mean 0), and of every passage in the joint solves (warm-up, re-solves). Default 1 degree.
   double camera_yaw_prior_sigma_rad = 0.017453292519943295;
   // With at least this many vehicles' records in the map, a new vehicle's camera yaw prior is the
-  // fleet's (FleetCameraYawPrior: the records' mean, with their spread as its variance but never
-  // narrower than camera_yaw_prior_sigma_rad) instead of mean 0. 0 = off. The joint solves keep
-  // the fixed prior.
+  // fleet's (FleetCameraYawPrior: the records' precision-weighted mean, with their spread as its
+  // variance but never narrower than camera_yaw_prior_sigma_rad) instead of mean 0. 0 = off (mapd
+  // uses 10). The joint solves keep the fixed prior.
   int fleet_camera_yaw_prior_vehicles = 0;
   // A map landmark that a subgraph's solve moves further than this from its map estimate (squared
   // Mahalanobis distance in the map's marginal covariance; an honest update moves it by much less,

@@ -37,15 +37,17 @@ struct PassageProgress {
   std::unordered_set<LandmarkId> held_back;
   // Detections set aside as outliers (OutlierDetections), by node and landmark.
   std::set<DetectionKey> outliers;
-  // With the camera yaw estimated: the vehicle's offset when the passage started, applied to the
-  // calibration the passage is solved with (each subgraph's yaw state is the further offset).
-  double yaw_base_rad = 0.0;
+  // With the camera yaw estimated: the vehicle's record when the passage started (VehicleYawPrior:
+  // a new vehicle's prior), its offset applied to the calibration the passage is solved with (each
+  // subgraph's yaw state is the further offset). The prior of a subgraph before the first one that
+  // records the vehicle.
+  VehicleCalibration vehicle_at_start;
   bool vehicle_counted = false;  // the vehicle's passage count incremented
 };
 
-// The prior of a subgraph's camera yaw offset: the vehicle's estimate so far (earlier subgraphs
-// of the passage included), or for a new vehicle the fleet's prior (when asked for and the fleet
-// is large enough), else mean 0 with options.camera_yaw_prior_sigma_rad.
+// The prior of a passage's camera yaw offset: the vehicle's record, or for a new vehicle the
+// fleet's prior (when asked for and the fleet is large enough), else mean 0 with
+// options.camera_yaw_prior_sigma_rad.
 VehicleCalibration VehicleYawPrior(const std::string& vehicle_id, const MapUpdateOptions& options,
                                    const MapReaderInterface& map) {
   if (const VehicleCalibration* known = map.FindVehicle(vehicle_id)) return *known;
@@ -138,9 +140,12 @@ absl::StatusOr<SetAsideRequest> UpdateFromSubgraph(const Passage& passage, const
   if (landmarks.ids.empty()) return SetAsideRequest{};
 
   LandmarkUpdate update(graph.frame, map, landmarks.ids);
-  VehicleCalibration vehicle = VehicleYawPrior(passage.vehicle_id, options, *map);
+  // The vehicle's estimate so far, earlier subgraphs of the passage included.
+  const VehicleCalibration* recorded = map->FindVehicle(passage.vehicle_id);
+  VehicleCalibration vehicle = recorded != nullptr ? *recorded : progress->vehicle_at_start;
+  const double yaw_base_rad = progress->vehicle_at_start.camera_yaw_offset_rad;
   // The camera yaw offset's state, relative to the calibration the passage is solved with.
-  double yaw_offset_rad = vehicle.camera_yaw_offset_rad - progress->yaw_base_rad;
+  double yaw_offset_rad = vehicle.camera_yaw_offset_rad - yaw_base_rad;
   // Weight of the passage's measurements: 1 until the consistency test asks for inflation.
   ceres::LossFunctionWrapper measurement_weight(new ceres::TrivialLoss(), ceres::TAKE_OWNERSHIP);
   ceres::Problem::Options problem_options;
@@ -218,7 +223,7 @@ absl::StatusOr<SetAsideRequest> UpdateFromSubgraph(const Passage& passage, const
   // the bias-corrected solution, updates the vehicle's record.
   if (options.estimate_camera_yaw) {
     const GraphLinearization::ScalarMarginal yaw = linearization->MarginalVariance(&yaw_offset_rad);
-    vehicle = ConsiderCameraYawSolve(vehicle, progress->yaw_base_rad + yaw_offset_rad, yaw.given_landmarks,
+    vehicle = ConsiderCameraYawSolve(vehicle, yaw_base_rad + yaw_offset_rad, yaw.given_landmarks,
                                      yaw.from_landmarks);
     vehicle.updated_unix_ms = passage.start_time_unix_ms;
   }
@@ -387,9 +392,8 @@ absl::Status ApplyPassage(const Passage& declared, const MapUpdateOptions& optio
   // vehicle's offset so far applied to the camera yaw it declares.
   Passage calibrated;
   if (options.estimate_camera_yaw) {
-    const VehicleCalibration vehicle = VehicleYawPrior(declared.vehicle_id, options, *overlay);
-    progress.yaw_base_rad = vehicle.camera_yaw_offset_rad;
-    calibrated = WithVehicleCameraYaw(declared, vehicle);
+    progress.vehicle_at_start = VehicleYawPrior(declared.vehicle_id, options, *overlay);
+    calibrated = WithVehicleCameraYaw(declared, progress.vehicle_at_start);
   }
   const Passage& passage = options.estimate_camera_yaw ? calibrated : declared;
   GraphOptions graph_options;

@@ -1001,7 +1001,7 @@ TEST(CameraYawEstimation, AFleetThatSharesOneCameraErrorTeachesItToNewVehicles) 
   const MapErrorMetrics fleet = run(5, &fleet_error, &fleet_nees);
   // Measured: records 0.0076 -> 0.0065 rad off (NEES 2.2 -> 1.7), map 0.385 -> 0.363 m (NEES/dof
   // 1.46 -> 1.30). The map absorbs most of an error every camera shares, so the records stay far
-  // from it at 120 passages; by 1000 the fleet prior takes the map to its bound (mapsim, README).
+  // from it at 120 passages; by 1000 the fleet prior takes the map to its bound (docs/results.md).
   EXPECT_LT(fleet_error, 0.9 * fixed_error) << "fixed prior: " << fixed_error;
   EXPECT_LT(fleet_nees, fixed_nees);
   EXPECT_LT(fleet.mean_dist_err_m, fixed.mean_dist_err_m);
