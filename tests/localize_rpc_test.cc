@@ -1,6 +1,7 @@
 // LocalizePassage against an in-process server on an ephemeral port and a temporary SQLite file.
 #include <cmath>
 
+#include "core/estimation/vehicle_calibration.h"
 #include "core/localization/passage_localizer.h"
 #include "server/testing/temp_dir.h"
 #include "server/wire_convert.h"
@@ -79,8 +80,8 @@ TEST_F(LocalizeRpc, RefusesAnInvalidPassage) {
   EXPECT_NE(response.status().message().find("gnss[3].lat_deg"), std::string::npos) << response.status();
 }
 
-// A vehicle never seen is localised with the fleet's mean camera yaw (the precision-weighted mean
-// of the records, as the map update would start it), once the map has enough vehicles.
+// A vehicle never seen is localised with the fleet's mean camera yaw (FleetCameraYawPrior over the
+// records ListVehicles serves, as the map update would start it), once the map has enough vehicles.
 TEST(LocalizeRpcFleet, AVehicleNeverSeenTakesTheFleetsMeanCameraYaw) {
   TempDir dir;
   MapServerOptions options = TestServerOptions(dir.File("map.db"), /*worker=*/true);
@@ -108,15 +109,20 @@ TEST(LocalizeRpcFleet, AVehicleNeverSeenTakesTheFleetsMeanCameraYaw) {
   absl::StatusOr<pb::ListVehiclesResponse> list = client.client()->ListVehicles();
   ASSERT_TRUE(list.ok()) << list.status();
   ASSERT_EQ(list->vehicles_size(), 3);
-  double weights = 0.0, weighted = 0.0;
+  std::vector<VehicleCalibration> fleet;
   for (const pb::Vehicle& v : list->vehicles()) {
-    const double variance = v.camera_yaw_sigma_rad() * v.camera_yaw_sigma_rad();
-    weights += 1.0 / variance;
-    weighted += v.camera_yaw_offset_rad() / variance;
+    VehicleCalibration record;
+    record.vehicle_id = v.vehicle_id();
+    record.camera_yaw_offset_rad = v.camera_yaw_offset_rad();
+    record.camera_yaw_variance_rad2 = v.camera_yaw_sigma_rad() * v.camera_yaw_sigma_rad();
+    fleet.push_back(record);
   }
+  const std::optional<VehicleCalibration> prior =
+      FleetCameraYawPrior(fleet, wire.vehicle_id(), 3, options.worker.update.camera_yaw_prior_sigma_rad);
+  ASSERT_TRUE(prior.has_value());
   const double offset = localize();
   EXPECT_NE(offset, 0.0);
-  EXPECT_NEAR(offset, weighted / weights, 1e-9);
+  EXPECT_NEAR(offset, prior->camera_yaw_offset_rad, 1e-9);
   EXPECT_EQ(client.client()->GetVehicle(wire.vehicle_id()).status().code(), absl::StatusCode::kNotFound)
       << "localising records nothing";
 }
