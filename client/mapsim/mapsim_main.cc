@@ -86,7 +86,7 @@ void ScaleNoise(const NoiseScales& scales, ScenarioOptions* scenario) {
 }
 
 // --warmup-passages, --relinearize-until-passages, --window-hops, --retain-passages,
-// --relinearize-sigmas and --relinearizations-per-passage, --estimate-camera-yaw,
+// --relinearize-sigmas and --relinearizations-per-passage, --max-subgraph-dim, --estimate-camera-yaw,
 // --fleet-yaw-prior-vehicles,
 // --max-landmark-shift-sigmas, --max-chi2-per-dof and --max-update-shift-sigmas (experiment and
 // city).
@@ -106,6 +106,9 @@ void AddMapUpdateFlags(CLI::App* command, MapUpdateOptions* update) {
                       "keep the factors of the last N passages apart (removable, re-linearisable), as mapd's\n"
                       "flag of that name; older ones are folded into the base (0 = keep all)")
       ->type_name("N");
+  command->add_option("--max-subgraph-dim", update->max_subgraph_dim,
+                      "cc-gsd: at most D state dimensions per subgraph (mapd's flag of that name)")
+      ->type_name("D");
   command->add_option("--relinearize-sigmas", update->relinearize_sigmas,
                       "after each passage, take again (at today's estimate) the retained passage whose\n"
                       "landmarks moved furthest since its factors were taken, if more than X of their\n"
@@ -164,8 +167,6 @@ void AddExperimentFlags(CLI::App* command, ExperimentCommand* c) {
   command->add_option("--passages", o.passages, "simulated passages, applied in order")->type_name("P");
   command->add_option("--strategy", o.strategy, "cc | dc | cc-gsd | triangulation")->type_name("S");
   command->add_option("--out", c->out, "output folder: passages.csv, summary.json, errors.svg")->type_name("DIR");
-  command->add_option("--max-subgraph-dim", o.update.max_subgraph_dim, "cc-gsd state-dimension bound per subgraph")
-      ->type_name("D");
   command->add_option("--detections-per-landmark", o.update.detections_per_landmark,
                       "last K >= 2 detections per landmark and passage, 0 = all")
       ->type_name("K");
