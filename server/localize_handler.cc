@@ -70,10 +70,19 @@ grpc::Status MapService::LocalizePassage(grpc::ServerContext* ctx, const pb::Loc
   } else if (!absl::IsNotFound(vehicle.status())) {
     return log.Done(vehicle.status());
   }
-  absl::StatusOr<PassageLocalization> result = crowdmap::LocalizePassage(*passage, LocalizationMapFromPage(*page));
+  // The offset is estimated again in the localisation, the record's uncertainty its prior.
+  PassageLocalizerOptions options;
+  options.camera_yaw_sigma_rad =
+      LocalizationCameraYawSigma(vehicle.ok() ? &*vehicle : nullptr, context_->update.camera_yaw_prior_sigma_rad);
+  absl::StatusOr<PassageLocalization> result =
+      crowdmap::LocalizePassage(*passage, LocalizationMapFromPage(*page), options);
   if (!result.ok()) return log.Done(result.status());
   PassageLocalizationToProto(*result, response);
   response->set_camera_yaw_offset_rad(camera_yaw_offset_rad);
+  if (result->camera_yaw_sigma_rad > 0.0) {
+    response->set_camera_yaw_estimate_rad(camera_yaw_offset_rad + result->camera_yaw_offset_rad);
+    response->set_camera_yaw_estimate_sigma_rad(result->camera_yaw_sigma_rad);
+  }
   log.Add(result->Brief());
   return log.Done(absl::OkStatus());
 }

@@ -1,6 +1,7 @@
 // LocalizePassage against an in-process server on an ephemeral port and a temporary SQLite file.
 #include <cmath>
 
+#include "core/estimation/map_update_options.h"
 #include "core/estimation/vehicle_calibration.h"
 #include "core/localization/passage_localizer.h"
 #include "server/testing/temp_dir.h"
@@ -56,8 +57,15 @@ TEST_F(LocalizeRpc, ReturnsTheTrajectoryWithCovarianceAndLeavesTheMapAlone) {
   ASSERT_TRUE(map.ok()) << map.status();
   absl::StatusOr<LocalizationMap> local_map = ReadLocalizationMap(*map, passage);
   ASSERT_TRUE(local_map.ok()) << local_map.status();
-  absl::StatusOr<PassageLocalization> local = LocalizePassage(passage, *local_map);
+  // A vehicle without a calibration record: its camera yaw offset estimated with the map update's prior.
+  PassageLocalizerOptions options;
+  options.camera_yaw_sigma_rad = LocalizationCameraYawSigma(nullptr, MapUpdateOptions().camera_yaw_prior_sigma_rad);
+  absl::StatusOr<PassageLocalization> local = LocalizePassage(passage, *local_map, options);
   ASSERT_TRUE(local.ok()) << local.status();
+  EXPECT_EQ(response->camera_yaw_offset_rad(), 0.0);
+  EXPECT_GT(response->camera_yaw_estimate_sigma_rad(), 0.0);
+  EXPECT_NEAR(response->camera_yaw_estimate_sigma_rad(), local->camera_yaw_sigma_rad, 1e-9);
+  EXPECT_NEAR(response->camera_yaw_estimate_rad(), local->camera_yaw_offset_rad, 1e-9);
   ASSERT_EQ(static_cast<int>(local->poses.size()), response->poses_size());
   for (size_t k = 0; k < local->poses.size(); ++k) {
     EXPECT_NEAR(local->poses[k].position.lat_deg, response->poses(k).lat_deg(), 1e-9);
@@ -123,6 +131,14 @@ TEST(LocalizeRpcFleet, AVehicleNeverSeenTakesTheFleetsMeanCameraYaw) {
   const double offset = localize();
   EXPECT_NE(offset, 0.0);
   EXPECT_NEAR(offset, prior->camera_yaw_offset_rad, 1e-9);
+  // Estimated again from the passage, the fleet's width its prior: the estimate lies within three
+  // of its sigmas of the camera's true offset.
+  absl::StatusOr<pb::LocalizePassageResponse> response = client.client()->LocalizePassage(wire);
+  ASSERT_TRUE(response.ok()) << response.status();
+  EXPECT_GT(response->camera_yaw_estimate_sigma_rad(), 0.0);
+  EXPECT_LT(response->camera_yaw_estimate_sigma_rad(), std::sqrt(prior->camera_yaw_variance_rad2));
+  EXPECT_LT(std::abs(response->camera_yaw_estimate_rad() - scenario.CameraYawErrorRad(10)),
+            3.0 * response->camera_yaw_estimate_sigma_rad());
   EXPECT_EQ(client.client()->GetVehicle(wire.vehicle_id()).status().code(), absl::StatusCode::kNotFound)
       << "localising records nothing";
 }

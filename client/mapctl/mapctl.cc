@@ -256,9 +256,10 @@ absl::Status LandmarkCommand(const Arguments& args, Context& ctx) {
   return absl::OkStatus();
 }
 
+constexpr double kDeg = 180.0 / M_PI;
+
 // "camera yaw +0.52° ± 0.03° after 14 passages"
 std::string DescribeVehicleYaw(const pb::Vehicle& v) {
-  constexpr double kDeg = 180.0 / M_PI;
   return absl::StrFormat("camera yaw %+.2f° ± %.2f° after %d passage%s", v.camera_yaw_offset_rad() * kDeg,
                          v.camera_yaw_sigma_rad() * kDeg, v.passages(), v.passages() == 1 ? "" : "s");
 }
@@ -507,9 +508,11 @@ absl::Status Localize(const Arguments& args, Context& ctx) {
   }
   if (absl::Status s = WriteTextFile(args.out, text); !s.ok()) return s;
   *ctx.out << absl::StrFormat(
-      "wrote %d poses to %s (map version %d, %d landmarks used, %d detections rejected, chi2 %.1f / %d dof)\n",
+      "wrote %d poses to %s (map version %d, %d landmarks used, %d detections rejected, chi2 %.1f / %d dof, "
+      "camera yaw %+.2f° ± %.2f°)\n",
       response->poses_size(), args.out, response->map_version(), response->landmarks_used_size(),
-      response->rejected_size(), response->chi2(), response->dof());
+      response->rejected_size(), response->chi2(), response->dof(), response->camera_yaw_estimate_rad() * kDeg,
+      response->camera_yaw_estimate_sigma_rad() * kDeg);
   return absl::OkStatus();
 }
 

@@ -179,10 +179,17 @@ absl::StatusOr<std::vector<LocalizeRow>> RunLocalizeExperiment(const LocalizeExp
       }
       for (int run = 0; run < options.runs; ++run) {
         const Passage passage = scenario->MakePassage(run);
-        // With crowdmap's map, as LocalizePassage: the vehicle's estimated camera yaw applied.
+        // With crowdmap's map, as LocalizePassage: the vehicle's estimated camera yaw applied, and
+        // estimated again with the record's uncertainty as its prior.
         Passage with_map = passage;
-        if (const VehicleCalibration* vehicle = own ? own->FindVehicle(passage.vehicle_id) : nullptr) {
-          with_map = WithVehicleCameraYaw(passage, *vehicle);
+        PassageLocalizerOptions localizer = options.localizer;
+        if (own) {
+          const VehicleCalibration* vehicle = own->FindVehicle(passage.vehicle_id);
+          if (vehicle != nullptr) with_map = WithVehicleCameraYaw(passage, *vehicle);
+          if (localizer.camera_yaw_sigma_rad > 0.0) {
+            localizer.camera_yaw_sigma_rad =
+                LocalizationCameraYawSigma(vehicle, OwnMapOptions().camera_yaw_prior_sigma_rad);
+          }
         }
         absl::StatusOr<LocalizationMap> map =
             own ? ReadLocalizationMap(*own, passage)
@@ -191,7 +198,7 @@ absl::StatusOr<std::vector<LocalizeRow>> RunLocalizeExperiment(const LocalizeExp
         if (!map.ok()) return map.status();
         absl::StatusOr<PassageLocalization> alone = LocalizePassage(passage, LocalizationMap{}, options.localizer);
         if (!alone.ok()) return alone.status();
-        absl::StatusOr<PassageLocalization> located = LocalizePassage(with_map, *map, options.localizer);
+        absl::StatusOr<PassageLocalization> located = LocalizePassage(with_map, *map, localizer);
         if (!located.ok()) return located.status();
         Accumulate(*scenario, *alone, &without);
         Accumulate(*scenario, *located, &with);

@@ -6,6 +6,7 @@
 #include <vector>
 
 #include "absl/status/statusor.h"
+#include "core/estimation/map_update_options.h"
 #include "core/localization/passage_localizer.h"
 #include "core/sim/scenario.h"
 
@@ -35,7 +36,13 @@ struct LocalizeExperimentOptions {
   double inconsistent_sigma_north_m = 0.42;
   // Crowdmap's own maps: built from this many passages each (empty: not run), noise ar1+yaw.
   std::vector<int> own_map_passages;
-  PassageLocalizerOptions localizer;
+  // The localiser, with the camera's yaw offset estimated (the map update's 1 degree prior; for an
+  // own map, the vehicle's record's uncertainty), as LocalizePassage does.
+  PassageLocalizerOptions localizer = [] {
+    PassageLocalizerOptions o;
+    o.camera_yaw_sigma_rad = MapUpdateOptions().camera_yaw_prior_sigma_rad;
+    return o;
+  }();
 
   absl::Status Validate() const;
 };

@@ -523,6 +523,11 @@ void AddLocalizeFlags(CLI::App* command, LocalizeCommand* c) {
                       "(comma-separated; default none)")
       ->delimiter(',')
       ->type_name("LIST");
+  command->add_option("--camera-yaw-sigma-rad", o.localizer.camera_yaw_sigma_rad,
+                      "estimate the camera's yaw offset in each localisation with this prior sigma (own maps:\n"
+                      "the vehicle's record's, as LocalizePassage; 0 = take the calibration as exact)")
+      ->check(NonNegative())
+      ->type_name("X");
   command->add_option("--seed", o.seed, "noise seed")->type_name("S");
   command->add_option("--out", c->out, "markdown table")->type_name("FILE");
   AddQuietFlag(command, &c->quiet);

@@ -69,4 +69,9 @@ Passage WithVehicleCameraYaw(const Passage& passage, const VehicleCalibration& v
   return calibrated;
 }
 
+double LocalizationCameraYawSigma(const VehicleCalibration* vehicle, double default_sigma_rad) {
+  if (vehicle == nullptr || !(vehicle->camera_yaw_variance_rad2 > 0.0)) return default_sigma_rad;
+  return std::sqrt(vehicle->camera_yaw_variance_rad2);
+}
+
 }  // namespace crowdmap

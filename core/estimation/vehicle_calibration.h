@@ -68,6 +68,11 @@ VehicleCalibration ConsiderCameraYawSolve(const VehicleCalibration& prior, doubl
 // update solves it and how LocalizePassage localises it.
 Passage WithVehicleCameraYaw(const Passage& passage, const VehicleCalibration& vehicle);
 
+// The prior standard deviation of the camera yaw offset a localisation estimates on top of
+// WithVehicleCameraYaw's (PassageLocalizerOptions::camera_yaw_sigma_rad): the vehicle record's,
+// or `default_sigma_rad` (the map update's prior for a vehicle it has not seen) without one.
+double LocalizationCameraYawSigma(const VehicleCalibration* vehicle, double default_sigma_rad);
+
 }  // namespace crowdmap
 
 #endif  // CROWDMAP_CORE_ESTIMATION_VEHICLE_CALIBRATION_H_

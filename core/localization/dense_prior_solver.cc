@@ -109,6 +109,13 @@ class Linearization {
     return step;
   }
 
+  // The marginal variance of the dense part's entry i: (S^-1)_ii = |L^-1 e_i|^2.
+  double DenseVariance(int i) const {
+    Eigen::VectorXd unit = Eigen::VectorXd::Unit(s_.rows(), i);
+    s_.triangularView<Eigen::Lower>().solveInPlace(unit);
+    return unit.squaredNorm();
+  }
+
   // Marginal covariance of each pose: (A^-1)_kk + (Z Z^T)_kk with Z = A^-1 B L^-T (S = L L^T).
   std::vector<Eigen::Matrix3d> PoseCovariances() const {
     const int np = static_cast<int>(pw_.rows()), nl = static_cast<int>(pw_.cols());
@@ -151,9 +158,11 @@ std::string DensePriorSolution::Brief() const {
 absl::StatusOr<DensePriorSolution> SolveWithDensePrior(ceres::Problem* problem, std::vector<Pose2>* poses,
                                                        const std::vector<double*>& landmarks,
                                                        const DenseLandmarkPrior& prior,
-                                                       const DensePriorSolverOptions& options) {
+                                                       const DensePriorSolverOptions& options,
+                                                       const std::vector<double*>& angles) {
   if (absl::Status s = options.Validate(); !s.ok()) return s;
   const int np = 3 * static_cast<int>(poses->size()), nl = 2 * static_cast<int>(landmarks.size());
+  const int nd = nl + static_cast<int>(angles.size());  // the dense part: landmarks, then angles
   if (prior.mean.size() != nl || prior.cov.rows() != nl || prior.cov.cols() != nl) {
     return absl::InvalidArgumentError(absl::StrCat("dense prior: mean and covariance must have ", nl, " entries"));
   }
@@ -162,15 +171,20 @@ absl::StatusOr<DensePriorSolution> SolveWithDensePrior(ceres::Problem* problem, 
     return absl::FailedPreconditionError("localization: the map covariance is not positive definite");
   }
   InverseFromCholeskyInPlace(prior_information);
+  // The dense part's prior information: the angles' priors are in the problem.
+  Eigen::MatrixXd dense_prior_information = Eigen::MatrixXd::Zero(nd, nd);
+  dense_prior_information.topLeftCorner(nl, nl) = prior_information;
 
   ceres::Problem::EvaluateOptions evaluate;
   for (Pose2& p : *poses) evaluate.parameter_blocks.push_back(p.data());
   for (double* l : landmarks) evaluate.parameter_blocks.push_back(l);
+  for (double* a : angles) evaluate.parameter_blocks.push_back(a);
   evaluate.num_threads = 1;
   auto state = [&]() {
-    Eigen::VectorXd x(np + nl);
+    Eigen::VectorXd x(np + nd);
     for (int k = 0; k < np / 3; ++k) x.segment<3>(3 * k) = (*poses)[k];
     for (int k = 0; k < nl / 2; ++k) x.segment<2>(np + 2 * k) = Eigen::Map<const Eigen::Vector2d>(landmarks[k]);
+    for (size_t k = 0; k < angles.size(); ++k) x[np + nl + k] = *angles[k];
     return x;
   };
   auto set_state = [&](const Eigen::VectorXd& x) {
@@ -179,6 +193,7 @@ absl::StatusOr<DensePriorSolution> SolveWithDensePrior(ceres::Problem* problem, 
       Eigen::Map<Eigen::Vector2d> landmark(landmarks[k]);
       landmark = x.segment<2>(np + 2 * k);
     }
+    for (size_t k = 0; k < angles.size(); ++k) *angles[k] = x[np + nl + k];
   };
   // Cost and gradient at the current state, prior included; the Jacobian when asked.
   auto evaluate_at = [&](double* cost, Eigen::VectorXd* gradient, SparseMatrix* jacobian) -> absl::Status {
@@ -187,12 +202,12 @@ absl::StatusOr<DensePriorSolution> SolveWithDensePrior(ceres::Problem* problem, 
     if (!problem->Evaluate(evaluate, cost, nullptr, gradient ? &g : nullptr, jacobian ? &crs : nullptr)) {
       return absl::InternalError("localization: the residuals could not be evaluated");
     }
-    const Eigen::VectorXd offset = state().tail(nl) - prior.mean;
+    const Eigen::VectorXd offset = state().segment(np, nl) - prior.mean;
     const Eigen::VectorXd prior_gradient = prior_information * offset;
     *cost += 0.5 * offset.dot(prior_gradient);
     if (gradient) {
-      *gradient = Eigen::Map<const Eigen::VectorXd>(g.data(), np + nl);
-      gradient->tail(nl) += prior_gradient;
+      *gradient = Eigen::Map<const Eigen::VectorXd>(g.data(), np + nd);
+      gradient->segment(np, nl) += prior_gradient;
     }
     if (jacobian) {
       *jacobian = Eigen::Map<const Eigen::SparseMatrix<double, Eigen::RowMajor>>(
@@ -213,9 +228,9 @@ absl::StatusOr<DensePriorSolution> SolveWithDensePrior(ceres::Problem* problem, 
   // Whether the linearisation counts as taken at the current state.
   auto near = [&]() {
     const Eigen::VectorXd moved = (state() - linearized_at).cwiseAbs();
-    for (int i = 0; i < np + nl; ++i) {
-      const bool heading = i < np && i % 3 == 2;
-      if (moved[i] > (heading ? options.covariance_tolerance_rad : options.covariance_tolerance_m)) return false;
+    for (int i = 0; i < np + nd; ++i) {
+      const bool angle = (i < np && i % 3 == 2) || i >= np + nl;
+      if (moved[i] > (angle ? options.covariance_tolerance_rad : options.covariance_tolerance_m)) return false;
     }
     return true;
   };
@@ -224,7 +239,7 @@ absl::StatusOr<DensePriorSolution> SolveWithDensePrior(ceres::Problem* problem, 
     if (relinearize) {
       SparseMatrix jacobian;
       if (absl::Status s = evaluate_at(&cost, &gradient, &jacobian); !s.ok()) return s;
-      if (absl::Status s = linearization.Factorize(jacobian, np, prior_information); !s.ok()) return s;
+      if (absl::Status s = linearization.Factorize(jacobian, np, dense_prior_information); !s.ok()) return s;
       ++out.factorizations;
       linearized_at = state();
       relinearize = false;
@@ -270,6 +285,7 @@ absl::StatusOr<DensePriorSolution> SolveWithDensePrior(ceres::Problem* problem, 
   }
   out.cost = cost;
   out.pose_covariances = linearization.PoseCovariances();
+  for (size_t k = 0; k < angles.size(); ++k) out.angle_variances.push_back(linearization.DenseVariance(nl + k));
   return out;
 }
 

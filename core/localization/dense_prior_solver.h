@@ -36,6 +36,7 @@ struct DensePriorSolverOptions {
 
 struct DensePriorSolution {
   std::vector<Eigen::Matrix3d> pose_covariances;  // marginal, one per pose
+  std::vector<double> angle_variances;            // marginal, one per angle
   double cost = 0.0;                              // 1/2 the squared whitened residuals, prior included
   int iterations = 0;
   int factorizations = 0;
@@ -43,8 +44,8 @@ struct DensePriorSolution {
   std::string Brief() const;
 };
 
-// Gauss-Newton on `problem` (plain squared residuals, no loss functions, every block of `poses`
-// and `landmarks` in it, nothing else) with `prior` on `landmarks` added analytically: the
+// Gauss-Newton on `problem` (plain squared residuals, no loss functions, every block of `poses`,
+// `landmarks` and `angles` in it, nothing else) with `prior` on `landmarks` added analytically: the
 // correlated prior never enters Ceres, whose normal equations would hold its dense block over
 // hundreds of landmarks at every iteration. The poses are eliminated on their sparse (banded)
 // information, leaving one dense Schur complement on the landmarks, factorised once per
@@ -54,11 +55,15 @@ struct DensePriorSolution {
 // pose covariances are the marginals of the Gauss-Newton information there:
 // A^-1 + W S^-1 W^T (A the pose block, W = A^-1 B, S the Schur complement), the second term as
 // the row blocks of A^-1 B L^-T (S = L L^T), with B sparse.
+// `angles` are one-entry blocks shared by many residuals (a camera's yaw offset), whose own priors,
+// if any, are residuals in `problem`: they are eliminated with the landmarks, and their steps are
+// held to the covariance tolerance in radians.
 // FailedPrecondition when the information or the prior is not positive definite.
 absl::StatusOr<DensePriorSolution> SolveWithDensePrior(ceres::Problem* problem, std::vector<Pose2>* poses,
                                                        const std::vector<double*>& landmarks,
                                                        const DenseLandmarkPrior& prior,
-                                                       const DensePriorSolverOptions& options = {});
+                                                       const DensePriorSolverOptions& options = {},
+                                                       const std::vector<double*>& angles = {});
 
 }  // namespace crowdmap
 

@@ -14,12 +14,15 @@ namespace {
 
 // A short pose chain (odometry, GNSS) seeing three landmarks, without their prior: measurements
 // of a true configuration with small errors, the estimate started a little off it.
+// With `estimate_yaw`, the camera is turned by 0.01 rad and its yaw offset is a state with a prior
+// of 0.02 rad (`yaw`).
 struct SmallProblem {
   std::vector<Pose2> poses;
   std::vector<Eigen::Vector2d> landmarks;
+  double yaw = 0.0;
   ceres::Problem problem;
 
-  SmallProblem() {
+  explicit SmallProblem(bool estimate_yaw = false) {
     const Calibration calib;
     const std::vector<Pose2> truth = {Pose2(0, 0, 0), Pose2(5, 0.3, 0.1), Pose2(10, 1.1, 0.15), Pose2(15, 2.0, 0.2)};
     const std::vector<Eigen::Vector2d> true_landmarks = {Eigen::Vector2d(30, 5), Eigen::Vector2d(35, -4),
@@ -45,12 +48,15 @@ struct SmallProblem {
                              calib.gnss_lever_arm_m),
           nullptr, poses[k].data());
       for (size_t l = 0; l < landmarks.size(); ++l) {
+        Calibration turned = calib;
+        if (estimate_yaw) turned.camera_yaw_rad += 0.01;
         double u_px = 0.0;
-        EXPECT_TRUE(ProjectLandmark(truth[k].data(), true_landmarks[l].data(), calib, &u_px));
-        problem.AddResidualBlock(CameraFactor::Create(u_px + 2.0 * error[(k + l) % 4], 2.0, calib), nullptr,
-                                 poses[k].data(), landmarks[l].data());
+        EXPECT_TRUE(ProjectLandmark(truth[k].data(), true_landmarks[l].data(), turned, &u_px));
+        AddCameraResidual(u_px + 2.0 * error[(k + l) % 4], 2.0, calib, nullptr, poses[k].data(), landmarks[l].data(),
+                          estimate_yaw ? &yaw : nullptr, &problem);
       }
     }
+    if (estimate_yaw) problem.AddResidualBlock(ScalarPriorFactor::Create(0.0, 0.02), nullptr, &yaw);
   }
 };
 
@@ -95,6 +101,48 @@ TEST(SolveWithDensePrior, MatchesCeresWithThePriorAsAFactor) {
   }
   for (size_t l = 0; l < dense.landmarks.size(); ++l) {
     EXPECT_LT((dense.landmarks[l] - reference.landmarks[l]).norm(), 1e-7) << "landmark " << l;
+  }
+}
+
+// A camera yaw offset shared by every detection, with its prior in the problem: eliminated with the
+// landmarks; the same solution, pose marginals and yaw variance as Ceres on the whole problem.
+TEST(SolveWithDensePrior, EstimatesASharedAngleWithTheLandmarks) {
+  const DenseLandmarkPrior prior = CorrelatedPrior();
+  SmallProblem dense(/*estimate_yaw=*/true), reference(/*estimate_yaw=*/true);
+  std::vector<double*> blocks;
+  for (Eigen::Vector2d& l : dense.landmarks) blocks.push_back(l.data());
+  absl::StatusOr<DensePriorSolution> solution =
+      SolveWithDensePrior(&dense.problem, &dense.poses, blocks, prior, {}, {&dense.yaw});
+  ASSERT_TRUE(solution.ok()) << solution.status();
+  ASSERT_EQ(solution->angle_variances.size(), 1u);
+
+  std::vector<double*> reference_blocks;
+  for (Eigen::Vector2d& l : reference.landmarks) reference_blocks.push_back(l.data());
+  reference.problem.AddResidualBlock(new LandmarkPriorFactor(prior.mean, SqrtInformation(prior.cov)), nullptr,
+                                     reference_blocks);
+  ceres::Solver::Options options;
+  options.function_tolerance = options.gradient_tolerance = options.parameter_tolerance = 1e-14;
+  options.logging_type = ceres::SILENT;
+  ceres::Solver::Summary summary;
+  ceres::Solve(options, &reference.problem, &summary);
+  ASSERT_TRUE(summary.IsSolutionUsable());
+  absl::StatusOr<std::vector<Eigen::Matrix3d>> marginals =
+      PoseCovariances(&reference.problem, &reference.poses, &reference.landmarks, {&reference.yaw});
+  ASSERT_TRUE(marginals.ok()) << marginals.status();
+  ceres::Covariance covariance{ceres::Covariance::Options()};
+  const std::vector<std::pair<const double*, const double*>> yaw_block = {{&reference.yaw, &reference.yaw}};
+  ASSERT_TRUE(covariance.Compute(yaw_block, &reference.problem));
+  double yaw_variance = 0.0;
+  ASSERT_TRUE(covariance.GetCovarianceBlock(&reference.yaw, &reference.yaw, &yaw_variance));
+
+  EXPECT_GT(std::abs(reference.yaw), 1e-3) << "the data move the offset off its prior";
+  EXPECT_NEAR(dense.yaw, reference.yaw, 1e-9);
+  EXPECT_NEAR(solution->angle_variances[0], yaw_variance, 1e-8 * yaw_variance);
+  EXPECT_LT(yaw_variance, 0.02 * 0.02) << "the data inform the offset";
+  EXPECT_NEAR(solution->cost, summary.final_cost, 1e-9 * summary.final_cost);
+  for (size_t k = 0; k < dense.poses.size(); ++k) {
+    EXPECT_LT((dense.poses[k] - reference.poses[k]).norm(), 1e-7) << "pose " << k;
+    EXPECT_LT((solution->pose_covariances[k] - (*marginals)[k]).norm(), 1e-8 * (*marginals)[k].norm()) << "pose " << k;
   }
 }
 

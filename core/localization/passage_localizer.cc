@@ -117,9 +117,11 @@ struct JointProblem {
 // The gating rounds use each landmark's marginal prior (`marginal_priors`): they only need each
 // landmark's disagreement with its own map position. The final solve of a correlated map has no
 // prior in Ceres: SolveWithDensePrior adds the joint one.
+// `yaw_offset` (nullptr: none) is the camera's yaw offset state, with its prior of `yaw_sigma`.
 JointProblem BuildProblem(const PassageGraph& graph, const Passage& passage, const LocalPrior& prior,
                           const std::vector<MappedDetection>& detections, double robust_scale, bool marginal_priors,
-                          std::vector<Pose2>* poses, std::vector<Eigen::Vector2d>* landmarks) {
+                          std::vector<Pose2>* poses, std::vector<Eigen::Vector2d>* landmarks, double* yaw_offset,
+                          double yaw_sigma) {
   JointProblem jp;
   jp.problem = std::make_unique<ceres::Problem>();
   ceres::Problem& problem = *jp.problem;
@@ -129,9 +131,13 @@ JointProblem BuildProblem(const PassageGraph& graph, const Passage& passage, con
   for (const MappedDetection& d : detections) {
     if (!d.active) continue;
     ceres::LossFunction* loss = robust_scale > 0.0 ? new ceres::CauchyLoss(robust_scale) : nullptr;
-    problem.AddResidualBlock(CameraFactor::Create(d.observation->u_px, passage.noise.pixel_sigma_px, passage.calibration),
-                             loss, (*poses)[d.observation->node].data(), (*landmarks)[d.landmark].data());
+    AddCameraResidual(d.observation->u_px, passage.noise.pixel_sigma_px, passage.calibration, loss,
+                      (*poses)[d.observation->node].data(), (*landmarks)[d.landmark].data(), yaw_offset, &problem);
     seen[d.landmark] = true;
+  }
+  if (yaw_offset != nullptr && problem.HasParameterBlock(yaw_offset)) {
+    problem.AddResidualBlock(ScalarPriorFactor::Create(0.0, yaw_sigma), nullptr, yaw_offset);
+    jp.parameters += 1;
   }
   for (int k = 0; k < static_cast<int>(seen.size()); ++k) {
     if (!seen[k]) continue;
@@ -176,13 +182,15 @@ absl::Status Solve(const PassageLocalizerOptions& options, double function_toler
   return absl::OkStatus();
 }
 
+// `camera`: the passage's calibration with the estimated yaw offset.
 double WhitenedPixelResidual(const MappedDetection& d, const std::vector<Pose2>& poses,
-                             const std::vector<Eigen::Vector2d>& landmarks, const Passage& passage) {
+                             const std::vector<Eigen::Vector2d>& landmarks, const Calibration& camera,
+                             double pixel_sigma_px) {
   double u = 0.0;
-  if (!ProjectLandmark(poses[d.observation->node].data(), landmarks[d.landmark].data(), passage.calibration, &u)) {
+  if (!ProjectLandmark(poses[d.observation->node].data(), landmarks[d.landmark].data(), camera, &u)) {
     return std::numeric_limits<double>::infinity();
   }
-  return (u - d.observation->u_px) / passage.noise.pixel_sigma_px;
+  return (u - d.observation->u_px) / pixel_sigma_px;
 }
 
 double Median(std::vector<double> v) {
@@ -196,13 +204,14 @@ double Median(std::vector<double> v) {
 // are scaled by the passage's own robust variance factor (never below 1): when every detection
 // disagrees a little with an over-confident map, or the camera's yaw is off, the gates must still
 // single out the detections that disagree much more than the others, not reject them all.
-int Gate(const PassageGraph& graph, const Passage& passage, const LocalPrior& prior, const std::vector<Pose2>& poses,
-         const std::vector<Eigen::Vector2d>& landmarks, const PassageLocalizerOptions& options,
-         std::vector<MappedDetection>* detections, std::vector<RejectedDetection>* rejected) {
+int Gate(const PassageGraph& graph, const Passage& passage, const Calibration& camera, const LocalPrior& prior,
+         const std::vector<Pose2>& poses, const std::vector<Eigen::Vector2d>& landmarks,
+         const PassageLocalizerOptions& options, std::vector<MappedDetection>* detections,
+         std::vector<RejectedDetection>* rejected) {
   std::vector<double> residual(detections->size(), 0.0), abs_residuals;
   for (size_t i = 0; i < detections->size(); ++i) {
     if (!(*detections)[i].active) continue;
-    residual[i] = WhitenedPixelResidual((*detections)[i], poses, landmarks, passage);
+    residual[i] = WhitenedPixelResidual((*detections)[i], poses, landmarks, camera, passage.noise.pixel_sigma_px);
     abs_residuals.push_back(std::abs(residual[i]));
   }
   const int before = static_cast<int>(rejected->size());
@@ -293,6 +302,9 @@ absl::Status PassageLocalizerOptions::Validate() const {
   }
   if (max_gating_rounds < 1) return absl::InvalidArgumentError("max_gating_rounds: must be >= 1");
   if (max_solver_iterations < 1) return absl::InvalidArgumentError("max_solver_iterations: must be >= 1");
+  if (!(camera_yaw_sigma_rad >= 0.0 && camera_yaw_sigma_rad < M_PI)) {
+    return absl::InvalidArgumentError("camera_yaw_sigma_rad: must lie in [0, pi)");
+  }
   return absl::OkStatus();
 }
 
@@ -319,9 +331,11 @@ double ChiSquareUpperQuantile(double dof, double probability) {
 }
 
 std::string PassageLocalization::Brief() const {
-  return absl::StrFormat("poses=%d landmarks=%d detections=%d rejected=%d chi2=%.1f dof=%d map_version=%d solve_ms=%.1f",
-                         poses.size(), landmarks_used.size(), detections_used, rejected.size(), chi2, dof, map_version,
-                         solve_ms);
+  return absl::StrFormat(
+      "poses=%d landmarks=%d detections=%d rejected=%d chi2=%.1f dof=%d camera_yaw_offset_rad=%.5f+-%.5f "
+      "map_version=%d solve_ms=%.1f",
+      poses.size(), landmarks_used.size(), detections_used, rejected.size(), chi2, dof, camera_yaw_offset_rad,
+      camera_yaw_sigma_rad, map_version, solve_ms);
 }
 
 absl::StatusOr<LocalizationMap> ReadLocalizationMap(const MapReaderInterface& map, const Passage& passage,
@@ -396,7 +410,7 @@ absl::StatusOr<PassageLocalization> LocalizePassage(const Passage& passage, cons
   // A detection whose map landmark is behind the camera at the localised initial guess cannot be
   // evaluated (and does not fit): rejected before the first solve.
   for (MappedDetection& d : detections) {
-    const double r = WhitenedPixelResidual(d, poses, landmarks, passage);
+    const double r = WhitenedPixelResidual(d, poses, landmarks, passage.calibration, passage.noise.pixel_sigma_px);
     if (std::isfinite(r)) continue;
     d.active = false;
     out.rejected.push_back({graph->node_times_s[d.observation->node], d.observation->landmark_id, d.observation->u_px,
@@ -408,9 +422,23 @@ absl::StatusOr<PassageLocalization> LocalizePassage(const Passage& passage, cons
   JointProblem problem;
   std::vector<Eigen::Matrix3d> covariances;  // a correlated map's, from its solve
   double cost = 0.0;
+  // The camera's yaw offset, when estimated, and its variance from the last solve.
+  double yaw_offset = 0.0, yaw_variance = 0.0;
+  const bool estimate_yaw = options.camera_yaw_sigma_rad > 0.0;
+  double* const yaw = estimate_yaw ? &yaw_offset : nullptr;
+  const auto camera = [&]() {
+    Calibration turned = passage.calibration;
+    turned.camera_yaw_rad += yaw_offset;
+    return turned;
+  };
+  // The offset's block when the problem has it (some detection of a map landmark is kept).
+  const auto yaw_blocks = [&]() {
+    return yaw != nullptr && problem.problem->HasParameterBlock(yaw) ? std::vector<double*>{yaw}
+                                                                      : std::vector<double*>{};
+  };
   auto solve_plainly = [&]() -> absl::Status {
     problem = BuildProblem(*graph, passage, prior, detections, 0.0, /*marginal_priors=*/!prior.correlated, &poses,
-                           &landmarks);
+                           &landmarks, yaw, options.camera_yaw_sigma_rad);
     if (!prior.correlated) {
       ceres::Solver::Summary summary;
       if (absl::Status s = Solve(options, kFinalTolerance, problem.problem.get(), &summary); !s.ok()) return s;
@@ -429,34 +457,43 @@ absl::StatusOr<PassageLocalization> LocalizePassage(const Passage& passage, cons
     dense_options.step_tolerance = 1e-4;
     dense_options.covariance_tolerance_m = 0.1;
     dense_options.covariance_tolerance_rad = 0.01;
-    absl::StatusOr<DensePriorSolution> solution =
-        SolveWithDensePrior(problem.problem.get(), &poses, blocks, JointPrior(prior, problem.seen), dense_options);
+    absl::StatusOr<DensePriorSolution> solution = SolveWithDensePrior(
+        problem.problem.get(), &poses, blocks, JointPrior(prior, problem.seen), dense_options, yaw_blocks());
     if (!solution.ok()) return solution.status();
     covariances = std::move(solution->pose_covariances);
+    if (!solution->angle_variances.empty()) yaw_variance = solution->angle_variances[0];
     cost = solution->cost;
     return absl::OkStatus();
   };
   {
     problem = BuildProblem(*graph, passage, prior, detections, options.robust_loss_scale_sigmas,
-                           /*marginal_priors=*/true, &poses, &landmarks);
+                           /*marginal_priors=*/true, &poses, &landmarks, yaw, options.camera_yaw_sigma_rad);
     // Its last digits do not change a decision (the robust reweighting converges linearly, a
     // dozen iterations to 1e-12).
     ceres::Solver::Summary summary;
     if (absl::Status s = Solve(options, kGatingTolerance, problem.problem.get(), &summary); !s.ok()) return s;
-    Gate(*graph, passage, prior, poses, landmarks, options, &detections, &out.rejected);
+    Gate(*graph, passage, camera(), prior, poses, landmarks, options, &detections, &out.rejected);
   }
   bool gated = false;
   for (int round = 1; round < options.max_gating_rounds && !gated; ++round) {
     if (absl::Status s = solve_plainly(); !s.ok()) return s;
-    gated = Gate(*graph, passage, prior, poses, landmarks, options, &detections, &out.rejected) == 0;
+    gated = Gate(*graph, passage, camera(), prior, poses, landmarks, options, &detections, &out.rejected) == 0;
   }
   if (!gated) {
     if (absl::Status s = solve_plainly(); !s.ok()) return s;
   }
   if (!prior.correlated) {
-    absl::StatusOr<std::vector<Eigen::Matrix3d>> marginals = PoseCovariances(problem.problem.get(), &poses, &landmarks);
+    const std::vector<double*> others = yaw_blocks();
+    std::vector<double> other_variances;
+    absl::StatusOr<std::vector<Eigen::Matrix3d>> marginals =
+        PoseCovariances(problem.problem.get(), &poses, &landmarks, others, &other_variances);
     if (!marginals.ok()) return marginals.status();
     covariances = *std::move(marginals);
+    if (!other_variances.empty()) yaw_variance = other_variances[0];
+  }
+  if (!yaw_blocks().empty()) {
+    out.camera_yaw_offset_rad = yaw_offset;
+    out.camera_yaw_sigma_rad = std::sqrt(yaw_variance);
   }
 
   out.chi2 = 2.0 * cost;

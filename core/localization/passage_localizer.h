@@ -44,6 +44,12 @@ struct PassageLocalizerOptions {
   // Rounds of gating and re-solving (each removes what the previous solve shows not to fit).
   int max_gating_rounds = 3;
   int max_solver_iterations = 100;
+  // The camera's yaw offset from the passage's calibration is estimated with this prior standard
+  // deviation (rad; e.g. the vehicle's calibration record's, or the map's 1 degree for a vehicle
+  // without one): one state shared by every detection, so that a camera turned a fraction of a
+  // degree does not bend the trajectory with an uncertainty that does not show it. 0: the
+  // calibration is taken as exact.
+  double camera_yaw_sigma_rad = 0.0;
 
   absl::Status Validate() const;
 };
@@ -80,6 +86,10 @@ struct PassageLocalization {
   std::vector<RejectedDetection> rejected;
   int detections_used = 0;
   int detections_unmapped = 0;  // of landmarks not in the map (not used)
+  // The estimated camera yaw offset from the passage's calibration and its standard deviation
+  // (PassageLocalizerOptions::camera_yaw_sigma_rad; both 0 when not estimated).
+  double camera_yaw_offset_rad = 0.0;
+  double camera_yaw_sigma_rad = 0.0;
   double chi2 = 0.0;            // final solve: sum of squared whitened residuals
   int dof = 0;                  // residuals - parameters
   int64_t map_version = 0;
