@@ -214,8 +214,7 @@ absl::StatusOr<ExperimentResult> RunExperiment(const ExperimentOptions& options,
   if (options.crlb) {
     std::vector<int> indices(options.passages);
     for (int i = 0; i < options.passages; ++i) indices[i] = options.order.empty() ? i : options.order[i];
-    GraphOptions graph;
-    graph.detections_per_landmark = update.detections_per_landmark;
+    const GraphOptions graph = UpdateGraphOptions(update);
     // With the camera yaw estimated, the bound has each vehicle's yaw offset as a state too.
     CramerRaoBound information;
     absl::StatusOr<double> bound =

@@ -170,8 +170,7 @@ absl::StatusOr<std::vector<LocalizeRow>> RunLocalizeExperiment(const LocalizeExp
         std::vector<int> indices(cases[c].own_map_passages);
         for (size_t i = 0; i < indices.size(); ++i) indices[i] = kOwnMapFirstPassage + static_cast<int>(i);
         const MapUpdateOptions update = OwnMapOptions();
-        GraphOptions graph;
-        graph.detections_per_landmark = update.detections_per_landmark;
+        const GraphOptions graph = UpdateGraphOptions(update);
         absl::StatusOr<double> bound =
             LoopCramerRaoMeanError(*scenario, indices, graph, update.camera_yaw_prior_sigma_rad);
         if (!bound.ok()) return bound.status();

@@ -45,6 +45,24 @@ void AddScenarioFlags(CLI::App* command, ScenarioOptions* scenario, bool with_no
   command->add_option("--landmarks", scenario->landmarks, "landmarks along the 2 km route")->type_name("N");
   command->add_option("--seed", scenario->seed, "noise seed; the route and landmarks do not depend on it")
       ->type_name("S");
+  command->add_option("--camera-rate-hz", scenario->camera_rate_hz, "camera frames per second")
+      ->check(Positive())
+      ->type_name("HZ");
+  command
+      ->add_option_function<double>(
+          "--gnss-rate-hz",
+          [scenario](double hz) {
+            scenario->gnss_rate_hz = hz;
+            // The AR(1) coefficient is per fix: the process keeps the 1 Hz receiver's correlation time.
+            scenario->gnss_ar1_alpha = std::pow(ScenarioOptions().gnss_ar1_alpha, 1.0 / hz);
+          },
+          "GNSS fixes per second (AR(1) noise keeps its correlation time)")
+      ->check(Positive())
+      ->default_val(scenario->gnss_rate_hz)
+      ->type_name("HZ");
+  command->add_option("--odometry-rate-hz", scenario->odometry_rate_hz, "wheel and steering samples per second")
+      ->check(Positive())
+      ->type_name("HZ");
   if (with_noise) {
     AddParsedOption(command, "--noise", &scenario->noise, &ParseNoiseConfig,
                     "white | gnss-ar1 | yaw-bias | ar1+yaw")

@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <limits>
 #include <map>
 
 #include <ceres/ceres.h>
@@ -12,14 +13,23 @@
 namespace crowdmap {
 namespace {
 
-// The last K detections of every landmark, in time order.
-std::vector<const Detection*> SelectDetections(const std::vector<Detection>& detections, int per_landmark) {
-  std::map<LandmarkId, int> remaining;
+// The last K detections of every landmark (all with K = 0), each at least `spacing_s` before the
+// next one kept (within `tolerance_s`), in time order.
+std::vector<const Detection*> SelectDetections(const std::vector<Detection>& detections, int per_landmark,
+                                               double spacing_s, double tolerance_s) {
+  struct Track {
+    int left;
+    double next_kept_t_s;
+  };
+  std::map<LandmarkId, Track> tracks;
   std::vector<const Detection*> kept;
   for (auto it = detections.rbegin(); it != detections.rend(); ++it) {
-    int& left = remaining.try_emplace(it->landmark_id, per_landmark).first->second;
-    if (per_landmark > 0 && left == 0) continue;
-    --left;
+    const auto [track, first] =
+        tracks.try_emplace(it->landmark_id, Track{per_landmark, std::numeric_limits<double>::infinity()});
+    Track& t = track->second;
+    if (per_landmark > 0 && (t.left == 0 || (!first && t.next_kept_t_s - it->t_s < spacing_s - tolerance_s))) continue;
+    --t.left;
+    t.next_kept_t_s = it->t_s;
     kept.push_back(&*it);
   }
   std::reverse(kept.begin(), kept.end());
@@ -148,7 +158,8 @@ absl::StatusOr<PassageGraph> BuildPassageGraph(const Passage& passage, const Gra
   PassageGraph g;
   g.frame = LocalFrame(options.frame_origin.value_or(LatLon{passage.gnss.front().lat_deg, passage.gnss.front().lon_deg}));
 
-  const std::vector<const Detection*> used = SelectDetections(passage.detections, options.detections_per_landmark);
+  const std::vector<const Detection*> used = SelectDetections(
+      passage.detections, options.detections_per_landmark, options.detection_spacing_s, options.node_merge_tolerance_s);
   g.detections_dropped = static_cast<int>(passage.detections.size() - used.size());
 
   std::vector<double> times;

@@ -14,8 +14,10 @@
 namespace crowdmap {
 
 struct GraphOptions {
-  // Detections used per landmark: the last K of the passage (0 = all).
+  // Detections used per landmark: the last K of the passage (0 = all), taken at least
+  // `detection_spacing_s` apart (with K > 0).
   int detections_per_landmark = 5;
+  double detection_spacing_s = 0.0;
   // Measurement times closer than this share one pose node.
   double node_merge_tolerance_s = 1e-3;
   int max_init_iterations = 50;

@@ -81,6 +81,39 @@ TEST_F(GraphBuilderTest, KeepsAllDetectionsWithZeroAndTheLastTwoWithTwo) {
   EXPECT_EQ(GraphDetections(*BuildPassageGraph(passage_, two)), LastDetections(passage_, 2));
 }
 
+// From a 25 Hz camera the last five frames of a landmark are 0.16 s apart; with a spacing of
+// 0.5 s the five kept span two seconds, as the thesis's 2 Hz frames did: each landmark's last
+// detection, then each earlier one at least 0.5 s before the one kept after it.
+TEST(GraphBuilder, SpacesTheDetectionsItKeepsPerLandmark) {
+  ScenarioOptions options;
+  options.landmarks = 25;
+  options.camera_rate_hz = 25.0;
+  const Passage passage = Scenario::Create(options)->MakePassage(3);
+  std::map<LandmarkId, std::vector<double>> all;  // detection times per landmark, in order
+  for (const Detection& d : passage.detections) all[d.landmark_id].push_back(d.t_s);
+  GraphOptions spaced;
+  spaced.detection_spacing_s = 0.5;
+  const PassageGraph g = *BuildPassageGraph(passage, spaced);
+  std::map<LandmarkId, std::vector<double>> kept;
+  for (const CameraObservation& d : g.detections) kept[d.landmark_id].push_back(g.node_times_s[d.node]);
+  ASSERT_EQ(kept.size(), all.size());
+  for (auto& [id, times] : kept) {
+    std::sort(times.begin(), times.end());
+    const std::vector<double>& track = all[id];
+    // Expected independently: walk the track back from its end.
+    std::vector<double> expected;
+    for (auto t = track.rbegin(); t != track.rend() && expected.size() < 5; ++t) {
+      if (expected.empty() || expected.back() - *t >= 0.5 - 1e-3) expected.push_back(*t);
+    }
+    std::reverse(expected.begin(), expected.end());
+    EXPECT_EQ(times, expected) << "landmark " << id;
+    if (track.size() >= 60) EXPECT_GE(times.back() - times.front(), 4 * 0.5 - 1e-3) << "landmark " << id;
+  }
+  // Without the spacing: the last five frames.
+  const PassageGraph last = *BuildPassageGraph(passage, GraphOptions());
+  EXPECT_EQ(GraphDetections(last), LastDetections(passage, 5));
+}
+
 TEST_F(GraphBuilderTest, EveryObservationPointsAtTheNodeOfItsTime) {
   const PassageGraph g = *BuildPassageGraph(passage_, GraphOptions());
   ASSERT_EQ(g.gnss.size(), passage_.gnss.size());

@@ -29,8 +29,7 @@ absl::StatusOr<PassageUpdate> SolveJointly(const std::vector<Passage>& passages,
   };
 
   // Every graph in one frame, with its odometry + GNSS poses.
-  GraphOptions graph_options;
-  graph_options.detections_per_landmark = options.detections_per_landmark;
+  GraphOptions graph_options = UpdateGraphOptions(options);
   graph_options.frame_origin = LatLon{passages.front().gnss.front().lat_deg, passages.front().gnss.front().lon_deg};
   graph_options.refine_initial_poses = false;  // done piece by piece, with the map
   PassageUpdateSummary summary;

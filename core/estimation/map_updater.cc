@@ -288,6 +288,10 @@ absl::Status MapUpdateOptions::Validate() const {
         "detections_per_landmark: must be 0 (all) or >= 2 (a new landmark needs two bearings), got ",
         detections_per_landmark));
   }
+  if (!(detection_spacing_s >= 0.0 && detection_spacing_s <= 60.0)) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("detection_spacing_s: must lie in [0, 60] s, got ", detection_spacing_s));
+  }
   if (!(min_new_landmark_parallax_rad >= 0.0 && min_new_landmark_parallax_rad < 1.5)) {
     return absl::InvalidArgumentError(
         absl::StrCat("min_new_landmark_parallax_rad: must lie in [0, 1.5), got ", min_new_landmark_parallax_rad));
@@ -396,8 +400,7 @@ absl::Status ApplyPassage(const Passage& declared, const MapUpdateOptions& optio
     calibrated = WithVehicleCameraYaw(declared, progress.vehicle_at_start);
   }
   const Passage& passage = options.estimate_camera_yaw ? calibrated : declared;
-  GraphOptions graph_options;
-  graph_options.detections_per_landmark = options.detections_per_landmark;
+  GraphOptions graph_options = UpdateGraphOptions(options);
   graph_options.refine_initial_poses = false;  // done per subgraph, with the map
   absl::StatusOr<PassageGraph> graph = BuildPassageGraph(passage, graph_options);
   if (!graph.ok()) return graph.status();
@@ -513,6 +516,13 @@ absl::StatusOr<PassageUpdate> ComputePassageUpdate(const Passage& passage, const
     return absl::Status(s.code(), absl::StrCat("passage ", passage.passage_id, ": ", s.message()));
   }
   return update;
+}
+
+GraphOptions UpdateGraphOptions(const MapUpdateOptions& options) {
+  GraphOptions graph;
+  graph.detections_per_landmark = options.detections_per_landmark;
+  graph.detection_spacing_s = options.detection_spacing_s;
+  return graph;
 }
 
 absl::StatusOr<PassageUpdate> ComputePassageRelinearization(const Passage& passage, const MapUpdateOptions& options,

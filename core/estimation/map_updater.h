@@ -12,6 +12,7 @@
 
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"
+#include "core/estimation/graph_builder.h"
 #include "core/estimation/map_update_options.h"
 #include "core/map/map_state.h"
 #include "core/model/passage.h"
@@ -54,6 +55,9 @@ struct PassageUpdate {
   MapDelta delta;
   PassageUpdateSummary summary;
 };
+
+// The graph options of the map update's passages: which detections it uses.
+GraphOptions UpdateGraphOptions(const MapUpdateOptions& options);
 
 // Computes the map change one passage brings: builds its factor graph, subdivides it (cc-gsd),
 // adds the map prior, solves with Ceres, recovers the landmark covariance and conditions the

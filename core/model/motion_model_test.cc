@@ -179,6 +179,25 @@ TEST(Preintegrate, CovarianceGrowsWithDurationAndIsPositiveDefinite) {
   EXPECT_NEAR(short_motion.cov(2, 2), 12.5 * per_step * per_step, 0.05 * short_motion.cov(2, 2));
 }
 
+// A node inside a sample's interval splits that sample's error between two motions, which then
+// share one draw. Each takes its share of the interval's variance (dt / interval of it): the parts
+// add up to the whole interval's variance, and each claims no more than it knows (for parts a and
+// b the independent diag(a, b) * interval exceeds the shared draw's [[a^2, ab], [ab, b^2]] by
+// ab [[1, -1], [-1, 1]], which is positive semi-definite).
+TEST(Preintegrate, PartsOfASampleIntervalShareItsVariance) {
+  std::vector<OdometrySample> odometry;
+  for (int j = 0; j < 10; ++j) odometry.push_back({j * 0.04, 12.0, 0.0});  // straight: heading from steering only
+  const NoiseModel noise;
+  const RelativeMotion whole = Preintegrate(odometry, 0.08, 0.12, kWheelbase, noise);
+  const RelativeMotion first = Preintegrate(odometry, 0.08, 0.09, kWheelbase, noise);
+  const RelativeMotion second = Preintegrate(odometry, 0.09, 0.12, kWheelbase, noise);
+  EXPECT_NEAR(first.cov(2, 2) + second.cov(2, 2), whole.cov(2, 2), 1e-12 * whole.cov(2, 2));
+  // A quarter of the interval: a quarter of its variance, not a sixteenth.
+  const double floor = kMotionCovarianceFloor * 0.01;
+  EXPECT_NEAR(first.cov(2, 2) - floor, 0.25 * (whole.cov(2, 2) - kMotionCovarianceFloor * 0.04),
+              1e-9 * whole.cov(2, 2));
+}
+
 TEST(Preintegrate, StandingStillKeepsAnInvertibleCovariance) {
   std::vector<OdometrySample> odometry;
   for (int j = 0; j < 30; ++j) odometry.push_back({j * 0.04, 0.0, 0.0});
