@@ -188,6 +188,10 @@ void AddExperimentFlags(CLI::App* command, ExperimentCommand* c) {
   command->add_option("--detections-per-landmark", o.update.detections_per_landmark,
                       "last K >= 2 detections per landmark and passage, 0 = all")
       ->type_name("K");
+  command->add_option("--detection-spacing-s", o.update.detection_spacing_s,
+                      "the K detections kept at least S seconds apart (0: the last K frames)")
+      ->check(NonNegative())
+      ->type_name("S");
   AddMapUpdateFlags(command, &o.update);
   command->add_option("--edge-margin-sigmas", o.update.edge_margin_sigmas,
                       "do not use detections of map landmarks predicted within M pixel sigmas of the image\n"
