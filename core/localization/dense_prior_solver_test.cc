@@ -69,6 +69,19 @@ DenseLandmarkPrior CorrelatedPrior() {
   return prior;
 }
 
+// The reference: the prior as one Ceres factor in `problem`, solved by Ceres to its tolerances' end.
+ceres::Solver::Summary SolveWithThePriorAsAFactor(const DenseLandmarkPrior& prior, SmallProblem* problem) {
+  std::vector<double*> blocks;
+  for (Eigen::Vector2d& l : problem->landmarks) blocks.push_back(l.data());
+  problem->problem.AddResidualBlock(new LandmarkPriorFactor(prior.mean, SqrtInformation(prior.cov)), nullptr, blocks);
+  ceres::Solver::Options options;
+  options.function_tolerance = options.gradient_tolerance = options.parameter_tolerance = 1e-14;
+  options.logging_type = ceres::SILENT;
+  ceres::Solver::Summary summary;
+  ceres::Solve(options, &problem->problem, &summary);
+  return summary;
+}
+
 // The same problem with the prior as one Ceres factor, solved by Ceres, with its covariances by
 // a sparse selected inverse of the whole information: the same solution and marginals.
 TEST(SolveWithDensePrior, MatchesCeresWithThePriorAsAFactor) {
@@ -80,15 +93,7 @@ TEST(SolveWithDensePrior, MatchesCeresWithThePriorAsAFactor) {
   ASSERT_TRUE(solution.ok()) << solution.status();
   EXPECT_LE(solution->factorizations, solution->iterations);
 
-  std::vector<double*> reference_blocks;
-  for (Eigen::Vector2d& l : reference.landmarks) reference_blocks.push_back(l.data());
-  reference.problem.AddResidualBlock(new LandmarkPriorFactor(prior.mean, SqrtInformation(prior.cov)), nullptr,
-                                     reference_blocks);
-  ceres::Solver::Options options;
-  options.function_tolerance = options.gradient_tolerance = options.parameter_tolerance = 1e-14;
-  options.logging_type = ceres::SILENT;
-  ceres::Solver::Summary summary;
-  ceres::Solve(options, &reference.problem, &summary);
+  const ceres::Solver::Summary summary = SolveWithThePriorAsAFactor(prior, &reference);
   ASSERT_TRUE(summary.IsSolutionUsable());
   absl::StatusOr<std::vector<Eigen::Matrix3d>> marginals =
       PoseCovariances(&reference.problem, &reference.poses, &reference.landmarks);
@@ -116,15 +121,7 @@ TEST(SolveWithDensePrior, EstimatesASharedAngleWithTheLandmarks) {
   ASSERT_TRUE(solution.ok()) << solution.status();
   ASSERT_EQ(solution->angle_variances.size(), 1u);
 
-  std::vector<double*> reference_blocks;
-  for (Eigen::Vector2d& l : reference.landmarks) reference_blocks.push_back(l.data());
-  reference.problem.AddResidualBlock(new LandmarkPriorFactor(prior.mean, SqrtInformation(prior.cov)), nullptr,
-                                     reference_blocks);
-  ceres::Solver::Options options;
-  options.function_tolerance = options.gradient_tolerance = options.parameter_tolerance = 1e-14;
-  options.logging_type = ceres::SILENT;
-  ceres::Solver::Summary summary;
-  ceres::Solve(options, &reference.problem, &summary);
+  const ceres::Solver::Summary summary = SolveWithThePriorAsAFactor(prior, &reference);
   ASSERT_TRUE(summary.IsSolutionUsable());
   absl::StatusOr<std::vector<Eigen::Matrix3d>> marginals =
       PoseCovariances(&reference.problem, &reference.poses, &reference.landmarks, {&reference.yaw});
