@@ -27,8 +27,10 @@ struct RelativeMotion {
 
 // Composes the bicycle steps between t0_s and t1_s (t0 < t1). Each sample is held from its time
 // to the next sample's (the first sample also covers earlier times, the last one later times).
-// Speed and steering noise (independent per sample) are propagated to first order. A tiny floor
-// (kMotionCovarianceFloor per second) keeps the covariance invertible when the vehicle stands.
+// Speed and steering noise (independent per sample) are propagated to first order. A small floor
+// (kMotionCovarianceFloor per second, on x, y and heading) stands for the bicycle model's own
+// error: without it a motion over one sample (two inputs, three outputs) is a hard constraint
+// along one direction, and standing still has no covariance at all.
 RelativeMotion Preintegrate(const std::vector<OdometrySample>& odometry, double t0_s, double t1_s,
                             double wheelbase_m, const NoiseModel& noise);
 
@@ -38,7 +40,12 @@ Pose2 ComposeMotion(const Pose2& start, const Pose2& delta);
 // Wraps an angle to (-pi, pi].
 double WrapAngle(double a);
 
-constexpr double kMotionCovarianceFloor = 1e-8;
+// 1e-6 m^2 and rad^2 per second: 0.2 mm and 0.2 mrad over a 25 Hz sample, about 1% of the
+// thesis's steering noise's heading variance and 0.3% of its speed noise's. At 1e-8 two nodes one
+// encoder sample apart (a 25 Hz camera on the 25 Hz encoders' clock) were tied 1e9 times stiffer
+// along that direction than along the others, and 11 of 300 such loop passages failed the
+// consistency test (docs/results.md, "Camera frame rates").
+constexpr double kMotionCovarianceFloor = 1e-6;
 
 }  // namespace crowdmap
 
