@@ -40,11 +40,9 @@ constexpr char kExitCodes[] = R"(Exit codes: 0 success, 1 failure (unreachable s
 
 // --- Flags shared by several commands ---
 
-// --landmarks and --seed of the loop scenario, and --noise unless `with_noise` is false.
-void AddScenarioFlags(CLI::App* command, ScenarioOptions* scenario, bool with_noise = true) {
-  command->add_option("--landmarks", scenario->landmarks, "landmarks along the 2 km route")->type_name("N");
-  command->add_option("--seed", scenario->seed, "noise seed; the route and landmarks do not depend on it")
-      ->type_name("S");
+// --camera-rate-hz, --gnss-rate-hz and --odometry-rate-hz of a scenario (the loop's or the city's).
+template <typename Options>
+void AddSensorRateFlags(CLI::App* command, Options* scenario) {
   command->add_option("--camera-rate-hz", scenario->camera_rate_hz, "camera frames per second")
       ->check(Positive())
       ->type_name("HZ");
@@ -54,7 +52,7 @@ void AddScenarioFlags(CLI::App* command, ScenarioOptions* scenario, bool with_no
           [scenario](double hz) {
             scenario->gnss_rate_hz = hz;
             // The AR(1) coefficient is per fix: the process keeps the 1 Hz receiver's correlation time.
-            scenario->gnss_ar1_alpha = std::pow(ScenarioOptions().gnss_ar1_alpha, 1.0 / hz);
+            scenario->gnss_ar1_alpha = std::pow(Options().gnss_ar1_alpha, 1.0 / hz);
           },
           "GNSS fixes per second (AR(1) noise keeps its correlation time)")
       ->check(Positive())
@@ -63,6 +61,14 @@ void AddScenarioFlags(CLI::App* command, ScenarioOptions* scenario, bool with_no
   command->add_option("--odometry-rate-hz", scenario->odometry_rate_hz, "wheel and steering samples per second")
       ->check(Positive())
       ->type_name("HZ");
+}
+
+// --landmarks and --seed of the loop scenario, and --noise unless `with_noise` is false.
+void AddScenarioFlags(CLI::App* command, ScenarioOptions* scenario, bool with_noise = true) {
+  command->add_option("--landmarks", scenario->landmarks, "landmarks along the 2 km route")->type_name("N");
+  command->add_option("--seed", scenario->seed, "noise seed; the route and landmarks do not depend on it")
+      ->type_name("S");
+  AddSensorRateFlags(command, scenario);
   if (with_noise) {
     AddParsedOption(command, "--noise", &scenario->noise, &ParseNoiseConfig,
                     "white | gnss-ar1 | yaw-bias | ar1+yaw")
@@ -314,6 +320,7 @@ void AddCityFlags(CLI::App* command, CityCommand* c) {
   command->add_option("--vehicle-yaw-bias-sigma-rad", city.vehicle_yaw_bias_sigma_rad,
                       "each vehicle's own camera yaw error, Gaussian")
       ->type_name("X");
+  AddSensorRateFlags(command, &city);
   command->add_option("--rate-variation", city.rate_variation,
                       "each vehicle's sensor rates scaled by a factor in [1-X, 1+X]")
       ->type_name("X");
