@@ -13,23 +13,37 @@
 namespace crowdmap {
 namespace {
 
-// The last K detections of every landmark (all with K = 0), each at least `spacing_s` before the
-// next one kept (within `tolerance_s`), in time order.
+// The last K detections of every landmark (all with K = 0), in time order. With K > 0 and a
+// spacing, only detections of "grid frames" count: the first camera frame (distinct detection
+// time, within `tolerance_s`) in each interval [n spacing, (n + 1) spacing) of the passage's time.
+// Every landmark then keeps detections of the same frames, which share pose nodes whatever the
+// camera's rate (at a rate of 1 / spacing or less every frame is a grid frame).
 std::vector<const Detection*> SelectDetections(const std::vector<Detection>& detections, int per_landmark,
                                                double spacing_s, double tolerance_s) {
-  struct Track {
-    int left;
-    double next_kept_t_s;
+  std::vector<double> grid_frames;  // sorted
+  if (per_landmark > 0 && spacing_s > 0.0) {
+    std::vector<double> times;
+    times.reserve(detections.size());
+    for (const Detection& d : detections) times.push_back(d.t_s);
+    std::sort(times.begin(), times.end());
+    double bucket = -std::numeric_limits<double>::infinity();
+    for (double t : times) {
+      const double b = std::floor((t + tolerance_s) / spacing_s);
+      if (b > bucket) grid_frames.push_back(t);
+      bucket = std::max(bucket, b);
+    }
+  }
+  const auto on_grid = [&](double t) {
+    if (grid_frames.empty()) return true;
+    const auto it = std::lower_bound(grid_frames.begin(), grid_frames.end(), t - tolerance_s);
+    return it != grid_frames.end() && *it <= t + tolerance_s;
   };
-  std::map<LandmarkId, Track> tracks;
+  std::map<LandmarkId, int> remaining;
   std::vector<const Detection*> kept;
   for (auto it = detections.rbegin(); it != detections.rend(); ++it) {
-    const auto [track, first] =
-        tracks.try_emplace(it->landmark_id, Track{per_landmark, std::numeric_limits<double>::infinity()});
-    Track& t = track->second;
-    if (per_landmark > 0 && (t.left == 0 || (!first && t.next_kept_t_s - it->t_s < spacing_s - tolerance_s))) continue;
-    --t.left;
-    t.next_kept_t_s = it->t_s;
+    int& left = remaining.try_emplace(it->landmark_id, per_landmark).first->second;
+    if (per_landmark > 0 && (left == 0 || !on_grid(it->t_s))) continue;
+    --left;
     kept.push_back(&*it);
   }
   std::reverse(kept.begin(), kept.end());

@@ -14,8 +14,9 @@
 namespace crowdmap {
 
 struct GraphOptions {
-  // Detections used per landmark: the last K of the passage (0 = all), taken at least
-  // `detection_spacing_s` apart (with K > 0).
+  // Detections used per landmark: the last K of the passage (0 = all); with K > 0 and a spacing,
+  // only those of the first camera frame in each interval of `detection_spacing_s` (every
+  // landmark keeps the same frames, whatever the camera's rate).
   int detections_per_landmark = 5;
   double detection_spacing_s = 0.0;
   // Measurement times closer than this share one pose node.
