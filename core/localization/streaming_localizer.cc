@@ -85,6 +85,9 @@ absl::Status StreamingLocalizerOptions::Validate() const {
   if (!(detection_gate_sigmas > 0.0)) return absl::InvalidArgumentError("detection_gate_sigmas: must be > 0");
   if (max_iterations < 1) return absl::InvalidArgumentError("max_iterations: must be >= 1");
   if (!(iteration_tolerance >= 0.0)) return absl::InvalidArgumentError("iteration_tolerance: must be >= 0");
+  if (!(camera_yaw_sigma_rad >= 0.0 && camera_yaw_sigma_rad < M_PI)) {
+    return absl::InvalidArgumentError("camera_yaw_sigma_rad: must lie in [0, pi)");
+  }
   return absl::OkStatus();
 }
 
@@ -164,12 +167,13 @@ void StreamingLocalizer::RemoveMapLandmarks(const std::vector<LandmarkId>& ids) 
     return;
   }
   std::vector<int> rows = {0, 1, 2};
+  if (yaw_row() >= 0) rows.push_back(yaw_row());
   std::vector<LandmarkId> kept_ids;
   for (LandmarkId id : slot_ids_) {
     if (std::find(ids.begin(), ids.end(), id) != ids.end()) continue;
-    const int k = slot_.at(id);
-    rows.push_back(3 + 2 * k);
-    rows.push_back(4 + 2 * k);
+    const int row = landmark_row(slot_.at(id));
+    rows.push_back(row);
+    rows.push_back(row + 1);
     kept_ids.push_back(id);
   }
   if (kept_ids.size() == slot_ids_.size()) return;
@@ -272,8 +276,13 @@ absl::StatusOr<StreamingUpdate> StreamingLocalizer::AddDetections(const std::vec
       continue;
     }
     Measurement m;
-    m.cost.reset(CameraFactor::Create(d.u_px, noise_.pixel_sigma_px, calibration_));
-    m.offsets = {0, 3 + 2 * it->second};
+    if (yaw_row() >= 0) {
+      m.cost.reset(CameraYawFactor::Create(d.u_px, noise_.pixel_sigma_px, calibration_));
+      m.offsets = {0, landmark_row(it->second), yaw_row()};
+    } else {
+      m.cost.reset(CameraFactor::Create(d.u_px, noise_.pixel_sigma_px, calibration_));
+      m.offsets = {0, landmark_row(it->second)};
+    }
     // The gate: the whitened innovation at the prediction, with the innovation variance
     // 1 + J P J^T (the residual is already in pixel sigmas).
     Eigen::VectorXd residual;
@@ -302,6 +311,8 @@ absl::StatusOr<StreamingUpdate> StreamingLocalizer::AddDetections(const std::vec
   StreamingUpdate current = Current();
   out.tracking = true;
   out.pose = current.pose;
+  out.camera_yaw_offset_rad = current.camera_yaw_offset_rad;
+  out.camera_yaw_sigma_rad = current.camera_yaw_sigma_rad;
   out.detections_used = static_cast<int>(measurements.size());
   out.correction = x_.head<3>() - predicted;
   out.correction.z() = NormalizeAngle(out.correction.z());
@@ -337,9 +348,13 @@ absl::Status StreamingLocalizer::Start() {
   absl::StatusOr<std::vector<Eigen::Matrix3d>> covariances = PoseCovariances(&problem, &poses, &no_landmarks);
   if (!covariances.ok()) return covariances.status();
 
-  x_ = poses.back();
+  const int start_rows = yaw_row() >= 0 ? 4 : 3;
+  x_ = Eigen::VectorXd::Zero(start_rows);
+  x_.head<3>() = poses.back();
   x_.z() = NormalizeAngle(x_.z());
-  P_ = 0.5 * (covariances->back() + covariances->back().transpose());
+  P_ = Eigen::MatrixXd::Zero(start_rows, start_rows);
+  P_.topLeftCorner<3, 3>() = 0.5 * (covariances->back() + covariances->back().transpose());
+  if (yaw_row() >= 0) P_(3, 3) = options_.camera_yaw_sigma_rad * options_.camera_yaw_sigma_rad;
   state_t_s_ = graph->node_times_s.back();
   tracking_ = true;
   odometry_ = std::move(start_odometry_);
@@ -504,6 +519,10 @@ StreamingUpdate StreamingLocalizer::Output(double t_s, const Pose2& pose, const 
   StreamingUpdate out;
   out.tracking = true;
   out.pose = MakeLocalizedPose(*frame_, t_s, pose, cov);
+  if (yaw_row() >= 0) {
+    out.camera_yaw_offset_rad = x_[yaw_row()];
+    out.camera_yaw_sigma_rad = std::sqrt(P_(yaw_row(), yaw_row()));
+  }
   return out;
 }
 

@@ -32,6 +32,10 @@ struct StreamingLocalizerOptions {
   int max_iterations = 4;
   // Stop iterating when the pose moves less than this (m, and rad) between iterations.
   double iteration_tolerance = 1e-4;
+  // The camera's yaw offset from the calibration given is a state of the filter with this prior
+  // standard deviation (rad; as PassageLocalizerOptions::camera_yaw_sigma_rad: the vehicle's
+  // calibration record's, or 1 degree without one). 0: the calibration is taken as exact.
+  double camera_yaw_sigma_rad = 0.0;
 
   absl::Status Validate() const;
 };
@@ -44,6 +48,9 @@ struct StreamingUpdate {
   // its largest component over that component's predicted sigma (East, North, heading).
   Eigen::Vector3d correction = Eigen::Vector3d::Zero();
   double correction_sigmas = 0.0;
+  // The camera's estimated yaw offset and its standard deviation (both 0 when not estimated).
+  double camera_yaw_offset_rad = 0.0;
+  double camera_yaw_sigma_rad = 0.0;
   int detections_used = 0;    // of this input
   int detections_unmapped = 0;  // of landmarks the filter does not hold (not used)
   std::vector<RejectedDetection> rejected;
@@ -120,7 +127,12 @@ class StreamingLocalizer {
   bool tracking_ = false;
   double state_t_s_ = 0.0;
   double last_input_t_s_ = -1e300;
-  // State: pose (x, y, heading) then 2 rows per landmark held; P its covariance.
+  // The state row of the camera's yaw offset (-1: not estimated) and of the first landmark.
+  int yaw_row() const { return options_.camera_yaw_sigma_rad > 0.0 ? 3 : -1; }
+  int landmark_row(int slot) const { return (options_.camera_yaw_sigma_rad > 0.0 ? 4 : 3) + 2 * slot; }
+
+  // State: pose (x, y, heading), the camera's yaw offset if estimated, then 2 rows per landmark
+  // held; P its covariance.
   Eigen::VectorXd x_;
   Eigen::MatrixXd P_;
   std::unordered_map<LandmarkId, int> slot_;  // id -> landmark index (state rows 3 + 2 index)
