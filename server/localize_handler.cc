@@ -1,4 +1,5 @@
 // MapService::LocalizePassage: a passage localised against the map, read-only.
+#include <cmath>
 #include <optional>
 #include <unordered_map>
 #include <vector>
@@ -51,29 +52,27 @@ grpc::Status MapService::LocalizePassage(grpc::ServerContext* ctx, const pb::Loc
   for (const Detection& d : passage->detections) detected.push_back(d.landmark_id);
   absl::StatusOr<LandmarkPage> page = context_->store->GetLandmarks(detected, /*include_cross=*/true);
   if (!page.ok()) return log.Done(page.status());
-  // The vehicle's camera yaw as its uploads estimated it, when they did; for a vehicle never seen,
-  // the fleet's mean where the map update would start it from there (FleetCameraYawPrior).
+  // The vehicle's camera yaw prior as the map update takes it (VehicleCameraYawPrior, over the
+  // store's records): its record; for a vehicle never seen, the fleet's prior when the fleet is
+  // large enough, else mean 0 with the map update's prior sigma.
   absl::StatusOr<VehicleCalibration> vehicle = context_->store->GetVehicle(passage->vehicle_id);
-  if (absl::IsNotFound(vehicle.status()) && context_->update.fleet_camera_yaw_prior_vehicles > 0) {
-    absl::StatusOr<std::vector<VehicleCalibration>> fleet = context_->store->ListVehicles();
-    if (!fleet.ok()) return log.Done(fleet.status());
-    if (std::optional<VehicleCalibration> prior =
-            FleetCameraYawPrior(*fleet, passage->vehicle_id, context_->update.fleet_camera_yaw_prior_vehicles,
-                                context_->update.camera_yaw_prior_sigma_rad)) {
-      vehicle = *std::move(prior);
+  if (absl::IsNotFound(vehicle.status())) {
+    std::optional<VehicleCalibration> fleet_prior;
+    if (context_->update.fleet_camera_yaw_prior_vehicles > 0) {
+      absl::StatusOr<std::vector<VehicleCalibration>> fleet = context_->store->ListVehicles();
+      if (!fleet.ok()) return log.Done(fleet.status());
+      fleet_prior = FleetCameraYawPrior(*fleet, passage->vehicle_id, context_->update.fleet_camera_yaw_prior_vehicles,
+                                        context_->update.camera_yaw_prior_sigma_rad);
     }
+    vehicle = fleet_prior ? *std::move(fleet_prior)
+                          : NewVehicleCalibration(passage->vehicle_id, context_->update.camera_yaw_prior_sigma_rad);
   }
-  double camera_yaw_offset_rad = 0.0;
-  if (vehicle.ok()) {
-    camera_yaw_offset_rad = vehicle->camera_yaw_offset_rad;
-    *passage = WithVehicleCameraYaw(*passage, *vehicle);
-  } else if (!absl::IsNotFound(vehicle.status())) {
-    return log.Done(vehicle.status());
-  }
-  // The offset is estimated again in the localisation, the record's uncertainty its prior.
+  if (!vehicle.ok()) return log.Done(vehicle.status());
+  const double camera_yaw_offset_rad = vehicle->camera_yaw_offset_rad;
+  *passage = WithVehicleCameraYaw(*passage, *vehicle);
+  // The offset is estimated again in the localisation, the prior's uncertainty its own.
   PassageLocalizerOptions options;
-  options.camera_yaw_sigma_rad =
-      LocalizationCameraYawSigma(vehicle.ok() ? &*vehicle : nullptr, context_->update.camera_yaw_prior_sigma_rad);
+  options.camera_yaw_sigma_rad = std::sqrt(vehicle->camera_yaw_variance_rad2);
   absl::StatusOr<PassageLocalization> result =
       crowdmap::LocalizePassage(*passage, LocalizationMapFromPage(*page), options);
   if (!result.ok()) return log.Done(result.status());

@@ -59,7 +59,7 @@ TEST_F(LocalizeRpc, ReturnsTheTrajectoryWithCovarianceAndLeavesTheMapAlone) {
   ASSERT_TRUE(local_map.ok()) << local_map.status();
   // A vehicle without a calibration record: its camera yaw offset estimated with the map update's prior.
   PassageLocalizerOptions options;
-  options.camera_yaw_sigma_rad = LocalizationCameraYawSigma(nullptr, MapUpdateOptions().camera_yaw_prior_sigma_rad);
+  options.camera_yaw_sigma_rad = MapUpdateOptions().camera_yaw_prior_sigma_rad;
   absl::StatusOr<PassageLocalization> local = LocalizePassage(passage, *local_map, options);
   ASSERT_TRUE(local.ok()) << local.status();
   EXPECT_EQ(response->camera_yaw_offset_rad(), 0.0);

@@ -183,12 +183,9 @@ absl::StatusOr<std::vector<LocalizeRow>> RunLocalizeExperiment(const LocalizeExp
         Passage with_map = passage;
         PassageLocalizerOptions localizer = options.localizer;
         if (own) {
-          const VehicleCalibration* vehicle = own->FindVehicle(passage.vehicle_id);
-          if (vehicle != nullptr) with_map = WithVehicleCameraYaw(passage, *vehicle);
-          if (localizer.camera_yaw_sigma_rad > 0.0) {
-            localizer.camera_yaw_sigma_rad =
-                LocalizationCameraYawSigma(vehicle, OwnMapOptions().camera_yaw_prior_sigma_rad);
-          }
+          const VehicleCalibration vehicle = VehicleCameraYawPrior(passage.vehicle_id, OwnMapOptions(), *own);
+          with_map = WithVehicleCameraYaw(passage, vehicle);
+          if (localizer.camera_yaw_sigma_rad > 0.0) localizer.camera_yaw_sigma_rad = std::sqrt(vehicle.camera_yaw_variance_rad2);
         }
         absl::StatusOr<LocalizationMap> map =
             own ? ReadLocalizationMap(*own, passage)

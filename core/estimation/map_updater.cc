@@ -37,7 +37,7 @@ struct PassageProgress {
   std::unordered_set<LandmarkId> held_back;
   // Detections set aside as outliers (OutlierDetections), by node and landmark.
   std::set<DetectionKey> outliers;
-  // With the camera yaw estimated: the vehicle's record when the passage started (VehicleYawPrior:
+  // With the camera yaw estimated: the vehicle's record when the passage started (VehicleCameraYawPrior:
   // a new vehicle's prior), its offset applied to the calibration the passage is solved with (each
   // subgraph's yaw state is the further offset). The prior of a subgraph before the first one that
   // records the vehicle.
@@ -45,21 +45,6 @@ struct PassageProgress {
   bool vehicle_counted = false;  // the vehicle's passage count incremented
 };
 
-// The prior of a passage's camera yaw offset: the vehicle's record, or for a new vehicle the
-// fleet's prior (when asked for and the fleet is large enough), else mean 0 with
-// options.camera_yaw_prior_sigma_rad.
-VehicleCalibration VehicleYawPrior(const std::string& vehicle_id, const MapUpdateOptions& options,
-                                   const MapReaderInterface& map) {
-  if (const VehicleCalibration* known = map.FindVehicle(vehicle_id)) return *known;
-  if (options.fleet_camera_yaw_prior_vehicles > 0) {
-    if (std::optional<VehicleCalibration> fleet =
-            FleetCameraYawPrior(map, vehicle_id, options.fleet_camera_yaw_prior_vehicles,
-                                options.camera_yaw_prior_sigma_rad)) {
-      return *fleet;
-    }
-  }
-  return NewVehicleCalibration(vehicle_id, options.camera_yaw_prior_sigma_rad);
-}
 
 // What a solve shows must be left out before anything is committed: the subgraph is solved again
 // without it.
@@ -396,7 +381,7 @@ absl::Status ApplyPassage(const Passage& declared, const MapUpdateOptions& optio
   // vehicle's offset so far applied to the camera yaw it declares.
   Passage calibrated;
   if (options.estimate_camera_yaw) {
-    progress.vehicle_at_start = VehicleYawPrior(declared.vehicle_id, options, *overlay);
+    progress.vehicle_at_start = VehicleCameraYawPrior(declared.vehicle_id, options, *overlay);
     calibrated = WithVehicleCameraYaw(declared, progress.vehicle_at_start);
   }
   const Passage& passage = options.estimate_camera_yaw ? calibrated : declared;

@@ -69,9 +69,16 @@ Passage WithVehicleCameraYaw(const Passage& passage, const VehicleCalibration& v
   return calibrated;
 }
 
-double LocalizationCameraYawSigma(const VehicleCalibration* vehicle, double default_sigma_rad) {
-  if (vehicle == nullptr || !(vehicle->camera_yaw_variance_rad2 > 0.0)) return default_sigma_rad;
-  return std::sqrt(vehicle->camera_yaw_variance_rad2);
+VehicleCalibration VehicleCameraYawPrior(const std::string& vehicle_id, const MapUpdateOptions& options,
+                                         const MapReaderInterface& map) {
+  if (const VehicleCalibration* known = map.FindVehicle(vehicle_id)) return *known;
+  if (options.fleet_camera_yaw_prior_vehicles > 0) {
+    if (std::optional<VehicleCalibration> fleet = FleetCameraYawPrior(
+            map, vehicle_id, options.fleet_camera_yaw_prior_vehicles, options.camera_yaw_prior_sigma_rad)) {
+      return *fleet;
+    }
+  }
+  return NewVehicleCalibration(vehicle_id, options.camera_yaw_prior_sigma_rad);
 }
 
 }  // namespace crowdmap

@@ -9,6 +9,7 @@
 #include <string>
 #include <vector>
 
+#include "core/estimation/map_update_options.h"
 #include "core/map/map_state.h"
 #include "core/model/passage.h"
 
@@ -68,10 +69,13 @@ VehicleCalibration ConsiderCameraYawSolve(const VehicleCalibration& prior, doubl
 // update solves it and how LocalizePassage localises it.
 Passage WithVehicleCameraYaw(const Passage& passage, const VehicleCalibration& vehicle);
 
-// The prior standard deviation of the camera yaw offset a localisation estimates on top of
-// WithVehicleCameraYaw's (PassageLocalizerOptions::camera_yaw_sigma_rad): the vehicle record's,
-// or `default_sigma_rad` (the map update's prior for a vehicle it has not seen) without one.
-double LocalizationCameraYawSigma(const VehicleCalibration* vehicle, double default_sigma_rad);
+// The prior of a passage's camera yaw offset, as the map update takes it: the vehicle's record in
+// `map`, or for a new vehicle the fleet's prior (options.fleet_camera_yaw_prior_vehicles, when the
+// fleet is large enough), else mean 0 with options.camera_yaw_prior_sigma_rad. A localisation
+// applies its offset (WithVehicleCameraYaw) and estimates the offset again with its standard
+// deviation (PassageLocalizerOptions::camera_yaw_sigma_rad).
+VehicleCalibration VehicleCameraYawPrior(const std::string& vehicle_id, const MapUpdateOptions& options,
+                                         const MapReaderInterface& map);
 
 }  // namespace crowdmap
 

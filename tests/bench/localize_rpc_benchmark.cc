@@ -95,7 +95,7 @@ void BM_LocalizePassageInProcess(benchmark::State& state) {
   int landmarks = 0;
   PassageLocalizerOptions options;
   if (state.range(0) == 1) {
-    options.camera_yaw_sigma_rad = LocalizationCameraYawSigma(nullptr, MapUpdateOptions().camera_yaw_prior_sigma_rad);
+    options.camera_yaw_sigma_rad = MapUpdateOptions().camera_yaw_prior_sigma_rad;
   }
   for (auto _ : state) {
     const size_t k = next++ % setup.passages.size();
