@@ -424,8 +424,7 @@ absl::StatusOr<PassageLocalization> LocalizePassage(const Passage& passage, cons
   double cost = 0.0;
   // The camera's yaw offset, when estimated, and its variance from the last solve.
   double yaw_offset = 0.0, yaw_variance = 0.0;
-  const bool estimate_yaw = options.camera_yaw_sigma_rad > 0.0;
-  double* const yaw = estimate_yaw ? &yaw_offset : nullptr;
+  double* const yaw = options.camera_yaw_sigma_rad > 0.0 ? &yaw_offset : nullptr;
   const auto camera = [&]() {
     Calibration turned = passage.calibration;
     turned.camera_yaw_rad += yaw_offset;
