@@ -379,6 +379,7 @@ void MapWorker::Apply(const ClaimedPassage& claimed, const Passage& passage) {
               record.passage_id, record.vehicle_id, record.id, result.nodes, result.subgraphs,
               result.landmarks_updated, result.landmarks_created, result.landmarks_conditioned, result.solve_ms,
               result.total_ms, commit_ms, delta.added_factors.size(), delta.version, recomputed, trim_ms);
+          RelinearizeStale();
           return;
         }
         error = absl::StrCat("commit: ", committed.ToString());
@@ -415,11 +416,13 @@ void MapWorker::Apply(const ClaimedPassage& claimed, const Passage& passage) {
   }
 }
 
-absl::StatusOr<PassageUpdateSummary> MapWorker::Exclude(const StoredPassage& record) {
+absl::StatusOr<PassageUpdate> MapWorker::CommitChange(
+    const std::function<absl::StatusOr<PassageUpdate>(const MapReaderInterface&, const MapUpdateOptions&)>& compute,
+    const std::function<absl::Status(const MapDelta&)>& commit, const std::function<void(const MapDelta&)>& committed) {
   while (!stopping_) {
-    Computation c = ComputeOnCommittedMap([&](const MapReaderInterface& map) {
-      return ComputePassageExclusion(record.vehicle_id, record.passage_id, options_.update, map);
-    });
+    MapUpdateOptions options;
+    Computation c = ComputeOnCommittedMap([&](const MapReaderInterface& map) { return compute(map, options); },
+                                          [&] { options = updater_->options(); });
     std::lock_guard<std::mutex> state(state_mu_);
     if (!StillValid(c)) continue;
     if (!c.update.ok()) return c.update.status();
@@ -427,17 +430,70 @@ absl::StatusOr<PassageUpdateSummary> MapWorker::Exclude(const StoredPassage& rec
     const MapDelta& delta = c.update->delta;
     MapWriteSet written;
     store_->ReadCommittedMap([&](const MapState& map) { written = WriteSetOf(delta, map); });
-    if (absl::Status s = store_->CommitPassageExcluded(record.id, delta); !s.ok()) return s;
+    if (absl::Status s = commit(delta); !s.ok()) return s;
     RecordCommitted(delta, std::move(written));
-    updater_->Excluded(record.vehicle_id, record.passage_id);
-    const PassageUpdateSummary& summary = c.update->summary;
-    spdlog::info("event=excluded passage={} vehicle={} id={} landmarks_updated={} landmarks_removed={} "
-                 "landmarks_conditioned={} total_ms={:.1f} map_version={}",
-                 record.passage_id, record.vehicle_id, record.id, summary.landmarks_updated, summary.landmarks_removed,
-                 summary.landmarks_conditioned, summary.total_ms, delta.version);
-    return summary;
+    committed(delta);
+    return std::move(*c.update);
   }
   return absl::UnavailableError("server is shutting down");
+}
+
+absl::StatusOr<PassageUpdateSummary> MapWorker::Exclude(const StoredPassage& record) {
+  absl::StatusOr<PassageUpdate> update = CommitChange(
+      [&](const MapReaderInterface& map, const MapUpdateOptions& options) {
+        return ComputePassageExclusion(record.vehicle_id, record.passage_id, options, map);
+      },
+      [&](const MapDelta& delta) { return store_->CommitPassageExcluded(record.id, delta); },
+      [&](const MapDelta&) { updater_->Excluded(record.vehicle_id, record.passage_id); });
+  if (!update.ok()) return update.status();
+  const PassageUpdateSummary& summary = update->summary;
+  spdlog::info("event=excluded passage={} vehicle={} id={} landmarks_updated={} landmarks_removed={} "
+               "landmarks_conditioned={} total_ms={:.1f} map_version={}",
+               record.passage_id, record.vehicle_id, record.id, summary.landmarks_updated, summary.landmarks_removed,
+               summary.landmarks_conditioned, summary.total_ms, summary.map_version);
+  return summary;
+}
+
+void MapWorker::RelinearizeStale() {
+  for (int round = 0; round < options_.update.relinearizations_per_passage && !stopping_; ++round) {
+    std::optional<MapUpdater::PassageKey> key;
+    {
+      std::lock_guard<std::mutex> state(state_mu_);
+      store_->ReadCommittedMap([&](const MapState& map) { key = updater_->StalestPassage(map, relinearizing_); });
+      if (key) relinearizing_.insert(*key);
+    }
+    if (!key) return;
+    absl::Status status = Relinearize(*key);
+    std::lock_guard<std::mutex> state(state_mu_);
+    relinearizing_.erase(*key);
+    if (!status.ok() && !stopping_) {
+      updater_->RelinearizationFailed(*key);
+      spdlog::warn("event=relinearization_failed passage={} vehicle={} error=\"{}\"", key->second, key->first,
+                   status.ToString());
+    }
+  }
+}
+
+absl::Status MapWorker::Relinearize(const MapUpdater::PassageKey& key) {
+  absl::StatusOr<StoredPassage> record = store_->FindPassage(key.first, key.second);
+  if (!record.ok()) return record.status();
+  absl::StatusOr<std::string> payload = store_->GetPassagePayload(record->id);
+  if (!payload.ok()) return payload.status();
+  absl::StatusOr<Passage> passage = DecodeStoredPassage(*payload);
+  if (!passage.ok()) return passage.status();
+  absl::StatusOr<PassageUpdate> update = CommitChange(
+      [&](const MapReaderInterface& map, const MapUpdateOptions& options) {
+        return ComputePassageRelinearization(*passage, options, map);
+      },
+      [&](const MapDelta& delta) { return store_->CommitPassageRelinearized(record->id, delta); },
+      [&](const MapDelta& delta) { updater_->Relinearized(delta); });
+  if (!update.ok()) return update.status();
+  const PassageUpdateSummary& summary = update->summary;
+  spdlog::info("event=relinearized passage={} vehicle={} id={} landmarks_updated={} landmarks_conditioned={} "
+               "total_ms={:.1f} map_version={}",
+               record->passage_id, record->vehicle_id, record->id, summary.landmarks_updated,
+               summary.landmarks_conditioned, summary.total_ms, summary.map_version);
+  return absl::OkStatus();
 }
 
 void MapWorker::Finish(const StoredPassage& record, PassageState state, const std::string& reason) {

@@ -10,6 +10,7 @@
 #include <memory>
 #include <mutex>
 #include <optional>
+#include <set>
 #include <thread>
 #include <vector>
 
@@ -128,6 +129,20 @@ class MapWorker {
   void RebaseOntoCommitted(Computation* c);
   // Under state_mu_, after a commit of `delta`, which changed `written`.
   void RecordCommitted(const MapDelta& delta, MapWriteSet written);
+  // Computes a change that is not a queued passage's update (an exclusion, a re-linearisation)
+  // against the committed map, with the updater's options, until it still holds when committed;
+  // commits it with `commit` and then, under state_mu_, calls `committed`. Unavailable when
+  // stopping; the computation's or the commit's error otherwise.
+  absl::StatusOr<PassageUpdate> CommitChange(
+      const std::function<absl::StatusOr<PassageUpdate>(const MapReaderInterface&, const MapUpdateOptions&)>& compute,
+      const std::function<absl::Status(const MapDelta&)>& commit, const std::function<void(const MapDelta&)>& committed);
+  // Local re-linearisation (MapUpdateOptions::relinearize_sigmas), after each applied passage: up to
+  // relinearizations_per_passage times, the retained passage whose landmarks moved furthest since
+  // its factors were taken, beyond the threshold, is taken again at the map's current estimate
+  // (ComputePassageRelinearization, CommitPassageRelinearized). A failure is logged and that
+  // passage left until it is applied anew.
+  void RelinearizeStale();
+  absl::Status Relinearize(const MapUpdater::PassageKey& key);
   // Deletes the stored uploads of `folded` passages (MapStoreInterface::PrunePassagePayloads); a
   // failure is logged, never fatal.
   void PrunePayloads(const std::vector<MapUpdater::PassageKey>& folded);
@@ -149,6 +164,7 @@ class MapWorker {
   int64_t committed_last_factor_id_ = 0;
   static constexpr int kTrimEveryCommits = 16;
   int commits_since_trim_ = 0;
+  std::set<MapUpdater::PassageKey> relinearizing_;  // re-linearisations being computed
 
   std::atomic<bool> stopping_{false};
   std::mutex wake_mu_;

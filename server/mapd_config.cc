@@ -114,6 +114,15 @@ std::unique_ptr<CLI::App> NewMapdCommandLine(MapdConfig* config) {
                  "doubles (16, 32, ...), up to N passages, so that none stays in the map as taken at a\n"
                  "young map's poor estimate (0 = off; see README)")
       ->type_name("N");
+  AddMapdSetting(app, "relinearize-sigmas", &u.relinearize_sigmas,
+                 "after each passage, the retained passage whose landmarks moved furthest since its factors\n"
+                 "were taken is taken again at today's estimate, when that move exceeds X of their current\n"
+                 "sigmas: a rule per street, not per map, so a street first mapped on day 300 gets it too\n"
+                 "(0 = off; see README)")
+      ->type_name("X");
+  AddMapdSetting(app, "relinearizations-per-passage", &u.relinearizations_per_passage,
+                 "at most N such re-linearisations after each passage")
+      ->type_name("N");
   AddMapdSetting(app, "workers", &o.worker.workers,
                  "worker threads, each computing one passage's update against the map as committed when it\n"
                  "began. An update is committed only if no update committed meanwhile changed what it read\n"
@@ -244,7 +253,8 @@ std::string DescribeMapdConfig(const MapdConfig& config) {
       "listen=", EscapeForLog(o.listen), " db=", EscapeForLog(o.db_path), " create=", o.create_db ? "true" : "false",
       " strategy=", UpdateStrategyName(u.strategy), " max-subgraph-dim=", u.max_subgraph_dim,
       " window-hops=", u.window_hops, " warmup-passages=", u.warmup_passages,
-      " relinearize-until-passages=", u.relinearize_until_passages, " retain-passages=", u.retain_passages,
+      " relinearize-until-passages=", u.relinearize_until_passages, " relinearize-sigmas=", u.relinearize_sigmas,
+      " relinearizations-per-passage=", u.relinearizations_per_passage, " retain-passages=", u.retain_passages,
       " workers=", o.worker.workers, " worker-nice=", o.worker.nice, " max-queue=", o.max_queue,
       " max-message-mb=", o.max_message_mb, " max-passage-mb=", o.max_passage_mb,
       " max-detection-residual-sigmas=", u.max_detection_residual_sigmas,

@@ -34,15 +34,25 @@ std::vector<Passage> InCommitOrder(MockVehicle* vehicle, const std::vector<Passa
   return out;
 }
 
-MapState ApplyInOrder(const std::vector<Passage>& passages, const MapUpdateOptions& options) {
+// With options.relinearize_sigmas, each passage is followed by its re-linearisations, as the
+// service's worker does them; `relinearized` counts them.
+MapState ApplyInOrder(const std::vector<Passage>& passages, const MapUpdateOptions& options, int* relinearized = nullptr) {
   MapState map;
   MapUpdater updater(options);
+  const auto passage_of = [&](const MapUpdater::PassageKey& key) -> absl::StatusOr<Passage> {
+    for (const Passage& p : passages) {
+      if (p.vehicle_id == key.first && p.passage_id == key.second) return p;
+    }
+    return absl::NotFoundError(key.second);
+  };
   for (const Passage& passage : passages) {
     absl::StatusOr<PassageUpdate> update = updater.Compute(passage, map);
     EXPECT_TRUE(update.ok()) << passage.passage_id << ": " << update.status();
     if (!update.ok()) continue;
     map.Apply(update->delta);
     updater.Applied(passage, update->delta);
+    const int count = RelinearizeStaleInMemory(passage_of, &updater, &map);
+    if (relinearized != nullptr) *relinearized += count;
   }
   return map;
 }
@@ -88,10 +98,11 @@ void ExpectSameMap(const MapState& expected, const MapState& actual) {
   EXPECT_LE(worst_information, kRounding);
 }
 
-void RunWithTwoWorkers(const std::vector<Passage>& passages, const MapUpdateOptions& update) {
+void RunWithWorkers(int workers, const std::vector<Passage>& passages, const MapUpdateOptions& update,
+                    int* relinearized = nullptr) {
   TempDir dir;
   MapServerOptions options = TestServerOptions(dir.File("map.db"));
-  options.worker.workers = 2;
+  options.worker.workers = workers;
   options.worker.update = update;
   options.limits.vehicle_uploads_per_s = 0;  // the test's uploads come as fast as they can
   auto server = StartTestServer(options);
@@ -104,7 +115,7 @@ void RunWithTwoWorkers(const std::vector<Passage>& passages, const MapUpdateOpti
   auto info = vehicle.WaitUntilIdle();
   ASSERT_TRUE(info.ok()) << info.status();
   ASSERT_EQ(info->passages_applied(), static_cast<int64_t>(passages.size()));
-  const MapState expected = ApplyInOrder(InCommitOrder(&vehicle, passages), update);
+  const MapState expected = ApplyInOrder(InCommitOrder(&vehicle, passages), update, relinearized);
   {
     SCOPED_TRACE("served map");
     ASSERT_TRUE(server->store()->ReadCommittedMap([&](const MapState& map) { ExpectSameMap(expected, map); }));
@@ -145,7 +156,18 @@ MapUpdateOptions CityUpdateOptions(MapUpdateOptions update = MapUpdateOptions())
 }
 
 TEST(ParallelWorkers, CityPassagesGiveTheMapOfTheirCommitOrder) {
-  RunWithTwoWorkers(CityPassages(24), CityUpdateOptions());
+  RunWithWorkers(2, CityPassages(24), CityUpdateOptions());
+}
+
+// Local re-linearisation in the service (mapd --relinearize-sigmas): after each passage the worker
+// takes the stalest retained passage again, and commits it as a change of its own; the map served
+// and stored is the in-process updater's with the same re-linearisations.
+TEST(ServiceRelinearization, TheWorkerRelinearizesStalePassagesAsTheInProcessUpdaterDoes) {
+  MapUpdateOptions update = CityUpdateOptions();
+  update.relinearize_sigmas = 0.5;
+  int relinearized = 0;
+  RunWithWorkers(1, CityPassages(20), update, &relinearized);
+  EXPECT_GE(relinearized, 3) << "the scenario must make passages stale";
 }
 
 // mapd with two workers killed (SIGKILL) while they apply, restarted on the same file, every
@@ -197,7 +219,7 @@ TEST(ParallelWorkers, JointSolvesOfTheYoungMapGiveTheMapOfTheirCommitOrder) {
   const Scenario scenario = ShortScenario(8, 60.0);
   std::vector<Passage> passages;
   for (int i = 0; i < 20; ++i) passages.push_back(scenario.MakePassage(i));
-  RunWithTwoWorkers(passages, MapUpdateOptions());
+  RunWithWorkers(2, passages, MapUpdateOptions());
 }
 
 }  // namespace

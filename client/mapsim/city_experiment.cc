@@ -185,10 +185,11 @@ absl::Status WriteCityOutputs(const CityExperimentOptions& options, const CityEx
   if (ec) return absl::InternalError(absl::StrCat("cannot create ", dir, ": ", ec.message()));
 
   std::ofstream csv(std::filesystem::path(dir) / "landmarks.csv");
-  csv << "landmark,true_east_m,true_north_m,est_east_m,est_north_m,error_m,sigma_east_m,sigma_north_m\n";
+  csv << "landmark,true_east_m,true_north_m,est_east_m,est_north_m,error_m,sigma_east_m,sigma_north_m,mahalanobis2\n";
   for (const CityLandmarkError& e : result.errors) {
-    csv << absl::StrFormat("%d,%.4f,%.4f,%.4f,%.4f,%.4f,%.4f,%.4f\n", e.id, e.truth_m.x(), e.truth_m.y(),
-                           e.estimate_m.x(), e.estimate_m.y(), e.error_m(), e.sigma_east_m, e.sigma_north_m);
+    csv << absl::StrFormat("%d,%.4f,%.4f,%.4f,%.4f,%.4f,%.4f,%.4f,%.4f\n", e.id, e.truth_m.x(), e.truth_m.y(),
+                           e.estimate_m.x(), e.estimate_m.y(), e.error_m(), e.sigma_east_m, e.sigma_north_m,
+                           e.mahalanobis2);
   }
   csv.close();
   if (!csv) return absl::InternalError(absl::StrCat("cannot write ", dir, "/landmarks.csv"));
@@ -201,6 +202,8 @@ absl::Status WriteCityOutputs(const CityExperimentOptions& options, const CityEx
       {"blocks_y", c.blocks_y},
       {"block_m", c.block_m},
       {"route_length_m", c.route_length_m},
+      {"late_blocks_x", c.late_blocks_x},
+      {"late_from_passage", c.late_from_passage},
       {"vehicles", c.vehicles},
       {"seed", c.seed},
       {"layout_seed", c.layout_seed},

@@ -312,6 +312,11 @@ void AddCityFlags(CLI::App* command, CityCommand* c) {
   command->add_option("--route-m", city.route_length_m, "distance driven per passage, m")->type_name("M");
   command->add_option("--vehicles", city.vehicles, "fleet size; passage i is driven by vehicle i % V")
       ->type_name("V");
+  command->add_option("--late-blocks-x", city.late_blocks_x,
+                      "a district mapped late: the eastern N blocks are driven only from passage\n"
+                      "--late-from-passage on (landmarks.csv gives each landmark's east position)")
+      ->type_name("N");
+  command->add_option("--late-from-passage", city.late_from_passage, "see --late-blocks-x")->type_name("P");
   command->add_option("--seed", city.seed, "routes and noise")->type_name("S");
   command->add_option("--layout-seed", city.layout_seed, "street jitter and landmarks")->type_name("S");
   AddParsedOption(command, "--noise", &city.noise, &ParseNoiseConfig, "white | gnss-ar1 | yaw-bias | ar1+yaw")

@@ -640,11 +640,13 @@ void MapUpdater::RecordLinearization(const MapDelta& delta) {
   for (auto& [key, landmarks] : taken) linearized_at_[key] = std::move(landmarks);
 }
 
-std::optional<MapUpdater::PassageKey> MapUpdater::StalestPassage(const MapReaderInterface& map) const {
+std::optional<MapUpdater::PassageKey> MapUpdater::StalestPassage(const MapReaderInterface& map,
+                                                                 const std::set<PassageKey>& skip) const {
   if (options_.relinearize_sigmas <= 0.0) return std::nullopt;
   std::optional<PassageKey> stalest;
   double largest = options_.relinearize_sigmas * options_.relinearize_sigmas;
   for (const auto& [key, landmarks] : linearized_at_) {
+    if (skip.count(key) > 0) continue;
     for (const auto& [id, then] : landmarks) {
       const Landmark* now = map.FindLandmark(id);
       if (now == nullptr) continue;
@@ -672,11 +674,11 @@ int MapUpdater::RelinearizeStale(const MapReaderInterface& map,
         passage.ok() ? ComputePassageRelinearization(*passage, options_, map) : passage.status();
     absl::Status status = update.ok() ? apply(*key, *update) : update.status();
     if (!status.ok()) {
-      linearized_at_.erase(*key);  // not tried again until it is applied anew
+      RelinearizationFailed(*key);
       if (on_error) on_error(*key, status);
       continue;
     }
-    RecordLinearization(update->delta);
+    Relinearized(update->delta);
     ++applied;
   }
   return applied;

@@ -5,6 +5,7 @@
 #include <functional>
 #include <map>
 #include <optional>
+#include <set>
 #include <string>
 #include <string_view>
 #include <utility>
@@ -160,7 +161,13 @@ class MapUpdater {
   // largest move of one of its landmarks since, in that landmark's current standard deviations
   // (Mahalanobis distance). None when no passage's move exceeds options.relinearize_sigmas (or it
   // is 0). Passages applied before this updater was made count as taken at the estimate it found.
-  std::optional<PassageKey> StalestPassage(const MapReaderInterface& map) const;
+  // Passages in `skip` are passed over (a service's re-linearisations under way).
+  std::optional<PassageKey> StalestPassage(const MapReaderInterface& map, const std::set<PassageKey>& skip = {}) const;
+  // Records that a passage's re-linearisation (ComputePassageRelinearization), `delta`, was
+  // applied: its factors were taken where the delta puts their landmarks.
+  void Relinearized(const MapDelta& delta) { RecordLinearization(delta); }
+  // A passage whose re-linearisation failed is not proposed again until it is applied anew.
+  void RelinearizationFailed(const PassageKey& key) { linearized_at_.erase(key); }
   // Re-linearises up to options.relinearizations_per_passage of the stalest passages, one at a
   // time: `passage_of` returns a retained passage's data, `apply` commits a change to the map the
   // updater reads (and fails if it could not). Returns how many were applied; a passage whose

@@ -65,10 +65,11 @@ struct Route {
   double heading_rad = 0.0;
 };
 
-Route RandomRoute(const CityLayout& layout, double lane_offset_m, double length_needed_m, std::mt19937_64* rng) {
+Route RandomRoute(const CityLayout& layout, double lane_offset_m, double length_needed_m, int streets_x,
+                  std::mt19937_64* rng) {
   const std::vector<double>& xs = layout.street_x_m();
   const std::vector<double>& ys = layout.street_y_m();
-  const int nx = static_cast<int>(xs.size()), ny = static_cast<int>(ys.size());
+  const int nx = std::min(static_cast<int>(xs.size()), streets_x), ny = static_cast<int>(ys.size());
   auto valid = [&](int i, int j, int d) {
     const int ni = i + kDx[d], nj = j + kDy[d];
     return ni >= 0 && ni < nx && nj >= 0 && nj < ny;
@@ -148,9 +149,10 @@ double TurnRadiusM(const CityLayout& layout, bool right_turn) {
 Pose2 CityDrive::PoseAt(double t_s) const { return PoseAlongInputs(poses, inputs, dt_s, wheelbase_m, t_s); }
 
 CityDrive DriveRandomRoute(const CityLayout& layout, const CityScenarioOptions& options, double dt_s,
-                           double cruise_mps, std::mt19937_64* rng) {
+                           double cruise_mps, std::mt19937_64* rng, int streets_x) {
   const double lane_offset_m = 0.5 * layout.road_half_width_m();
-  Route route = RandomRoute(layout, lane_offset_m, options.route_length_m + 2.0 * kLookaheadM + 20.0, rng);
+  Route route =
+      RandomRoute(layout, lane_offset_m, options.route_length_m + 2.0 * kLookaheadM + 20.0, streets_x, rng);
   CityDrive drive;
   drive.dt_s = dt_s;
   drive.wheelbase_m = options.calibration.wheelbase_m;

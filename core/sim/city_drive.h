@@ -39,9 +39,10 @@ double TurnRadiusM(const CityLayout& layout, bool right_turn);
 // intersection at random among the streets ahead, left and right (no U-turn). The driver follows
 // the lane (straight, then arcs through turns) by pure pursuit, so the curvature is continuous, with steering limited
 // to options.max_steering_rad; cruises at `cruise_mps` and slows to options.turn_speed_mps through
-// turns. All randomness is drawn from `rng`.
+// turns. Only the westernmost `streets_x` north-south streets (and the east-west streets between
+// them) are driven; all of them when it is larger. All randomness is drawn from `rng`.
 CityDrive DriveRandomRoute(const CityLayout& layout, const CityScenarioOptions& options, double dt_s,
-                           double cruise_mps, std::mt19937_64* rng);
+                           double cruise_mps, std::mt19937_64* rng, int streets_x);
 
 }  // namespace crowdmap
 

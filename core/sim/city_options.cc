@@ -75,6 +75,10 @@ absl::Status CityScenarioOptions::Validate() const {
   if (2.2 * road_width_m > block_m - 2.0 * street_jitter_m) {
     return Invalid("block_m", "too short for two left turns in a row");
   }
+  if (late_blocks_x < 0 || late_blocks_x >= blocks_x) {
+    return Invalid("late_blocks_x", absl::StrCat("must lie in [0, blocks_x - 1 = ", blocks_x - 1, "], got ", late_blocks_x));
+  }
+  if (late_from_passage < 0) return Invalid("late_from_passage", absl::StrCat("must be >= 0, got ", late_from_passage));
   if (vehicles < 1) return Invalid("vehicles", absl::StrCat("must be >= 1, got ", vehicles));
   if (!(rate_variation < 0.5)) return Invalid("rate_variation", absl::StrCat("must be < 0.5, got ", rate_variation));
   if (!(gnss_ar1_alpha >= 0.0 && gnss_ar1_alpha < 1.0)) return Invalid("gnss_ar1_alpha", "must lie in [0, 1)");

@@ -39,6 +39,11 @@ struct CityScenarioOptions {
   double speed_max_mps = 14.0;
   double turn_speed_mps = 5.0;     // speed through a turn at an intersection
   double max_steering_rad = 0.6;
+  // A district mapped late: the fleet drives the city's eastern late_blocks_x blocks only from
+  // passage late_from_passage on (before, its routes stay on the streets west of them), as a new
+  // part of town that the map first sees on day 300. 0 = the whole grid from the first passage.
+  int late_blocks_x = 0;
+  int late_from_passage = 0;
   // Each vehicle's sensor rates are those below times a factor drawn in [1 - x, 1 + x]. 0 = off.
   double rate_variation = 0.0;
 

@@ -48,7 +48,9 @@ CityDrive CityScenario::TrueDrive(int index) const {
   const CityVehicle vehicle = Vehicle(index % options_.vehicles);
   std::mt19937_64 rng(PassageSeed(options_.seed, index));
   const double cruise_mps = std::uniform_real_distribution<double>(options_.speed_min_mps, options_.speed_max_mps)(rng);
-  return DriveRandomRoute(layout_, options_, 1.0 / vehicle.odometry_rate_hz, cruise_mps, &rng);
+  const int streets_x = static_cast<int>(layout_.street_x_m().size()) -
+                        (index < options_.late_from_passage ? options_.late_blocks_x : 0);
+  return DriveRandomRoute(layout_, options_, 1.0 / vehicle.odometry_rate_hz, cruise_mps, &rng, streets_x);
 }
 
 Passage CityScenario::MakePassage(int index) const { return MakePassageWithTruth(index).first; }

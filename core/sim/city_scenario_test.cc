@@ -161,6 +161,23 @@ TEST(CityScenario, RouteHasTheRequestedLengthAndStaysOnTheStreets) {
   EXPECT_GT(turns, 4);  // eight 600 m drives on 150 m blocks do turn
 }
 
+TEST(CityScenario, ALateDistrictIsDrivenOnlyFromItsFirstPassageOn) {
+  CityScenarioOptions options = Small();
+  options.blocks_x = 4;
+  options.late_blocks_x = 2;
+  options.late_from_passage = 20;
+  const CityScenario city = Make(options);
+  // The street west of the late district; its lane lies at most a road half width east of it.
+  const double boundary_m = city.layout().street_x_m()[options.blocks_x - options.late_blocks_x];
+  double east_before = -1e9, east_after = -1e9;
+  for (int i = 0; i < 40; ++i) {
+    double& east = i < options.late_from_passage ? east_before : east_after;
+    for (const Pose2& pose : city.TrueDrive(i).poses) east = std::max(east, pose.x());
+  }
+  EXPECT_LE(east_before, boundary_m + city.layout().road_half_width_m());
+  EXPECT_GT(east_after, boundary_m + 100.0) << "later passages reach the district";
+}
+
 TEST(CityScenario, NoiseFreeOdometryDeadReckoningReproducesTheTrueTrajectory) {
   CityScenarioOptions options = Small();
   options.noise_model.speed_sigma_mps = 0.0;
@@ -243,6 +260,8 @@ TEST(CityScenario, RefusesInvalidOptionsNamingTheField) {
       {"building_setback_m", [](CityScenarioOptions* o) { o->building_setback_m = 4.0; }},
       {"route_length_m", [](CityScenarioOptions* o) { o->route_length_m = -1.0; }},
       {"vehicles", [](CityScenarioOptions* o) { o->vehicles = 0; }},
+      {"late_blocks_x", [](CityScenarioOptions* o) { o->late_blocks_x = o->blocks_x; }},
+      {"late_from_passage", [](CityScenarioOptions* o) { o->late_from_passage = -1; }},
       {"camera_rate_hz", [](CityScenarioOptions* o) { o->camera_rate_hz = NAN; }},
       {"gnss_ar1_alpha", [](CityScenarioOptions* o) { o->gnss_ar1_alpha = 1.0; }},
       {"max_detection_range_m", [](CityScenarioOptions* o) { o->max_detection_range_m = 4.0; }},

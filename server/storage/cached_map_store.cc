@@ -50,18 +50,23 @@ std::shared_ptr<const CachedMapStore::View> CachedMapStore::CurrentView() const 
   return view_;
 }
 
-absl::Status CachedMapStore::CommitPassageApplied(int64_t id, const MapDelta& delta, const PassageResult& result) {
+absl::Status CachedMapStore::CommitAndPublish(const MapDelta& delta, const std::function<absl::Status()>& commit) {
   std::lock_guard<std::mutex> lock(writer_mu_);
-  if (auto s = inner_->CommitPassageApplied(id, delta, result); !s.ok()) return s;
+  if (auto s = commit(); !s.ok()) return s;
   Publish(delta);
   return absl::OkStatus();
 }
 
+absl::Status CachedMapStore::CommitPassageApplied(int64_t id, const MapDelta& delta, const PassageResult& result) {
+  return CommitAndPublish(delta, [&] { return inner_->CommitPassageApplied(id, delta, result); });
+}
+
 absl::Status CachedMapStore::CommitPassageExcluded(int64_t id, const MapDelta& delta) {
-  std::lock_guard<std::mutex> lock(writer_mu_);
-  if (auto s = inner_->CommitPassageExcluded(id, delta); !s.ok()) return s;
-  Publish(delta);
-  return absl::OkStatus();
+  return CommitAndPublish(delta, [&] { return inner_->CommitPassageExcluded(id, delta); });
+}
+
+absl::Status CachedMapStore::CommitPassageRelinearized(int64_t id, const MapDelta& delta) {
+  return CommitAndPublish(delta, [&] { return inner_->CommitPassageRelinearized(id, delta); });
 }
 
 bool CachedMapStore::ReadCommittedMap(const std::function<void(const MapState&)>& read) {

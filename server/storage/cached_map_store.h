@@ -21,7 +21,7 @@ namespace crowdmap {
 // reads with cross-covariances recover them from an in-memory copy of the map's factors.
 //
 // The copy is loaded from the inner store when the cache is created and is replaced after each
-// successful CommitPassageApplied by applying the same delta, so a read sees either the map before
+// successful map commit (applied, excluded, re-linearised passage) by applying the same delta, so a read sees either the map before
 // or after a commit, never a mixture, and never a change that is not yet durable. Readers take a
 // reference to the current copy and never wait for the writer or for SQLite. A commit copies only
 // the tiles it touches (plus the table of tile pointers).
@@ -84,6 +84,7 @@ class CachedMapStore : public MapStoreInterface {
   // Commits through the inner store, then publishes the new copy.
   absl::Status CommitPassageApplied(int64_t id, const MapDelta& delta, const PassageResult& result) override;
   absl::Status CommitPassageExcluded(int64_t id, const MapDelta& delta) override;
+  absl::Status CommitPassageRelinearized(int64_t id, const MapDelta& delta) override;
 
   // Served from the copy; requests with cross covariances go to the inner store.
   absl::StatusOr<LandmarkPage> QueryRegion(const BoundingBox& box, LandmarkId after_id, int limit,
@@ -110,6 +111,9 @@ class CachedMapStore : public MapStoreInterface {
   std::shared_ptr<const View> CurrentView() const;
   // After a commit of `delta`: applies it to the map and publishes the new view (writer only).
   void Publish(const MapDelta& delta);
+  // Runs `commit` (one of the inner store's map commits) under writer_mu_ and publishes `delta`
+  // when it succeeded.
+  absl::Status CommitAndPublish(const MapDelta& delta, const std::function<absl::Status()>& commit);
   // Builds the view that results from applying `delta` to the current one (writer only).
   std::shared_ptr<const View> ApplyToView(const MapDelta& delta);
   // The landmarks of `view` inside `box` that pass `keep`, in increasing id order.

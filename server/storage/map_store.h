@@ -154,6 +154,10 @@ class MapStoreInterface {
   // ComputePassageExclusion) and marks it excluded. FailedPrecondition when the stored map version
   // is not delta.base_version or the passage is not applied.
   virtual absl::Status CommitPassageExcluded(int64_t id, const MapDelta& delta) = 0;
+  // In one transaction: writes the map change that takes an applied passage's factors again at the
+  // map's current estimate (see ComputePassageRelinearization); the passage stays applied, its
+  // result unchanged. FailedPrecondition as for CommitPassageExcluded.
+  virtual absl::Status CommitPassageRelinearized(int64_t id, const MapDelta& delta) = 0;
   // Ends a processing passage without a map change: state `final_state` (rejected or failed)
   // or queued (to retry), with the reason.
   virtual absl::Status FinishPassageWithoutChange(int64_t id, PassageState state, const std::string& reason) = 0;

@@ -422,6 +422,10 @@ absl::Status SqliteMapStore::CommitPassageExcluded(int64_t id, const MapDelta& d
   return CommitMapChange(id, delta, PassageState::kApplied, PassageState::kExcluded, std::nullopt);
 }
 
+absl::Status SqliteMapStore::CommitPassageRelinearized(int64_t id, const MapDelta& delta) {
+  return CommitMapChange(id, delta, PassageState::kApplied, PassageState::kApplied, std::nullopt);
+}
+
 absl::Status SqliteMapStore::CommitPassageApplied(int64_t id, const MapDelta& delta, const PassageResult& result) {
   return CommitMapChange(id, delta, PassageState::kProcessing, PassageState::kApplied, result);
 }

@@ -32,6 +32,7 @@ class SqliteMapStore : public MapStoreInterface {
   absl::StatusOr<std::optional<ClaimedPassage>> ClaimNextPassage() override;
   absl::Status CommitPassageApplied(int64_t id, const MapDelta& delta, const PassageResult& result) override;
   absl::Status CommitPassageExcluded(int64_t id, const MapDelta& delta) override;
+  absl::Status CommitPassageRelinearized(int64_t id, const MapDelta& delta) override;
   absl::Status FinishPassageWithoutChange(int64_t id, PassageState state, const std::string& reason) override;
   absl::StatusOr<StoredPassage> MovePassage(int64_t id, const std::vector<PassageState>& from,
                                             PassageState to, bool released) override;

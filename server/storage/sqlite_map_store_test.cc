@@ -504,6 +504,51 @@ TEST(SqliteMapStore, ExclusionWritesItsDeltaAndMarksThePassageInOneTransaction) 
 }
 
 
+TEST(SqliteMapStore, RelinearizationReplacesTheFactorsAndLeavesThePassageApplied) {
+  TempDir dir;
+  const std::string path = dir.File("map.db");
+  auto store = OpenStore(path);
+  const int64_t id = EnqueueAndClaim(store.get(), "p");
+  MapDelta applied;
+  applied.version = 1;
+  applied.landmarks[1] = MakeLandmark(1, 48.7, 2.17, 1);
+  applied.landmarks[2] = MakeLandmark(2, 48.7001, 2.17, 1);
+  applied.added_factors[1] = MakeFactor(1, {1, 2}, PairCovariance(Eigen::Matrix2d::Constant(0.01)));
+  // Only an applied passage can be re-linearised.
+  EXPECT_EQ(store->CommitPassageRelinearized(id, MapDelta()).code(), absl::StatusCode::kFailedPrecondition);
+  PassageResult result;
+  result.map_version = 1;
+  ASSERT_TRUE(store->CommitPassageApplied(id, applied, result).ok());
+
+  MapDelta relinearized;
+  relinearized.base_version = 1;
+  relinearized.version = 2;
+  relinearized.removed_factors = {1};
+  relinearized.added_factors[2] = MakeFactor(2, {1, 2}, PairCovariance(Eigen::Matrix2d::Constant(0.02)));
+  relinearized.added_factors[2].passage_id = applied.added_factors[1].passage_id;
+  relinearized.landmarks[1] = MakeLandmark(1, 48.70001, 2.17, 2);
+  MapDelta stale = relinearized;
+  stale.base_version = 0;
+  EXPECT_EQ(store->CommitPassageRelinearized(id, stale).code(), absl::StatusCode::kFailedPrecondition);
+  ASSERT_TRUE(store->CommitPassageRelinearized(id, relinearized).ok());
+  const absl::StatusOr<StoredPassage> record = store->GetPassage(id);
+  ASSERT_TRUE(record.ok());
+  EXPECT_EQ(record->state, PassageState::kApplied);
+  ASSERT_TRUE(record->result.has_value());
+  EXPECT_EQ(record->result->map_version, 1) << "the passage's result is its application's";
+  ExpectStatsEqualTableCounts(store.get(), path);
+  MapState map;
+  ASSERT_TRUE(store->LoadMap(&map).ok());
+  EXPECT_EQ(map.version(), 2);
+  EXPECT_EQ(map.factor_count(), 1u);
+  ASSERT_NE(map.FindFactor(2), nullptr);
+  EXPECT_EQ(map.FindFactor(1), nullptr);
+  EXPECT_EQ(map.FindLandmark(1)->position.lat_deg, 48.70001);
+  std::vector<int64_t> ids;
+  map.AppendPassageFactorIds(applied.added_factors[1].vehicle_id, applied.added_factors[1].passage_id, &ids);
+  EXPECT_EQ(ids, std::vector<int64_t>{2}) << "the new factor keeps the passage's provenance";
+}
+
 // Another process's write transaction on one of the store's files, held until destroyed.
 class ForeignWriteLock {
  public:
