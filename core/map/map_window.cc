@@ -5,11 +5,9 @@
 
 #include <Eigen/Cholesky>
 #include <Eigen/CholmodSupport>
-#include <Eigen/Eigenvalues>
 
 #include "absl/strings/str_cat.h"
 #include "core/map/dense_kernels.h"
-#include "core/map/selected_inverse.h"
 
 namespace crowdmap {
 
@@ -37,6 +35,19 @@ class MapWindow::Factor {
     if (ok_) IndexSupernodes();
   }
   Eigen::ComputationInfo info() const { return ok_ ? Eigen::Success : Eigen::NumericalIssue; }
+  // Factorises `a` in place of the matrix the factor was made with, whose pattern it must have
+  // (or a part of it): CHOLMOD's symbolic analysis (the fill-reducing ordering) is reused.
+  bool Refactorize(const Eigen::SparseMatrix<double>& a) {
+    if (!sparse_) {
+      dense_ = Eigen::MatrixXd(a);
+      ok_ = CholeskyInPlace(dense_);
+      return ok_;
+    }
+    sparse_->factorize(a);
+    ok_ = sparse_->info() == Eigen::Success;
+    if (ok_) IndexSupernodes();
+    return ok_;
+  }
   template <typename Rhs>
   Eigen::MatrixXd solve(const Rhs& b) const {
     if (sparse_) return sparse_->solve(b);
@@ -138,6 +149,85 @@ class MapWindow::Factor {
     return out;
   }
 
+  // The inverse's 2x2 diagonal blocks (rows 2i and 2i + 1 of the factorised matrix, i = 0, 1, ...).
+  // On a supernodal factor, from the inverse's entries on the factor's pattern (Takahashi's
+  // recursion by supernodes, from the roots down): for a supernode with columns D and the rows R
+  // below them,
+  //   Y = L_RD L_DD^-1,  Sigma_RD = -Sigma_RR Y,  Sigma_DD = L_DD^-T L_DD^-1 - Y^T Sigma_RD,
+  // where Sigma_RR lies on the pattern of the supernodes R belongs to, all done before (the rows
+  // of a supernode form a clique of the filled graph). Dense products, as the factorisation's.
+  std::vector<Eigen::Matrix2d> InverseDiagonalBlocks() const {
+    const int n = static_cast<int>(sparse_ ? sparse_->rows() : dense_.rows());
+    std::vector<Eigen::Matrix2d> out(n / 2);
+    // A dense factor, or a sparse one CHOLMOD's supernodes could not be read from: the whole
+    // inverse.
+    const auto from_whole_inverse = [&] {
+      std::vector<int> rows(n);
+      for (int i = 0; i < n; ++i) rows[i] = i;
+      Eigen::MatrixXd inverse;
+      if (sparse_) {
+        inverse = InverseBlock(rows);
+      } else {
+        inverse = dense_;
+        InverseFromCholeskyInPlace(inverse);
+      }
+      for (int i = 0; i + 1 < n; i += 2) out[i / 2] = inverse.block<2, 2>(i, i);
+      return out;
+    };
+    if (!sparse_ || column_super_.empty()) return from_whole_inverse();
+    const cholmod_factor& l = sparse_->factor();
+    const int* super = static_cast<const int*>(l.super);
+    const int* pi = static_cast<const int*>(l.pi);
+    const int* px = static_cast<const int*>(l.px);
+    const int* ls = static_cast<const int*>(l.s);
+    const double* lx = static_cast<const double*>(l.x);
+    std::vector<double> sigma(px[l.nsuper]);  // the inverse on L's pattern, in L's layout
+    // Position of `row` among the rows of the supernode holding column `col` (row >= col), from
+    // `from` on; -1 when it is not on the pattern (the rows are sorted; never for a valid factor).
+    auto locate = [&](int row, int col, int from) {
+      const int t = column_super_[col];
+      const int* begin = ls + pi[t];
+      const int* it = std::lower_bound(begin + from, ls + pi[t + 1], row);
+      return it != ls + pi[t + 1] && *it == row ? static_cast<int>(it - begin) : -1;
+    };
+    Eigen::MatrixXd dd_inverse, y, rr;
+    for (int s = static_cast<int>(l.nsuper) - 1; s >= 0; --s) {
+      const int k = super[s + 1] - super[s], nrows = pi[s + 1] - pi[s], r = nrows - k;
+      const Eigen::Map<const Eigen::MatrixXd> block(lx + px[s], nrows, k);
+      Eigen::Map<Eigen::MatrixXd> inverse(sigma.data() + px[s], nrows, k);
+      dd_inverse.setIdentity(k, k);
+      SolveLowerInPlace(block.topRows(k), dd_inverse);  // L_DD^-1
+      dd_inverse.triangularView<Eigen::StrictlyUpper>().setZero();
+      inverse.topRows(k).noalias() = dd_inverse.transpose() * dd_inverse;
+      if (r == 0) continue;
+      y.noalias() = block.bottomRows(r) * dd_inverse.triangularView<Eigen::Lower>();
+      rr.resize(r, r);
+      const int* below = ls + pi[s] + k;
+      for (int b = 0; b < r; ++b) {
+        const int col = below[b], t = column_super_[col], t_rows = pi[t + 1] - pi[t];
+        const double* column = sigma.data() + px[t] + static_cast<size_t>(col - super[t]) * t_rows;
+        int at = col - super[t];
+        for (int a = b; a < r; ++a) {
+          at = locate(below[a], col, at);
+          if (at < 0) return from_whole_inverse();
+          rr(a, b) = rr(b, a) = column[at];
+        }
+      }
+      inverse.bottomRows(r).noalias() = -rr * y;
+      inverse.topRows(k).noalias() -= y.transpose() * inverse.bottomRows(r);
+    }
+    for (int i = 0; i + 1 < n; i += 2) {
+      const int a = permuted_[i], b = permuted_[i + 1];
+      const int lo = std::min(a, b), hi = std::max(a, b);
+      const auto entry = [&](int row, int col) {
+        const int t = column_super_[col];
+        return sigma[px[t] + static_cast<size_t>(col - super[t]) * (pi[t + 1] - pi[t]) + locate(row, col, col - super[t])];
+      };
+      out[i / 2] << entry(a, a), entry(hi, lo), entry(hi, lo), entry(b, b);
+    }
+    return out;
+  }
+
  private:
   // The supernode of each column of L, each supernode's parent in the elimination tree (-1 for
   // a root) and the inverse of the fill-reducing permutation.
@@ -183,9 +273,13 @@ namespace {
 
 using Triplets = std::vector<Eigen::Triplet<double>>;
 
+// Adds the entries of `block` at (row, col) that lie in the lower triangle: a window's
+// information is symmetric and every consumer (CHOLMOD, the dense Cholesky, Takahashi's recursion)
+// reads its lower triangle only, so the upper one would only double the assembly and CHOLMOD's
+// transposes.
 void AddBlock(int row, int col, const Eigen::Ref<const Eigen::MatrixXd>& block, Triplets* out) {
-  for (int r = 0; r < block.rows(); ++r) {
-    for (int c = 0; c < block.cols(); ++c) out->emplace_back(row + r, col + c, block(r, c));
+  for (int c = 0; c < block.cols(); ++c) {
+    for (int r = std::max(0, col + c - row); r < block.rows(); ++r) out->emplace_back(row + r, col + c, block(r, c));
   }
 }
 
@@ -211,12 +305,18 @@ Eigen::MatrixXd SchurComplement(const Eigen::MatrixXd& info, const std::vector<i
     const Eigen::MatrixXd schur = kk - ko * llt.solve(ko.transpose());
     return 0.5 * (schur + schur.transpose());
   }
-  Eigen::SelfAdjointEigenSolver<Eigen::MatrixXd> eig(oo);
-  const double floor = 1e-12 * std::max(1.0, eig.eigenvalues().cwiseAbs().maxCoeff());
-  Eigen::VectorXd inverse = eig.eigenvalues();
-  for (int i = 0; i < o; ++i) inverse(i) = inverse(i) > floor ? 1.0 / inverse(i) : 0.0;
-  const Eigen::MatrixXd kv = ko * eig.eigenvectors();
-  Eigen::MatrixXd schur = kk - kv * inverse.asDiagonal() * kv.transpose();
+  // Semi-definite: a pivoted LDL^T, oo = P^T L D L^T P. Pivots come largest first, and those
+  // below the floor are directions the factor leaves free; ko has no component along them (info
+  // is positive semi-definite), so dropping them gives the pseudo-inverse's Schur complement at a
+  // fraction of an eigen-decomposition's cost.
+  const Eigen::LDLT<Eigen::MatrixXd> ldlt(oo);
+  const Eigen::VectorXd d = ldlt.vectorD();
+  const double floor = 1e-12 * std::max(1.0, d.cwiseAbs().maxCoeff());
+  Eigen::MatrixXd y = ldlt.transpositionsP() * Eigen::MatrixXd(ko.transpose());
+  ldlt.matrixL().solveInPlace(y);
+  for (int i = 0; i < o; ++i) y.row(i) *= d(i) > floor ? 1.0 / std::sqrt(d(i)) : 0.0;
+  Eigen::MatrixXd schur = kk;
+  schur.noalias() -= y.transpose() * y;
   return 0.5 * (schur + schur.transpose());
 }
 
@@ -280,11 +380,12 @@ absl::StatusOr<MapWindow> MapWindow::Build(const MapReaderInterface& map, const 
   }
   Eigen::SparseMatrix<double> information(2 * n, 2 * n);
   w.closed_ = edge.empty();
+  std::shared_ptr<Factor> mean_llt;
   if (options.estimate || w.closed_) {
     // The information with the landmarks outside held (a covariance read of an open window needs
     // only the conservative one below).
     information.setFromTriplets(triplets.begin(), triplets.end());
-    auto mean_llt = std::make_shared<const Factor>(information);
+    mean_llt = std::make_shared<Factor>(information);
     if (mean_llt->info() != Eigen::Success) {
       return absl::FailedPreconditionError(
           absl::StrCat("map information over ", n, " landmarks is not positive definite"));
@@ -337,8 +438,15 @@ absl::StatusOr<MapWindow> MapWindow::Build(const MapReaderInterface& map, const 
       }
     }
   }
+  // The Schur complements change blocks between landmarks of one factor, which are linked: the
+  // pattern is the held information's, whose analysis a window with an estimate reuses.
   information.setFromTriplets(triplets.begin(), triplets.end());
-  w.covariance_factor_ = std::make_shared<const Factor>(information);
+  if (mean_llt) {
+    mean_llt->Refactorize(information);
+    w.covariance_factor_ = std::move(mean_llt);
+  } else {
+    w.covariance_factor_ = std::make_shared<const Factor>(information);
+  }
   w.covariance_information_ = std::move(information);
   if (w.covariance_factor_->info() != Eigen::Success) {
     return absl::FailedPreconditionError(
@@ -409,15 +517,7 @@ absl::StatusOr<Eigen::MatrixXd> MapWindow::FullCovariance() const {
 
 std::vector<Eigen::Matrix2d> MapWindow::Marginals() const {
   if (ids_.empty()) return {};
-  // Takahashi's recursion runs on a simplicial factor (Build checked positive definiteness).
-  const Eigen::SimplicialLLT<Eigen::SparseMatrix<double>> llt(covariance_information_);
-  const SelectedInverse inverse(llt);
-  std::vector<Eigen::Matrix2d> out(ids_.size());
-  for (size_t i = 0; i < ids_.size(); ++i) {
-    const int r = static_cast<int>(2 * i);
-    out[i] << inverse(r, r), inverse(r, r + 1), inverse(r + 1, r), inverse(r + 1, r + 1);
-  }
-  return out;
+  return covariance_factor_->InverseDiagonalBlocks();
 }
 
 absl::StatusOr<Eigen::MatrixXd> JointCovariance(const MapReaderInterface& map, const std::vector<LandmarkId>& ids,

@@ -122,6 +122,51 @@ TEST(MapWindow, BoundedWindowIsConservativeAndConditionsOnTheRest) {
   }
 }
 
+// A factor that reaches outside the window and leaves a direction of the landmarks outside free
+// (fewer rows than the dimensions it links, as a subgraph that saw them with one ray) enters a
+// bounded window through its Schur complement with the pseudo-inverse.
+TEST(MapWindow, AFactorSingularOutsideTheWindowEntersThroughItsPseudoInverseSchurComplement) {
+  std::mt19937_64 rng(7);
+  std::normal_distribution<double> g(0.0, 1.0);
+  MapState map;
+  for (int i = 0; i < 4; ++i) {
+    Landmark l;
+    l.id = i + 1;
+    l.anchor = {45.0, 4.0 + 1e-4 * i};
+    l.position = l.anchor;
+    map.PutLandmark(l);
+  }
+  auto random_rows = [&](int rows, int cols) { return Eigen::MatrixXd::NullaryExpr(rows, cols, [&] { return g(rng); }); };
+  auto add = [&](int64_t id, std::vector<LandmarkId> landmarks, const Eigen::MatrixXd& a) {
+    MapFactor f;
+    f.id = id;
+    f.landmarks = std::move(landmarks);
+    f.information = a.transpose() * a;
+    f.information_vector = Eigen::VectorXd::NullaryExpr(a.cols(), [&] { return g(rng); });
+    map.PutFactor(f);
+  };
+  const Eigen::MatrixXd a = random_rows(6, 4), b = random_rows(3, 6);  // b: rank 3 over 6 dims
+  add(1, {1, 2}, a);
+  add(2, {2, 3, 4}, b);
+  add(3, {3}, random_rows(3, 2));
+  add(4, {4}, random_rows(3, 2));
+  MapWindowOptions options;
+  options.hops = 1;
+  absl::StatusOr<MapWindow> w = MapWindow::Build(map, {1}, options);
+  ASSERT_TRUE(w.ok()) << w.status();
+  ASSERT_EQ(w->landmarks(), (std::vector<LandmarkId>{1, 2}));
+  const Eigen::MatrixXd info_b = b.transpose() * b;
+  const Eigen::MatrixXd outside = info_b.bottomRightCorner(4, 4);
+  ASSERT_LT(outside.fullPivLu().rank(), 4) << "the test needs a singular outside block";
+  Eigen::MatrixXd expected = a.transpose() * a;
+  expected.bottomRightCorner(2, 2) += info_b.topLeftCorner(2, 2) - info_b.topRightCorner(2, 4) *
+                                                                       outside.completeOrthogonalDecomposition().pseudoInverse() *
+                                                                       info_b.bottomLeftCorner(4, 2);
+  absl::StatusOr<Eigen::MatrixXd> cov = w->Covariance({1, 2});
+  ASSERT_TRUE(cov.ok()) << cov.status();
+  EXPECT_LT((*cov - expected.inverse()).cwiseAbs().maxCoeff(), 1e-8 * expected.inverse().cwiseAbs().maxCoeff());
+}
+
 // A side x side grid of landmarks; each factor links a random 3 x 3 patch of neighbours, as a
 // subgraph links the landmarks it saw along a stretch of street. Large enough for the sparse
 // (supernodal) factorisation.
@@ -196,6 +241,14 @@ TEST(MapWindow, CovarianceOfAnySubsetIsTheInverseBlock) {
         ASSERT_LT((full->block<2, 2>(2 * a, 2 * b) - expected).cwiseAbs().maxCoeff(), 1e-9 * cov.diagonal().maxCoeff())
             << "side " << side << ", landmarks " << order[a] << " and " << order[b];
       }
+    }
+    // Every landmark's marginal (the selected inverse on the factor's supernodes).
+    const std::vector<Eigen::Matrix2d> marginals = w->Marginals();
+    ASSERT_EQ(marginals.size(), static_cast<size_t>(n));
+    for (int a = 0; a < n; ++a) {
+      const Eigen::Matrix2d expected = cov.block<2, 2>(2 * (order[a] - 1), 2 * (order[a] - 1));
+      ASSERT_LT((marginals[a] - expected).cwiseAbs().maxCoeff(), 1e-9 * cov.diagonal().maxCoeff())
+          << "side " << side << ", landmark " << order[a];
     }
   }
 }
