@@ -18,7 +18,10 @@ import sys
 
 
 def split(run_dir):
-    with open(os.path.join(run_dir, "summary.json")) as f:
+    summary_path = os.path.join(run_dir, "summary.json")
+    if not os.path.isfile(summary_path):
+        raise SystemExit(f"{run_dir}: no summary.json (not a `mapsim city` output folder, or the run is not done)")
+    with open(summary_path) as f:
         summary = json.load(f)
     late_blocks = summary.get("late_blocks_x", 0)
     if late_blocks <= 0:

@@ -22,6 +22,20 @@ class SupernodalLLT : public Eigen::CholmodSupernodalLLT<Eigen::SparseMatrix<dou
   const cholmod_factor& factor() const { return *m_cholmodFactor; }
 };
 
+// The arrays of CHOLMOD's supernodal factor `l` (int indices, real values): each supernode's first
+// column, its row indices' and its values' starts, the row indices, the values.
+struct SupernodalArrays {
+  const int* super;
+  const int* pi;
+  const int* px;
+  const int* s;
+  const double* x;
+};
+SupernodalArrays ArraysOf(const cholmod_factor& l) {
+  return {static_cast<const int*>(l.super), static_cast<const int*>(l.pi), static_cast<const int*>(l.px),
+          static_cast<const int*>(l.s), static_cast<const double*>(l.x)};
+}
+
 class MapWindow::Factor {
  public:
   explicit Factor(const Eigen::SparseMatrix<double>& a) {
@@ -79,11 +93,7 @@ class MapWindow::Factor {
       return gram.selfadjointView<Eigen::Lower>();
     }
     const cholmod_factor& l = sparse_->factor();
-    const int* super = static_cast<const int*>(l.super);
-    const int* pi = static_cast<const int*>(l.pi);
-    const int* px = static_cast<const int*>(l.px);
-    const int* ls = static_cast<const int*>(l.s);
-    const double* lx = static_cast<const double*>(l.x);
+    const auto [super, pi, px, ls, lx] = ArraysOf(l);
     // X's columns sorted by the supernode of their row: in a postordered tree the rows below a
     // supernode s are those of supernodes first_descendant_[s]..s, so the columns non-zero at s
     // are one contiguous range.
@@ -176,11 +186,7 @@ class MapWindow::Factor {
     };
     if (!sparse_ || column_super_.empty()) return from_whole_inverse();
     const cholmod_factor& l = sparse_->factor();
-    const int* super = static_cast<const int*>(l.super);
-    const int* pi = static_cast<const int*>(l.pi);
-    const int* px = static_cast<const int*>(l.px);
-    const int* ls = static_cast<const int*>(l.s);
-    const double* lx = static_cast<const double*>(l.x);
+    const auto [super, pi, px, ls, lx] = ArraysOf(l);
     std::vector<double> sigma(px[l.nsuper]);  // the inverse on L's pattern, in L's layout
     // Position of `row` among the rows of the supernode holding column `col` (row >= col), from
     // `from` on; -1 when it is not on the pattern (the rows are sorted; never for a valid factor).
@@ -235,9 +241,7 @@ class MapWindow::Factor {
     const cholmod_factor& l = sparse_->factor();
     if (!l.is_super || l.itype != CHOLMOD_INT || l.xtype != CHOLMOD_REAL) return;
     const int n = static_cast<int>(l.n), nsuper = static_cast<int>(l.nsuper);
-    const int* super = static_cast<const int*>(l.super);
-    const int* pi = static_cast<const int*>(l.pi);
-    const int* ls = static_cast<const int*>(l.s);
+    const auto [super, pi, px, ls, lx] = ArraysOf(l);
     const int* perm = static_cast<const int*>(l.Perm);
     column_super_.resize(n);
     for (int s = 0; s < nsuper; ++s) std::fill(&column_super_[super[s]], &column_super_[super[s + 1]], s);

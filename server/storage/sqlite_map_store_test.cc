@@ -466,16 +466,22 @@ TEST_F(SchemaTwoDatabase, CovarianceThatIsNotPositiveDefiniteStopsTheMigrationWi
   EXPECT_EQ(SqlInt(path_, "SELECT COUNT(*) FROM cross_covariances"), 1);
 }
 
-TEST(SqliteMapStore, ExclusionWritesItsDeltaAndMarksThePassageInOneTransaction) {
-  TempDir dir;
-  const std::string path = dir.File("map.db");
-  auto store = OpenStore(path);
-  const int64_t id = EnqueueAndClaim(store.get(), "p");
+// A passage's change to an empty map: landmarks 1 and 2 and one factor on them (id 1), version 1.
+MapDelta TwoLandmarksOneFactor() {
   MapDelta applied;
   applied.version = 1;
   applied.landmarks[1] = MakeLandmark(1, 48.7, 2.17, 1);
   applied.landmarks[2] = MakeLandmark(2, 48.7001, 2.17, 1);
   applied.added_factors[1] = MakeFactor(1, {1, 2}, PairCovariance(Eigen::Matrix2d::Constant(0.01)));
+  return applied;
+}
+
+TEST(SqliteMapStore, ExclusionWritesItsDeltaAndMarksThePassageInOneTransaction) {
+  TempDir dir;
+  const std::string path = dir.File("map.db");
+  auto store = OpenStore(path);
+  const int64_t id = EnqueueAndClaim(store.get(), "p");
+  const MapDelta applied = TwoLandmarksOneFactor();
   // Only an applied passage can be excluded.
   EXPECT_EQ(store->CommitPassageExcluded(id, MapDelta()).code(), absl::StatusCode::kFailedPrecondition);
   ASSERT_TRUE(store->CommitPassageApplied(id, applied, {}).ok());
@@ -509,11 +515,7 @@ TEST(SqliteMapStore, RelinearizationReplacesTheFactorsAndLeavesThePassageApplied
   const std::string path = dir.File("map.db");
   auto store = OpenStore(path);
   const int64_t id = EnqueueAndClaim(store.get(), "p");
-  MapDelta applied;
-  applied.version = 1;
-  applied.landmarks[1] = MakeLandmark(1, 48.7, 2.17, 1);
-  applied.landmarks[2] = MakeLandmark(2, 48.7001, 2.17, 1);
-  applied.added_factors[1] = MakeFactor(1, {1, 2}, PairCovariance(Eigen::Matrix2d::Constant(0.01)));
+  const MapDelta applied = TwoLandmarksOneFactor();
   // Only an applied passage can be re-linearised.
   EXPECT_EQ(store->CommitPassageRelinearized(id, MapDelta()).code(), absl::StatusCode::kFailedPrecondition);
   PassageResult result;
@@ -525,7 +527,7 @@ TEST(SqliteMapStore, RelinearizationReplacesTheFactorsAndLeavesThePassageApplied
   relinearized.version = 2;
   relinearized.removed_factors = {1};
   relinearized.added_factors[2] = MakeFactor(2, {1, 2}, PairCovariance(Eigen::Matrix2d::Constant(0.02)));
-  relinearized.added_factors[2].passage_id = applied.added_factors[1].passage_id;
+  relinearized.added_factors[2].passage_id = applied.added_factors.at(1).passage_id;
   relinearized.landmarks[1] = MakeLandmark(1, 48.70001, 2.17, 2);
   MapDelta stale = relinearized;
   stale.base_version = 0;
@@ -545,7 +547,7 @@ TEST(SqliteMapStore, RelinearizationReplacesTheFactorsAndLeavesThePassageApplied
   EXPECT_EQ(map.FindFactor(1), nullptr);
   EXPECT_EQ(map.FindLandmark(1)->position.lat_deg, 48.70001);
   std::vector<int64_t> ids;
-  map.AppendPassageFactorIds(applied.added_factors[1].vehicle_id, applied.added_factors[1].passage_id, &ids);
+  map.AppendPassageFactorIds(applied.added_factors.at(1).vehicle_id, applied.added_factors.at(1).passage_id, &ids);
   EXPECT_EQ(ids, std::vector<int64_t>{2}) << "the new factor keeps the passage's provenance";
 }
 
