@@ -118,7 +118,8 @@ std::unique_ptr<CLI::App> NewMapdCommandLine(MapdConfig* config) {
                  "after each passage, the retained passage whose landmarks moved furthest since its factors\n"
                  "were taken is taken again at today's estimate, when that move exceeds X of their current\n"
                  "sigmas: a rule per street, not per map, so a street first mapped on day 300 gets it too\n"
-                 "(0 = off; see README)")
+                 "(0 = off; a district first driven at passage 150 gained 4% on average at 3.5x the time per\n"
+                 "passage: docs/results.md, \"A district mapped late\")")
       ->type_name("X");
   AddMapdSetting(app, "relinearizations-per-passage", &u.relinearizations_per_passage,
                  "at most N such re-linearisations after each passage")

@@ -116,6 +116,14 @@ TEST(MapdConfig, ReadsUpdateOptions) {
   auto bad_r = ParseWithEnvironment({}, {{"MAPD_RELINEARIZE_UNTIL_PASSAGES", "-3"}});
   ASSERT_FALSE(bad_r.ok());
   EXPECT_NE(bad_r.status().message().find("relinearize_until_passages"), std::string::npos) << bad_r.status();
+  EXPECT_EQ(c->server.worker.update.relinearize_sigmas, 0.0) << "local re-linearisation is off by default";
+  auto local = ParseWithEnvironment({"--relinearize-sigmas", "0.5"}, {{"MAPD_RELINEARIZATIONS_PER_PASSAGE", "2"}});
+  ASSERT_TRUE(local.ok()) << local.status();
+  EXPECT_EQ(local->server.worker.update.relinearize_sigmas, 0.5);
+  EXPECT_EQ(local->server.worker.update.relinearizations_per_passage, 2);
+  auto bad_local = ParseWithEnvironment({"--relinearize-sigmas", "-1"}, {});
+  ASSERT_FALSE(bad_local.ok());
+  EXPECT_NE(bad_local.status().message().find("relinearize_sigmas"), std::string::npos) << bad_local.status();
   auto bad = ParseWithEnvironment({"--warmup-passages", "-1"}, {});
   ASSERT_FALSE(bad.ok());
   EXPECT_NE(bad.status().message().find("warmup_passages"), std::string::npos) << bad.status();
