@@ -119,18 +119,23 @@ absl::StatusOr<SetAsideRequest> UpdateFromSubgraph(const Passage& passage, const
   std::vector<Pose2> poses(graph.initial_poses.begin() + range.first, graph.initial_poses.begin() + range.last + 1);
   const auto solve_start = std::chrono::steady_clock::now();
   InitializePoses(graph, range, passage, options, &landmarks, &poses);
-  summary->detections_dropped +=
-      InitializeLandmarks(poses, range, calib, options.edge_margin_sigmas * passage.noise.pixel_sigma_px,
-                          options.min_new_landmark_parallax_rad, options.min_new_landmark_detections, &landmarks);
-  if (landmarks.ids.empty()) return SetAsideRequest{};
-
-  LandmarkUpdate update(graph.frame, map, landmarks.ids);
   // The vehicle's estimate so far, earlier subgraphs of the passage included.
   const VehicleCalibration* recorded = map->FindVehicle(passage.vehicle_id);
   VehicleCalibration vehicle = recorded != nullptr ? *recorded : progress->vehicle_at_start;
   const double yaw_base_rad = progress->vehicle_at_start.camera_yaw_offset_rad;
   // The camera yaw offset's state, relative to the calibration the passage is solved with.
   double yaw_offset_rad = vehicle.camera_yaw_offset_rad - yaw_base_rad;
+  // New landmarks are triangulated, and detections kept only in front of the camera, with the
+  // camera as the solve starts (turned by the offset earlier subgraphs estimated): a detection in
+  // front of the declared camera but behind the turned one fails the solve's first evaluation.
+  Calibration start_calib = calib;
+  if (options.estimate_camera_yaw) start_calib.camera_yaw_rad += yaw_offset_rad;
+  summary->detections_dropped +=
+      InitializeLandmarks(poses, range, start_calib, options.edge_margin_sigmas * passage.noise.pixel_sigma_px,
+                          options.min_new_landmark_parallax_rad, options.min_new_landmark_detections, &landmarks);
+  if (landmarks.ids.empty()) return SetAsideRequest{};
+
+  LandmarkUpdate update(graph.frame, map, landmarks.ids);
   // Weight of the passage's measurements: 1 until the consistency test asks for inflation.
   ceres::LossFunctionWrapper measurement_weight(new ceres::TrivialLoss(), ceres::TAKE_OWNERSHIP);
   ceres::Problem::Options problem_options;
