@@ -139,6 +139,7 @@ absl::StatusOr<std::unique_ptr<MapServer>> MapServer::Start(const MapServerOptio
     if (!metrics.ok()) return metrics.status();
     server->metrics_ = std::move(*metrics);
     worker_options.on_applied = [m = server->metrics_.get()](const AppliedPassageTimings& t) { m->ObserveApplied(t); };
+    worker_options.on_relinearized = [m = server->metrics_.get()](bool committed) { m->ObserveRelinearized(committed); };
   }
   server->committer_ = std::make_unique<UploadCommitter>(server->store_.get(), options.max_queue);
   server->store_->ReadCommittedMap([&](const MapState& map) { server->notifier_.Publish(map.version()); });

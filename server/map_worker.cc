@@ -464,13 +464,17 @@ void MapWorker::RelinearizeStale() {
     }
     if (!key) return;
     absl::Status status = Relinearize(*key);
-    std::lock_guard<std::mutex> state(state_mu_);
-    relinearizing_.erase(*key);
-    if (!status.ok() && !stopping_) {
-      updater_->RelinearizationFailed(*key);
-      spdlog::warn("event=relinearization_failed passage={} vehicle={} error=\"{}\"", key->second, key->first,
-                   status.ToString());
+    {
+      std::lock_guard<std::mutex> state(state_mu_);
+      relinearizing_.erase(*key);
+      if (stopping_) return;
+      if (!status.ok()) {
+        updater_->RelinearizationFailed(*key);
+        spdlog::warn("event=relinearization_failed passage={} vehicle={} error=\"{}\"", key->second, key->first,
+                     status.ToString());
+      }
     }
+    if (options_.on_relinearized) options_.on_relinearized(status.ok());
   }
 }
 

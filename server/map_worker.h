@@ -64,6 +64,9 @@ struct MapWorkerOptions {
   bool yield = true;
   // Called on the worker's thread after each passage is applied (metrics); empty = nothing.
   std::function<void(const AppliedPassageTimings&)> on_applied;
+  // Called on the worker's thread after each re-linearisation (MapUpdateOptions::relinearize_sigmas)
+  // with whether it was committed (false: refused or failed, see the log); empty = nothing.
+  std::function<void(bool committed)> on_relinearized;
   absl::Status Validate() const;
 };
 

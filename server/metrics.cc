@@ -154,6 +154,13 @@ absl::StatusOr<std::unique_ptr<ServerMetrics>> ServerMetrics::Start(const std::s
                          .Help("updates computed again because another worker's commit changed what they read (--workers)")
                          .Register(r)
                          .Add({});
+  auto& relinearizations = prometheus::BuildCounter()
+                               .Name("mapd_relinearizations_total")
+                               .Help("retained passages taken again at the map's current estimate "
+                                     "(--relinearize-sigmas), by outcome")
+                               .Register(r);
+  m->relinearized_ = &relinearizations.Add({{"outcome", "committed"}});
+  m->relinearizations_refused_ = &relinearizations.Add({{"outcome", "refused"}});
   m->upload_bytes_ = &prometheus::BuildCounter()
                           .Name("mapd_upload_bytes_total")
                           .Help("serialized passage bytes of acknowledged uploads, duplicates included")
@@ -211,6 +218,10 @@ void ServerMetrics::ObserveApplied(const AppliedPassageTimings& t) {
   covariance_->Observe(t.covariance_ms / 1000.0);
   commit_->Observe(t.commit_ms / 1000.0);
   recomputed_->Increment(t.recomputed);
+}
+
+void ServerMetrics::ObserveRelinearized(bool committed) {
+  (committed ? relinearized_ : relinearizations_refused_)->Increment();
 }
 
 std::unique_ptr<grpc::experimental::ServerInterceptorFactoryInterface> ServerMetrics::InterceptorFactory() {

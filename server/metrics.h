@@ -52,6 +52,7 @@ class ServerMetrics {
   void ObserveRpc(std::string_view full_method, grpc::StatusCode code, double seconds);
   void ObserveUpload(size_t bytes, bool duplicate);
   void ObserveApplied(const AppliedPassageTimings& timings);
+  void ObserveRelinearized(bool committed);
 
   // Creates the interceptor that times every RPC; to be handed to the gRPC server builder.
   std::unique_ptr<grpc::experimental::ServerInterceptorFactoryInterface> InterceptorFactory();
@@ -69,6 +70,8 @@ class ServerMetrics {
   prometheus::Histogram* covariance_ = nullptr;
   prometheus::Histogram* commit_ = nullptr;
   prometheus::Counter* recomputed_ = nullptr;
+  prometheus::Counter* relinearized_ = nullptr;
+  prometheus::Counter* relinearizations_refused_ = nullptr;
   prometheus::Counter* upload_bytes_ = nullptr;
   prometheus::Counter* uploads_new_ = nullptr;
   prometheus::Counter* uploads_duplicate_ = nullptr;

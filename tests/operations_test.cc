@@ -116,11 +116,35 @@ TEST(Metrics, ScrapedValuesMatchTheRpcsUploadsAndAppliedPassages) {
   EXPECT_GE(m["mapd_passage_apply_seconds_sum"], m["mapd_passage_solve_seconds_sum"]);
   ASSERT_EQ(m.count("mapd_passage_recomputed_total"), 1u);
   EXPECT_EQ(m["mapd_passage_recomputed_total"], 0) << "one worker never computes an update again";
+  ASSERT_EQ(m.count("mapd_relinearizations_total{outcome=\"committed\"}"), 1u);
+  EXPECT_EQ(m["mapd_relinearizations_total{outcome=\"committed\"}"], 0) << "off by default";
   EXPECT_GT(info->landmark_count(), 0);
   EXPECT_EQ(m["mapd_map_landmarks"], info->landmark_count());
   EXPECT_EQ(m["mapd_map_factors"], info->factor_count());
   EXPECT_EQ(m["mapd_map_version"], info->map_version());
   EXPECT_EQ(m[std::string("mapd_build_info{version=\"") + CROWDMAP_VERSION + "\"}"], 1);
+}
+
+// With --relinearize-sigmas the worker's re-linearisations are counted by outcome.
+TEST(Metrics, RelinearizationsAreCounted) {
+  TempDir dir;
+  MapServerOptions options = TestServerOptions(dir.File("map.db"));
+  options.metrics_listen = "127.0.0.1:0";
+  options.worker.update.warmup_passages = 0;
+  options.worker.update.relinearize_until_passages = 0;
+  options.worker.update.relinearize_sigmas = 0.1;
+  auto server = StartTestServer(options);
+  ASSERT_NE(server, nullptr);
+  MockVehicle vehicle(server->address());
+  const Scenario scenario = ShortScenario();
+  for (int i = 0; i < 4; ++i) ASSERT_TRUE(vehicle.Upload(scenario.MakePassage(i)).ok());
+  auto idle = vehicle.WaitUntilIdle();
+  ASSERT_TRUE(idle.ok()) << idle.status();
+  ASSERT_EQ(idle->passages_applied(), 4);
+  std::map<std::string, double> m = ParseExposition(HttpGet(server->metrics_port(), "/metrics"));
+  // A young map moves by far more than a tenth of its sigmas with each passage.
+  EXPECT_GE(m["mapd_relinearizations_total{outcome=\"committed\"}"], 1);
+  ASSERT_EQ(m.count("mapd_relinearizations_total{outcome=\"refused\"}"), 1u);
 }
 
 TEST(Metrics, UnknownMethodsShareOneLabelValue) {
