@@ -105,7 +105,6 @@ absl::StatusOr<double> LoopCramerRaoMeanError(const Scenario& scenario, const st
                                               CramerRaoBound* bound_out) {
   GraphOptions options = graph;
   options.frame_origin = scenario.options().origin;
-  const auto true_pose = [&](double t) { return scenario.TruePoseAt(t); };
   const auto true_landmark = [&](LandmarkId id) -> std::optional<Eigen::Vector2d> {
     if (id < 1 || id > static_cast<LandmarkId>(scenario.landmarks().size())) return std::nullopt;
     return scenario.landmarks()[id - 1].position_m;
@@ -120,7 +119,8 @@ absl::StatusOr<double> LoopCramerRaoMeanError(const Scenario& scenario, const st
   };
   for (size_t k = 0; k < indices.size(); ++k) {
     absl::StatusOr<PassageFisherInformation> info =
-        PassageLandmarkInformation(scenario.MakePassage(indices[k]), options, true_pose, true_landmark,
+        PassageLandmarkInformation(scenario.MakePassage(indices[k]), options,
+                                   [&](double t) { return scenario.TruePoseAt(indices[k], t); }, true_landmark,
                                    camera_yaw_prior_sigma_rad > 0.0
                                        ? std::optional<double>(scenario.CameraYawErrorRad(indices[k]))
                                        : std::nullopt);

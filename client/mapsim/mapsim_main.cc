@@ -240,6 +240,8 @@ void AddExperimentFlags(CLI::App* command, ExperimentCommand* c) {
           "(uniform), from a random start (default: whole)")
       ->delimiter(',')
       ->type_name("MIN,MAX");
+  command->add_flag("--alternate-directions", o.scenario.alternate_directions,
+                    "traffic both ways: odd passages drive the route backwards (not with --piece-m)");
   command->add_option("--vehicles", o.scenario.vehicles,
                       "a fleet: passage i is driven by vehicle i % V (sim-v0, ...), each with its own camera\n"
                       "yaw error (0: every passage its own vehicle)")

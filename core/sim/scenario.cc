@@ -104,6 +104,9 @@ absl::Status ScenarioOptions::Validate() const {
     return absl::InvalidArgumentError(absl::StrCat("vehicles, vehicle_yaw_bias_sigma_rad: must be >= 0 and in [0, 0.5), got ",
                                                    vehicles, ", ", vehicle_yaw_bias_sigma_rad));
   }
+  if (alternate_directions && piece_max_m > 0.0) {
+    return absl::InvalidArgumentError("alternate_directions: not with partial drives (piece_min_m, piece_max_m)");
+  }
   if (vehicle_yaw_bias_sigma_rad > 0.0 && vehicles == 0) {
     return absl::InvalidArgumentError("vehicle_yaw_bias_sigma_rad: needs a fleet (vehicles > 0)");
   }
@@ -135,6 +138,18 @@ absl::StatusOr<Scenario> Scenario::Create(const ScenarioOptions& options) {
   }
   sc.route_length_m_ = arc.back();
   sc.arc_m_ = arc;
+  if (options.alternate_directions) {
+    // Input j took pose j to pose j + 1; backwards, the segment is driven from its end at the same
+    // speed with the opposite curvature.
+    Pose2 back = sc.true_poses_.back();
+    back.z() += M_PI;
+    for (int k = 0; k < steps; ++k) {
+      const OdometrySample& forward = sc.true_inputs_[std::max(0, steps - 2 - k)];
+      sc.backward_poses_.push_back(back);
+      sc.backward_inputs_.push_back({k * dt, forward.speed_mps, -forward.steering_rad});
+      back = BicycleStep(back, forward.speed_mps, -forward.steering_rad, dt, wheelbase);
+    }
+  }
 
   for (int k = 0; k < options.landmarks; ++k) {
     const LandmarkPlacement place = k < static_cast<int>(std::size(kFixedLandmarks)) ? kFixedLandmarks[k]
@@ -154,6 +169,12 @@ absl::StatusOr<Scenario> Scenario::Create(const ScenarioOptions& options) {
 Pose2 Scenario::TruePoseAt(double t) const {
   return PoseAlongInputs(true_poses_, true_inputs_, 1.0 / options_.odometry_rate_hz, options_.calibration.wheelbase_m,
                          t);
+}
+
+Pose2 Scenario::TruePoseAt(int index, double t) const {
+  if (!Backwards(index)) return TruePoseAt(t);
+  return PoseAlongInputs(backward_poses_, backward_inputs_, 1.0 / options_.odometry_rate_hz,
+                         options_.calibration.wheelbase_m, t);
 }
 
 double Scenario::VehicleYawBiasRad(int vehicle) const {
@@ -177,7 +198,7 @@ Passage Scenario::MakePassage(int index) const {
   p.start_time_unix_ms = 1767225600000LL + static_cast<int64_t>(index) * 200000;
   p.calibration = o.calibration;
   p.noise = o.noise_model;
-  p.odometry = SimulateOdometry(true_inputs_, o.duration_s, o.noise_model, &noise);
+  p.odometry = SimulateOdometry(Backwards(index) ? backward_inputs_ : true_inputs_, o.duration_s, o.noise_model, &noise);
 
   GnssSimulation gnss;
   gnss.rate_hz = o.gnss_rate_hz;
@@ -185,14 +206,15 @@ Passage Scenario::MakePassage(int index) const {
   gnss.ar1 = o.noise == NoiseConfig::kGnssAr1 || o.noise == NoiseConfig::kGnssAr1YawBias;
   gnss.ar1_alpha = o.gnss_ar1_alpha;
   p.noise.gnss_correlation_time_s = gnss.CorrelationTimeS();  // the passage declares its GNSS process
-  p.gnss = SimulateGnss([this](double t) { return TruePoseAt(t); }, o.duration_s, frame_, o.calibration, gnss, &noise);
+  p.gnss = SimulateGnss([this, index](double t) { return TruePoseAt(index, t); }, o.duration_s, frame_, o.calibration,
+                        gnss, &noise);
 
   Calibration true_camera = o.calibration;
   true_camera.camera_yaw_rad += CameraYawErrorRad(index);
   const int frames = static_cast<int>(std::floor(o.duration_s * o.camera_rate_hz + 1e-9)) + 1;
   for (int k = 0; k < frames; ++k) {
     const double t = k / o.camera_rate_hz;
-    const Pose2 pose = TruePoseAt(t);
+    const Pose2 pose = TruePoseAt(index, t);
     for (const TruthLandmark& lm : landmarks_) {
       double u_true = 0.0, u = 0.0;
       if (!TruePixel(pose, lm.position_m, true_camera, o.min_detection_range_m, o.max_detection_range_m, &u_true)) {

@@ -56,6 +56,10 @@ struct ScenarioOptions {
   // its own vehicle (vehicle_id "sim-<i % 1000>"), without such an error.
   int vehicles = 0;
   double vehicle_yaw_bias_sigma_rad = 0.0;
+  // Traffic both ways: odd passages drive the route backwards, from its end to its start (the same
+  // road, the other lane's direction). false: every passage drives it the same way (the thesis).
+  // Not with partial drives.
+  bool alternate_directions = false;
 
   absl::Status Validate() const;
 };
@@ -99,6 +103,10 @@ class Scenario {
 
   // True pose at time t (seconds since start), by the same bicycle steps as the route.
   Pose2 TruePoseAt(double t_s) const;
+  // The same for passage `index`: the route backwards for odd passages with
+  // options.alternate_directions.
+  Pose2 TruePoseAt(int index, double t_s) const;
+  bool Backwards(int index) const { return options_.alternate_directions && index % 2 == 1; }
   // The time span [first, second] (seconds since start) passage `index` keeps: its piece of the
   // route (options.piece_min_m), or the whole passage.
   std::pair<double, double> PieceOf(int index) const;
@@ -111,6 +119,10 @@ class Scenario {
   std::vector<TruthLandmark> landmarks_;
   std::vector<Pose2> true_poses_;
   std::vector<OdometrySample> true_inputs_;
+  // The route driven backwards (options.alternate_directions): from the last true pose turned
+  // about, the inputs in reverse order with the steering negated.
+  std::vector<Pose2> backward_poses_;
+  std::vector<OdometrySample> backward_inputs_;
   std::vector<double> arc_m_;  // distance driven at each true pose
   double route_length_m_ = 0.0;
 };

@@ -111,6 +111,39 @@ TEST(Scenario, TruePoseAtSampleTimesIsTheRoute) {
   EXPECT_NEAR(step, s.true_inputs()[2500].speed_mps * 0.02, 1e-6);
 }
 
+TEST(Scenario, AlternatingDirectionsDriveOddPassagesBackAlongTheRoute) {
+  ScenarioOptions options = Make(50).options();
+  options.alternate_directions = true;
+  const absl::StatusOr<Scenario> s = Scenario::Create(options);
+  ASSERT_TRUE(s.ok()) << s.status();
+  const double duration = options.duration_s;
+  // Even passages are the route; odd ones start at its end, facing back, and end near its start.
+  EXPECT_LT((s->TruePoseAt(2, 37.0) - s->TruePoseAt(37.0)).norm(), 1e-12);
+  const Pose2 start = s->TruePoseAt(1, 0.0), end = s->TruePoseAt(1, duration);
+  EXPECT_LT((start.head<2>() - s->TruePoseAt(duration).head<2>()).norm(), 1e-9);
+  EXPECT_NEAR(std::remainder(start.z() - s->TruePoseAt(duration).z() - M_PI, 2 * M_PI), 0.0, 1e-12);
+  EXPECT_LT((end.head<2>() - s->TruePoseAt(0.0).head<2>()).norm(), 2.0) << "the same road, driven back";
+  // Halfway the backward drive passes where the forward one is halfway.
+  double nearest = INFINITY;
+  for (double t = 0.0; t <= duration; t += 0.1) {
+    nearest = std::min(nearest, (s->TruePoseAt(1, duration / 2).head<2>() - s->TruePoseAt(t).head<2>()).norm());
+  }
+  EXPECT_LT(nearest, 1.0);
+  // Its measurements follow its own drive: a landmark seen first going forward is seen late going back.
+  const Passage forward = s->MakePassage(0), backward = s->MakePassage(1);
+  ASSERT_FALSE(forward.detections.empty());
+  ASSERT_FALSE(backward.detections.empty());
+  const LandmarkId first = forward.detections.front().landmark_id;
+  double seen_back = -1.0;
+  for (const auto& d : backward.detections) {
+    if (d.landmark_id == first) seen_back = d.t_s;
+  }
+  EXPECT_GT(seen_back, duration / 2) << "landmark " << first;
+  options.piece_min_m = 300.0;
+  options.piece_max_m = 600.0;
+  EXPECT_EQ(options.Validate().code(), absl::StatusCode::kInvalidArgument) << "not with partial drives";
+}
+
 TEST(Scenario, MakePassageIsDeterministicAndIndicesDiffer) {
   const Scenario s = Make(25);
   const Passage a = s.MakePassage(5), b = s.MakePassage(5), c = s.MakePassage(6);
