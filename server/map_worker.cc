@@ -455,6 +455,7 @@ absl::StatusOr<PassageUpdateSummary> MapWorker::Exclude(const StoredPassage& rec
 }
 
 void MapWorker::RelinearizeStale() {
+  if (options_.update.relinearize_sigmas <= 0.0) return;  // off: no lock taken
   for (int round = 0; round < options_.update.relinearizations_per_passage && !stopping_; ++round) {
     std::optional<MapUpdater::PassageKey> key;
     {
