@@ -22,6 +22,8 @@ class SupernodalLLT : public Eigen::CholmodSupernodalLLT<Eigen::SparseMatrix<dou
   const cholmod_factor& factor() const { return *m_cholmodFactor; }
 };
 
+namespace {
+
 // The arrays of CHOLMOD's supernodal factor `l` (int indices, real values): each supernode's first
 // column, its row indices' and its values' starts, the row indices, the values.
 struct SupernodalArrays {
@@ -35,6 +37,8 @@ SupernodalArrays ArraysOf(const cholmod_factor& l) {
   return {static_cast<const int*>(l.super), static_cast<const int*>(l.pi), static_cast<const int*>(l.px),
           static_cast<const int*>(l.s), static_cast<const double*>(l.x)};
 }
+
+}  // namespace
 
 class MapWindow::Factor {
  public:
