@@ -45,7 +45,6 @@ struct PassageProgress {
   bool vehicle_counted = false;  // the vehicle's passage count incremented
 };
 
-
 // What a solve shows must be left out before anything is committed: the subgraph is solved again
 // without it.
 struct SetAsideRequest {
