@@ -519,12 +519,27 @@ absl::StatusOr<PassageUpdate> ComputePassageRelinearization(const Passage& passa
   if (absl::Status s = options.Validate(); !s.ok()) return s;
   const auto start = std::chrono::steady_clock::now();
   MapOverlay overlay(map);
-  PassageUpdateSummary exclusion;
-  if (absl::Status s = ExcludePassage(passage.vehicle_id, passage.passage_id, options, &overlay, &exclusion); !s.ok()) {
-    return s;
+  PassageUpdateSummary exclusion, summary;
+  absl::StatusOr<std::vector<LandmarkId>> left =
+      ExcludePassage(passage.vehicle_id, passage.passage_id, options, kRelinearizationMaxLeftSigmaM, &overlay, &exclusion);
+  if (!left.ok()) return left.status();
+  // The landmarks the passage gave most of what the map knows of them (what is left fixes them
+  // less than an exclusion requires): taken again, the passage must fix them as required. One it
+  // sets aside this time would be left free along a ray, and later passages could drag it
+  // hundreds of metres (test RelinearizingAYoungCityMapMovesNoLandmarkFarOff).
+  std::vector<LandmarkId> weak;
+  for (LandmarkId id : *left) {
+    if (ConditionalSigmaM(overlay, id) > options.max_new_landmark_ray_sigma_m) weak.push_back(id);
   }
-  PassageUpdateSummary summary;
   if (absl::Status s = ApplyPassage(passage, options, &overlay, &summary); !s.ok()) return s;
+  for (LandmarkId id : weak) {
+    if (const double sigma_m = ConditionalSigmaM(overlay, id); !(sigma_m <= options.max_new_landmark_ray_sigma_m)) {
+      return absl::FailedPreconditionError(absl::StrFormat(
+          "landmark %d would be left undetermined by passage %s/%s taken again (sigma %.3g m along its weakest "
+          "direction, over %.3g m allowed)",
+          id, passage.vehicle_id, passage.passage_id, sigma_m, options.max_new_landmark_ray_sigma_m));
+    }
+  }
   return TakeUpdate(&overlay, summary, start);
 }
 

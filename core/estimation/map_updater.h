@@ -69,11 +69,21 @@ GraphOptions UpdateGraphOptions(const MapUpdateOptions& options);
 absl::StatusOr<PassageUpdate> ComputePassageUpdate(const Passage& passage, const MapUpdateOptions& options,
                                                    const MapReaderInterface& map);
 
+// How free (metres, along its weakest direction) the map without a passage may leave a landmark
+// while the passage is taken again (ComputePassageRelinearization). A young landmark the passage
+// gave most of what the map knows of it is where re-linearising matters most, and the passage
+// gives its information back in the same change; beyond this the window's covariance would not be
+// numerically sound (a ray or two from other passages), and the passage stays as it is.
+inline constexpr double kRelinearizationMaxLeftSigmaM = 1000.0;
+
 // Takes the passage's contribution to `map` again at the map's current estimate: its factors are
-// removed (ComputePassageExclusion) and it is applied anew (ComputePassageUpdate) against the map
+// removed (as ComputePassageExclusion) and it is applied anew (ComputePassageUpdate) against the map
 // without it, in one change. Every factor is a Gaussian taken at the estimate of its day; when the
 // map has since moved by a sizeable part of its uncertainty (a young street), taking it again at
-// today's removes what the old linearisation point left in the map. Errors as for the two steps.
+// today's removes what the old linearisation point left in the map. Where the map without the
+// passage fixes a landmark less than an exclusion requires, the change is refused
+// (FailedPrecondition) unless the passage taken again fixes it as required, and always when what
+// is left is freer than kRelinearizationMaxLeftSigmaM. Other errors as for ComputePassageUpdate.
 absl::StatusOr<PassageUpdate> ComputePassageRelinearization(const Passage& passage, const MapUpdateOptions& options,
                                                             const MapReaderInterface& map);
 

@@ -12,6 +12,7 @@
 
 #include "absl/strings/str_cat.h"
 
+#include "core/estimation/passage_exclusion.h"
 #include "core/map/map_window.h"
 #include "core/sim/city_scenario.h"
 #include "core/sim/faults.h"
@@ -803,6 +804,94 @@ TEST(ComputePassageRelinearization, TakenAtTheEstimateItWasTakenAtItChangesTheMa
   relinearized.AppendPassageFactorIds(last.vehicle_id, last.passage_id, &factors);
   EXPECT_FALSE(factors.empty());
   for (int64_t id : factors) EXPECT_GT(id, map.last_factor_id()) << "the passage's factors are new ones";
+}
+
+// On a young street grid a landmark may be known mostly from one passage: without it, what is left
+// fixes it worse than a new landmark must be, and the passage cannot be excluded. Its
+// re-linearisation gives that information back in the same change, so it goes ahead there: the
+// young streets are where the map has moved most since their factors were taken.
+TEST(ComputePassageRelinearization, GoesAheadWhereExcludingThePassageWouldLeaveALandmarkUndetermined) {
+  CityScenarioOptions city_options;
+  city_options.route_length_m = 600.0;
+  const CityScenario city = *CityScenario::Create(city_options);
+  const MapUpdateOptions options = SequentialUpdatesOnly();
+  MapState map;
+  std::vector<Passage> applied;
+  for (int i = 0; i < 8; ++i) {
+    applied.push_back(city.MakePassage(i));
+    absl::StatusOr<PassageUpdate> update = ComputePassageUpdate(applied.back(), options, map);
+    ASSERT_TRUE(update.ok()) << update.status();
+    map.Apply(update->delta);
+  }
+  int refused = 0, relinearized = 0;
+  double largest_move_m = 0.0;
+  for (const Passage& passage : applied) {
+    absl::StatusOr<PassageUpdate> exclusion = ComputePassageExclusion(passage.vehicle_id, passage.passage_id, options, map);
+    if (exclusion.ok()) continue;
+    ASSERT_TRUE(absl::IsFailedPrecondition(exclusion.status())) << exclusion.status();
+    ASSERT_NE(exclusion.status().message().find("left undetermined"), absl::string_view::npos) << exclusion.status();
+    ++refused;
+    absl::StatusOr<PassageUpdate> again = ComputePassageRelinearization(passage, options, map);
+    if (!again.ok()) {
+      // Only where what is left is numerically singular (a landmark free along a ray).
+      EXPECT_NE(again.status().message().find("left undetermined"), absl::string_view::npos) << again.status();
+      continue;
+    }
+    ++relinearized;
+    MapState after = map;
+    after.Apply(again->delta);
+    after.ForEachLandmark([&](const Landmark& l) {
+      if (const Landmark* before = map.FindLandmark(l.id)) {
+        largest_move_m = std::max(largest_move_m, EastNorthOffset(before->position, l.position).norm());
+      }
+      EXPECT_TRUE(l.Offset().allFinite() && l.cov_en_m2.allFinite()) << "landmark " << l.id;
+      EXPECT_GT(Eigen::SelfAdjointEigenSolver<Eigen::Matrix2d>(l.cov_en_m2).eigenvalues()(0), 0.0) << "landmark " << l.id;
+    });
+  }
+  std::printf("%d of 8 passages cannot be excluded; %d of them re-linearised, moving a landmark by %.3f m at most\n",
+              refused, relinearized, largest_move_m);
+  EXPECT_GT(relinearized, 0) << "a re-linearisation goes ahead where the exclusion is refused";
+}
+
+// A re-linearisation may go ahead where the map without the passage fixes a landmark less than an
+// exclusion requires, but only if the passage taken again fixes it as required: on this young grid
+// (seed 5, the eastern district not yet driven) one set such a landmark aside, left it free along
+// a ray (9.5 m sigma), and later passages dragged it 703 m off within 10 passages (measured with
+// the check: worst 11.7 m; 13.6 m when such passages were not re-linearised at all).
+TEST(MapUpdater, RelinearizingAYoungCityMapMovesNoLandmarkFarOff) {
+  CityScenarioOptions city_options;
+  city_options.route_length_m = 1000.0;
+  city_options.seed = city_options.layout_seed = 5;
+  city_options.late_blocks_x = 2;
+  city_options.late_from_passage = 150;
+  const CityScenario city = *CityScenario::Create(city_options);
+  MapUpdateOptions options = SequentialUpdatesOnly();
+  options.relinearize_sigmas = 0.5;
+  MapUpdater updater(options);
+  MapState map;
+  std::vector<Passage> applied;
+  const auto passage_of = [&](const MapUpdater::PassageKey& key) -> absl::StatusOr<Passage> {
+    for (const Passage& p : applied) {
+      if (p.vehicle_id == key.first && p.passage_id == key.second) return p;
+    }
+    return absl::NotFoundError("not applied");
+  };
+  int relinearized = 0;
+  for (int i = 0; i < 10; ++i) {
+    applied.push_back(city.MakePassage(i));
+    absl::StatusOr<PassageUpdate> update = updater.Compute(applied.back(), map);
+    ASSERT_TRUE(update.ok()) << update.status();
+    map.Apply(update->delta);
+    updater.Applied(applied.back(), update->delta);
+    relinearized += RelinearizeStaleInMemory(passage_of, &updater, &map);
+  }
+  double worst_m = 0.0;
+  map.ForEachLandmark([&](const Landmark& l) {
+    worst_m = std::max(worst_m, (city.frame().ToLocal(l.position) - city.landmarks()[l.id - 1].position_m).norm());
+  });
+  std::printf("10 city passages, %d re-linearisations: worst landmark %.1f m off\n", relinearized, worst_m);
+  EXPECT_GT(relinearized, 2);
+  EXPECT_LT(worst_m, 30.0);
 }
 
 TEST(MapUpdater, RelinearizesTheStalestPassageOnceTheMapHasMovedAwayFromIt) {

@@ -2,6 +2,7 @@
 #define CROWDMAP_CORE_ESTIMATION_PASSAGE_EXCLUSION_H_
 
 #include <string>
+#include <vector>
 
 #include "absl/status/statusor.h"
 #include "core/estimation/map_updater.h"
@@ -19,9 +20,18 @@ namespace crowdmap {
 absl::StatusOr<PassageUpdate> ComputePassageExclusion(const std::string& vehicle_id, const std::string& passage_id,
                                                       const MapUpdateOptions& options, const MapReaderInterface& map);
 
-// The same, written into `map` (counts added to `summary`).
-absl::Status ExcludePassage(const std::string& vehicle_id, const std::string& passage_id,
-                            const MapUpdateOptions& options, MapOverlay* map, PassageUpdateSummary* summary);
+// The same, written into `map` (counts added to `summary`). Returns the landmarks the passage's
+// factors were on that are left in the map (re-solved). Refused (FailedPrecondition) when what is
+// left gives one of them a standard deviation over `max_left_sigma_m` along its weakest direction
+// (ConditionalSigmaM): ComputePassageExclusion allows what a new landmark is allowed
+// (options.max_new_landmark_ray_sigma_m). On an error `map` is half-changed and must be dropped.
+absl::StatusOr<std::vector<LandmarkId>> ExcludePassage(const std::string& vehicle_id, const std::string& passage_id,
+                                                       const MapUpdateOptions& options, double max_left_sigma_m,
+                                                       MapOverlay* map, PassageUpdateSummary* summary);
+
+// The standard deviation (m) of a landmark along its weakest direction from `map`'s information on
+// it with every other landmark known (its conditional information); infinite without any.
+double ConditionalSigmaM(const MapReaderInterface& map, LandmarkId id);
 
 }  // namespace crowdmap
 
