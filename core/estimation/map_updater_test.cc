@@ -853,6 +853,36 @@ TEST(ComputePassageRelinearization, GoesAheadWhereExcludingThePassageWouldLeaveA
   EXPECT_GT(relinearized, 0) << "a re-linearisation goes ahead where the exclusion is refused";
 }
 
+// A map built through a MapUpdater, re-linearising in memory as `mapsim` does.
+struct RelinearizingMap {
+  explicit RelinearizingMap(const MapUpdateOptions& options) : updater(options) {}
+  // Applies `passage` to the map; false (with a test failure) when it could not be.
+  bool Take(Passage passage) {
+    applied.push_back(std::move(passage));
+    absl::StatusOr<PassageUpdate> update = updater.Compute(applied.back(), map);
+    EXPECT_TRUE(update.ok()) << update.status();
+    if (!update.ok()) return false;
+    map.Apply(update->delta);
+    updater.Applied(applied.back(), update->delta);
+    return true;
+  }
+  // The updater's re-linearisations of the stale passages; how many were applied.
+  int Relinearize() {
+    return RelinearizeStaleInMemory(
+        [this](const MapUpdater::PassageKey& key) -> absl::StatusOr<Passage> {
+          for (const Passage& p : applied) {
+            if (p.vehicle_id == key.first && p.passage_id == key.second) return p;
+          }
+          return absl::NotFoundError("not applied");
+        },
+        &updater, &map);
+  }
+
+  MapUpdater updater;
+  MapState map;
+  std::vector<Passage> applied;
+};
+
 // A re-linearisation may go ahead where the map without the passage fixes a landmark less than an
 // exclusion requires, but only if the passage taken again fixes it as required: on this young grid
 // (seed 5, the eastern district not yet driven) one set such a landmark aside, left it free along
@@ -867,26 +897,14 @@ TEST(MapUpdater, RelinearizingAYoungCityMapMovesNoLandmarkFarOff) {
   const CityScenario city = *CityScenario::Create(city_options);
   MapUpdateOptions options = SequentialUpdatesOnly();
   options.relinearize_sigmas = 0.5;
-  MapUpdater updater(options);
-  MapState map;
-  std::vector<Passage> applied;
-  const auto passage_of = [&](const MapUpdater::PassageKey& key) -> absl::StatusOr<Passage> {
-    for (const Passage& p : applied) {
-      if (p.vehicle_id == key.first && p.passage_id == key.second) return p;
-    }
-    return absl::NotFoundError("not applied");
-  };
+  RelinearizingMap run(options);
   int relinearized = 0;
   for (int i = 0; i < 10; ++i) {
-    applied.push_back(city.MakePassage(i));
-    absl::StatusOr<PassageUpdate> update = updater.Compute(applied.back(), map);
-    ASSERT_TRUE(update.ok()) << update.status();
-    map.Apply(update->delta);
-    updater.Applied(applied.back(), update->delta);
-    relinearized += RelinearizeStaleInMemory(passage_of, &updater, &map);
+    ASSERT_TRUE(run.Take(city.MakePassage(i)));
+    relinearized += run.Relinearize();
   }
   double worst_m = 0.0;
-  map.ForEachLandmark([&](const Landmark& l) {
+  run.map.ForEachLandmark([&](const Landmark& l) {
     worst_m = std::max(worst_m, (city.frame().ToLocal(l.position) - city.landmarks()[l.id - 1].position_m).norm());
   });
   std::printf("10 city passages, %d re-linearisations: worst landmark %.1f m off\n", relinearized, worst_m);
@@ -898,31 +916,19 @@ TEST(MapUpdater, RelinearizesTheStalestPassageOnceTheMapHasMovedAwayFromIt) {
   const Scenario scenario = MakeScenario(10);
   MapUpdateOptions options = SequentialUpdatesOnly();
   options.relinearize_sigmas = 0.5;
-  MapUpdater updater(options);
-  MapState map;
-  std::vector<Passage> applied;
+  RelinearizingMap run(options);
   int relinearized = 0;
-  const auto passage_of = [&](const MapUpdater::PassageKey& key) -> absl::StatusOr<Passage> {
-    for (const Passage& p : applied) {
-      if (p.vehicle_id == key.first && p.passage_id == key.second) return p;
-    }
-    return absl::NotFoundError("not applied");
-  };
   for (int i = 0; i < 4; ++i) {
-    applied.push_back(scenario.MakePassage(i));
-    absl::StatusOr<PassageUpdate> update = updater.Compute(applied.back(), map);
-    ASSERT_TRUE(update.ok()) << update.status();
-    map.Apply(update->delta);
-    updater.Applied(applied.back(), update->delta);
+    ASSERT_TRUE(run.Take(scenario.MakePassage(i)));
     if (i == 0) {
-      EXPECT_FALSE(updater.StalestPassage(map).has_value()) << "nothing moved since the first passage";
+      EXPECT_FALSE(run.updater.StalestPassage(run.map).has_value()) << "nothing moved since the first passage";
     }
-    relinearized += RelinearizeStaleInMemory(passage_of, &updater, &map);
+    relinearized += run.Relinearize();
   }
   // The first passages' landmarks move by about a sigma with each of the next ones.
   EXPECT_GT(relinearized, 0);
   options.relinearize_sigmas = 0.0;
-  EXPECT_FALSE(MapUpdater(options).StalestPassage(map).has_value());
+  EXPECT_FALSE(MapUpdater(options).StalestPassage(run.map).has_value());
 }
 
 }  // namespace
