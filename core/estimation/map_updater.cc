@@ -520,8 +520,8 @@ absl::StatusOr<PassageUpdate> ComputePassageRelinearization(const Passage& passa
   const auto start = std::chrono::steady_clock::now();
   MapOverlay overlay(map);
   PassageUpdateSummary exclusion, summary;
-  absl::StatusOr<std::vector<LandmarkId>> left =
-      ExcludePassage(passage.vehicle_id, passage.passage_id, options, kRelinearizationMaxLeftSigmaM, &overlay, &exclusion);
+  absl::StatusOr<std::vector<LandmarkId>> left = ExcludePassage(
+      passage.vehicle_id, passage.passage_id, options, kRelinearizationMaxLeftSigmaM, &overlay, &exclusion);
   if (!left.ok()) return left.status();
   // The landmarks the passage gave most of what the map knows of them (what is left fixes them
   // less than an exclusion requires): taken again, the passage must fix them as required. One it

@@ -826,7 +826,8 @@ TEST(ComputePassageRelinearization, GoesAheadWhereExcludingThePassageWouldLeaveA
   int refused = 0, relinearized = 0;
   double largest_move_m = 0.0;
   for (const Passage& passage : applied) {
-    absl::StatusOr<PassageUpdate> exclusion = ComputePassageExclusion(passage.vehicle_id, passage.passage_id, options, map);
+    absl::StatusOr<PassageUpdate> exclusion =
+        ComputePassageExclusion(passage.vehicle_id, passage.passage_id, options, map);
     if (exclusion.ok()) continue;
     ASSERT_TRUE(absl::IsFailedPrecondition(exclusion.status())) << exclusion.status();
     ASSERT_NE(exclusion.status().message().find("left undetermined"), absl::string_view::npos) << exclusion.status();
@@ -845,7 +846,8 @@ TEST(ComputePassageRelinearization, GoesAheadWhereExcludingThePassageWouldLeaveA
         largest_move_m = std::max(largest_move_m, EastNorthOffset(before->position, l.position).norm());
       }
       EXPECT_TRUE(l.Offset().allFinite() && l.cov_en_m2.allFinite()) << "landmark " << l.id;
-      EXPECT_GT(Eigen::SelfAdjointEigenSolver<Eigen::Matrix2d>(l.cov_en_m2).eigenvalues()(0), 0.0) << "landmark " << l.id;
+      EXPECT_GT(Eigen::SelfAdjointEigenSolver<Eigen::Matrix2d>(l.cov_en_m2).eigenvalues()(0), 0.0)
+          << "landmark " << l.id;
     });
   }
   std::printf("%d of 8 passages cannot be excluded; %d of them re-linearised, moving a landmark by %.3f m at most\n",
