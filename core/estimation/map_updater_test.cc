@@ -849,6 +849,14 @@ TEST(ComputePassageRelinearization, GoesAheadWhereExcludingThePassageWouldLeaveA
       EXPECT_GT(Eigen::SelfAdjointEigenSolver<Eigen::Matrix2d>(l.cov_en_m2).eigenvalues()(0), 0.0)
           << "landmark " << l.id;
     });
+    // The whole map in one window: its factorisation fails unless the information is positive
+    // definite, and its solve is the stored estimate.
+    absl::StatusOr<MapWindow> window = MapWindow::Build(after, after.LandmarkIds(), MapWindowOptions());
+    ASSERT_TRUE(window.ok()) << passage.passage_id << ": " << window.status();
+    for (size_t i = 0; i < window->landmarks().size(); ++i) {
+      const Landmark& l = *after.FindLandmark(window->landmarks()[i]);
+      EXPECT_LT((window->offsets().segment<2>(2 * i) - l.Offset()).norm(), 1e-5) << l.id;
+    }
   }
   std::printf("%d of 8 passages cannot be excluded; %d of them re-linearised, moving a landmark by %.3f m at most\n",
               refused, relinearized, largest_move_m);
@@ -912,6 +920,8 @@ TEST(MapUpdater, RelinearizingAYoungCityMapMovesNoLandmarkFarOff) {
   std::printf("10 city passages, %d re-linearisations: worst landmark %.1f m off\n", relinearized, worst_m);
   EXPECT_GT(relinearized, 2);
   EXPECT_LT(worst_m, 30.0);
+  EXPECT_TRUE(MapWindow::Build(run.map, run.map.LandmarkIds(), MapWindowOptions()).ok())
+      << "the map's information is positive definite";
 }
 
 TEST(MapUpdater, RelinearizesTheStalestPassageOnceTheMapHasMovedAwayFromIt) {
