@@ -21,10 +21,11 @@ namespace crowdmap {
 // reads with cross-covariances recover them from an in-memory copy of the map's factors.
 //
 // The copy is loaded from the inner store when the cache is created and is replaced after each
-// successful map commit (applied, excluded, re-linearised passage) by applying the same delta, so a read sees either the map before
-// or after a commit, never a mixture, and never a change that is not yet durable. Readers take a
-// reference to the current copy and never wait for the writer or for SQLite. A commit copies only
-// the tiles it touches (plus the table of tile pointers).
+// successful map commit (an applied, excluded or re-linearised passage) by applying the same
+// delta, so a read sees either the map before or after a commit, never a mixture, and never a
+// change that is not yet durable. Readers take a reference to the current copy and never wait for
+// the writer or for SQLite. A commit copies only the tiles it touches (plus the table of tile
+// pointers).
 class CachedMapStore : public MapStoreInterface {
  public:
   // Maps of at most this many landmarks keep their whole covariance (8 (2n)^2 bytes: 32 MiB at
