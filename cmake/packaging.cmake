@@ -20,7 +20,7 @@ install(DIRECTORY ${PROJECT_SOURCE_DIR}/proto/mapservice DESTINATION ${CMAKE_INS
 # The client library and what it links (static libraries, exported as crowdmap::<name without
 # the crowdmap_ prefix>). Their include directories point into the source and build trees; for
 # the export they are wrapped so that an installed consumer sees include/crowdmap instead.
-set(crowdmap_exported crowdmap_client crowdmap_wire crowdmap_proto crowdmap_map crowdmap_model crowdmap_geo
+set(crowdmap_exported crowdmap_client crowdmap_wire crowdmap_proto crowdmap_map crowdmap_sparse_threads crowdmap_model crowdmap_geo
   crowdmap_localization crowdmap_estimation)
 foreach(target IN LISTS crowdmap_exported)
   get_target_property(dirs ${target} INTERFACE_INCLUDE_DIRECTORIES)

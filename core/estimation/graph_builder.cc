@@ -9,6 +9,7 @@
 
 #include "absl/strings/str_cat.h"
 #include "core/estimation/factors.h"
+#include "core/map/sparse_threads.h"
 
 namespace crowdmap {
 namespace {
@@ -126,6 +127,7 @@ absl::Status SolvePoseGraph(const Calibration& calib, int max_iterations, Passag
   options.max_num_iterations = max_iterations;
   options.num_threads = 1;
   ceres::Solver::Summary summary;
+  FactorizeOnThisThreadOnly();
   ceres::Solve(options, &problem, &summary);
   if (!summary.IsSolutionUsable()) {
     return absl::InternalError(absl::StrCat("pose initialisation failed: ", summary.message));

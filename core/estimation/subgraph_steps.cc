@@ -10,6 +10,7 @@
 
 #include "core/estimation/factors.h"
 #include "core/estimation/triangulation.h"
+#include "core/map/sparse_threads.h"
 
 namespace crowdmap {
 namespace {
@@ -107,6 +108,7 @@ void Solve(const MapUpdateOptions& options, ceres::Solver::Options solver_option
            ceres::Solver::Summary* summary) {
   YieldEachIteration callback(options.yield_point);
   if (options.yield_point) solver_options.callbacks.push_back(&callback);
+  FactorizeOnThisThreadOnly();
   ceres::Solve(solver_options, problem, summary);
   Yield(options);
 }

@@ -16,6 +16,7 @@
 #include "core/estimation/graph_builder.h"
 #include "core/localization/dense_prior_solver.h"
 #include "core/localization/pose_covariance.h"
+#include "core/map/sparse_threads.h"
 #include "core/model/camera_model.h"
 
 namespace crowdmap {
@@ -103,6 +104,7 @@ void InitializePoses(const PassageGraph& graph, const Passage& passage, const Lo
   solver.num_threads = 1;
   solver.logging_type = ceres::SILENT;
   ceres::Solver::Summary summary;
+  FactorizeOnThisThreadOnly();
   ceres::Solve(solver, &problem, &summary);
 }
 
@@ -175,6 +177,7 @@ absl::Status Solve(const PassageLocalizerOptions& options, double function_toler
   solver.parameter_tolerance = 1e-12;
   solver.num_threads = 1;
   solver.logging_type = ceres::SILENT;
+  FactorizeOnThisThreadOnly();
   ceres::Solve(solver, problem, summary);
   if (!summary->IsSolutionUsable()) {
     return absl::InternalError(absl::StrCat("localization solve failed: ", summary->message));

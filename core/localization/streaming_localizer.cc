@@ -13,6 +13,7 @@
 #include "core/estimation/factors.h"
 #include "core/estimation/graph_builder.h"
 #include "core/localization/pose_covariance.h"
+#include "core/map/sparse_threads.h"
 
 namespace crowdmap {
 
@@ -342,6 +343,7 @@ absl::Status StreamingLocalizer::Start() {
   solver.num_threads = 1;
   solver.logging_type = ceres::SILENT;
   ceres::Solver::Summary summary;
+  FactorizeOnThisThreadOnly();
   ceres::Solve(solver, &problem, &summary);
   if (!summary.IsSolutionUsable()) return absl::InternalError(absl::StrCat("start solve failed: ", summary.message));
   std::vector<Eigen::Vector2d> no_landmarks;

@@ -2,6 +2,8 @@
 
 extern "C" {
 void dpotrf_(const char* uplo, const int* n, double* a, const int* lda, int* info);
+void dpstrf_(const char* uplo, const int* n, double* a, const int* lda, int* piv, int* rank, const double* tol,
+             double* work, int* info);
 void dpotri_(const char* uplo, const int* n, double* a, const int* lda, int* info);
 void dtrtri_(const char* uplo, const char* diag, const int* n, double* a, const int* lda, int* info);
 void dtrsm_(const char* side, const char* uplo, const char* transa, const char* diag, const int* m, const int* n,
@@ -29,6 +31,18 @@ bool CholeskyInPlace(MatrixRef a) {
   return info == 0;
 }
 
+int PivotedCholeskyInPlace(MatrixRef a, double tol, std::vector<int>* pivot) {
+  const int n = static_cast<int>(a.rows()), lda = Leading(a.outerStride());
+  pivot->resize(n);
+  if (n == 0) return 0;
+  std::vector<double> work(2 * static_cast<size_t>(n));
+  int rank = 0, info = 0;
+  dpstrf_("L", &n, a.data(), &lda, pivot->data(), &rank, &tol, work.data(), &info);
+  if (info < 0) return 0;  // an illegal argument: not reached with a square matrix
+  for (int& p : *pivot) --p;  // LAPACK counts from 1
+  return rank;
+}
+
 void InverseFromCholeskyInPlace(MatrixRef l) {
   const int n = static_cast<int>(l.rows()), lda = Leading(l.outerStride());
   if (n == 0) return;
@@ -52,12 +66,12 @@ void SolveLowerInPlace(ConstMatrixRef l, MatrixRef x) {
   dtrsm_("L", "L", "N", "N", &m, &n, &one, l.data(), &lda, x.data(), &ldb);
 }
 
-void AddGramLower(ConstMatrixRef x, MatrixRef c) {
+void AddGramLower(ConstMatrixRef x, MatrixRef c, double scale) {
   const int n = static_cast<int>(x.cols()), k = static_cast<int>(x.rows());
   if (n == 0 || k == 0) return;
   const int lda = Leading(x.outerStride()), ldc = Leading(c.outerStride());
   const double one = 1.0;
-  dsyrk_("L", "T", &n, &k, &one, x.data(), &lda, &one, c.data(), &ldc);
+  dsyrk_("L", "T", &n, &k, &scale, x.data(), &lda, &one, c.data(), &ldc);
 }
 
 void Multiply(ConstMatrixRef a, ConstMatrixRef b, Eigen::MatrixXd* c) {

@@ -8,6 +8,8 @@
 // the same Eigen function would then run different code in the service and in Ceres.
 // Column-major matrices, lower triangles; blocks of a larger matrix are fine (outer stride).
 
+#include <vector>
+
 #include <Eigen/Core>
 
 namespace crowdmap {
@@ -19,6 +21,12 @@ using ConstMatrixRef = Eigen::Ref<const Eigen::MatrixXd, 0, Eigen::OuterStride<>
 // triangle is not read or written). False when A is not positive definite.
 bool CholeskyInPlace(MatrixRef a);
 
+// Cholesky with diagonal pivoting of a positive semi-definite A given by its lower triangle:
+// P^T A P = L L^T, the pivots taken largest first until the largest left is at most `tol`. Returns
+// the rank r (the pivots taken); L's first r columns replace A's lower triangle (what lies beyond
+// them is undefined), and (*pivot)[i] is the row of A taken i-th (0-based).
+int PivotedCholeskyInPlace(MatrixRef a, double tol, std::vector<int>* pivot);
+
 // A^-1 from CholeskyInPlace's L, in its place: the whole symmetric matrix.
 void InverseFromCholeskyInPlace(MatrixRef l);
 
@@ -28,8 +36,8 @@ void LowerInverseInPlace(MatrixRef l);
 // X := L^-1 X for a lower-triangular L (its strict upper triangle is not read).
 void SolveLowerInPlace(ConstMatrixRef l, MatrixRef x);
 
-// The lower triangle of C := C + X^T X (the upper is not written).
-void AddGramLower(ConstMatrixRef x, MatrixRef c);
+// The lower triangle of C := C + scale X^T X (the upper is not written).
+void AddGramLower(ConstMatrixRef x, MatrixRef c, double scale = 1.0);
 
 // C := A B (C sized to fit).
 void Multiply(ConstMatrixRef a, ConstMatrixRef b, Eigen::MatrixXd* c);

@@ -1,5 +1,8 @@
 #include "core/map/dense_kernels.h"
 
+#include <algorithm>
+#include <vector>
+
 #include <Eigen/Cholesky>
 #include <Eigen/LU>
 #include <gtest/gtest.h>
@@ -65,6 +68,40 @@ TEST(DenseKernels, CholeskyRefusesAMatrixThatIsNotPositiveDefinite) {
   EXPECT_FALSE(CholeskyInPlace(a));
 }
 
+// A positive semi-definite matrix of rank 7 (14 x 14): the pivoted Cholesky stops after 7 pivots,
+// and its first 7 columns reproduce the matrix in the pivots' order.
+TEST(DenseKernels, PivotedCholeskyFindsTheRankOfASemiDefiniteMatrix) {
+  const int n = 14, rank = 7;
+  std::srand(3);
+  const Eigen::MatrixXd r = Eigen::MatrixXd::Random(n, rank);
+  const Eigen::MatrixXd a = r * r.transpose();
+  Eigen::MatrixXd l = a;
+  std::vector<int> pivot;
+  ASSERT_EQ(PivotedCholeskyInPlace(l, 1e-12 * a.diagonal().maxCoeff(), &pivot), rank);
+  ASSERT_EQ(pivot.size(), static_cast<size_t>(n));
+  std::vector<int> sorted = pivot;
+  std::sort(sorted.begin(), sorted.end());
+  for (int i = 0; i < n; ++i) EXPECT_EQ(sorted[i], i);  // a permutation, from 0
+  const Eigen::MatrixXd factor = l.leftCols(rank).triangularView<Eigen::Lower>();
+  const Eigen::MatrixXd permuted = a(pivot, pivot);
+  EXPECT_LT(RelativeError(factor * factor.transpose(), permuted), 1e-12);
+  // Pivots come largest first.
+  for (int i = 1; i < rank; ++i) EXPECT_GE(l(i - 1, i - 1), l(i, i) * (1.0 - 1e-12));
+
+  // Positive definite: every pivot is taken.
+  Eigen::MatrixXd full = SpdMatrix(9, 4);
+  EXPECT_EQ(PivotedCholeskyInPlace(full, 0.0, &pivot), 9);
+}
+
+TEST(DenseKernels, GramProductCanBeSubtracted) {
+  const Eigen::MatrixXd x = Eigen::MatrixXd::Random(6, 4);
+  Eigen::MatrixXd c = SpdMatrix(4, 5);
+  const Eigen::MatrixXd want = c - x.transpose() * x;
+  AddGramLower(x, c, -1.0);
+  const Eigen::MatrixXd got = c.selfadjointView<Eigen::Lower>();
+  EXPECT_LT(RelativeError(got, want), 1e-13);
+}
+
 TEST(DenseKernels, EmptyMatricesAreNoOps) {
   Eigen::MatrixXd empty(0, 0), rows(4, 0), product;
   EXPECT_TRUE(CholeskyInPlace(empty));
@@ -72,6 +109,8 @@ TEST(DenseKernels, EmptyMatricesAreNoOps) {
   LowerInverseInPlace(empty);
   SolveLowerInPlace(Eigen::MatrixXd::Identity(4, 4), rows);
   AddGramLower(rows, empty);
+  std::vector<int> pivot;
+  EXPECT_EQ(PivotedCholeskyInPlace(empty, 0.0, &pivot), 0);
   Multiply(Eigen::MatrixXd(3, 0), Eigen::MatrixXd(0, 2), &product);
   EXPECT_EQ(product, Eigen::MatrixXd::Zero(3, 2));
 }

@@ -8,6 +8,7 @@
 
 #include "absl/strings/str_cat.h"
 #include "core/map/dense_kernels.h"
+#include "core/map/sparse_threads.h"
 
 namespace crowdmap {
 
@@ -18,7 +19,10 @@ constexpr int kDenseWindowDims = 600;
 // CHOLMOD's supernodal factor, which Eigen's wrapper keeps to itself.
 class SupernodalLLT : public Eigen::CholmodSupernodalLLT<Eigen::SparseMatrix<double>, Eigen::Lower> {
  public:
-  explicit SupernodalLLT(const Eigen::SparseMatrix<double>& a) : CholmodSupernodalLLT(a) {}
+  explicit SupernodalLLT(const Eigen::SparseMatrix<double>& a) {
+    FactorizeOnThisThreadOnly();
+    compute(a);
+  }
   const cholmod_factor& factor() const { return *m_cholmodFactor; }
 };
 
@@ -61,6 +65,7 @@ class MapWindow::Factor {
       ok_ = CholeskyInPlace(dense_);
       return ok_;
     }
+    FactorizeOnThisThreadOnly();
     sparse_->factorize(a);
     ok_ = sparse_->info() == Eigen::Success;
     if (ok_) IndexSupernodes();
@@ -305,27 +310,20 @@ Eigen::MatrixXd SchurComplement(const Eigen::MatrixXd& info, const std::vector<i
   for (int a = 0; a < o; ++a) {
     for (int b = 0; b < o; ++b) oo(a, b) = info(other[a], other[b]);
   }
-  oo = 0.5 * (oo + oo.transpose());
-  // Usually the eliminated block is well conditioned (estimated reciprocal condition number far
-  // above the pseudo-inverse's floor below): a Cholesky solve. Otherwise the eigen-decomposition.
-  const Eigen::LLT<Eigen::MatrixXd> llt(oo);
-  if (llt.info() == Eigen::Success && llt.rcond() > 1e-9) {
-    const Eigen::MatrixXd schur = kk - ko * llt.solve(ko.transpose());
-    return 0.5 * (schur + schur.transpose());
-  }
-  // Semi-definite: a pivoted LDL^T, oo = P^T L D L^T P. Pivots come largest first, and those
-  // below the floor are directions the factor leaves free; ko has no component along them (info
-  // is positive semi-definite), so dropping them gives the pseudo-inverse's Schur complement at a
-  // fraction of an eigen-decomposition's cost.
-  const Eigen::LDLT<Eigen::MatrixXd> ldlt(oo);
-  const Eigen::VectorXd d = ldlt.vectorD();
-  const double floor = 1e-12 * std::max(1.0, d.cwiseAbs().maxCoeff());
-  Eigen::MatrixXd y = ldlt.transpositionsP() * Eigen::MatrixXd(ko.transpose());
-  ldlt.matrixL().solveInPlace(y);
-  for (int i = 0; i < o; ++i) y.row(i) *= d(i) > floor ? 1.0 / std::sqrt(d(i)) : 0.0;
+  // oo = P L L^T P^T, pivots largest first (LAPACK's pivoted Cholesky). Half of the factors leaving
+  // a city window carry no information in some directions of the landmarks they eliminate: the
+  // pivots left at or below the floor are those directions, along which ko has no component (info
+  // is positive semi-definite), so stopping there gives the pseudo-inverse's Schur complement,
+  // kk - Y^T Y with Y = L^-1 P^T ko^T over the pivots taken.
+  const double floor = 1e-12 * std::max(1.0, o > 0 ? oo.diagonal().maxCoeff() : 0.0);
+  std::vector<int> pivot;
+  const int rank = PivotedCholeskyInPlace(oo, floor, &pivot);
+  Eigen::MatrixXd y(rank, k);
+  for (int i = 0; i < rank; ++i) y.row(i) = ko.col(pivot[i]).transpose();
+  SolveLowerInPlace(oo.topLeftCorner(rank, rank), y);
   Eigen::MatrixXd schur = kk;
-  schur.noalias() -= y.transpose() * y;
-  return 0.5 * (schur + schur.transpose());
+  AddGramLower(y, schur, -1.0);
+  return schur.selfadjointView<Eigen::Lower>();
 }
 
 }  // namespace
