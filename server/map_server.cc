@@ -35,6 +35,9 @@ absl::Status MapServerOptions::Validate() const {
   if (!metrics_listen.empty() && metrics_listen.rfind(':') == std::string::npos) {
     return absl::InvalidArgumentError(absl::StrCat("metrics-listen: expected host:port, got '", metrics_listen, "'"));
   }
+  if (read_window_hops < -1) {
+    return absl::InvalidArgumentError(absl::StrCat("read_window_hops: must be >= -1, got ", read_window_hops));
+  }
   if (max_queue < 0) return absl::InvalidArgumentError(absl::StrCat("max_queue: must be >= 0, got ", max_queue));
   if (max_message_mb < 1 || max_message_mb > 2047) {
     return absl::InvalidArgumentError(absl::StrCat("max_message_mb: must lie in [1, 2047], got ", max_message_mb));
@@ -124,11 +127,13 @@ absl::StatusOr<std::unique_ptr<MapServer>> MapServer::Start(const MapServerOptio
   server->lock_.fd = *lock;
   SqliteMapStoreOptions store_options;
   if (options.worker.yield) store_options.write_yield_vm_steps = kWriteYieldVmSteps;
-  store_options.covariance_window_hops = options.worker.update.window_hops;
+  const int read_window_hops =
+      options.read_window_hops >= 0 ? options.read_window_hops : options.worker.update.window_hops;
+  store_options.covariance_window_hops = read_window_hops;
   auto sqlite = CreateSqliteMapStore(options.db_path, store_options);
   if (!sqlite.ok()) return sqlite.status();
   // Map reads are served from memory; SQLite stays the source of truth.
-  auto store = CachedMapStore::Create(std::move(*sqlite), options.worker.update.window_hops);
+  auto store = CachedMapStore::Create(std::move(*sqlite), read_window_hops);
   if (!store.ok()) return store.status();
   // Watchers learn of a version once map reads show it.
   (*store)->SetPublishedCallback([n = &server->notifier_](int64_t version) { n->Publish(version); });

@@ -29,6 +29,11 @@ struct MapServerOptions {
   // false: refused with FailedPrecondition naming the path (mapd's default, unless --create).
   bool create_db = true;
   MapWorkerOptions worker;
+  // Links of the window a read's covariances come from (QueryRegion, GetTile and the other reads
+  // with covariances); -1: worker.update.window_hops, as the updates use. 0 is the whole map
+  // (exact); fewer links than the updates' make reads faster and their covariances wider (still
+  // conservative).
+  int read_window_hops = -1;
   int64_t max_queue = 10000;  // passages queued or processing before uploads get RESOURCE_EXHAUSTED
   int max_message_mb = 4;     // gRPC receive limit per message
   int max_passage_mb = 64;    // largest accepted passage (chunked uploads)

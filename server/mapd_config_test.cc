@@ -128,6 +128,13 @@ TEST(MapdConfig, ReadsUpdateOptions) {
   ASSERT_FALSE(bad.ok());
   EXPECT_NE(bad.status().message().find("warmup_passages"), std::string::npos) << bad.status();
   EXPECT_EQ(c->server.worker.update.window_hops, 3);
+  EXPECT_EQ(c->server.read_window_hops, -1) << "reads use the updates' window unless told";
+  auto reads = ParseWithEnvironment({"--read-window-hops", "1"}, {});
+  ASSERT_TRUE(reads.ok()) << reads.status();
+  EXPECT_EQ(reads->server.read_window_hops, 1);
+  auto bad_reads = ParseWithEnvironment({}, {{"MAPD_READ_WINDOW_HOPS", "-2"}});
+  ASSERT_FALSE(bad_reads.ok());
+  EXPECT_NE(bad_reads.status().message().find("read_window_hops"), std::string::npos) << bad_reads.status();
   EXPECT_EQ(c->server.worker.nice, 10);
   auto n = ParseWithEnvironment({}, {{"MAPD_WORKER_NICE", "0"}});
   ASSERT_TRUE(n.ok()) << n.status();

@@ -1,11 +1,15 @@
 // mapd with two workers: passages are computed concurrently, and the map it commits is exactly
 // the one the same passages give applied one at a time in the order of their commits (to rounding).
 #include <algorithm>
+#include <cmath>
+#include <unordered_map>
 #include <utility>
 #include <vector>
 
 #include <csignal>
 
+#include "absl/strings/str_cat.h"
+#include "core/map/map_window.h"
 #include "core/sim/city_scenario.h"
 #include "server/mapd_config.h"
 #include "server/storage/sqlite_map_store.h"
@@ -168,6 +172,70 @@ TEST(ServiceRelinearization, TheWorkerRelinearizesStalePassagesAsTheInProcessUpd
   int relinearized = 0;
   RunWithWorkers(1, CityPassages(20), update, &relinearized);
   EXPECT_GE(relinearized, 3) << "the scenario must make passages stale";
+}
+
+// mapd --read-window-hops: a read's covariances come from a window of that many links, whatever
+// the updates use. A 300 m box of a city map of 24 short passages read with 1 link gives the 1-link
+// window's joint covariance (the map's own, computed in process), wider than with 2 links.
+TEST(ServiceReads, TheReadWindowSetsTheLinksOfARegionsCovariance) {
+  TempDir dir;
+  MapServerOptions options = TestServerOptions(dir.File("map.db"));
+  options.worker.update = CityUpdateOptions();
+  options.read_window_hops = 1;
+  std::unique_ptr<MapServer> server = StartTestServer(options);
+  ASSERT_NE(server, nullptr);
+  MockVehicle client(absl::StrCat("127.0.0.1:", server->port()));
+  for (const Passage& p : CityPassages(24)) ASSERT_TRUE(client.Upload(p).ok());
+  ASSERT_TRUE(client.WaitUntilIdle().ok());
+  MapState map;
+  ASSERT_TRUE(server->store()->ReadCommittedMap([&](const MapState& m) { map = m; }));
+  // A box around the landmark nearest the middle of the mapped ones.
+  Eigen::Vector2d sum = Eigen::Vector2d::Zero();
+  std::vector<const Landmark*> all;
+  map.ForEachLandmark([&](const Landmark& l) { all.push_back(&l); });
+  for (const Landmark* l : all) sum += Eigen::Vector2d(l->position.lat_deg, l->position.lon_deg);
+  const Eigen::Vector2d mean = sum / static_cast<double>(all.size());
+  const Landmark* centre = *std::min_element(all.begin(), all.end(), [&](const Landmark* a, const Landmark* b) {
+    return (Eigen::Vector2d(a->position.lat_deg, a->position.lon_deg) - mean).norm() <
+           (Eigen::Vector2d(b->position.lat_deg, b->position.lon_deg) - mean).norm();
+  });
+  const double dlat = 150.0 / 111320.0;
+  const double dlon = dlat / std::cos(centre->position.lat_deg * M_PI / 180.0);
+  grpc::ClientContext ctx;
+  pb::QueryRegionRequest request;
+  request.mutable_box()->set_min_lat_deg(centre->position.lat_deg - dlat);
+  request.mutable_box()->set_max_lat_deg(centre->position.lat_deg + dlat);
+  request.mutable_box()->set_min_lon_deg(centre->position.lon_deg - dlon);
+  request.mutable_box()->set_max_lon_deg(centre->position.lon_deg + dlon);
+  request.set_page_size(10000);
+  request.set_include_cross_covariance(true);
+  pb::QueryRegionResponse response;
+  ASSERT_TRUE(client.stub()->QueryRegion(&ctx, request, &response).ok());
+  std::vector<LandmarkId> ids;
+  for (const pb::Landmark& l : response.landmarks()) ids.push_back(l.id());
+  ASSERT_GE(ids.size(), 10u);
+  ASSERT_LT(ids.size(), all.size() / 2) << "the box must leave most of the map outside";
+  absl::StatusOr<Eigen::MatrixXd> one_link = JointCovariance(map, ids, MapWindowOptions{1});
+  absl::StatusOr<Eigen::MatrixXd> two_links = JointCovariance(map, ids, MapWindowOptions{2});
+  ASSERT_TRUE(one_link.ok()) << one_link.status();
+  ASSERT_TRUE(two_links.ok()) << two_links.status();
+  double wider = 0.0;
+  for (int k = 0; k < response.landmarks_size(); ++k) {
+    const pb::Landmark& l = response.landmarks(k);
+    EXPECT_NEAR(l.cov_en_m2().ee(), (*one_link)(2 * k, 2 * k), 1e-9);
+    EXPECT_NEAR(l.cov_en_m2().nn(), (*one_link)(2 * k + 1, 2 * k + 1), 1e-9);
+    for (int c = 0; c < 2; ++c) {
+      wider = std::max(wider, (*one_link)(2 * k + c, 2 * k + c) / (*two_links)(2 * k + c, 2 * k + c));
+    }
+  }
+  std::unordered_map<LandmarkId, int> at;
+  for (size_t k = 0; k < ids.size(); ++k) at[ids[k]] = static_cast<int>(k);
+  ASSERT_GT(response.cross_covariances_size(), 0);
+  for (const pb::CrossCovariance& c : response.cross_covariances()) {
+    EXPECT_NEAR(c.cov_m2().en(), (*one_link)(2 * at[c.first_id()], 2 * at[c.second_id()] + 1), 1e-9);
+  }
+  EXPECT_GT(wider, 1.001) << "1 link must read wider covariances than 2 on this map";
+  server->Shutdown(std::chrono::milliseconds(0));
 }
 
 // mapd with two workers killed (SIGKILL) while they apply, restarted on the same file, every
