@@ -284,17 +284,77 @@ class MapWindow::Factor {
 
 namespace {
 
-using Triplets = std::vector<Eigen::Triplet<double>>;
+// A window's information by 2 x 2 blocks, lower triangle: every consumer (CHOLMOD, the dense
+// Cholesky, Takahashi's recursion) reads only that. Landmark i's columns hold its own block and
+// the blocks of the window landmarks linked to it that come after it (rows 2j and 2j + 1, j > i),
+// written straight into compressed columns (sorting and summing triplets cost as much as the
+// rest of the assembly).
+class LowerBlocks {
+ public:
+  explicit LowerBlocks(int n) : diagonal_(n, Eigen::Matrix2d::Zero()), below_(n) {}
 
-// Adds the entries of `block` at (row, col) that lie in the lower triangle: a window's
-// information is symmetric and every consumer (CHOLMOD, the dense Cholesky, Takahashi's recursion)
-// reads its lower triangle only, so the upper one would only double the assembly and CHOLMOD's
-// transposes.
-void AddBlock(int row, int col, const Eigen::Ref<const Eigen::MatrixXd>& block, Triplets* out) {
-  for (int c = 0; c < block.cols(); ++c) {
-    for (int r = std::max(0, col + c - row); r < block.rows(); ++r) out->emplace_back(row + r, col + c, block(r, c));
+  void AddDiagonal(int i, const Eigen::Matrix2d& block) { diagonal_[i] += block; }
+  // The block of a link between i and j > i at (2j, 2i): each link once.
+  void AddBelow(int i, int j, const Eigen::Matrix2d& block) { below_[i].push_back({j, block}); }
+  // Sorts each column's rows; call once all links are in, before Add and ToSparse.
+  void SortRows() {
+    for (auto& column : below_) {
+      std::sort(column.begin(), column.end(), [](const Below& x, const Below& y) { return x.row < y.row; });
+    }
   }
-}
+  // Adds `block` at (2i, 2j), i >= j (after SortRows). True when no block was there: the pattern
+  // grew.
+  bool Add(int i, int j, const Eigen::Matrix2d& block) {
+    if (i == j) {
+      diagonal_[i] += block;
+      return false;
+    }
+    auto& column = below_[j];
+    auto it = std::lower_bound(column.begin(), column.end(), i, [](const Below& x, int row) { return x.row < row; });
+    if (it == column.end() || it->row != i) {
+      column.insert(it, Below{i, block});
+      return true;
+    }
+    it->value += block;
+    return false;
+  }
+  Eigen::SparseMatrix<double> ToSparse() const {
+    const int n = static_cast<int>(diagonal_.size());
+    size_t nnz = 0;
+    for (const auto& column : below_) nnz += 3 + 8 * column.size();
+    Eigen::SparseMatrix<double> out(2 * n, 2 * n);
+    out.resizeNonZeros(static_cast<Eigen::Index>(nnz));
+    int* outer = out.outerIndexPtr();
+    int* inner = out.innerIndexPtr();
+    double* value = out.valuePtr();
+    int at = 0;
+    for (int i = 0; i < n; ++i) {
+      for (int c = 0; c < 2; ++c) {
+        outer[2 * i + c] = at;
+        for (int r = c; r < 2; ++r) {
+          inner[at] = 2 * i + r;
+          value[at++] = diagonal_[i](r, c);
+        }
+        for (const Below& b : below_[i]) {
+          for (int r = 0; r < 2; ++r) {
+            inner[at] = 2 * b.row + r;
+            value[at++] = b.value(r, c);
+          }
+        }
+      }
+    }
+    outer[2 * n] = at;
+    return out;
+  }
+
+ private:
+  struct Below {
+    int row;  // the landmark below the diagonal
+    Eigen::Matrix2d value;
+  };
+  std::vector<Eigen::Matrix2d> diagonal_;
+  std::vector<std::vector<Below>> below_;
+};
 
 // Information of a positive semi-definite `info` on the entries `keep` once the others are
 // eliminated: keep-keep - keep-other other-other^+ other-keep (the pseudo-inverse: a factor may
@@ -367,30 +427,31 @@ absl::StatusOr<MapWindow> MapWindow::Build(const MapReaderInterface& map, const 
   if (n == 0) return w;
   // The right-hand side only for an estimate: a landmark's offset is a geodesic computation, and a
   // covariance read visits every link that leaves the window.
-  Triplets triplets;
+  LowerBlocks blocks(n);
   Eigen::VectorXd rhs = Eigen::VectorXd::Zero(options.estimate ? 2 * n : 0);
   std::unordered_set<LandmarkId> edge;  // window landmarks linked to the outside
   for (int i = 0; i < n; ++i) {
     const LandmarkId a = w.ids_[i];
     if (options.estimate) rhs.segment<2>(2 * i) = map.InformationVector(a);
-    AddBlock(2 * i, 2 * i, map.Information(a, a).value, &triplets);
+    blocks.AddDiagonal(i, map.Information(a, a).value);
     map.ForEachLink(a, [&](LandmarkId b, const InformationBlock& block) {
       const int j = w.index(b);
-      if (j >= 0) {
-        AddBlock(2 * i, 2 * j, block.value, &triplets);
-      } else {
+      if (j > i) {
+        blocks.AddBelow(i, j, block.value.transpose());  // the block (b, a)
+      } else if (j < 0) {
         if (options.estimate) rhs.segment<2>(2 * i) -= block.value * map.FindLandmark(b)->Offset();
         edge.insert(a);
       }
     });
   }
-  Eigen::SparseMatrix<double> information(2 * n, 2 * n);
+  blocks.SortRows();
+  Eigen::SparseMatrix<double> information;
   w.closed_ = edge.empty();
   std::shared_ptr<Factor> mean_llt;
   if (options.estimate || w.closed_) {
     // The information with the landmarks outside held (a covariance read of an open window needs
     // only the conservative one below).
-    information.setFromTriplets(triplets.begin(), triplets.end());
+    information = blocks.ToSparse();
     mean_llt = std::make_shared<Factor>(information);
     if (mean_llt->info() != Eigen::Success) {
       return absl::FailedPreconditionError(
@@ -428,6 +489,7 @@ absl::StatusOr<MapWindow> MapWindow::Build(const MapReaderInterface& map, const 
       }
     }
   }
+  bool pattern_grew = false;
   for (int64_t id : crossing) {
     const MapFactor& f = *map.FindFactor(id);
     std::vector<int> keep, other, keep_index;
@@ -439,15 +501,16 @@ absl::StatusOr<MapWindow> MapWindow::Build(const MapReaderInterface& map, const 
     const Eigen::MatrixXd schur = SchurComplement(f.information, keep, other);
     for (size_t a = 0; a < keep_index.size(); ++a) {
       for (size_t b = 0; b < keep_index.size(); ++b) {
+        if (keep_index[a] < keep_index[b]) continue;  // the lower triangle
         const Eigen::Matrix2d conditional = f.information.block<2, 2>(keep[2 * a], keep[2 * b]);
-        AddBlock(2 * keep_index[a], 2 * keep_index[b], schur.block<2, 2>(2 * a, 2 * b) - conditional, &triplets);
+        pattern_grew |= blocks.Add(keep_index[a], keep_index[b], schur.block<2, 2>(2 * a, 2 * b) - conditional);
       }
     }
   }
-  // The Schur complements change blocks between landmarks of one factor, which are linked: the
+  // The Schur complements change blocks between landmarks of one factor, which the map links: the
   // pattern is the held information's, whose analysis a window with an estimate reuses.
-  information.setFromTriplets(triplets.begin(), triplets.end());
-  if (mean_llt) {
+  information = blocks.ToSparse();
+  if (mean_llt && !pattern_grew) {
     mean_llt->Refactorize(information);
     w.covariance_factor_ = std::move(mean_llt);
   } else {
