@@ -30,10 +30,12 @@ PACKAGES=(
   python3 python3-yaml
   libssl-dev openssl
   libcli11-dev nlohmann-json3-dev
-  # The BLAS and LAPACK behind CHOLMOD (libblas.so.3 and liblapack.so.3 alternatives): OpenBLAS,
-  # single-threaded, instead of the generic ATLAS that Ceres pulls in (city passage 175 -> 154 ms,
-  # docs/results.md "BLAS").
-  libopenblas0-serial
+  # The BLAS and LAPACK behind CHOLMOD and the dense kernels: ATLAS (libatlas3-base, which Ceres
+  # pulls in), selected below. The service calls them from several threads at once (the worker
+  # beside the readers); Debian's single-threaded OpenBLAS then returns wrong results and its
+  # threaded builds' thread-local storage does not fit civetweb's 100 KB thread stacks
+  # (docs/results.md, "OpenBLAS called from several threads").
+  libatlas3-base
 )
 # Only for the tests: GoogleTest, Google Benchmark, the map viewer's browser test (headless
 # chromium through chromedriver and selenium) and the Python client example's gRPC runtime.
@@ -61,6 +63,19 @@ if ((${#missing[@]})); then
 else
   echo "setup: all packages present"
 fi
+
+# libblas.so.3 and liblapack.so.3 from ATLAS, also where an OpenBLAS package (installed by an
+# earlier setup, or for another program) would take the alternatives over: see the packages above.
+for lib in libblas.so.3 liblapack.so.3; do
+  name="$lib-x86_64-linux-gnu"
+  atlas="/usr/lib/x86_64-linux-gnu/atlas/$lib"
+  if [ "$(readlink -f "/etc/alternatives/$name")" != "$(readlink -f "$atlas")" ]; then
+    echo "setup: selecting ATLAS for $lib"
+    SUDO=""
+    if [ "$(id -u)" -ne 0 ]; then SUDO="sudo"; fi
+    $SUDO update-alternatives --quiet --set "$name" "$atlas"
+  fi
+done
 
 if ((!BUILD)); then exit 0; fi
 

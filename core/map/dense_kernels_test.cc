@@ -1,6 +1,7 @@
 #include "core/map/dense_kernels.h"
 
 #include <algorithm>
+#include <thread>
 #include <vector>
 
 #include <Eigen/Cholesky>
@@ -100,6 +101,38 @@ TEST(DenseKernels, GramProductCanBeSubtracted) {
   AddGramLower(x, c, -1.0);
   const Eigen::MatrixXd got = c.selfadjointView<Eigen::Lower>();
   EXPECT_LT(RelativeError(got, want), 1e-13);
+}
+
+// The service calls these kernels from several threads at once (the worker's update beside the
+// readers' covariance reads). Debian's single-threaded OpenBLAS (libopenblas0-serial) shares its
+// work buffers between callers without a lock and then returns wrong results, which the map's
+// updates and reads showed as "not positive definite" under write load; the BLAS the setup
+// installs must give every thread its own.
+TEST(DenseKernels, ThreadsCallingAtOnceGetTheirOwnResults) {
+  constexpr int kThreads = 4, kRounds = 1000, n = 96;
+  std::vector<int> wrong(kThreads, 0);
+  std::vector<Eigen::MatrixXd> matrices;
+  for (int t = 0; t < kThreads; ++t) matrices.push_back(SpdMatrix(n, 10 + t));
+  std::vector<std::thread> threads;
+  for (int t = 0; t < kThreads; ++t) {
+    threads.emplace_back([t, &wrong, &matrices] {
+      const Eigen::MatrixXd& a = matrices[t];
+      const Eigen::MatrixXd want = Eigen::LLT<Eigen::MatrixXd>(a).matrixL();
+      const Eigen::MatrixXd product_want = a * a;
+      for (int round = 0; round < kRounds; ++round) {
+        Eigen::MatrixXd l = a;
+        if (!CholeskyInPlace(l) ||
+            RelativeError(Eigen::MatrixXd(l.triangularView<Eigen::Lower>()), want) > 1e-12) {
+          ++wrong[t];
+        }
+        Eigen::MatrixXd product;
+        Multiply(a, a, &product);
+        if (RelativeError(product, product_want) > 1e-13) ++wrong[t];
+      }
+    });
+  }
+  for (std::thread& thread : threads) thread.join();
+  for (int t = 0; t < kThreads; ++t) EXPECT_EQ(wrong[t], 0) << "thread " << t;
 }
 
 TEST(DenseKernels, EmptyMatricesAreNoOps) {
