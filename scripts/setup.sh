@@ -53,10 +53,11 @@ for p in "${PACKAGES[@]}"; do
   fi
 done
 
+SUDO=""
+if [ "$(id -u)" -ne 0 ]; then SUDO="sudo"; fi
+
 if ((${#missing[@]})); then
   echo "setup: installing ${#missing[@]} missing package(s): ${missing[*]}"
-  SUDO=""
-  if [ "$(id -u)" -ne 0 ]; then SUDO="sudo"; fi
   export DEBIAN_FRONTEND=noninteractive
   $SUDO apt-get update -qq
   $SUDO apt-get install -y -qq --no-install-recommends "${missing[@]}"
@@ -66,13 +67,12 @@ fi
 
 # libblas.so.3 and liblapack.so.3 from ATLAS, also where an OpenBLAS package (installed by an
 # earlier setup, or for another program) would take the alternatives over: see the packages above.
+multiarch="$(gcc -print-multiarch)"
 for lib in libblas.so.3 liblapack.so.3; do
-  name="$lib-x86_64-linux-gnu"
-  atlas="/usr/lib/x86_64-linux-gnu/atlas/$lib"
+  name="$lib-$multiarch"
+  atlas="/usr/lib/$multiarch/atlas/$lib"
   if [ "$(readlink -f "/etc/alternatives/$name")" != "$(readlink -f "$atlas")" ]; then
     echo "setup: selecting ATLAS for $lib"
-    SUDO=""
-    if [ "$(id -u)" -ne 0 ]; then SUDO="sudo"; fi
     $SUDO update-alternatives --quiet --set "$name" "$atlas"
   fi
 done
