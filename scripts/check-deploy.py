@@ -7,6 +7,7 @@
   (never :latest), a headless Service named by the StatefulSet, a NetworkPolicy for mapd's pods;
 - every metric the Grafana dashboard queries is one mapd exports (server/metrics.cc);
 - the Dockerfile has a build and a runtime stage, and .dockerignore keeps builds, maps and .git out;
+  its runtime stage installs OpenBLAS's pthread build, never the single-threaded one;
 - with mapd: deploy/mapd.conf and the ConfigMap's mapd.conf are accepted by mapd itself, the
   runtime stage installs a package for every shared library mapd (and the other binaries given)
   needs (apt-cache, readelf), and
@@ -101,6 +102,9 @@ def docker():
     check("Dockerfile has a build and a runtime stage", len(stages) >= 2)
     ignore = read(".dockerignore").split()
     check(".dockerignore keeps .git, builds and maps out", all(p in ignore for p in (".git", "build*/", "*.db")))
+    runtime = dockerfile[dockerfile.lower().rfind("\nfrom "):]
+    check("runtime stage installs OpenBLAS's pthread build, not the single-threaded one (mapd refuses it)",
+          re.search(r"\blibopenblas0-pthread\b", runtime) and not re.search(r"\blibopenblas0-serial\b", runtime))
     return dockerfile
 
 

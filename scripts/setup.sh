@@ -30,12 +30,11 @@ PACKAGES=(
   python3 python3-yaml
   libssl-dev openssl
   libcli11-dev nlohmann-json3-dev
-  # The BLAS and LAPACK behind CHOLMOD and the dense kernels: ATLAS (libatlas3-base, which Ceres
-  # pulls in), selected below. The service calls them from several threads at once (the worker
-  # beside the readers); Debian's single-threaded OpenBLAS then returns wrong results and its
-  # threaded builds' thread-local storage does not fit civetweb's 100 KB thread stacks
-  # (docs/results.md, "OpenBLAS called from several threads").
-  libatlas3-base
+  # The BLAS and LAPACK behind CHOLMOD and the dense kernels: OpenBLAS's pthread build, selected
+  # below. The service calls them from several threads at once (the worker beside the readers);
+  # Debian's single-threaded OpenBLAS then returns wrong results (mapd refuses to start on it), and
+  # ATLAS, safe, takes 1.7 times as long (docs/results.md, "OpenBLAS called from several threads").
+  libopenblas0-pthread
 )
 # Only for the tests: GoogleTest, Google Benchmark, the map viewer's browser test (headless
 # chromium through chromedriver and selenium) and the Python client example's gRPC runtime.
@@ -65,15 +64,16 @@ else
   echo "setup: all packages present"
 fi
 
-# libblas.so.3 and liblapack.so.3 from ATLAS, also where an OpenBLAS package (installed by an
-# earlier setup, or for another program) would take the alternatives over: see the packages above.
+# libblas.so.3 and liblapack.so.3 from OpenBLAS's pthread build, also where another BLAS package
+# (ATLAS, which Ceres pulls in; a single-threaded OpenBLAS) would take the alternatives over: see
+# the packages above.
 multiarch="$(gcc -print-multiarch)"
 for lib in libblas.so.3 liblapack.so.3; do
   name="$lib-$multiarch"
-  atlas="/usr/lib/$multiarch/atlas/$lib"
-  if [ "$(readlink -f "/etc/alternatives/$name")" != "$(readlink -f "$atlas")" ]; then
-    echo "setup: selecting ATLAS for $lib"
-    $SUDO update-alternatives --quiet --set "$name" "$atlas"
+  chosen="/usr/lib/$multiarch/openblas-pthread/$lib"
+  if [ "$(readlink -f "/etc/alternatives/$name")" != "$(readlink -f "$chosen")" ]; then
+    echo "setup: selecting OpenBLAS (pthread) for $lib"
+    $SUDO update-alternatives --quiet --set "$name" "$chosen"
   fi
 done
 

@@ -12,6 +12,7 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_split.h"
 #include "server/geojson.h"
+#include "server/http_thread_stacks.h"
 #include "server/log_format.h"
 #include "server/map_service.h"
 #include "server/request_log.h"
@@ -162,8 +163,9 @@ absl::StatusOr<std::unique_ptr<HttpViewer>> HttpViewer::Start(const HttpViewerOp
   const int n = mg_get_server_ports(viewer->server_, 4, ports_info);
   if (n < 1) return absl::UnavailableError(absl::StrCat("http-listen: no port bound for ", options.listen));
   viewer->port_ = ports_info[0].port;
-  spdlog::info("event=http_viewer listen={} port={} auth={} basemap={}", EscapeForLog(options.listen), viewer->port_,
-               auth != nullptr, options.basemap_url.empty() ? "none" : EscapeForLog(options.basemap_url));
+  spdlog::info("event=http_viewer listen={} port={} auth={} basemap={} thread_stack_bytes={}", EscapeForLog(options.listen),
+               viewer->port_, auth != nullptr, options.basemap_url.empty() ? "none" : EscapeForLog(options.basemap_url),
+               HttpThreadStackBytes());
   return viewer;
 }
 

@@ -19,6 +19,7 @@
 
 #include "absl/strings/str_cat.h"
 #include "absl/synchronization/mutex.h"
+#include "core/map/sparse_threads.h"
 #include "server/storage/cached_map_store.h"
 
 namespace crowdmap {
@@ -118,6 +119,7 @@ void TuneProcessForServing() {
 
 absl::StatusOr<std::unique_ptr<MapServer>> MapServer::Start(const MapServerOptions& options) {
   if (auto s = options.Validate(); !s.ok()) return s;
+  if (absl::Status s = CheckBlasIsSafeForConcurrentCalls(); !s.ok()) return s;
   std::unique_ptr<MapServer> server(new MapServer());
   server->options_ = options;
 

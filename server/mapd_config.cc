@@ -108,8 +108,8 @@ std::unique_ptr<CLI::App> NewMapdCommandLine(MapdConfig* config) {
   AddMapdSetting(app, "read-window-hops", &o.read_window_hops,
                  "links of the window a read's covariances come from (-1: as --window-hops). Fewer make reads\n"
                  "faster and their sigmas wider, never narrower than exact: on a 10k-landmark city, a 500 m\n"
-                 "box with cross-covariances took 93 ms with 2 links (sigmas 1% wider than exact) and 42 ms\n"
-                 "with 1 (6% wider on average, 34% at most; docs/results.md)")
+                 "box with cross-covariances took 54-58 ms with 2 links (sigmas 1% wider than exact) and 27-29\n"
+                 "ms with 1 (6% wider on average, 34% at most; docs/results.md)")
       ->type_name("N");
   AddMapdSetting(app, "warmup-passages", &u.warmup_passages,
                  "a new map's first N passages are solved jointly, re-solved with each one, so their arrival\n"

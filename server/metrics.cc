@@ -13,9 +13,12 @@
 #include <prometheus/histogram.h>
 #include <prometheus/metric_family.h>
 #include <prometheus/registry.h>
+#include <spdlog/spdlog.h>
 
 #include "absl/status/status.h"
 #include "absl/strings/str_cat.h"
+#include "server/http_thread_stacks.h"
+#include "server/request_log.h"
 
 namespace crowdmap {
 namespace {
@@ -186,6 +189,8 @@ absl::StatusOr<std::unique_ptr<ServerMetrics>> ServerMetrics::Start(const std::s
   m->exposer_->RegisterCollectable(m->store_collector_);
   const std::vector<int> ports = m->exposer_->GetListeningPorts();
   m->port_ = ports.empty() ? 0 : ports.front();
+  spdlog::info("event=metrics listen={} port={} thread_stack_bytes={}", EscapeForLog(listen), m->port_,
+               HttpThreadStackBytes());
   return m;
 }
 

@@ -1,5 +1,7 @@
 #include "core/map/dense_kernels.h"
 
+#include "core/map/sparse_threads.h"
+
 extern "C" {
 void dpotrf_(const char* uplo, const int* n, double* a, const int* lda, int* info);
 void dpstrf_(const char* uplo, const int* n, double* a, const int* lda, int* piv, int* rank, const double* tol,
@@ -24,6 +26,7 @@ int Leading(Eigen::Index stride) { return stride > 0 ? static_cast<int>(stride) 
 }  // namespace
 
 bool CholeskyInPlace(MatrixRef a) {
+  KeepBlasOnTheCallingThread();
   const int n = static_cast<int>(a.rows()), lda = Leading(a.outerStride());
   if (n == 0) return true;
   int info = 0;
@@ -32,6 +35,7 @@ bool CholeskyInPlace(MatrixRef a) {
 }
 
 int PivotedCholeskyInPlace(MatrixRef a, double tol, std::vector<int>* pivot) {
+  KeepBlasOnTheCallingThread();
   const int n = static_cast<int>(a.rows()), lda = Leading(a.outerStride());
   pivot->resize(n);
   if (n == 0) return 0;
@@ -44,6 +48,7 @@ int PivotedCholeskyInPlace(MatrixRef a, double tol, std::vector<int>* pivot) {
 }
 
 void InverseFromCholeskyInPlace(MatrixRef l) {
+  KeepBlasOnTheCallingThread();
   const int n = static_cast<int>(l.rows()), lda = Leading(l.outerStride());
   if (n == 0) return;
   int info = 0;
@@ -52,6 +57,7 @@ void InverseFromCholeskyInPlace(MatrixRef l) {
 }
 
 void LowerInverseInPlace(MatrixRef l) {
+  KeepBlasOnTheCallingThread();
   const int n = static_cast<int>(l.rows()), lda = Leading(l.outerStride());
   if (n == 0) return;
   int info = 0;
@@ -59,6 +65,7 @@ void LowerInverseInPlace(MatrixRef l) {
 }
 
 void SolveLowerInPlace(ConstMatrixRef l, MatrixRef x) {
+  KeepBlasOnTheCallingThread();
   const int m = static_cast<int>(x.rows()), n = static_cast<int>(x.cols());
   if (m == 0 || n == 0) return;
   const int lda = Leading(l.outerStride()), ldb = Leading(x.outerStride());
@@ -67,6 +74,7 @@ void SolveLowerInPlace(ConstMatrixRef l, MatrixRef x) {
 }
 
 void AddGramLower(ConstMatrixRef x, MatrixRef c, double scale) {
+  KeepBlasOnTheCallingThread();
   const int n = static_cast<int>(x.cols()), k = static_cast<int>(x.rows());
   if (n == 0 || k == 0) return;
   const int lda = Leading(x.outerStride()), ldc = Leading(c.outerStride());
@@ -75,6 +83,7 @@ void AddGramLower(ConstMatrixRef x, MatrixRef c, double scale) {
 }
 
 void Multiply(ConstMatrixRef a, ConstMatrixRef b, Eigen::MatrixXd* c) {
+  KeepBlasOnTheCallingThread();
   const int m = static_cast<int>(a.rows()), n = static_cast<int>(b.cols()), k = static_cast<int>(a.cols());
   c->resize(m, n);
   if (m == 0 || n == 0) return;

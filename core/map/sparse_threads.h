@@ -1,6 +1,8 @@
 #ifndef CROWDMAP_CORE_MAP_SPARSE_THREADS_H_
 #define CROWDMAP_CORE_MAP_SPARSE_THREADS_H_
 
+#include "absl/status/status.h"
+
 namespace crowdmap {
 
 // CHOLMOD, as Debian builds it, runs each supernodal factorisation's updates on an OpenMP team of
@@ -13,8 +15,26 @@ namespace crowdmap {
 //
 // Makes the OpenMP parallel regions started on the calling thread (CHOLMOD's, called by MapWindow
 // or by Ceres) run on that thread alone. OpenMP keeps this per thread, so each thread that
-// factorises calls it; after the first call on a thread it costs a thread-local read.
+// factorises calls it; after the first call on a thread it costs a thread-local read. It calls
+// KeepBlasOnTheCallingThread too.
 void FactorizeOnThisThreadOnly();
+
+// The same for the BLAS: OpenBLAS's pthread and OpenMP builds (the pthread one is what
+// scripts/setup.sh selects) split a call over a pool of their own threads, which then spin beside
+// the map's threads. 4 threads making 1000 small Cholesky factorisations and products each
+// (DenseKernels.ThreadsCallingAtOnceGetTheirOwnResults) took 23 s with the pool and 0.17 s with
+// one thread. The first call in the process sets the pool to one thread, so that every BLAS call
+// runs on the thread that makes it; later calls cost a read. MapWindow's and Ceres's
+// factorisations (through FactorizeOnThisThreadOnly) and each dense kernel call it.
+void KeepBlasOnTheCallingThread();
+
+// The map's threads (the workers beside the readers) call the BLAS at the same time. Debian's
+// single-threaded OpenBLAS (libopenblas0-serial) has no locking: concurrent callers share its
+// work buffers and get wrong numbers, which pass unnoticed where they stay positive definite
+// (docs/results.md, "OpenBLAS called from several threads"). Returns FailedPrecondition naming
+// the library when the BLAS loaded in this process is such a build, OK otherwise (OpenBLAS's
+// pthread and OpenMP builds, ATLAS, BLIS, the reference BLAS).
+absl::Status CheckBlasIsSafeForConcurrentCalls();
 
 }  // namespace crowdmap
 
