@@ -17,6 +17,7 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
 #include "client/mapsim/experiment.h"
+#include "core/map/sparse_threads.h"
 
 namespace crowdmap {
 namespace {
@@ -270,6 +271,9 @@ absl::Status RunReproduction(const ReproduceOptions& o) {
   }
   if (!(o.nees_sd_target >= 0.0)) {
     return absl::InvalidArgumentError(absl::StrCat("nees_sd_target: must be >= 0, got ", o.nees_sd_target));
+  }
+  if (o.jobs > 1) {  // the experiments' threads call the BLAS at once
+    if (absl::Status s = CheckBlasIsSafeForConcurrentCalls(); !s.ok()) return s;
   }
   std::vector<Job> initial;
   for (uint64_t seed = o.seed; seed < o.seed + o.seeds; ++seed) {
