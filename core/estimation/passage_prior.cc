@@ -3,6 +3,7 @@
 #include <unordered_set>
 
 #include "absl/strings/str_cat.h"
+#include "core/map/dense_kernels.h"
 
 namespace crowdmap {
 namespace {
@@ -77,17 +78,16 @@ absl::StatusOr<int> PassagePrior::Condition(const MapFactor& factor, int64_t ver
   const std::vector<int> o_rows = Rows(in_tracked), o_in_s = Rows(in_factor);
   const int o = static_cast<int>(o_rows.size());
 
-  // S's posterior: the factor plus the map's marginal on O.
-  const Eigen::MatrixXd cov_oo = covariance_(o_rows, o_rows);
-  const Eigen::LLT<Eigen::MatrixXd> prior_llt(cov_oo);
-  if (o > 0 && prior_llt.info() != Eigen::Success) {
-    return absl::InternalError("map covariance of the graph is not positive definite");
-  }
+  // S's posterior: the factor plus the map's marginal on O, whose Cholesky factor L_O (lower)
+  // serves the conditioning of T below too.
+  Eigen::MatrixXd l_o = covariance_(o_rows, o_rows);
+  if (!CholeskyInPlace(l_o)) return absl::InternalError("map covariance of the graph is not positive definite");
   const Eigen::VectorXd mean_o = mean_(o_rows);
   Eigen::MatrixXd information = factor.information;
   Eigen::VectorXd vector = factor.information_vector;
   if (o > 0) {
-    const Eigen::MatrixXd prior_information = Symmetrized(prior_llt.solve(Eigen::MatrixXd::Identity(o, o)));
+    Eigen::MatrixXd prior_information = l_o;
+    InverseFromCholeskyInPlace(prior_information);
     information(o_in_s, o_in_s) += prior_information;
     vector(o_in_s) += prior_information * mean_o;
   }
@@ -97,15 +97,31 @@ absl::StatusOr<int> PassagePrior::Condition(const MapFactor& factor, int64_t ver
   const Eigen::MatrixXd cov_s = Symmetrized(llt.solve(Eigen::MatrixXd::Identity(2 * s, 2 * s)));
   if (!mean_s.allFinite() || !cov_s.allFinite()) return absl::InternalError("graph landmark estimate is not finite");
 
-  // T given O keeps its conditional: K^T = Sigma_OO^-1 Sigma_OT.
+  // T given O keeps its conditional, Sigma_TO Sigma_OO^-1 = Y^T L_O^-1 with Y = L_O^-1 Sigma_OT:
+  //   mean_T += Y^T L_O^-1 (mean'_O - mean_O),
+  //   Sigma_TT -= Y^T (I - L_O^-1 Sigma'_OO L_O^-T) Y,  Sigma'_TS = Y^T L_O^-1 Sigma'_OS.
+  // The products over T (t x t and t x 2s) are BLAS's (dense_kernels.h).
   const int t = static_cast<int>(mean_.size());
   Eigen::MatrixXd cross = Eigen::MatrixXd::Zero(t, 2 * s);  // Sigma'_TS
   if (o > 0) {
-    const Eigen::MatrixXd kt = prior_llt.solve(covariance_(o_rows, Eigen::all));
-    mean_ += kt.transpose() * (mean_s(o_in_s) - mean_o);
-    const Eigen::MatrixXd shrink = kt.transpose() * (cov_oo - cov_s(o_in_s, o_in_s));
-    covariance_ = Symmetrized(covariance_ - shrink * kt);
-    cross = kt.transpose() * cov_s(o_in_s, Eigen::all);
+    Eigen::MatrixXd y = covariance_(o_rows, Eigen::all);
+    SolveLowerInPlace(l_o, y);
+    const Eigen::MatrixXd y_t = y.transpose();
+    Eigen::VectorXd shift = mean_s(o_in_s) - mean_o;
+    SolveLowerInPlace(l_o, shift);
+    mean_ += y_t * shift;
+    Eigen::MatrixXd half = cov_s(o_in_s, o_in_s);  // L_O^-1 Sigma'_OO, then its L_O^-1 (.)^T
+    SolveLowerInPlace(l_o, half);
+    Eigen::MatrixXd kept = half.transpose();
+    SolveLowerInPlace(l_o, kept);
+    kept = Eigen::MatrixXd::Identity(o, o) - Symmetrized(kept);
+    Eigen::MatrixXd kept_y, shrink;
+    Multiply(kept, y, &kept_y);
+    Multiply(y_t, kept_y, &shrink);
+    covariance_ = Symmetrized(covariance_ - shrink);
+    Eigen::MatrixXd to_s = cov_s(o_in_s, Eigen::all);
+    SolveLowerInPlace(l_o, to_s);
+    Multiply(y_t, to_s, &cross);
   }
   // New landmarks join T; S's own rows are its posterior.
   const int added = static_cast<int>(fresh.size());
