@@ -3,6 +3,8 @@
 #include <dlfcn.h>
 #include <omp.h>
 
+#include <string>
+
 namespace crowdmap {
 namespace {
 
