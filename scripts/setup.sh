@@ -33,7 +33,7 @@ PACKAGES=(
   # The BLAS and LAPACK behind CHOLMOD and the dense kernels: OpenBLAS's pthread build, selected
   # below. The service calls them from several threads at once (the worker beside the readers);
   # Debian's single-threaded OpenBLAS then returns wrong results (mapd refuses to start on it), and
-  # ATLAS, safe, takes 1.7 times as long (docs/results.md, "OpenBLAS called from several threads").
+  # ATLAS, safe, takes 1.4 to 1.9 times as long (docs/results.md, "OpenBLAS's pthread build").
   libopenblas0-pthread
 )
 # Only for the tests: GoogleTest, Google Benchmark, the map viewer's browser test (headless

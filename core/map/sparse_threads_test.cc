@@ -2,7 +2,6 @@
 
 #include <dlfcn.h>
 #include <omp.h>
-#include <unistd.h>
 
 #include <algorithm>
 #include <cstdio>
