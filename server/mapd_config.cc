@@ -136,7 +136,7 @@ std::unique_ptr<CLI::App> NewMapdCommandLine(MapdConfig* config) {
                  "began. An update is committed only if no update committed meanwhile changed what it read\n"
                  "(its neighbourhood), else computed again: the map is the one the passages give applied one\n"
                  "at a time in commit order. 2 on a 2-core machine applied 100k-landmark city passages\n"
-                 "1.7-1.8x as fast, a 1k-landmark city's no faster (scripts/workers-bench.sh);\n"
+                 "1.5-1.6x as fast, a 1k-landmark city's no faster (scripts/workers-bench.sh);\n"
                  "1 applies them in arrival order.")
       ->type_name("N");
   AddMapdSetting(app, "retain-passages", &u.retain_passages,
