@@ -352,6 +352,52 @@ void ExpectStatsEqualTableCounts(MapStoreInterface* store, const std::string& pa
   }
 }
 
+// A landmark's R*Tree box reaches about a metre around it and is rewritten only once the landmark
+// leaves it; region reads test the exact position, so they find it just inside an edge it has
+// crossed and not just outside, whether its R*Tree box moved or not.
+TEST(SqliteMapStore, ALandmarkKeepsItsRtreeBoxUntilItLeavesIt) {
+  TempDir dir;
+  const std::string path = dir.File("map.db");
+  auto store = OpenStore(path);
+  const std::string box_sql = "SELECT min_lat * 1e9 FROM landmark_boxes WHERE id = 7";
+  const double lat = 48.7, lon = 2.17;
+  auto commit = [&](int64_t version, double at_lat) {
+    MapDelta delta;
+    delta.base_version = version - 1;
+    delta.version = version;
+    delta.landmarks[7] = MakeLandmark(7, at_lat, lon, version);
+    const absl::Status committed =
+        store->CommitPassageApplied(EnqueueAndClaim(store.get(), std::to_string(version)), delta, PassageResult());
+    ASSERT_TRUE(committed.ok()) << committed;
+  };
+  auto ids_in = [&](double min_lat, double max_lat) {
+    std::vector<LandmarkId> ids;
+    auto page = store->QueryRegion(BoundingBox{min_lat, lon - 1e-4, max_lat, lon + 1e-4}, 0, 10, false);
+    EXPECT_TRUE(page.ok());
+    if (page.ok()) {
+      for (const Landmark& l : page->landmarks) ids.push_back(l.id);
+    }
+    return ids;
+  };
+  const std::vector<LandmarkId> found{7}, none;
+  commit(1, lat);
+  const int64_t written = SqlInt(path, box_sql);
+  EXPECT_LT(written, static_cast<int64_t>((lat - 5e-6) * 1e9)) << "the box reaches half a metre south and more";
+  // 55 cm north: the same box; a read whose southern edge lies between the old and new position
+  // finds it, one whose northern edge does finds nothing.
+  const double moved = lat + 5e-6;
+  commit(2, moved);
+  EXPECT_EQ(SqlInt(path, box_sql), written);
+  EXPECT_EQ(ids_in(lat + 2.5e-6, lat + 1e-5), found);
+  EXPECT_EQ(ids_in(lat - 1e-5, lat + 2.5e-6), none);
+  // 50 m north: out of its box, which moves with it.
+  const double far = lat + 4.5e-4;
+  commit(3, far);
+  EXPECT_GT(SqlInt(path, box_sql), written);
+  EXPECT_EQ(ids_in(far - 1e-6, far + 1e-6), found);
+  EXPECT_EQ(ids_in(lat - 1e-6, lat + 1e-6), none);
+}
+
 TEST(SqliteMapStore, StatsFollowEveryWriteWithoutScanningTheTables) {
   TempDir dir;
   const std::string path = dir.File("map.db");
@@ -881,7 +927,7 @@ TEST(SqliteMapStore, VehicleCalibrationsAreWrittenWithTheMapChangeAndReadBackAft
   }
 }
 
-TEST(SqliteMapStore, ASchemaFiveMapGainsTheVehiclesTableAndKeepsItsMap) {
+TEST(SqliteMapStore, ASchemaFiveMapGainsTheVehiclesTableAndRoomierBoxesAndKeepsItsMap) {
   TempDir dir;
   const std::string path = dir.File("map.db");
   {
@@ -892,17 +938,23 @@ TEST(SqliteMapStore, ASchemaFiveMapGainsTheVehiclesTableAndKeepsItsMap) {
     delta.landmarks[7] = MakeLandmark(7, 48.7, 2.17, 1);
     ASSERT_TRUE(store->CommitPassageApplied(id, delta, PassageResult()).ok());
   }
-  // Back to the file schema 5 wrote: migration 5 -> 6 only adds the vehicles table.
-  ASSERT_EQ(LatestSchemaVersion(), 6);
+  // Back to the file schema 5 wrote: migration 5 -> 6 only adds the vehicles table, 6 -> 7 widens
+  // the R*Tree boxes, which schema 5 wrote as points.
+  ASSERT_EQ(LatestSchemaVersion(), 7);
   {
     auto db = SqliteConnection::Open(path, 5000, /*read_only=*/false);
     ASSERT_TRUE(db.ok()) << db.status();
-    ASSERT_TRUE((*db)->Exec("DROP TABLE vehicles; PRAGMA user_version = 5;").ok());
+    ASSERT_TRUE((*db)->Exec("DROP TABLE vehicles; UPDATE landmark_boxes SET min_lat = 48.7, max_lat = 48.7, "
+                            "min_lon = 2.17, max_lon = 2.17; PRAGMA user_version = 5;")
+                    .ok());
   }
   ASSERT_EQ(SqlInt(path, "SELECT COUNT(*) FROM sqlite_master WHERE name = 'vehicles'"), 0);
+  const std::string box_sql = "SELECT (max_lat - min_lat) * 1e9 FROM landmark_boxes WHERE id = 7";
+  ASSERT_LT(SqlInt(path, box_sql), 10000);  // float rounding only
   auto store = OpenStore(path);
   ASSERT_NE(store, nullptr);
-  EXPECT_EQ(SqlInt(path, "PRAGMA user_version"), 6);
+  EXPECT_EQ(SqlInt(path, "PRAGMA user_version"), 7);
+  EXPECT_GT(SqlInt(path, box_sql), 19000);  // 2e-5 degrees
   auto none = store->ListVehicles();
   ASSERT_TRUE(none.ok()) << none.status();
   EXPECT_TRUE(none->empty());

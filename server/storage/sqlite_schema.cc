@@ -323,6 +323,14 @@ const std::vector<Migration>& Migrations() {
       ) STRICT, WITHOUT ROWID;
       )sql",
        nullptr},
+      // 6 -> 7: R*Tree boxes reach 1e-5 degrees (about a metre) around the position they were
+      // written for, so that a landmark's box is rewritten only once it leaves it
+      // (SqliteMapStore::WriteLandmark); region reads test the exact position on the row.
+      {R"sql(
+      UPDATE landmark_boxes SET min_lat = min_lat - 1e-5, max_lat = max_lat + 1e-5,
+                                min_lon = min_lon - 1e-5, max_lon = max_lon + 1e-5;
+      )sql",
+       nullptr},
   };
   return kMigrations;
 }
