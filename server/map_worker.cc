@@ -228,12 +228,17 @@ MapWorker::Computation MapWorker::ComputeOnCommittedMap(
     const std::function<void()>& plan) {
   std::optional<MapReadRecorder> recorder;
   {
-    // The plan and the version it is computed against, together: commits hold state_mu_.
+    // The plan and the version it is computed against, together. A commit under way (between
+    // its validation and RecordCommitted, without state_mu_) may already show in the store's map:
+    // the computation still counts as made against the version before it, and is checked against
+    // that commit's changes like any computation that began before a commit.
     std::lock_guard<std::mutex> lock(state_mu_);
     if (plan) plan();
-    recorder.emplace([this](const std::function<void(const MapReaderInterface&)>& read) {
-      store_->ReadCommittedMap([&](const MapState& map) { read(map); });
-    });
+    recorder.emplace(
+        [this](const std::function<void(const MapReaderInterface&)>& read) {
+          store_->ReadCommittedMap([&](const MapState& map) { read(map); });
+        },
+        committed_version_, committed_last_factor_id_);
   }
   Computation c;
   c.base_version = recorder->version();
@@ -291,6 +296,7 @@ void MapWorker::Apply(const ClaimedPassage& claimed, const Passage& passage) {
   mode.vouched = record.released;
   mode.sequential = record.interruptions >= options_.sequential_after_interruptions;
   std::optional<Computation> computed;
+  double commit_wait_ms = 0.0;  // waiting for other workers' commits
   const auto apply_start = std::chrono::steady_clock::now();
   while (true) {
     if (!computed) {
@@ -305,10 +311,20 @@ void MapWorker::Apply(const ClaimedPassage& claimed, const Passage& passage) {
     bool transient = false;
     bool reload = false;
     {
+      // Commits one at a time, from validation to RecordCommitted; state_mu_ only where the
+      // worker's state is read or changed, so that other workers begin their next computations
+      // while the durable transaction runs.
+      const auto wait_start = std::chrono::steady_clock::now();
+      std::unique_lock<std::mutex> commit(commit_mu_);
       std::unique_lock<std::mutex> state(state_mu_);
+      commit_wait_ms += std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - wait_start).count();
+      const auto unlock = [&] {
+        state.unlock();
+        commit.unlock();
+      };
       if (!StillValid(*computed)) {
         // A change committed meanwhile touched what it read: computed again against the map with it.
-        state.unlock();
+        unlock();
         computed.reset();
         ++recomputed;
         if (stopping_) {
@@ -328,20 +344,20 @@ void MapWorker::Apply(const ClaimedPassage& claimed, const Passage& passage) {
         // "map information over 59 landmarks is not positive definite", while the same passages
         // applied one at a time in that commit order refused none, and 40 further runs of the test
         // none: not explained.)
-        state.unlock();
+        unlock();
         computed.reset();
         ++recomputed;
         continue;
       }
       if (status.code() == absl::StatusCode::kInvalidArgument) {
-        state.unlock();
+        unlock();
         Finish(record, PassageState::kRejected, std::string(status.message()));
         return;
       }
       if (status.code() == absl::StatusCode::kFailedPrecondition) {
         // The map's checks refused it (see ComputePassageUpdate): the same data would be refused
         // again, so it waits for an operator (ResolvePassage) instead of being retried.
-        state.unlock();
+        unlock();
         Finish(record, PassageState::kQuarantined, std::string(status.message()));
         return;
       }
@@ -355,22 +371,24 @@ void MapWorker::Apply(const ClaimedPassage& claimed, const Passage& passage) {
         delta.folded_factors.clear();
         std::vector<MapUpdater::PassageKey> folded;
         MapWriteSet written;
-        store_->ReadCommittedMap([&](const MapState& map) {  // as before this commit: commits hold state_mu_
+        store_->ReadCommittedMap([&](const MapState& map) {  // as before this commit: commits hold commit_mu_
           updater_->AddFolding(map, &delta);
           folded = WhollyFolded(map, delta.folded_factors);
           written = WriteSetOf(delta, map);
         });
+        state.unlock();
         const PassageResult result = ResultFromSummary(summary, options_.update.strategy);
         const auto commit_start = std::chrono::steady_clock::now();
         absl::Status committed = store_->CommitPassageApplied(record.id, delta, result);
         const double commit_ms =
             std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - commit_start).count();
         if (committed.ok()) {
+          state.lock();
           RecordCommitted(delta, std::move(written));
           updater_->Applied(passage, delta);
           const bool trim = ++commits_since_trim_ >= kTrimEveryCommits;
           if (trim) commits_since_trim_ = 0;
-          state.unlock();
+          unlock();
           Yield();
           PrunePayloads(folded);
           // An update allocates and frees hundreds of MB of matrices, and glibc keeps freed pages
@@ -390,10 +408,11 @@ void MapWorker::Apply(const ClaimedPassage& claimed, const Passage& passage) {
           spdlog::info(
               "event=applied passage={} vehicle={} id={} nodes={} subgraphs={} landmarks_updated={} "
               "landmarks_created={} landmarks_conditioned={} solve_ms={:.1f} total_ms={:.1f} commit_ms={:.1f} "
-              "factors_added={} map_version={} recomputed={} trim_ms={:.1f}",
+              "factors_added={} map_version={} recomputed={} commit_wait_ms={:.1f} trim_ms={:.1f}",
               record.passage_id, record.vehicle_id, record.id, result.nodes, result.subgraphs,
               result.landmarks_updated, result.landmarks_created, result.landmarks_conditioned, result.solve_ms,
-              result.total_ms, commit_ms, delta.added_factors.size(), delta.version, recomputed, trim_ms);
+              result.total_ms, commit_ms, delta.added_factors.size(), delta.version, recomputed, commit_wait_ms,
+              trim_ms);
           RelinearizeStale();
           return;
         }
@@ -438,6 +457,7 @@ absl::StatusOr<PassageUpdate> MapWorker::CommitChange(
     MapUpdateOptions options;
     Computation c = ComputeOnCommittedMap([&](const MapReaderInterface& map) { return compute(map, options); },
                                           [&] { options = updater_->options(); });
+    std::lock_guard<std::mutex> one_commit(commit_mu_);  // rare: held with state_mu_ for the whole commit
     std::lock_guard<std::mutex> state(state_mu_);
     if (!StillValid(c)) continue;
     if (!c.update.ok()) return c.update.status();

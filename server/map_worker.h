@@ -158,7 +158,10 @@ class MapWorker {
   MapStoreInterface* const store_;
   const MapWorkerOptions options_;
 
-  // The updater and what was committed; held across a commit (commits are one at a time). Taken
+  // One commit at a time: held from a computation's validation until the commit is recorded.
+  // Taken before state_mu_, never inside it.
+  std::mutex commit_mu_;
+  // The updater and what was committed; not held during a commit's durable transaction. Taken
   // before the store's map lock (ReadCommittedMap), never inside it.
   std::mutex state_mu_;
   std::unique_ptr<MapUpdater> updater_;

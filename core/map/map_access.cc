@@ -67,6 +67,9 @@ MapReadRecorder::MapReadRecorder(MapAccess access) : access_(std::move(access)) 
   });
 }
 
+MapReadRecorder::MapReadRecorder(MapAccess access, int64_t version, int64_t last_factor_id)
+    : access_(std::move(access)), last_factor_id_(last_factor_id), version_(version) {}
+
 MapReadRecorder::MapReadRecorder(const MapReaderInterface& map)
     : MapReadRecorder([&map](const std::function<void(const MapReaderInterface&)>& read) { read(map); }) {}
 

@@ -73,6 +73,11 @@ using MapAccess = std::function<void(const std::function<void(const MapReaderInt
 class MapReadRecorder : public MapReaderInterface {
  public:
   explicit MapReadRecorder(MapAccess access);
+  // A computation that counts as made against the map at `version` (whose last factor id was
+  // `last_factor_id`) although `access` may already show a later one: a commit under way when it
+  // starts. Sound when it is checked, as any computation is, against every change committed since
+  // `version`: what it read of a later version is what those changes wrote.
+  MapReadRecorder(MapAccess access, int64_t version, int64_t last_factor_id);
   // Over a map that does not change meanwhile.
   explicit MapReadRecorder(const MapReaderInterface& map);
 
@@ -84,7 +89,7 @@ class MapReadRecorder : public MapReaderInterface {
   void AppendFactorIds(LandmarkId id, std::vector<int64_t>* out) const override;
   void AppendPassageFactorIds(const std::string& vehicle_id, const std::string& passage_id,
                               std::vector<int64_t>* out) const override;
-  // As when the recorder was made.
+  // Of the map the computation counts as made against (as when the recorder was made, unless given).
   int64_t last_factor_id() const override { return last_factor_id_; }
   int64_t version() const override { return version_; }
   const VehicleCalibration* FindVehicle(const std::string& vehicle_id) const override;

@@ -1,5 +1,5 @@
 # Shared by the benches that apply passages through a real mapd on loopback (source it).
-#   copy_map MAP_DB DIR       MAP_DB (and MAP_DB.queue) copied to DIR/map.db, the original untouched
+#   copy_map MAP_DB DIR       MAP_DB (and MAP_DB.queue) copied to DIR/map.db and synced, the original untouched
 #   start_mapd MAPD LOG ARGS  mapd started in the background on ARGS, its log in LOG; returns once it
 #                             listens (MAPD_PID), or exits with its log when it stops first
 #   finished_count LOG        passages that reached a final state (applied, rejected, failed, quarantined)
@@ -8,6 +8,9 @@
 copy_map() {
   cp "$1" "$2/map.db"
   if [[ -f "$1.queue" ]]; then cp "$1.queue" "$2/map.db.queue"; fi
+  # The copies' hundreds of MB of dirty pages would otherwise be written back during the measured
+  # run, into its first commits' fsyncs.
+  sync
 }
 
 start_mapd() {
