@@ -140,6 +140,9 @@ void MapWorker::Stop() {
   wake_cv_.notify_all();
   for (std::thread& t : threads_) t.join();
   threads_.clear();
+  std::lock_guard<std::mutex> lock(claim_mu_);
+  for (const Claimed& c : lookahead_) Release(c.claimed.record);
+  lookahead_.clear();
 }
 
 bool MapWorker::WaitForWork() {
@@ -155,31 +158,56 @@ void MapWorker::Run() {
     spdlog::warn("event=worker_nice_failed nice={} errno={}", options_.nice, errno);
   }
   while (!stopping_) {
-    std::optional<ClaimedPassage> claimed;
+    std::optional<Claimed> next;
     {
       std::lock_guard<std::mutex> lock(claim_mu_);
       if (stopping_) break;
-      auto next = store_->ClaimNextPassage();
-      if (!next.ok()) {
-        spdlog::error("event=claim_failed error=\"{}\"", next.status().ToString());
-      } else if (next->has_value()) {
-        claimed = std::move(*next);
-      }
+      next = TakeNext();
     }
-    if (!claimed) {
+    if (!next) {
       if (!WaitForWork()) break;
       continue;
     }
-    Process(std::move(*claimed));
+    const int64_t id = next->claimed.record.id;
+    Process(*std::move(next));
+    std::lock_guard<std::mutex> lock(claim_mu_);
+    in_flight_.erase(id);
   }
 }
 
-void MapWorker::Process(ClaimedPassage claimed) {
-  absl::StatusOr<Passage> passage = DecodeStoredPassage(claimed.payload);
-  claimed.payload.clear();
-  const StoredPassage& record = claimed.record;
-  if (stopping_ && record.attempts <= options_.max_attempts) {
-    Finish(record, PassageState::kQueued, "");  // not started: back to the queue, in order
+std::optional<MapWorker::Claimed> MapWorker::TakeNext() {
+  const size_t lookahead = options_.workers > 1 ? static_cast<size_t>(kLookaheadPerWorker * options_.workers) : 1;
+  while (lookahead_.size() < lookahead) {
+    auto next = store_->ClaimNextPassage();
+    if (!next.ok()) {
+      spdlog::error("event=claim_failed error=\"{}\"", next.status().ToString());
+      break;
+    }
+    if (!next->has_value()) break;
+    Claimed& c = lookahead_.emplace_back();
+    c.claimed = **std::move(next);
+    c.passage = DecodeStoredPassage(c.claimed.payload);
+    c.claimed.payload.clear();
+    if (c.passage.ok()) c.schedule.route = FootprintOf(*c.passage);
+  }
+  if (lookahead_.empty()) return std::nullopt;
+  std::vector<ScheduleCandidate> candidates;
+  for (const Claimed& c : lookahead_) candidates.push_back(c.schedule);
+  std::vector<const RouteFootprint*> in_flight;
+  for (const auto& [id, route] : in_flight_) in_flight.push_back(&route);
+  const size_t pick = PickNextPassage(candidates, in_flight, kMaxPassedOver);
+  for (size_t i = 0; i < pick; ++i) ++lookahead_[i].schedule.passed_over;
+  Claimed taken = std::move(lookahead_[pick]);
+  lookahead_.erase(lookahead_.begin() + static_cast<std::ptrdiff_t>(pick));
+  if (taken.schedule.route) in_flight_[taken.claimed.record.id] = *taken.schedule.route;
+  return taken;
+}
+
+void MapWorker::Process(Claimed claimed) {
+  const absl::StatusOr<Passage>& passage = claimed.passage;
+  const StoredPassage& record = claimed.claimed.record;
+  if (stopping_) {
+    Release(record);
   } else if (!passage.ok()) {
     Finish(record, PassageState::kRejected, std::string(passage.status().message()));
   } else if (record.interruptions >= options_.max_interruptions) {
@@ -191,7 +219,7 @@ void MapWorker::Process(ClaimedPassage claimed) {
     Finish(record, PassageState::kFailed,
            absl::StrCat("gave up after ", record.attempts - 1, " attempts; last: ", record.error));
   } else {
-    Apply(claimed, *passage);
+    Apply(claimed.claimed, *passage);
   }
 }
 
@@ -534,6 +562,16 @@ absl::Status MapWorker::Relinearize(const MapUpdater::PassageKey& key) {
                record->passage_id, record->vehicle_id, record->id, summary.landmarks_updated,
                summary.landmarks_conditioned, summary.total_ms, summary.map_version);
   return absl::OkStatus();
+}
+
+void MapWorker::Release(const StoredPassage& record) {
+  if (absl::Status s = store_->ReleaseClaimedPassage(record.id); !s.ok()) {
+    // It stays processing: the next start queues it again, as after a crash.
+    spdlog::error("event=release_failed passage={} id={} error=\"{}\"", record.passage_id, record.id, s.ToString());
+    return;
+  }
+  spdlog::info("event=returned passage={} vehicle={} id={} reason=\"not started\"", record.passage_id, record.vehicle_id,
+               record.id);
 }
 
 void MapWorker::Finish(const StoredPassage& record, PassageState state, const std::string& reason) {

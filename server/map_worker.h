@@ -7,6 +7,7 @@
 #include <cstdint>
 #include <deque>
 #include <functional>
+#include <map>
 #include <memory>
 #include <mutex>
 #include <optional>
@@ -18,6 +19,7 @@
 #include "core/estimation/map_updater.h"
 #include "core/map/map_access.h"
 #include "core/map/map_state.h"
+#include "server/passage_schedule.h"
 #include "server/storage/map_store.h"
 
 namespace crowdmap {
@@ -38,7 +40,9 @@ struct MapWorkerOptions {
   // read (core/map/map_access.h), and is computed again otherwise. With one worker, passages are
   // applied in arrival order; with more, passages whose neighbourhoods do not overlap are applied
   // concurrently, and the map is the one the same passages applied one at a time in their commit
-  // order would give. Each worker's computation holds its own copy of the passage's matrices.
+  // order would give; each worker takes, among the next few queued passages, the one furthest from
+  // the passages being computed (passage_schedule.h). Each worker's computation holds its own copy
+  // of the passage's matrices.
   int workers = 1;
   static constexpr int kMaxWorkers = 64;
   // Attempts (including start-ups interrupted while processing) before a passage is failed.
@@ -114,10 +118,25 @@ class MapWorker {
   };
   static constexpr size_t kCommittedChangesKept = 64;
 
+  // A claimed passage, decoded, waiting for a worker.
+  struct Claimed {
+    ClaimedPassage claimed;  // its payload cleared once decoded
+    absl::StatusOr<Passage> passage = absl::UnknownError("not decoded");
+    ScheduleCandidate schedule;
+  };
+  // Passages claimed ahead of the workers, among which each takes the one furthest from the
+  // passages being computed (passage_schedule.h): kLookaheadPerWorker per worker when there are
+  // several, one otherwise (arrival order).
+  static constexpr int kLookaheadPerWorker = 2;
+  static constexpr int kMaxPassedOver = 8;
+
   void Run();
   // Waits for a wake-up or the idle poll; false when stopping.
   bool WaitForWork();
-  void Process(ClaimedPassage claimed);
+  // Under claim_mu_: the passage this worker applies next, its route recorded as in flight; none
+  // when the queue is empty.
+  std::optional<Claimed> TakeNext();
+  void Process(Claimed claimed);
   void Apply(const ClaimedPassage& claimed, const Passage& passage);
   // Runs `compute` against the committed map, which other workers' commits may change meanwhile,
   // and records what it read; `plan`, if given, runs first, under state_mu_ and at the version
@@ -150,6 +169,8 @@ class MapWorker {
   // failure is logged, never fatal.
   void PrunePayloads(const std::vector<MapUpdater::PassageKey>& folded);
   void Finish(const StoredPassage& record, PassageState state, const std::string& reason);
+  // A claimed passage not started, back to the queue (MapStoreInterface::ReleaseClaimedPassage).
+  void Release(const StoredPassage& record);
   // sched_yield() when options_.yield.
   void Yield() const;
   // Loads updater_ (with the passages its joint solves still need) from the store.
@@ -176,7 +197,9 @@ class MapWorker {
   std::mutex wake_mu_;
   std::condition_variable wake_cv_;
   bool wake_pending_ = false;
-  std::mutex claim_mu_;  // one claim at a time
+  std::mutex claim_mu_;  // one claim at a time; guards the two below
+  std::deque<Claimed> lookahead_;
+  std::map<int64_t, RouteFootprint> in_flight_;  // routes of the passages being computed, by id
 
   std::vector<std::thread> threads_;
 };

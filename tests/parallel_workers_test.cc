@@ -281,6 +281,53 @@ TEST(ParallelWorkers, AKillWhileTwoWorkersApplyLosesNothingAndAppliesNothingTwic
   std::printf("applied before the kill: %d of %zu\n", applied_before_kill, passages.size());
 }
 
+// Two workers claim passages ahead of their computations (to take one far from the other's): a stop
+// puts those back on the queue, not started and not counted, instead of leaving them processing
+// for the next start to count as interrupted. The passages are then all applied by the next start.
+TEST(ParallelWorkers, AStopPutsThePassagesClaimedAheadBackUncounted) {
+  const std::vector<Passage> passages = CityPassages(16);
+  TempDir dir;
+  MapServerOptions options = TestServerOptions(dir.File("map.db"));
+  options.worker.workers = 2;
+  options.worker.update = CityUpdateOptions();
+  options.limits.vehicle_uploads_per_s = 0;
+  {
+    auto server = StartTestServer(options);
+    ASSERT_NE(server, nullptr);
+    MockVehicle vehicle(server->address());
+    for (const Passage& p : passages) ASSERT_TRUE(vehicle.Upload(p).ok());
+    for (int i = 0; i < 20000; ++i) {
+      auto info = vehicle.GetMapInfo();
+      if (info.ok() && info->passages_applied() >= 2) break;
+    }
+    server->Shutdown(std::chrono::milliseconds(0));
+  }
+  {
+    auto store = CreateSqliteMapStore(dir.File("map.db"));
+    ASSERT_TRUE(store.ok()) << store.status();
+    PassageQuery query;
+    query.limit = 100;
+    auto records = (*store)->ListPassages(query);
+    ASSERT_TRUE(records.ok()) << records.status();
+    ASSERT_EQ(records->size(), passages.size());
+    int queued = 0;
+    for (const StoredPassage& r : *records) {
+      EXPECT_NE(r.state, PassageState::kProcessing) << r.passage_id;
+      if (r.state != PassageState::kQueued) continue;
+      ++queued;
+      EXPECT_LE(r.attempts, 1) << r.passage_id;  // 1: its computation had begun
+    }
+    std::printf("queued after the stop: %d of %zu\n", queued, passages.size());
+    EXPECT_GT(queued, 0) << "the stop came too late to test anything";
+  }
+  auto server = StartTestServer(options);
+  ASSERT_NE(server, nullptr);
+  MockVehicle vehicle(server->address());
+  auto info = vehicle.WaitUntilIdle();
+  ASSERT_TRUE(info.ok()) << info.status();
+  EXPECT_EQ(info->passages_applied(), static_cast<int64_t>(passages.size()));
+}
+
 // The loop with the defaults: the young map's joint solves take all passages before them, so a
 // worker's joint solve is computed again whenever the other committed first.
 TEST(ParallelWorkers, JointSolvesOfTheYoungMapGiveTheMapOfTheirCommitOrder) {

@@ -67,6 +67,7 @@ class CachedMapStore : public MapStoreInterface {
     return inner_->RecordFailedAttempt(id, reason);
   }
   absl::StatusOr<int> RequeueProcessingPassages() override { return inner_->RequeueProcessingPassages(); }
+  absl::Status ReleaseClaimedPassage(int64_t id) override { return inner_->ReleaseClaimedPassage(id); }
   absl::Status LoadMap(MapState* map) override { return inner_->LoadMap(map); }
   bool ReadCommittedMap(const std::function<void(const MapState&)>& read) override;
   // Called with the map's version each time a commit reaches the map's reads (by the committing

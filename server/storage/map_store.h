@@ -161,6 +161,10 @@ class MapStoreInterface {
   // Ends a processing passage without a map change: state `final_state` (rejected or failed)
   // or queued (to retry), with the reason.
   virtual absl::Status FinishPassageWithoutChange(int64_t id, PassageState state, const std::string& reason) = 0;
+  // Puts a processing passage that was claimed but not started back on the queue, its claim not
+  // counted as an attempt (a worker stopping with passages claimed ahead). FailedPrecondition when
+  // it is not processing.
+  virtual absl::Status ReleaseClaimedPassage(int64_t id) = 0;
   // Records a failed attempt of a processing passage that stays processing (retried in place):
   // attempts + 1 and the reason. Returns the new attempt count.
   virtual absl::StatusOr<int> RecordFailedAttempt(int64_t id, const std::string& reason) = 0;

@@ -38,6 +38,7 @@ class SqliteMapStore : public MapStoreInterface {
                                             PassageState to, bool released) override;
   absl::StatusOr<int> RecordFailedAttempt(int64_t id, const std::string& reason) override;
   absl::StatusOr<int> RequeueProcessingPassages() override;
+  absl::Status ReleaseClaimedPassage(int64_t id) override;
 
   absl::Status LoadMap(MapState* map) override;
   absl::StatusOr<LandmarkPage> QueryRegion(const BoundingBox& box, LandmarkId after_id, int limit,

@@ -219,6 +219,13 @@ TEST(SqliteMapStore, ClaimTakesOldestQueuedAndCountsAttempts) {
   EXPECT_EQ((*first)->record.state, PassageState::kProcessing);
   EXPECT_EQ((*first)->record.attempts, 1);
   EXPECT_EQ((*first)->payload, "one");
+  // Released unstarted, its claim is not counted, and it is taken again first.
+  ASSERT_TRUE(store->ReleaseClaimedPassage((*first)->record.id).ok());
+  EXPECT_EQ(store->ReleaseClaimedPassage((*first)->record.id).code(), absl::StatusCode::kFailedPrecondition);
+  first = store->ClaimNextPassage();
+  ASSERT_TRUE(first.ok() && first->has_value());
+  EXPECT_EQ((*first)->record.passage_id, "1");
+  EXPECT_EQ((*first)->record.attempts, 1);
   // A retry goes back to the queue and is taken again before the younger passage.
   ASSERT_TRUE(store->FinishPassageWithoutChange((*first)->record.id, PassageState::kQueued, "try again").ok());
   auto retry = store->ClaimNextPassage();

@@ -295,6 +295,19 @@ absl::Status SqliteMapStore::FinishPassageWithoutChange(int64_t id, PassageState
   return txn->Commit();
 }
 
+absl::Status SqliteMapStore::ReleaseClaimedPassage(int64_t id) {
+  SqliteFile::Writer writer = queue_->LockWriter();
+  SqliteConnection* db = writer.db;
+  auto txn = SqliteWriteTransaction::Begin(db);
+  if (!txn.ok()) return txn.status();
+  auto update = db->Prepare("UPDATE passages SET state = 1, attempts = MAX(attempts - 1, 0) WHERE id = ?1 AND state = 2");
+  if (!update.ok()) return update.status();
+  update->Bind(1, id);
+  if (auto s = update->Run(); !s.ok()) return s;
+  if (db->Changes() != 1) return absl::FailedPreconditionError(absl::StrCat("passage id ", id, " is not processing"));
+  return txn->Commit();
+}
+
 absl::StatusOr<int> SqliteMapStore::RecordFailedAttempt(int64_t id, const std::string& reason) {
   SqliteFile::Writer writer = queue_->LockWriter();
   SqliteConnection* db = writer.db;
