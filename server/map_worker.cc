@@ -103,6 +103,7 @@ absl::Status MapWorker::LoadUpdater() {
   }
   MapUpdateOptions update = options_.update;
   if (options_.yield) update.yield_point = [this] { Yield(); };
+  std::lock_guard<std::mutex> no_commit(commit_mu_);  // the map and the updater at one version
   std::lock_guard<std::mutex> lock(state_mu_);
   const bool kept_in_memory = store_->ReadCommittedMap([&](const MapState& map) {
     updater_ = std::make_unique<MapUpdater>(update, std::move(kept), applied_count, &map);
@@ -522,6 +523,7 @@ void MapWorker::RelinearizeStale() {
   for (int round = 0; round < options_.update.relinearizations_per_passage && !stopping_; ++round) {
     std::optional<MapUpdater::PassageKey> key;
     {
+      std::lock_guard<std::mutex> no_commit(commit_mu_);  // the map and the updater at one version
       std::lock_guard<std::mutex> state(state_mu_);
       store_->ReadCommittedMap([&](const MapState& map) { key = updater_->StalestPassage(map, relinearizing_); });
       if (key) relinearizing_.insert(*key);
