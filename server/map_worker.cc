@@ -142,7 +142,7 @@ void MapWorker::Stop() {
   for (std::thread& t : threads_) t.join();
   threads_.clear();
   std::lock_guard<std::mutex> lock(claim_mu_);
-  for (const Claimed& c : lookahead_) Release(c.claimed.record);
+  for (const Claimed& c : lookahead_) Release(c.record);
   lookahead_.clear();
 }
 
@@ -169,7 +169,7 @@ void MapWorker::Run() {
       if (!WaitForWork()) break;
       continue;
     }
-    const int64_t id = next->claimed.record.id;
+    const int64_t id = next->record.id;
     Process(*std::move(next));
     std::lock_guard<std::mutex> lock(claim_mu_);
     in_flight_.erase(id);
@@ -186,9 +186,8 @@ std::optional<MapWorker::Claimed> MapWorker::TakeNext() {
     }
     if (!next->has_value()) break;
     Claimed& c = lookahead_.emplace_back();
-    c.claimed = **std::move(next);
-    c.passage = DecodeStoredPassage(c.claimed.payload);
-    c.claimed.payload.clear();
+    c.record = std::move((*next)->record);
+    c.passage = DecodeStoredPassage((*next)->payload);
     if (c.passage.ok()) c.schedule.route = FootprintOf(*c.passage);
   }
   if (lookahead_.empty()) return std::nullopt;
@@ -200,13 +199,13 @@ std::optional<MapWorker::Claimed> MapWorker::TakeNext() {
   for (size_t i = 0; i < pick; ++i) ++lookahead_[i].schedule.passed_over;
   Claimed taken = std::move(lookahead_[pick]);
   lookahead_.erase(lookahead_.begin() + static_cast<std::ptrdiff_t>(pick));
-  if (taken.schedule.route) in_flight_[taken.claimed.record.id] = *taken.schedule.route;
+  if (taken.schedule.route) in_flight_[taken.record.id] = *taken.schedule.route;
   return taken;
 }
 
 void MapWorker::Process(Claimed claimed) {
   const absl::StatusOr<Passage>& passage = claimed.passage;
-  const StoredPassage& record = claimed.claimed.record;
+  const StoredPassage& record = claimed.record;
   if (stopping_) {
     Release(record);
   } else if (!passage.ok()) {
@@ -220,7 +219,7 @@ void MapWorker::Process(Claimed claimed) {
     Finish(record, PassageState::kFailed,
            absl::StrCat("gave up after ", record.attempts - 1, " attempts; last: ", record.error));
   } else {
-    Apply(claimed.claimed, *passage);
+    Apply(record, *passage);
   }
 }
 
@@ -316,8 +315,7 @@ void MapWorker::PrunePayloads(const std::vector<MapUpdater::PassageKey>& folded)
   spdlog::info("event=payloads_pruned passages={} reason=\"factors folded into the map's base\"", *pruned);
 }
 
-void MapWorker::Apply(const ClaimedPassage& claimed, const Passage& passage) {
-  const StoredPassage& record = claimed.record;
+void MapWorker::Apply(const StoredPassage& record, const Passage& passage) {
   int attempts = record.attempts;
   int recomputed = 0;
   std::chrono::milliseconds pause(500);

@@ -120,7 +120,7 @@ class MapWorker {
 
   // A claimed passage, decoded, waiting for a worker.
   struct Claimed {
-    ClaimedPassage claimed;  // its payload cleared once decoded
+    StoredPassage record;
     absl::StatusOr<Passage> passage = absl::UnknownError("not decoded");
     ScheduleCandidate schedule;
   };
@@ -137,7 +137,7 @@ class MapWorker {
   // when the queue is empty.
   std::optional<Claimed> TakeNext();
   void Process(Claimed claimed);
-  void Apply(const ClaimedPassage& claimed, const Passage& passage);
+  void Apply(const StoredPassage& record, const Passage& passage);
   // Runs `compute` against the committed map, which other workers' commits may change meanwhile,
   // and records what it read; `plan`, if given, runs first, under state_mu_ and at the version
   // the computation starts from.
