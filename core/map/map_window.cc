@@ -17,7 +17,7 @@ namespace crowdmap {
 constexpr int kDenseWindowDims = 600;
 
 // CHOLMOD's supernodal factor, which Eigen's wrapper keeps to itself.
-class SupernodalLLT : public Eigen::CholmodSupernodalLLT<Eigen::SparseMatrix<double>, Eigen::Lower> {
+class SupernodalLLT : public Eigen::CholmodSupernodalLLT<Eigen::SparseMatrix<double>, Eigen::Upper> {
  public:
   explicit SupernodalLLT(const Eigen::SparseMatrix<double>& a) {
     FactorizeOnThisThreadOnly();
@@ -44,11 +44,12 @@ SupernodalArrays ArraysOf(const cholmod_factor& l) {
 
 }  // namespace
 
+// Factorisation of a window's information `a`, given by its upper triangle (UpperBlocks).
 class MapWindow::Factor {
  public:
   explicit Factor(const Eigen::SparseMatrix<double>& a) {
     if (a.rows() <= kDenseWindowDims) {
-      dense_ = Eigen::MatrixXd(a);
+      dense_ = Eigen::MatrixXd(a.transpose());
       ok_ = CholeskyInPlace(dense_);
       return;
     }
@@ -61,7 +62,7 @@ class MapWindow::Factor {
   // (or a part of it): CHOLMOD's symbolic analysis (the fill-reducing ordering) is reused.
   bool Refactorize(const Eigen::SparseMatrix<double>& a) {
     if (!sparse_) {
-      dense_ = Eigen::MatrixXd(a);
+      dense_ = Eigen::MatrixXd(a.transpose());
       ok_ = CholeskyInPlace(dense_);
       return ok_;
     }
@@ -284,35 +285,36 @@ class MapWindow::Factor {
 
 namespace {
 
-// A window's information by 2 x 2 blocks, lower triangle: every consumer (CHOLMOD, the dense
-// Cholesky, Takahashi's recursion) reads only that. Landmark i's columns hold its own block and
-// the blocks of the window landmarks linked to it that come after it (rows 2j and 2j + 1, j > i),
-// written straight into compressed columns (sorting and summing triplets cost as much as the
-// rest of the assembly).
-class LowerBlocks {
+// A window's information by 2 x 2 blocks, upper triangle, the form CHOLMOD's supernodal
+// factorisation takes with a single transpose (it permutes and transposes the upper triangle once,
+// the lower one twice). Landmark j's columns hold the blocks of the window landmarks linked to it
+// that come before it (rows 2i and 2i + 1, i < j), then its own block, written straight into
+// compressed columns (sorting and summing triplets cost as much as the rest of the assembly).
+// Its transpose is the lower triangle, which the dense Cholesky of a small window reads.
+class UpperBlocks {
  public:
-  explicit LowerBlocks(int n) : diagonal_(n, Eigen::Matrix2d::Zero()), below_(n) {}
+  explicit UpperBlocks(int n) : diagonal_(n, Eigen::Matrix2d::Zero()), above_(n) {}
 
-  void AddDiagonal(int i, const Eigen::Matrix2d& block) { diagonal_[i] += block; }
-  // The block of a link between i and j > i at (2j, 2i): each link once.
-  void AddBelow(int i, int j, const Eigen::Matrix2d& block) { below_[i].push_back({j, block}); }
+  void AddDiagonal(int j, const Eigen::Matrix2d& block) { diagonal_[j] += block; }
+  // The block of a link between i < j at (2i, 2j): each link once.
+  void AddAbove(int i, int j, const Eigen::Matrix2d& block) { above_[j].push_back({i, block}); }
   // Sorts each column's rows; call once all links are in, before Add and ToSparse.
   void SortRows() {
-    for (auto& column : below_) {
-      std::sort(column.begin(), column.end(), [](const Below& x, const Below& y) { return x.row < y.row; });
+    for (auto& column : above_) {
+      std::sort(column.begin(), column.end(), [](const Above& x, const Above& y) { return x.row < y.row; });
     }
   }
-  // Adds `block` at (2i, 2j), i >= j (after SortRows). True when no block was there: the pattern
+  // Adds `block` at (2i, 2j), i <= j (after SortRows). True when no block was there: the pattern
   // grew.
   bool Add(int i, int j, const Eigen::Matrix2d& block) {
     if (i == j) {
-      diagonal_[i] += block;
+      diagonal_[j] += block;
       return false;
     }
-    auto& column = below_[j];
-    auto it = std::lower_bound(column.begin(), column.end(), i, [](const Below& x, int row) { return x.row < row; });
+    auto& column = above_[j];
+    auto it = std::lower_bound(column.begin(), column.end(), i, [](const Above& x, int row) { return x.row < row; });
     if (it == column.end() || it->row != i) {
-      column.insert(it, Below{i, block});
+      column.insert(it, Above{i, block});
       return true;
     }
     it->value += block;
@@ -321,25 +323,25 @@ class LowerBlocks {
   Eigen::SparseMatrix<double> ToSparse() const {
     const int n = static_cast<int>(diagonal_.size());
     size_t nnz = 0;
-    for (const auto& column : below_) nnz += 3 + 8 * column.size();
+    for (const auto& column : above_) nnz += 3 + 8 * column.size();
     Eigen::SparseMatrix<double> out(2 * n, 2 * n);
     out.resizeNonZeros(static_cast<Eigen::Index>(nnz));
     int* outer = out.outerIndexPtr();
     int* inner = out.innerIndexPtr();
     double* value = out.valuePtr();
     int at = 0;
-    for (int i = 0; i < n; ++i) {
+    for (int j = 0; j < n; ++j) {
       for (int c = 0; c < 2; ++c) {
-        outer[2 * i + c] = at;
-        for (int r = c; r < 2; ++r) {
-          inner[at] = 2 * i + r;
-          value[at++] = diagonal_[i](r, c);
-        }
-        for (const Below& b : below_[i]) {
+        outer[2 * j + c] = at;
+        for (const Above& a : above_[j]) {
           for (int r = 0; r < 2; ++r) {
-            inner[at] = 2 * b.row + r;
-            value[at++] = b.value(r, c);
+            inner[at] = 2 * a.row + r;
+            value[at++] = a.value(r, c);
           }
+        }
+        for (int r = 0; r <= c; ++r) {
+          inner[at] = 2 * j + r;
+          value[at++] = diagonal_[j](r, c);
         }
       }
     }
@@ -348,12 +350,12 @@ class LowerBlocks {
   }
 
  private:
-  struct Below {
-    int row;  // the landmark below the diagonal
+  struct Above {
+    int row;  // the landmark above the diagonal
     Eigen::Matrix2d value;
   };
   std::vector<Eigen::Matrix2d> diagonal_;
-  std::vector<std::vector<Below>> below_;
+  std::vector<std::vector<Above>> above_;
 };
 
 // Information of a positive semi-definite `info` on the entries `keep` once the others are
@@ -427,7 +429,7 @@ absl::StatusOr<MapWindow> MapWindow::Build(const MapReaderInterface& map, const 
   if (n == 0) return w;
   // The right-hand side only for an estimate: a landmark's offset is a geodesic computation, and a
   // covariance read visits every link that leaves the window.
-  LowerBlocks blocks(n);
+  UpperBlocks blocks(n);
   Eigen::VectorXd rhs = Eigen::VectorXd::Zero(options.estimate ? 2 * n : 0);
   std::unordered_set<LandmarkId> edge;  // window landmarks linked to the outside
   for (int i = 0; i < n; ++i) {
@@ -437,7 +439,7 @@ absl::StatusOr<MapWindow> MapWindow::Build(const MapReaderInterface& map, const 
     map.ForEachLink(a, [&](LandmarkId b, const InformationBlock& block) {
       const int j = w.index(b);
       if (j > i) {
-        blocks.AddBelow(i, j, block.value.transpose());  // the block (b, a)
+        blocks.AddAbove(i, j, block.value);  // the block (a, b)
       } else if (j < 0) {
         if (options.estimate) rhs.segment<2>(2 * i) -= block.value * map.FindLandmark(b)->Offset();
         edge.insert(a);
@@ -501,7 +503,7 @@ absl::StatusOr<MapWindow> MapWindow::Build(const MapReaderInterface& map, const 
     const Eigen::MatrixXd schur = SchurComplement(f.information, keep, other);
     for (size_t a = 0; a < keep_index.size(); ++a) {
       for (size_t b = 0; b < keep_index.size(); ++b) {
-        if (keep_index[a] < keep_index[b]) continue;  // the lower triangle
+        if (keep_index[a] > keep_index[b]) continue;  // the upper triangle
         const Eigen::Matrix2d conditional = f.information.block<2, 2>(keep[2 * a], keep[2 * b]);
         pattern_grew |= blocks.Add(keep_index[a], keep_index[b], schur.block<2, 2>(2 * a, 2 * b) - conditional);
       }
@@ -577,7 +579,7 @@ absl::StatusOr<Eigen::MatrixXd> MapWindow::Covariance(const std::vector<Landmark
 }
 
 absl::StatusOr<Eigen::MatrixXd> MapWindow::FullCovariance() const {
-  Eigen::MatrixXd cov(covariance_information_);
+  Eigen::MatrixXd cov(covariance_information_.transpose());
   if (!CholeskyInPlace(cov)) return absl::FailedPreconditionError("map information is not positive definite");
   InverseFromCholeskyInPlace(cov);
   if (!cov.allFinite()) return absl::InternalError("map covariance is not finite");

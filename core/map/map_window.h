@@ -71,7 +71,7 @@ class MapWindow {
   std::unordered_map<LandmarkId, int> index_;
   bool closed_ = true;
   Eigen::VectorXd offsets_;
-  Eigen::SparseMatrix<double> covariance_information_;  // the (conservative) window information, lower triangle
+  Eigen::SparseMatrix<double> covariance_information_;  // the (conservative) window information, upper triangle
   std::shared_ptr<const Factor> covariance_factor_;
 };
 
