@@ -134,13 +134,14 @@ absl::Status HttpViewerOptions::Validate() const {
 
 absl::StatusOr<std::unique_ptr<HttpViewer>> HttpViewer::Start(const HttpViewerOptions& options,
                                                               MapStoreInterface* store, const Authenticator* auth,
-                                                              const MapUpdateOptions& update) {
+                                                              const MapUpdateOptions& update, const MapWorker* worker) {
   if (absl::Status s = options.Validate(); !s.ok()) return s;
   std::unique_ptr<HttpViewer> viewer(new HttpViewer());
   viewer->options_ = options;
   viewer->store_ = store;
   viewer->auth_ = auth;
   viewer->update_ = update;
+  viewer->worker_ = worker;
 
   mg_init_library(0);
   // civetweb wants "host:port" as "ip:port" (no brackets for IPv4; "[::1]:port" for IPv6).
@@ -245,7 +246,7 @@ HttpResponse HttpViewer::Info() const {
   absl::StatusOr<MapStats> stats = store_->GetStats();
   if (!stats.ok()) return FromStatus(stats.status());
   pb::MapInfo info;
-  MapInfoToProto(*stats, update_, &info);
+  MapInfoToProto(*stats, update_, worker_, &info);
   return Json(200, ToJson(info));
 }
 

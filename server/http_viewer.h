@@ -9,6 +9,7 @@
 #include "absl/status/statusor.h"
 #include "core/estimation/map_update_options.h"
 #include "server/auth.h"
+#include "server/map_worker.h"
 #include "server/storage/map_store.h"
 
 struct mg_context;
@@ -48,9 +49,11 @@ struct HttpResponse {
 // and its scripts carry no map data and are served to anyone.
 class HttpViewer {
  public:
-  // `store` and `auth` (null: authentication off) must outlive the viewer.
+  // `store`, `auth` (null: authentication off) and `worker` (null: none; /api/info reports what it
+  // owes) must outlive the viewer.
   static absl::StatusOr<std::unique_ptr<HttpViewer>> Start(const HttpViewerOptions& options, MapStoreInterface* store,
-                                                           const Authenticator* auth, const MapUpdateOptions& update);
+                                                           const Authenticator* auth, const MapUpdateOptions& update,
+                                                           const MapWorker* worker);
   ~HttpViewer();  // stops serving; waits for requests in progress
   HttpViewer(const HttpViewer&) = delete;
   HttpViewer& operator=(const HttpViewer&) = delete;
@@ -73,6 +76,7 @@ class HttpViewer {
   MapStoreInterface* store_ = nullptr;
   const Authenticator* auth_ = nullptr;
   MapUpdateOptions update_;
+  const MapWorker* worker_ = nullptr;
   mg_context* server_ = nullptr;
   int port_ = 0;
 };

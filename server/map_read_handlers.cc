@@ -22,7 +22,7 @@ void AddLandmarks(const LandmarkPage& page, Response* response) {
 
 }  // namespace
 
-void MapInfoToProto(const MapStats& stats, const MapUpdateOptions& update, pb::MapInfo* info) {
+void MapInfoToProto(const MapStats& stats, const MapUpdateOptions& update, const MapWorker* worker, pb::MapInfo* info) {
   info->set_map_version(stats.map_version);
   info->set_landmark_count(stats.landmark_count);
   info->set_factor_count(stats.factor_count);
@@ -40,6 +40,8 @@ void MapInfoToProto(const MapStats& stats, const MapUpdateOptions& update, pb::M
   info->set_relinearize_until_passages(update.relinearize_until_passages);
   info->set_max_subgraph_dim(update.max_subgraph_dim);
   info->set_window_hops(update.window_hops);
+  info->set_relinearize_sigmas(update.relinearize_sigmas);
+  info->set_relinearizations_due(worker != nullptr ? worker->relinearizations_due() : 0);
 }
 
 grpc::ServerUnaryReactor* MapService::GetTile(grpc::CallbackServerContext* ctx, const pb::GetTileRequest* request,
@@ -169,8 +171,9 @@ grpc::Status MapService::GetMapInfo(grpc::ServerContext* ctx, const pb::GetMapIn
   if (auto who = CheckAccess(context_->auth, *ctx, Permission::kReadMap, &log); !who.ok()) return log.Done(who.status());
   absl::StatusOr<MapStats> stats = context_->store->GetStats();
   if (!stats.ok()) return log.Done(stats.status());
-  MapInfoToProto(*stats, context_->update, response);
-  log.Add(absl::StrCat("map_version=", stats->map_version, " queue_depth=", stats->queue_depth()));
+  MapInfoToProto(*stats, context_->update, context_->worker, response);
+  log.Add(absl::StrCat("map_version=", stats->map_version, " queue_depth=", stats->queue_depth(),
+                       " relinearizations_due=", response->relinearizations_due()));
   return log.Done(absl::OkStatus());
 }
 

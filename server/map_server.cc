@@ -168,7 +168,7 @@ absl::StatusOr<std::unique_ptr<MapServer>> MapServer::Start(const MapServerOptio
   }
   if (!options.http_listen.empty()) {
     auto http = HttpViewer::Start(HttpViewerOptions{options.http_listen, options.viewer_basemap}, server->store_.get(),
-                                  server->auth_.get(), options.worker.update);
+                                  server->auth_.get(), options.worker.update, server->worker_.get());
     if (!http.ok()) return http.status();
     server->http_ = std::move(*http);
     if (auth_on && !IsLoopbackListen(options.http_listen)) {

@@ -40,7 +40,8 @@ struct MapServiceContext {
 };
 
 // GetMapInfo's answer: the store's counts and the estimator's settings (also the map viewer's).
-void MapInfoToProto(const MapStats& stats, const MapUpdateOptions& update, pb::MapInfo* info);
+// `worker` (null: none) gives what it still owes.
+void MapInfoToProto(const MapStats& stats, const MapUpdateOptions& update, const MapWorker* worker, pb::MapInfo* info);
 
 // mapservice.v1.MapService: one thin handler per RPC; conversion in wire_convert, errors through
 // ToGrpcStatus, one log line per request.

@@ -166,6 +166,7 @@ void MapWorker::Run() {
       next = TakeNext();
     }
     if (!next) {
+      if (RelinearizeOneWhileIdle()) continue;
       if (!WaitForWork()) break;
       continue;
     }
@@ -403,6 +404,11 @@ void MapWorker::Apply(const StoredPassage& record, const Passage& passage) {
           folded = WhollyFolded(map, delta.folded_factors);
           written = WriteSetOf(delta, map);
         });
+        if (options_.update.relinearize_sigmas > 0.0) {
+          // Owed before the passage shows as applied: a client that sees the queue empty sees it.
+          relinearizations_due_ = std::min(kMaxRelinearizationsDue,
+                                           relinearizations_due_.load() + options_.update.relinearizations_per_passage);
+        }
         state.unlock();
         const PassageResult result = ResultFromSummary(summary, options_.update.strategy);
         const auto commit_start = std::chrono::steady_clock::now();
@@ -440,7 +446,6 @@ void MapWorker::Apply(const StoredPassage& record, const Passage& passage) {
               result.landmarks_updated, result.landmarks_created, result.landmarks_conditioned, result.solve_ms,
               result.total_ms, commit_ms, delta.added_factors.size(), delta.version, recomputed, commit_wait_ms,
               trim_ms);
-          RelinearizeStale();
           return;
         }
         error = absl::StrCat("commit: ", committed.ToString());
@@ -516,30 +521,35 @@ absl::StatusOr<PassageUpdateSummary> MapWorker::Exclude(const StoredPassage& rec
   return summary;
 }
 
-void MapWorker::RelinearizeStale() {
-  if (options_.update.relinearize_sigmas <= 0.0) return;  // off: no lock taken
-  for (int round = 0; round < options_.update.relinearizations_per_passage && !stopping_; ++round) {
-    std::optional<MapUpdater::PassageKey> key;
-    {
-      std::lock_guard<std::mutex> no_commit(commit_mu_);  // the map and the updater at one version
-      std::lock_guard<std::mutex> state(state_mu_);
-      store_->ReadCommittedMap([&](const MapState& map) { key = updater_->StalestPassage(map, relinearizing_); });
-      if (key) relinearizing_.insert(*key);
+bool MapWorker::RelinearizeOneWhileIdle() {
+  if (relinearizations_due_.load() == 0) return false;  // also when off: no lock taken
+  std::optional<MapUpdater::PassageKey> key;
+  {
+    std::lock_guard<std::mutex> no_commit(commit_mu_);  // the map and the updater at one version
+    std::lock_guard<std::mutex> state(state_mu_);
+    if (relinearizations_due_.load() <= static_cast<int64_t>(relinearizing_.size())) return false;
+    store_->ReadCommittedMap([&](const MapState& map) { key = updater_->StalestPassage(map, relinearizing_); });
+    if (!key) {
+      // Nothing qualifies; what other workers are computing stays due until it is done.
+      relinearizations_due_ = static_cast<int64_t>(relinearizing_.size());
+      return false;
     }
-    if (!key) return;
-    absl::Status status = Relinearize(*key);
-    {
-      std::lock_guard<std::mutex> state(state_mu_);
-      relinearizing_.erase(*key);
-      if (stopping_) return;
-      if (!status.ok()) {
-        updater_->RelinearizationFailed(*key);
-        spdlog::warn("event=relinearization_failed passage={} vehicle={} error=\"{}\"", key->second, key->first,
-                     status.ToString());
-      }
-    }
-    if (options_.on_relinearized) options_.on_relinearized(status.ok());
+    relinearizing_.insert(*key);
   }
+  absl::Status status = Relinearize(*key);
+  {
+    std::lock_guard<std::mutex> state(state_mu_);
+    relinearizing_.erase(*key);
+    if (relinearizations_due_.load() > 0) --relinearizations_due_;
+    if (stopping_) return false;
+    if (!status.ok()) {
+      updater_->RelinearizationFailed(*key);
+      spdlog::warn("event=relinearization_failed passage={} vehicle={} error=\"{}\"", key->second, key->first,
+                   status.ToString());
+    }
+  }
+  if (options_.on_relinearized) options_.on_relinearized(status.ok());
+  return true;
 }
 
 absl::Status MapWorker::Relinearize(const MapUpdater::PassageKey& key) {

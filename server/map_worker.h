@@ -98,6 +98,11 @@ class MapWorker {
   // Takes an applied passage out of the map (ComputePassageExclusion, then CommitPassageExcluded),
   // like an update; runs on the calling thread. Unavailable when stopping.
   absl::StatusOr<PassageUpdateSummary> Exclude(const StoredPassage& record);
+  // Re-linearisations owed (MapUpdateOptions::relinearize_sigmas): relinearizations_per_passage
+  // for each passage applied, counted before its commit, until done or until no retained passage
+  // qualifies; 0 when off. With the queue empty (GetMapInfo's queue_depth) and this 0, the map
+  // changes no more until something arrives.
+  int64_t relinearizations_due() const { return relinearizations_due_.load(); }
 
  private:
   MapWorker(MapStoreInterface* store, const MapWorkerOptions& options) : store_(store), options_(options) {}
@@ -158,12 +163,14 @@ class MapWorker {
   absl::StatusOr<PassageUpdate> CommitChange(
       const std::function<absl::StatusOr<PassageUpdate>(const MapReaderInterface&, const MapUpdateOptions&)>& compute,
       const std::function<absl::Status(const MapDelta&)>& commit, const std::function<void(const MapDelta&)>& committed);
-  // Local re-linearisation (MapUpdateOptions::relinearize_sigmas), after each applied passage: up to
-  // relinearizations_per_passage times, the retained passage whose landmarks moved furthest since
-  // its factors were taken, beyond the threshold, is taken again at the map's current estimate
-  // (ComputePassageRelinearization, CommitPassageRelinearized). A failure is logged and that
-  // passage left until it is applied anew.
-  void RelinearizeStale();
+  // Local re-linearisation (MapUpdateOptions::relinearize_sigmas) while the queue is empty: if a
+  // re-linearisation is due, the retained passage whose landmarks moved furthest since its factors
+  // were taken, beyond the threshold, is taken again at the map's current estimate
+  // (ComputePassageRelinearization, CommitPassageRelinearized). False when none was due or none
+  // qualified (then none is due). A failure is logged, counted as done, and that passage left until
+  // it is applied anew. Queued passages come first: a worker with a backlog applies it at full
+  // speed and catches up on its re-linearisations (up to kMaxRelinearizationsDue) once it is idle.
+  bool RelinearizeOneWhileIdle();
   absl::Status Relinearize(const MapUpdater::PassageKey& key);
   // Deletes the stored uploads of `folded` passages (MapStoreInterface::PrunePassagePayloads); a
   // failure is logged, never fatal.
@@ -192,6 +199,9 @@ class MapWorker {
   static constexpr int kTrimEveryCommits = 16;
   int commits_since_trim_ = 0;
   std::set<MapUpdater::PassageKey> relinearizing_;  // re-linearisations being computed
+  // Owed, those being computed included; changed under state_mu_, read by GetMapInfo.
+  std::atomic<int64_t> relinearizations_due_{0};
+  static constexpr int64_t kMaxRelinearizationsDue = 256;
 
   std::atomic<bool> stopping_{false};
   std::mutex wake_mu_;

@@ -26,7 +26,8 @@ struct MapdConfig {
 absl::StatusOr<MapdConfig> ParseMapdConfig(const std::vector<std::string>& args);
 
 // The map update options mapd starts from before its settings are applied: MapUpdateOptions'
-// defaults with the camera yaw of each vehicle estimated.
+// defaults with the camera yaw of each vehicle estimated, the fleet's prior for a new vehicle's
+// yaw, and local re-linearisation (which mapd's worker does while its queue is empty).
 MapUpdateOptions MapdDefaultUpdateOptions();
 
 // Every effective setting as key=value pairs, for the log line at start.

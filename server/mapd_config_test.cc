@@ -116,7 +116,7 @@ TEST(MapdConfig, ReadsUpdateOptions) {
   auto bad_r = ParseWithEnvironment({}, {{"MAPD_RELINEARIZE_UNTIL_PASSAGES", "-3"}});
   ASSERT_FALSE(bad_r.ok());
   EXPECT_NE(bad_r.status().message().find("relinearize_until_passages"), std::string::npos) << bad_r.status();
-  EXPECT_EQ(c->server.worker.update.relinearize_sigmas, 0.0) << "local re-linearisation is off by default";
+  EXPECT_EQ(c->server.worker.update.relinearize_sigmas, 6.0) << "local re-linearisation, while the queue is empty";
   auto local = ParseWithEnvironment({"--relinearize-sigmas", "0.5"}, {{"MAPD_RELINEARIZATIONS_PER_PASSAGE", "2"}});
   ASSERT_TRUE(local.ok()) << local.status();
   EXPECT_EQ(local->server.worker.update.relinearize_sigmas, 0.5);

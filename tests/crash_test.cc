@@ -53,14 +53,14 @@ int Repeats() {
 
 TEST(MapdCrash, SigkillWhileApplyingLosesNothingAndAppliesNothingTwice) {
   const Scenario scenario = ShortScenario(10, 60.0);
-  const MapState expected = MapFromPassages(scenario, kPassages, MapdDefaultUpdateOptions());
+  const MapState expected = MapFromPassages(scenario, kPassages, ReplayableMapdUpdateOptions());
   int caught_processing = 0;
   for (int round = 0; round < Repeats(); ++round) {
     SCOPED_TRACE("round " + std::to_string(round));
     TempDir dir;
     const std::string db = dir.File("map.db");
     {
-      MapdProcess mapd(db, dir.File("mapd.log"));
+      MapdProcess mapd(db, dir.File("mapd.log"), /*port=*/0, ReplayableMapdFlags());
       ASSERT_TRUE(mapd.WaitReady());
       MockVehicle client(mapd.address());
       for (int i = 0; i < kPassages; ++i) ASSERT_TRUE(client.Upload(scenario.MakePassage(i)).ok());
@@ -68,7 +68,7 @@ TEST(MapdCrash, SigkillWhileApplyingLosesNothingAndAppliesNothingTwice) {
       const int status = mapd.Kill(SIGKILL);
       ASSERT_TRUE(WIFSIGNALED(status));
     }
-    MapdProcess mapd(db, dir.File("mapd.log"));
+    MapdProcess mapd(db, dir.File("mapd.log"), /*port=*/0, ReplayableMapdFlags());
     ASSERT_TRUE(mapd.WaitReady());
     MockVehicle client(mapd.address());
     // The vehicles re-send everything (as if acknowledgements were lost): nothing is applied twice.
@@ -84,11 +84,11 @@ TEST(MapdCrash, SigkillWhileApplyingLosesNothingAndAppliesNothingTwice) {
 
 TEST(MapdCrash, SigtermFinishesThePassageInProgressAndExitsZero) {
   const Scenario scenario = ShortScenario(10, 60.0);
-  const MapState expected = MapFromPassages(scenario, kPassages, MapdDefaultUpdateOptions());
+  const MapState expected = MapFromPassages(scenario, kPassages, ReplayableMapdUpdateOptions());
   TempDir dir;
   const std::string db = dir.File("map.db");
   {
-    MapdProcess mapd(db, dir.File("mapd.log"));
+    MapdProcess mapd(db, dir.File("mapd.log"), /*port=*/0, ReplayableMapdFlags());
     ASSERT_TRUE(mapd.WaitReady());
     MockVehicle client(mapd.address());
     for (int i = 0; i < kPassages; ++i) ASSERT_TRUE(client.Upload(scenario.MakePassage(i)).ok());
@@ -104,7 +104,7 @@ TEST(MapdCrash, SigtermFinishesThePassageInProgressAndExitsZero) {
     ASSERT_TRUE(stats.ok());
     EXPECT_EQ(stats->passages_by_state[static_cast<int>(PassageState::kProcessing)], 0);
   }
-  MapdProcess mapd(db, dir.File("mapd.log"));
+  MapdProcess mapd(db, dir.File("mapd.log"), /*port=*/0, ReplayableMapdFlags());
   ASSERT_TRUE(mapd.WaitReady());
   MockVehicle client(mapd.address());
   ExpectAllAppliedOnce(&client, scenario, expected);

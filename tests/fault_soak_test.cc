@@ -163,7 +163,7 @@ void ExpectEveryAcknowledgedPassageAppliedOnce(MockVehicle* client, const Scenar
   EXPECT_EQ(info->queue_depth(), 0);
   std::sort(order.begin(), order.end());
   MapState expected;
-  MapUpdater updater{MapdDefaultUpdateOptions()};  // mapd's
+  MapUpdater updater{ReplayableMapdUpdateOptions()};  // mapd's
   int sequential_instead = 0;
   for (const Applied& a : order) {
     const Passage passage = scenario.MakePassage(a.index);
@@ -195,7 +195,7 @@ TEST(FaultSoak, SigkillsDuringUploadsAndJointSolvesLoseNothingAndApplyNothingTwi
       ShortScenario(EnvInt("CROWDMAP_SOAK_LANDMARKS", 10), EnvInt("CROWDMAP_SOAK_PASSAGE_S", 60));
   TempDir dir;
   const std::string db = dir.File("map.db"), log = dir.File("mapd.log");
-  auto mapd = std::make_unique<MapdProcess>(db, log);
+  auto mapd = std::make_unique<MapdProcess>(db, log, /*port=*/0, ReplayableMapdFlags());
   const int port = mapd->port();
   ASSERT_TRUE(mapd->WaitReady());
   MockVehicle observer(mapd->address());
@@ -236,7 +236,7 @@ TEST(FaultSoak, SigkillsDuringUploadsAndJointSolvesLoseNothingAndApplyNothingTwi
     during_joint_solve += joint;
     const int status = mapd->Kill(SIGKILL);
     ASSERT_TRUE(WIFSIGNALED(status));
-    mapd = std::make_unique<MapdProcess>(db, log, port);
+    mapd = std::make_unique<MapdProcess>(db, log, port, ReplayableMapdFlags());
     ASSERT_TRUE(mapd->WaitReady()) << "restart " << k + 1 << ": " << mapd->last_error() << "; mapd's log ends:\n" << LogTail(log);
   }
   fleet.Join();
@@ -300,7 +300,7 @@ TEST(FaultSoak, AFullDiskRefusesUploadsRetryablyAndLosesNothing) {
   const Scenario scenario = ShortScenario(10, 60.0);
   TempDir logs;
   const std::string db = disk.File("map.db"), filler = disk.File("filler");
-  MapdProcess mapd(db, logs.File("mapd.log"));
+  MapdProcess mapd(db, logs.File("mapd.log"), /*port=*/0, ReplayableMapdFlags());
   ASSERT_TRUE(mapd.WaitReady());
   MockVehicle observer(mapd.address());
   std::vector<UploadRecord> records(before + during);

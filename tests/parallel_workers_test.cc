@@ -39,7 +39,7 @@ std::vector<Passage> InCommitOrder(MockVehicle* vehicle, const std::vector<Passa
 }
 
 // With options.relinearize_sigmas, each passage is followed by its re-linearisations, as the
-// service's worker does them; `relinearized` counts them.
+// service's worker does them when each passage finds it idle; `relinearized` counts them.
 MapState ApplyInOrder(const std::vector<Passage>& passages, const MapUpdateOptions& options, int* relinearized = nullptr) {
   MapState map;
   MapUpdater updater(options);
@@ -102,8 +102,10 @@ void ExpectSameMap(const MapState& expected, const MapState& actual) {
   EXPECT_LE(worst_information, kRounding);
 }
 
+// `one_at_a_time`: each upload waits until the service is idle (queue empty, no re-linearisation
+// due), so that each passage's re-linearisations follow it.
 void RunWithWorkers(int workers, const std::vector<Passage>& passages, const MapUpdateOptions& update,
-                    int* relinearized = nullptr) {
+                    int* relinearized = nullptr, bool one_at_a_time = false) {
   TempDir dir;
   MapServerOptions options = TestServerOptions(dir.File("map.db"));
   options.worker.workers = workers;
@@ -115,6 +117,7 @@ void RunWithWorkers(int workers, const std::vector<Passage>& passages, const Map
   for (const Passage& p : passages) {
     auto r = vehicle.Upload(p);
     ASSERT_TRUE(r.ok()) << r.status();
+    if (one_at_a_time) ASSERT_TRUE(vehicle.WaitUntilIdle().ok());
   }
   auto info = vehicle.WaitUntilIdle();
   ASSERT_TRUE(info.ok()) << info.status();
@@ -163,15 +166,75 @@ TEST(ParallelWorkers, CityPassagesGiveTheMapOfTheirCommitOrder) {
   RunWithWorkers(2, CityPassages(24), CityUpdateOptions());
 }
 
-// Local re-linearisation in the service (mapd --relinearize-sigmas): after each passage the worker
-// takes the stalest retained passage again, and commits it as a change of its own; the map served
-// and stored is the in-process updater's with the same re-linearisations.
+// Local re-linearisation in the service (mapd --relinearize-sigmas): once the queue is empty, the
+// worker takes the stalest retained passage again for each passage applied, and commits it as a
+// change of its own; the map served and stored is the in-process updater's with the same
+// re-linearisations.
 TEST(ServiceRelinearization, TheWorkerRelinearizesStalePassagesAsTheInProcessUpdaterDoes) {
   MapUpdateOptions update = CityUpdateOptions();
   update.relinearize_sigmas = 0.5;
   int relinearized = 0;
-  RunWithWorkers(1, CityPassages(20), update, &relinearized);
+  RunWithWorkers(1, CityPassages(20), update, &relinearized, /*one_at_a_time=*/true);
   EXPECT_GE(relinearized, 3) << "the scenario must make passages stale";
+}
+
+// A backlog is applied first, one passage after the other, and the re-linearisations it earned
+// follow once the queue is empty: the map is the one of applying every passage, then
+// re-linearising the stalest passage up to once per passage (re-linearisations in between would
+// give another map and other versions).
+TEST(ServiceRelinearization, ABacklogIsAppliedFirstAndItsRelinearisationsFollow) {
+  const std::vector<Passage> passages = CityPassages(12);
+  MapUpdateOptions update = CityUpdateOptions();
+  update.relinearize_sigmas = 0.5;
+  TempDir dir;
+  MapServerOptions options = TestServerOptions(dir.File("map.db"), /*start_worker=*/false);
+  options.worker.update = update;
+  options.limits.vehicle_uploads_per_s = 0;
+  {
+    auto queuing = StartTestServer(options);
+    ASSERT_NE(queuing, nullptr);
+    MockVehicle vehicle(queuing->address());
+    for (const Passage& p : passages) ASSERT_TRUE(vehicle.Upload(p).ok());
+    queuing->Shutdown(std::chrono::milliseconds(0));
+  }
+  options.start_worker = true;
+  auto server = StartTestServer(options);
+  ASSERT_NE(server, nullptr);
+  MockVehicle vehicle(server->address());
+  auto info = vehicle.WaitUntilIdle();
+  ASSERT_TRUE(info.ok()) << info.status();
+  ASSERT_EQ(info->passages_applied(), static_cast<int64_t>(passages.size()));
+  EXPECT_EQ(info->relinearizations_due(), 0);
+  EXPECT_DOUBLE_EQ(info->relinearize_sigmas(), 0.5);
+  int64_t last_applied_version = 0;
+  for (const Passage& p : passages) {
+    auto status = vehicle.GetPassage(p.vehicle_id, p.passage_id);
+    ASSERT_TRUE(status.ok()) << status.status();
+    last_applied_version = std::max(last_applied_version, status->result().map_version());
+  }
+
+  MapUpdateOptions replay_options = update;
+  replay_options.relinearizations_per_passage = static_cast<int>(passages.size());
+  MapState expected;
+  MapUpdater updater(replay_options);
+  for (const Passage& passage : passages) {
+    absl::StatusOr<PassageUpdate> u = updater.Compute(passage, expected);
+    ASSERT_TRUE(u.ok()) << passage.passage_id << ": " << u.status();
+    expected.Apply(u->delta);
+    updater.Applied(passage, u->delta);
+  }
+  const int relinearized = RelinearizeStaleInMemory(
+      [&](const MapUpdater::PassageKey& key) -> absl::StatusOr<Passage> {
+        for (const Passage& p : passages) {
+          if (p.vehicle_id == key.first && p.passage_id == key.second) return p;
+        }
+        return absl::NotFoundError(key.second);
+      },
+      &updater, &expected);
+  EXPECT_GE(relinearized, 1) << "the scenario must make passages stale";
+  EXPECT_GT(info->map_version(), last_applied_version) << "re-linearisations after the last passage";
+  ASSERT_TRUE(server->store()->ReadCommittedMap([&](const MapState& map) { ExpectSameMap(expected, map); }));
+  server->Shutdown(std::chrono::milliseconds(0));
 }
 
 // mapd --read-window-hops: a read's covariances come from a window of that many links, whatever
@@ -243,9 +306,10 @@ TEST(ServiceReads, TheReadWindowSetsTheLinksOfARegionsCovariance) {
 TEST(ParallelWorkers, AKillWhileTwoWorkersApplyLosesNothingAndAppliesNothingTwice) {
   const std::vector<Passage> passages = CityPassages(20);
   // The flags of CityUpdateOptions.
-  const std::vector<std::string> flags = {"--workers", "2", "--window-hops", "2", "--warmup-passages", "0",
-                                          "--relinearize-until-passages", "0", "--retain-passages", "6",
-                                          "--vehicle-upload-rate", "0"};
+  std::vector<std::string> flags = {"--workers", "2", "--window-hops", "2", "--warmup-passages", "0",
+                                    "--relinearize-until-passages", "0", "--retain-passages", "6",
+                                    "--vehicle-upload-rate", "0"};
+  for (const std::string& f : ReplayableMapdFlags()) flags.push_back(f);
   TempDir dir;
   const std::string db = dir.File("map.db");
   int applied_before_kill = 0;
@@ -271,7 +335,7 @@ TEST(ParallelWorkers, AKillWhileTwoWorkersApplyLosesNothingAndAppliesNothingTwic
   EXPECT_EQ(info->passages_failed() + info->passages_rejected() + info->passages_quarantined(), 0);
   // mapd's own defaults (e.g. the camera yaw estimated) with the flags above.
   const MapState expected =
-      ApplyInOrder(InCommitOrder(&client, passages), CityUpdateOptions(MapdDefaultUpdateOptions()));
+      ApplyInOrder(InCommitOrder(&client, passages), CityUpdateOptions(ReplayableMapdUpdateOptions()));
   EXPECT_EQ(mapd.Kill(SIGTERM), 0);
   auto store = CreateSqliteMapStore(db);
   ASSERT_TRUE(store.ok()) << store.status();

@@ -462,9 +462,10 @@ absl::StatusOr<pb::MapInfo> MapClient::WaitUntilIdle(std::chrono::milliseconds t
     absl::StatusOr<pb::MapInfo> info = GetMapInfo();
     if (!info.ok()) return info;
     if (on_poll) on_poll(*info);
-    if (info->queue_depth() == 0) return info;
+    if (info->queue_depth() == 0 && info->relinearizations_due() == 0) return info;
     if (std::chrono::steady_clock::now() > end) {
-      return absl::DeadlineExceededError(absl::StrCat("queue still holds ", info->queue_depth(), " passages"));
+      return absl::DeadlineExceededError(absl::StrCat("queue still holds ", info->queue_depth(), " passages, ",
+                                                      info->relinearizations_due(), " re-linearisations due"));
     }
     std::this_thread::sleep_for(std::chrono::milliseconds(50));
   }

@@ -120,7 +120,8 @@ class MapClient {
     options.duration = duration;
     return WatchRegion(box, since_version, on_change, options);
   }
-  // Polls GetMapInfo until nothing is queued or processing; DeadlineExceeded after `timeout`.
+  // Polls GetMapInfo until nothing is queued or processing and no re-linearisation is due (the map
+  // changes no more); DeadlineExceeded after `timeout`.
   absl::StatusOr<pb::MapInfo> WaitUntilIdle(std::chrono::milliseconds timeout,
                                             const std::function<void(const pb::MapInfo&)>& on_poll = nullptr);
 

@@ -365,12 +365,17 @@ absl::Status Info(const Arguments& args, Context& ctx) {
       "(warm-up %d passages, re-solved at each doubling up to %d, subgraph dim %d, "
       "window %d links%s)\n"
       "queue depth:       %d\npassages:          queued=%d processing=%d applied=%d rejected=%d failed=%d "
-      "quarantined=%d discarded=%d\n",
+      "quarantined=%d discarded=%d\n"
+      "re-linearisation:  %s\n",
       info->map_version(), info->landmark_count(), info->factor_count(), info->strategy(),
       info->warmup_passages(), info->relinearize_until_passages(), info->max_subgraph_dim(),
       info->window_hops(), info->window_hops() == 0 ? ": whole map" : "", info->queue_depth(), info->passages_queued(), info->passages_processing(),
       info->passages_applied(), info->passages_rejected(), info->passages_failed(), info->passages_quarantined(),
-      info->passages_discarded());
+      info->passages_discarded(),
+      info->relinearize_sigmas() > 0.0
+          ? absl::StrFormat("beyond %g sigmas, %d due (done while the queue is empty)", info->relinearize_sigmas(),
+                            info->relinearizations_due())
+          : std::string("off"));
   return absl::OkStatus();
 }
 

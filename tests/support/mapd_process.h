@@ -15,6 +15,7 @@
 #include <thread>
 #include <vector>
 
+#include "server/mapd_config.h"
 #include "tests/support/mock_vehicle.h"
 
 namespace crowdmap {
@@ -29,6 +30,17 @@ inline int FreeLoopbackPort() {
   getsockname(fd, reinterpret_cast<sockaddr*>(&addr), &len);
   close(fd);
   return ntohs(addr.sin_port);
+}
+
+// mapd's flags for a test that replays its passages in process in their commit order: mapd takes
+// stale passages again while its queue is empty (--relinearize-sigmas), at moments a replay cannot
+// know, so that is off (ServiceRelinearization in parallel_workers_test.cc tests it).
+inline std::vector<std::string> ReplayableMapdFlags() { return {"--relinearize-sigmas", "0"}; }
+// The in-process options of mapd's defaults with ReplayableMapdFlags().
+inline MapUpdateOptions ReplayableMapdUpdateOptions() {
+  MapUpdateOptions options = MapdDefaultUpdateOptions();
+  options.relinearize_sigmas = 0.0;
+  return options;
 }
 
 // A mapd child process serving `db` on a loopback port (a free one, or `port`), its stderr
