@@ -192,7 +192,7 @@ void AddExperimentFlags(CLI::App* command, ExperimentCommand* c) {
   command->add_option("--strategy", o.strategy, "cc | dc | cc-gsd | triangulation")->type_name("S");
   command->add_option("--out", c->out, "output folder: passages.csv, summary.json, errors.svg")->type_name("DIR");
   command->add_option("--detections-per-landmark", o.update.detections_per_landmark,
-                      "last K >= 2 detections per landmark and passage, 0 = all")
+                      "last K >= 3 detections per landmark and passage (a new landmark needs 3), 0 = all")
       ->type_name("K");
   command->add_option("--detection-spacing-s", o.update.detection_spacing_s,
                       "the K detections kept at least S seconds apart (0: the last K frames)")
@@ -506,7 +506,7 @@ void AddPassageConsistencyFlags(CLI::App* command, PassageConsistencyCommand* c)
       ->default_str(UpdateStrategyName(o.update.strategy))
       ->type_name("S");
   command->add_option("--detections-per-landmark", o.update.detections_per_landmark,
-                      "last K >= 2 detections per landmark and passage, 0 = all")
+                      "last K >= 3 detections per landmark and passage (a new landmark needs 3), 0 = all")
       ->type_name("K");
   AddNoiseScaleFlags(command, &c->scales);
   AddQuietFlag(command, &c->quiet);

@@ -272,10 +272,11 @@ absl::Status MapUpdateOptions::Validate() const {
   if (max_subgraph_dim < 30) {
     return absl::InvalidArgumentError(absl::StrCat("max_subgraph_dim: must be >= 30, got ", max_subgraph_dim));
   }
-  if (detections_per_landmark < 0 || detections_per_landmark == 1) {
+  if (detections_per_landmark < 0 ||
+      (detections_per_landmark > 0 && detections_per_landmark < std::max(2, min_new_landmark_detections))) {
     return absl::InvalidArgumentError(absl::StrCat(
-        "detections_per_landmark: must be 0 (all) or >= 2 (a new landmark needs two bearings), got ",
-        detections_per_landmark));
+        "detections_per_landmark: must be 0 (all) or >= ", std::max(2, min_new_landmark_detections),
+        " (min_new_landmark_detections: with fewer no landmark could be created), got ", detections_per_landmark));
   }
   if (!(detection_spacing_s >= 0.0 && detection_spacing_s <= 60.0)) {
     return absl::InvalidArgumentError(

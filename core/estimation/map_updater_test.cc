@@ -43,6 +43,10 @@ TEST(MapUpdateOptions, RejectsOutOfRangeValuesNamingTheField) {
   EXPECT_NE(options.Validate().message().find("detections_per_landmark"), std::string::npos);
   options.detections_per_landmark = 1;  // no landmark could ever be created
   EXPECT_NE(options.Validate().message().find("detections_per_landmark"), std::string::npos);
+  options.detections_per_landmark = 2;  // below min_new_landmark_detections: none created either
+  EXPECT_NE(options.Validate().message().find("min_new_landmark_detections"), std::string::npos);
+  options.min_new_landmark_detections = 2;
+  EXPECT_TRUE(options.Validate().ok()) << options.Validate();
   options = MapUpdateOptions();
   options.edge_margin_sigmas = -1.0;
   EXPECT_NE(options.Validate().message().find("edge_margin_sigmas"), std::string::npos);
