@@ -13,10 +13,12 @@ namespace crowdmap {
 using Pose2 = Eigen::Vector3d;
 
 // One bicycle-model step of duration dt_s with speed v and steering angle xi (thesis eq. 4.43):
-//   x += v dt cos(theta + v sin(xi) dt / (2R)),  y += v dt sin(...),  theta += v sin(xi) dt / R.
+//   x += v dt cos(theta + v sin(xi) dt / (2R)),  y += v dt sin(...),  theta += v sin(xi) dt / R,
+// the heading change v sin(xi) dt / R multiplied by `turn_scale` (1 for the model itself).
 // If the Jacobians are non-null they receive d(result)/d(pose) and d(result)/d(v, xi).
 Pose2 BicycleStep(const Pose2& pose, double speed_mps, double steering_rad, double dt_s, double wheelbase_m,
-                  Eigen::Matrix3d* d_pose = nullptr, Eigen::Matrix<double, 3, 2>* d_input = nullptr);
+                  Eigen::Matrix3d* d_pose = nullptr, Eigen::Matrix<double, 3, 2>* d_input = nullptr,
+                  double turn_scale = 1.0);
 
 // The motion between two times predicted by the encoders, in the frame of the earlier pose.
 struct RelativeMotion {
