@@ -9,10 +9,12 @@
 # MAP_DB is copied (with MAP_DB.queue) to a scratch directory for each run and left untouched.
 # PASSAGE_DIR holds passage files not yet applied to it (e.g. `mapsim city ... --seed 2
 # --export-passages DIR --export-format binary`). mapd gets MAPD_ARGS (default: the city settings
-# below, which must be the map's). Needs a build (scripts/setup.sh); load stays on loopback.
+# below, which must be the map's, and no re-linearisation: the workers would start it on the queue's
+# last passages, which the figures before it did not have). Needs a build (scripts/setup.sh); load
+# stays on loopback.
 set -euo pipefail
 if [[ $# -lt 2 || "$1" == -h || "$1" == --help ]]; then
-  sed -n '2,12p' "$0" | sed 's/^# \{0,1\}//'
+  sed -n '2,14p' "$0" | sed 's/^# \{0,1\}//'
   exit 2
 fi
 MAP_DB=$1
@@ -24,7 +26,7 @@ ROOT=$(cd "$(dirname "$0")/.." && pwd)
 # shellcheck source=lib/mapd-bench.sh
 source "$ROOT/scripts/lib/mapd-bench.sh"
 BUILD=${BUILD:-$ROOT/build}
-MAPD_ARGS=${MAPD_ARGS:---window-hops 2 --warmup-passages 0 --relinearize-until-passages 0}
+MAPD_ARGS=${MAPD_ARGS:---window-hops 2 --warmup-passages 0 --relinearize-until-passages 0 --relinearize-sigmas 0}
 PORT=${PORT:-50291}
 SCRATCH=$(mktemp -d /tmp/workers-bench.XXXXXX)
 [[ -n "${KEEP:-}" ]] || trap 'rm -rf "$SCRATCH"' EXIT
