@@ -243,10 +243,11 @@ HttpResponse HttpViewer::Api(const std::string& path, const std::string& query, 
 }
 
 HttpResponse HttpViewer::Info() const {
+  const int64_t due = RelinearizationsDue(worker_);  // before the stats, as GetMapInfo
   absl::StatusOr<MapStats> stats = store_->GetStats();
   if (!stats.ok()) return FromStatus(stats.status());
   pb::MapInfo info;
-  MapInfoToProto(*stats, update_, worker_, &info);
+  MapInfoToProto(*stats, update_, due, &info);
   return Json(200, ToJson(info));
 }
 

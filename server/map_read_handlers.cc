@@ -22,7 +22,10 @@ void AddLandmarks(const LandmarkPage& page, Response* response) {
 
 }  // namespace
 
-void MapInfoToProto(const MapStats& stats, const MapUpdateOptions& update, const MapWorker* worker, pb::MapInfo* info) {
+int64_t RelinearizationsDue(const MapWorker* worker) { return worker != nullptr ? worker->relinearizations_due() : 0; }
+
+void MapInfoToProto(const MapStats& stats, const MapUpdateOptions& update, int64_t relinearizations_due,
+                    pb::MapInfo* info) {
   info->set_map_version(stats.map_version);
   info->set_landmark_count(stats.landmark_count);
   info->set_factor_count(stats.factor_count);
@@ -41,7 +44,7 @@ void MapInfoToProto(const MapStats& stats, const MapUpdateOptions& update, const
   info->set_max_subgraph_dim(update.max_subgraph_dim);
   info->set_window_hops(update.window_hops);
   info->set_relinearize_sigmas(update.relinearize_sigmas);
-  info->set_relinearizations_due(worker != nullptr ? worker->relinearizations_due() : 0);
+  info->set_relinearizations_due(relinearizations_due);
 }
 
 grpc::ServerUnaryReactor* MapService::GetTile(grpc::CallbackServerContext* ctx, const pb::GetTileRequest* request,
@@ -169,9 +172,12 @@ grpc::Status MapService::GetMapInfo(grpc::ServerContext* ctx, const pb::GetMapIn
                                     pb::MapInfo* response) {
   RequestLog log("GetMapInfo", ctx);
   if (auto who = CheckAccess(context_->auth, *ctx, Permission::kReadMap, &log); !who.ok()) return log.Done(who.status());
+  // What is owed first: a re-linearisation is committed before it stops being owed, so a 0 read
+  // here comes with stats that already hold it.
+  const int64_t due = RelinearizationsDue(context_->worker);
   absl::StatusOr<MapStats> stats = context_->store->GetStats();
   if (!stats.ok()) return log.Done(stats.status());
-  MapInfoToProto(*stats, context_->update, context_->worker, response);
+  MapInfoToProto(*stats, context_->update, due, response);
   log.Add(absl::StrCat("map_version=", stats->map_version, " queue_depth=", stats->queue_depth(),
                        " relinearizations_due=", response->relinearizations_due()));
   return log.Done(absl::OkStatus());

@@ -40,8 +40,11 @@ struct MapServiceContext {
 };
 
 // GetMapInfo's answer: the store's counts and the estimator's settings (also the map viewer's).
-// `worker` (null: none) gives what it still owes.
-void MapInfoToProto(const MapStats& stats, const MapUpdateOptions& update, const MapWorker* worker, pb::MapInfo* info);
+// The re-linearisations `worker` owes (0 without one). Read it before the stats that go with it
+// (see GetMapInfo).
+int64_t RelinearizationsDue(const MapWorker* worker);
+void MapInfoToProto(const MapStats& stats, const MapUpdateOptions& update, int64_t relinearizations_due,
+                    pb::MapInfo* info);
 
 // mapservice.v1.MapService: one thin handler per RPC; conversion in wire_convert, errors through
 // ToGrpcStatus, one log line per request.

@@ -404,10 +404,12 @@ void MapWorker::Apply(const StoredPassage& record, const Passage& passage) {
           folded = WhollyFolded(map, delta.folded_factors);
           written = WriteSetOf(delta, map);
         });
+        int64_t owed = 0;  // taken back if the commit fails
         if (options_.update.relinearize_sigmas > 0.0) {
           // Owed before the passage shows as applied: a client that sees the queue empty sees it.
-          relinearizations_due_ = std::min(kMaxRelinearizationsDue,
-                                           relinearizations_due_.load() + options_.update.relinearizations_per_passage);
+          const int64_t before = relinearizations_due_.load();
+          relinearizations_due_ = std::min(kMaxRelinearizationsDue, before + options_.update.relinearizations_per_passage);
+          owed = relinearizations_due_.load() - before;
         }
         state.unlock();
         const PassageResult result = ResultFromSummary(summary, options_.update.strategy);
@@ -447,6 +449,10 @@ void MapWorker::Apply(const StoredPassage& record, const Passage& passage) {
               result.total_ms, commit_ms, delta.added_factors.size(), delta.version, recomputed, commit_wait_ms,
               trim_ms);
           return;
+        }
+        if (owed > 0) {  // not applied: nothing owed for it
+          std::lock_guard<std::mutex> owing(state_mu_);
+          relinearizations_due_ = std::max(relinearizations_due_.load() - owed, static_cast<int64_t>(relinearizing_.size()));
         }
         error = absl::StrCat("commit: ", committed.ToString());
         transient = IsTransientStorageError(committed) && !stopping_;

@@ -252,6 +252,7 @@ absl::StatusOr<FleetResult> RunFleet(const FleetOptions& options,
   FleetProgress state;
   state.total = options.passages;
   int64_t last_sampled = 0;
+  int64_t last_sampled_version = -1;
   Clock::time_point upload_end{};
   while (true) {
     std::this_thread::sleep_for(options.sample_interval);
@@ -266,8 +267,10 @@ absl::StatusOr<FleetResult> RunFleet(const FleetOptions& options,
     state.uploaded = uploader.uploaded();
     state.applied = static_cast<int>(FinishedCount(*info) - finished_at_start);
     state.joint_solve_of = info->queue_depth() > 0 ? JointSolveUnderWay(*info) : 0;
-    const bool idle = uploads_done && info->queue_depth() == 0;
-    if (state.applied > last_sampled || (idle && result.experiment.records.empty())) {
+    // Idle: nothing queued and no re-linearisation owed (mapd --relinearize-sigmas does them once
+    // the queue is empty), so the map sampled then is the final one.
+    const bool idle = uploads_done && info->queue_depth() == 0 && info->relinearizations_due() == 0;
+    if (state.applied > last_sampled || (idle && info->map_version() != last_sampled_version)) {
       absl::StatusOr<MapState> map = (*client)->DownloadMap(WorldBox());
       if (map.ok()) {
         PassageRecord record;
@@ -276,13 +279,14 @@ absl::StatusOr<FleetResult> RunFleet(const FleetOptions& options,
         result.experiment.records.push_back(record);
         state.mean_dist_err_m = record.metrics.mean_dist_err_m;
         last_sampled = state.applied;
+        last_sampled_version = map->version();
       } else if (map.status().code() != absl::StatusCode::kAborted) {
         uploader.Join();
         return map.status();
       }
     }
     if (progress) progress(state);
-    if (idle && last_sampled == state.applied) break;
+    if (idle && last_sampled == state.applied && last_sampled_version == info->map_version()) break;
     if (Clock::now() - t0 > options.apply_timeout) {
       uploader.Join();
       return absl::DeadlineExceededError(absl::StrCat("passages still queued after ", options.apply_timeout.count(), " s"));
@@ -306,6 +310,10 @@ absl::StatusOr<FleetResult> RunFleet(const FleetOptions& options,
     if (start_info->landmark_count() > 0 || result.duplicates > 0 ||
         static_cast<int>(result.arrival_order.size()) != options.passages) {
       spdlog::warn("no replay: the server's map did not start empty or not every passage was applied by this run");
+    } else if (start_info->relinearize_sigmas() > 0.0) {
+      spdlog::warn("no replay: the server re-linearises stale passages while its queue is empty (relinearize_sigmas "
+                   "{}), at moments a replay cannot know (mapd --relinearize-sigmas 0 to compare)",
+                   start_info->relinearize_sigmas());
     } else if (absl::Status s = Replay(options, &result); !s.ok()) {
       return s;
     }
