@@ -153,6 +153,7 @@ absl::StatusOr<std::unique_ptr<MapServer>> MapServer::Start(const MapServerOptio
   auto worker = MapWorker::Create(server->store_.get(), worker_options);
   if (!worker.ok()) return worker.status();
   server->worker_ = std::move(*worker);
+  if (server->metrics_ != nullptr) server->metrics_->WatchWorker(server->worker_.get());
 
   const bool auth_on = AuthEnabled(options.security, options.listen);
   if (auth_on) {
@@ -271,6 +272,7 @@ void MapServer::Shutdown(std::chrono::milliseconds grace) {
   http_.reset();
   context_.accepting_uploads = false;
   if (worker_ != nullptr) worker_->Stop();
+  if (metrics_ != nullptr) metrics_->WatchWorker(nullptr);  // the worker is destroyed before the metrics
   notifier_.Close();
   if (server_ != nullptr) {
     server_->Shutdown(std::chrono::system_clock::now() + grace);

@@ -2,6 +2,7 @@
 
 #include <chrono>
 #include <exception>
+#include <mutex>
 #include <set>
 #include <vector>
 
@@ -70,36 +71,6 @@ ClientMetric GaugeValue(double value, std::vector<ClientMetric::Label> labels = 
   return metric;
 }
 
-// The queue and the map, read from the store's row counts (GetMapInfo's source) at each scrape.
-class StoreCollector : public prometheus::Collectable {
- public:
-  explicit StoreCollector(MapStoreInterface* store) : store_(store) {}
-
-  std::vector<MetricFamily> Collect() const override {
-    absl::StatusOr<MapStats> stats = store_->GetStats();
-    MetricFamily up = GaugeFamily("mapd_store_up", "1 when the store answered this scrape, else 0");
-    up.metric.push_back(GaugeValue(stats.ok() ? 1 : 0));
-    if (!stats.ok()) return {up};
-    MetricFamily queue = GaugeFamily("mapd_queue_depth", "passages queued or processing");
-    queue.metric.push_back(GaugeValue(static_cast<double>(stats->queue_depth())));
-    MetricFamily passages = GaugeFamily("mapd_passages", "passages by state");
-    for (int state = 1; state < kPassageStateCount; ++state) {
-      passages.metric.push_back(GaugeValue(static_cast<double>(stats->passages_by_state[state]),
-                                           {{"state", PassageStateName(static_cast<PassageState>(state))}}));
-    }
-    MetricFamily landmarks = GaugeFamily("mapd_map_landmarks", "landmarks in the map");
-    landmarks.metric.push_back(GaugeValue(static_cast<double>(stats->landmark_count)));
-    MetricFamily factors = GaugeFamily("mapd_map_factors", "information factors kept in the map");
-    factors.metric.push_back(GaugeValue(static_cast<double>(stats->factor_count)));
-    MetricFamily version = GaugeFamily("mapd_map_version", "the map's version (one more per committed change)");
-    version.metric.push_back(GaugeValue(static_cast<double>(stats->map_version)));
-    return {up, queue, passages, landmarks, factors, version};
-  }
-
- private:
-  MapStoreInterface* const store_;
-};
-
 // Times one call, from its creation to the status the server sends.
 class RpcTimer : public grpc::experimental::Interceptor {
  public:
@@ -132,6 +103,51 @@ class RpcTimerFactory : public grpc::experimental::ServerInterceptorFactoryInter
 };
 
 }  // namespace
+
+// The queue and the map, read from the store's row counts (GetMapInfo's source) at each scrape.
+class StoreCollector : public prometheus::Collectable {
+ public:
+  explicit StoreCollector(MapStoreInterface* store) : store_(store) {}
+
+  void WatchWorker(const MapWorker* worker) {
+    std::lock_guard<std::mutex> lock(worker_mu_);
+    worker_ = worker;
+  }
+
+  std::vector<MetricFamily> Collect() const override {
+    absl::StatusOr<MapStats> stats = store_->GetStats();
+    MetricFamily up = GaugeFamily("mapd_store_up", "1 when the store answered this scrape, else 0");
+    up.metric.push_back(GaugeValue(stats.ok() ? 1 : 0));
+    if (!stats.ok()) return {up};
+    MetricFamily queue = GaugeFamily("mapd_queue_depth", "passages queued or processing");
+    queue.metric.push_back(GaugeValue(static_cast<double>(stats->queue_depth())));
+    MetricFamily passages = GaugeFamily("mapd_passages", "passages by state");
+    for (int state = 1; state < kPassageStateCount; ++state) {
+      passages.metric.push_back(GaugeValue(static_cast<double>(stats->passages_by_state[state]),
+                                           {{"state", PassageStateName(static_cast<PassageState>(state))}}));
+    }
+    MetricFamily landmarks = GaugeFamily("mapd_map_landmarks", "landmarks in the map");
+    landmarks.metric.push_back(GaugeValue(static_cast<double>(stats->landmark_count)));
+    MetricFamily factors = GaugeFamily("mapd_map_factors", "information factors kept in the map");
+    factors.metric.push_back(GaugeValue(static_cast<double>(stats->factor_count)));
+    MetricFamily version = GaugeFamily("mapd_map_version", "the map's version (one more per committed change)");
+    version.metric.push_back(GaugeValue(static_cast<double>(stats->map_version)));
+    std::vector<MetricFamily> out = {up, queue, passages, landmarks, factors, version};
+    std::lock_guard<std::mutex> lock(worker_mu_);
+    if (worker_ != nullptr) {
+      MetricFamily due = GaugeFamily("mapd_relinearizations_due",
+                                     "re-linearisations the worker owes, done while the queue is empty (--relinearize-sigmas)");
+      due.metric.push_back(GaugeValue(static_cast<double>(worker_->relinearizations_due())));
+      out.push_back(std::move(due));
+    }
+    return out;
+  }
+
+ private:
+  MapStoreInterface* const store_;
+  mutable std::mutex worker_mu_;
+  const MapWorker* worker_ = nullptr;
+};
 
 absl::StatusOr<std::unique_ptr<ServerMetrics>> ServerMetrics::Start(const std::string& listen,
                                                                     MapStoreInterface* store) {
@@ -224,6 +240,8 @@ void ServerMetrics::ObserveApplied(const AppliedPassageTimings& t) {
   commit_->Observe(t.commit_ms / 1000.0);
   recomputed_->Increment(t.recomputed);
 }
+
+void ServerMetrics::WatchWorker(const MapWorker* worker) { store_collector_->WatchWorker(worker); }
 
 void ServerMetrics::ObserveRelinearized(bool committed) {
   (committed ? relinearized_ : relinearizations_refused_)->Increment();

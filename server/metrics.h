@@ -32,8 +32,11 @@ namespace crowdmap {
 // - mapd_upload_bytes_total, mapd_uploads_total{outcome}: accepted uploads (serialized passage bytes);
 // - mapd_queue_depth, mapd_passages{state}, mapd_map_landmarks, mapd_map_factors, mapd_map_version:
 //   read from the store's row counts at each scrape;
+// - mapd_relinearizations_due: re-linearisations the worker owes (WatchWorker), at each scrape;
 // - mapd_build_info{version} 1.
 // Thread-safe.
+class StoreCollector;  // metrics.cc
+
 class ServerMetrics {
  public:
   // Serves the metrics on `listen` (host:port; port 0 picks a free one). The store is read at
@@ -53,6 +56,9 @@ class ServerMetrics {
   void ObserveUpload(size_t bytes, bool duplicate);
   void ObserveApplied(const AppliedPassageTimings& timings);
   void ObserveRelinearized(bool committed);
+  // The worker whose owed re-linearisations each scrape reports (mapd_relinearizations_due); null:
+  // none from then on. Once this returns, no scrape reads the previous one.
+  void WatchWorker(const MapWorker* worker);
 
   // Creates the interceptor that times every RPC; to be handed to the gRPC server builder.
   std::unique_ptr<grpc::experimental::ServerInterceptorFactoryInterface> InterceptorFactory();
@@ -61,7 +67,7 @@ class ServerMetrics {
   ServerMetrics() = default;
 
   std::shared_ptr<prometheus::Registry> registry_;
-  std::shared_ptr<prometheus::Collectable> store_collector_;
+  std::shared_ptr<StoreCollector> store_collector_;
   std::unique_ptr<prometheus::Exposer> exposer_;
   int port_ = 0;
   prometheus::Family<prometheus::Histogram>* rpc_duration_ = nullptr;

@@ -145,6 +145,8 @@ TEST(Metrics, RelinearizationsAreCounted) {
   // A young map moves by far more than a tenth of its sigmas with each passage.
   EXPECT_GE(m["mapd_relinearizations_total{outcome=\"committed\"}"], 1);
   ASSERT_EQ(m.count("mapd_relinearizations_total{outcome=\"refused\"}"), 1u);
+  ASSERT_EQ(m.count("mapd_relinearizations_due"), 1u);
+  EXPECT_EQ(m["mapd_relinearizations_due"], 0) << "idle: nothing owed";
 }
 
 TEST(Metrics, UnknownMethodsShareOneLabelValue) {
