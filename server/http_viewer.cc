@@ -243,9 +243,10 @@ HttpResponse HttpViewer::Api(const std::string& path, const std::string& query, 
 }
 
 HttpResponse HttpViewer::Info() const {
-  const int64_t due = RelinearizationsDue(worker_);  // before the stats, as GetMapInfo
+  const int64_t due_before = RelinearizationsDue(worker_);  // around the stats, as GetMapInfo
   absl::StatusOr<MapStats> stats = store_->GetStats();
   if (!stats.ok()) return FromStatus(stats.status());
+  const int64_t due = std::max(due_before, RelinearizationsDue(worker_));
   pb::MapInfo info;
   MapInfoToProto(*stats, update_, due, &info);
   return Json(200, ToJson(info));

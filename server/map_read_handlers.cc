@@ -172,11 +172,13 @@ grpc::Status MapService::GetMapInfo(grpc::ServerContext* ctx, const pb::GetMapIn
                                     pb::MapInfo* response) {
   RequestLog log("GetMapInfo", ctx);
   if (auto who = CheckAccess(context_->auth, *ctx, Permission::kReadMap, &log); !who.ok()) return log.Done(who.status());
-  // What is owed first: a re-linearisation is committed before it stops being owed, so a 0 read
-  // here comes with stats that already hold it.
-  const int64_t due = RelinearizationsDue(context_->worker);
+  // What is owed, before and after the stats, the larger: a re-linearisation is committed before it
+  // stops being owed, and a passage's owed ones are counted before its commit, so an answer with
+  // nothing queued and nothing owed carries the map's final version.
+  const int64_t due_before = RelinearizationsDue(context_->worker);
   absl::StatusOr<MapStats> stats = context_->store->GetStats();
   if (!stats.ok()) return log.Done(stats.status());
+  const int64_t due = std::max(due_before, RelinearizationsDue(context_->worker));
   MapInfoToProto(*stats, context_->update, due, response);
   log.Add(absl::StrCat("map_version=", stats->map_version, " queue_depth=", stats->queue_depth(),
                        " relinearizations_due=", response->relinearizations_due()));

@@ -40,8 +40,8 @@ struct MapServiceContext {
 };
 
 // GetMapInfo's answer: the store's counts and the estimator's settings (also the map viewer's).
-// The re-linearisations `worker` owes (0 without one). Read it before the stats that go with it
-// (see GetMapInfo).
+// The re-linearisations `worker` owes (0 without one). Read it before and after the stats that go
+// with it and report the larger (see GetMapInfo).
 int64_t RelinearizationsDue(const MapWorker* worker);
 void MapInfoToProto(const MapStats& stats, const MapUpdateOptions& update, int64_t relinearizations_due,
                     pb::MapInfo* info);
