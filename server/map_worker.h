@@ -99,8 +99,8 @@ class MapWorker {
   // like an update; runs on the calling thread. Unavailable when stopping.
   absl::StatusOr<PassageUpdateSummary> Exclude(const StoredPassage& record);
   // Re-linearisations owed (MapUpdateOptions::relinearize_sigmas): relinearizations_per_passage
-  // for each passage applied, counted before its commit, until done or until no retained passage
-  // qualifies; 0 when off. With the queue empty (GetMapInfo's queue_depth) and this 0, the map
+  // for each passage applied, counted before its commit (taken back if it fails), until done or
+  // until no retained passage qualifies; 0 when off. With the queue empty (GetMapInfo's queue_depth) and this 0, the map
   // changes no more until something arrives.
   int64_t relinearizations_due() const { return relinearizations_due_.load(); }
 
@@ -167,7 +167,7 @@ class MapWorker {
   // re-linearisation is due, the retained passage whose landmarks moved furthest since its factors
   // were taken, beyond the threshold, is taken again at the map's current estimate
   // (ComputePassageRelinearization, CommitPassageRelinearized). False when none was due or none
-  // qualified (then none is due). A failure is logged, counted as done, and that passage left until
+  // qualified (then only those other workers are computing stay due). A failure is logged, counted as done, and that passage left until
   // it is applied anew. Queued passages come first: a worker with a backlog applies it at full
   // speed and catches up on its re-linearisations (up to kMaxRelinearizationsDue) once it is idle.
   bool RelinearizeOneWhileIdle();
