@@ -12,16 +12,13 @@
 # binary`). MAPD (default build/server/mapd) and MAPD_ARGS (default: no warm-up or re-solves) pick
 # the server. The readers need Python stubs in GEN (default ./gen; see query-region-bench.py).
 set -euo pipefail
-if [[ $# -lt 2 || "$1" == -h || "$1" == --help ]]; then
-  sed -n '2,13p' "$0" | sed 's/^# \{0,1\}//'
-  exit 2
-fi
-MAP_DB=$1
-PASSAGES=$2
-READERS=${3:-2}
 ROOT=$(cd "$(dirname "$0")/.." && pwd)
 # shellcheck source=lib/mapd-bench.sh
 source "$ROOT/scripts/lib/mapd-bench.sh"
+usage_unless "$0" "$@"
+MAP_DB=$1
+PASSAGES=$2
+READERS=${3:-2}
 MAPD=${MAPD:-$ROOT/build/server/mapd}
 MAPCTL=${MAPCTL:-$ROOT/build/client/mapctl}
 MAPD_ARGS=${MAPD_ARGS:---warmup-passages 0 --relinearize-until-passages 0}
@@ -36,9 +33,7 @@ cleanup() {
   [[ -n "${KEEP:-}" ]] || rm -rf "$SCRATCH"
 }
 trap cleanup EXIT
-FILES=("$PASSAGES"/passage-*)
-N=${#FILES[@]}
-[[ -e "${FILES[0]}" ]] || { echo "no passage files in $PASSAGES" >&2; exit 1; }
+passage_files "$PASSAGES"
 copy_map "$MAP_DB" "$SCRATCH"
 # shellcheck disable=SC2086
 start_mapd "$MAPD" "$SCRATCH/mapd.log" --db "$SCRATCH/map.db" --listen "127.0.0.1:$PORT" \

@@ -11,26 +11,21 @@
 # --export-passages DIR --export-format binary`). mapd gets MAPD_ARGS too (default: the city
 # settings below, which must be the map's). Needs a build (scripts/setup.sh); load stays on loopback.
 set -euo pipefail
-if [[ $# -lt 2 || "$1" == -h || "$1" == --help ]]; then
-  sed -n '2,13p' "$0" | sed 's/^# \{0,1\}//'
-  exit 2
-fi
+ROOT=$(cd "$(dirname "$0")/.." && pwd)
+# shellcheck source=lib/mapd-bench.sh
+source "$ROOT/scripts/lib/mapd-bench.sh"
+usage_unless "$0" "$@"
 MAP_DB=$1
 PASSAGES=$2
 shift 2
 SIGMAS=("${@:-0}")
 [[ $# -eq 0 ]] && SIGMAS=(0 6)
-ROOT=$(cd "$(dirname "$0")/.." && pwd)
-# shellcheck source=lib/mapd-bench.sh
-source "$ROOT/scripts/lib/mapd-bench.sh"
 BUILD=${BUILD:-$ROOT/build}
 MAPD_ARGS=${MAPD_ARGS:---window-hops 2 --warmup-passages 0 --relinearize-until-passages 0}
 PORT=${PORT:-50293}
 SCRATCH=$(mktemp -d /tmp/relinearize-bench.XXXXXX)
 [[ -n "${KEEP:-}" ]] || trap 'rm -rf "$SCRATCH"' EXIT
-FILES=("$PASSAGES"/passage-*)
-N=${#FILES[@]}
-[[ -e "${FILES[0]}" ]] || { echo "no passage files in $PASSAGES" >&2; exit 1; }
+passage_files "$PASSAGES"
 
 owed() {
   "$BUILD/client/mapctl" info --server "127.0.0.1:$PORT" --json |

@@ -13,26 +13,21 @@
 # last passages, which the figures before it did not have). Needs a build (scripts/setup.sh); load
 # stays on loopback.
 set -euo pipefail
-if [[ $# -lt 2 || "$1" == -h || "$1" == --help ]]; then
-  sed -n '2,14p' "$0" | sed 's/^# \{0,1\}//'
-  exit 2
-fi
+ROOT=$(cd "$(dirname "$0")/.." && pwd)
+# shellcheck source=lib/mapd-bench.sh
+source "$ROOT/scripts/lib/mapd-bench.sh"
+usage_unless "$0" "$@"
 MAP_DB=$1
 PASSAGES=$2
 shift 2
 WORKERS=("${@:-1}")
 [[ $# -eq 0 ]] && WORKERS=(1 2)
-ROOT=$(cd "$(dirname "$0")/.." && pwd)
-# shellcheck source=lib/mapd-bench.sh
-source "$ROOT/scripts/lib/mapd-bench.sh"
 BUILD=${BUILD:-$ROOT/build}
 MAPD_ARGS=${MAPD_ARGS:---window-hops 2 --warmup-passages 0 --relinearize-until-passages 0 --relinearize-sigmas 0}
 PORT=${PORT:-50291}
 SCRATCH=$(mktemp -d /tmp/workers-bench.XXXXXX)
 [[ -n "${KEEP:-}" ]] || trap 'rm -rf "$SCRATCH"' EXIT
-FILES=("$PASSAGES"/passage-*)
-N=${#FILES[@]}
-[[ -e "${FILES[0]}" ]] || { echo "no passage files in $PASSAGES" >&2; exit 1; }
+passage_files "$PASSAGES"
 
 declare -A RATE
 for W in "${WORKERS[@]}"; do

@@ -1,9 +1,27 @@
 # Shared by the benches that apply passages through a real mapd on loopback (source it).
+#   usage_unless SCRIPT ARGS...  with fewer than two ARGS or -h/--help first: SCRIPT's header
+#                             comment (from line 2 to the first line that is not a comment), exit 2
+#   passage_files DIR         FILES (DIR's passage-* files) and N, or exits when there are none
 #   copy_map MAP_DB DIR       MAP_DB (and MAP_DB.queue) copied to DIR/map.db and synced, the original untouched
 #   start_mapd MAPD LOG ARGS  mapd started in the background on ARGS, its log in LOG; returns once it
 #                             listens (MAPD_PID), or exits with its log when it stops first
 #   finished_count LOG        passages that reached a final state (applied, rejected, failed, quarantined)
 #   wait_finished LOG N       waits until N passages are final, the count on stderr as it goes
+
+usage_unless() {
+  local script=$1
+  shift
+  if [[ $# -lt 2 || "$1" == -h || "$1" == --help ]]; then
+    sed -n '2,/^[^#]/p' "$script" | sed '$d' | sed 's/^# \{0,1\}//'
+    exit 2
+  fi
+}
+
+passage_files() {
+  FILES=("$1"/passage-*)
+  N=${#FILES[@]}
+  [[ -e "${FILES[0]}" ]] || { echo "no passage files in $1" >&2; exit 1; }
+}
 
 copy_map() {
   cp "$1" "$2/map.db"
