@@ -404,12 +404,13 @@ void MapWorker::Apply(const StoredPassage& record, const Passage& passage) {
           folded = WhollyFolded(map, delta.folded_factors);
           written = WriteSetOf(delta, map);
         });
-        int64_t owed = 0;  // taken back if the commit fails
+        // Owed before the passage shows as applied, so that a client that sees the queue empty sees
+        // them; taken back if the commit fails.
+        int64_t owed = 0;
         if (options_.update.relinearize_sigmas > 0.0) {
-          // Owed before the passage shows as applied: a client that sees the queue empty sees it.
-          const int64_t before = relinearizations_due_.load();
-          relinearizations_due_ = std::min(kMaxRelinearizationsDue, before + options_.update.relinearizations_per_passage);
-          owed = relinearizations_due_.load() - before;
+          const int64_t due = relinearizations_due_.load();
+          owed = std::min(kMaxRelinearizationsDue - due, int64_t{options_.update.relinearizations_per_passage});
+          relinearizations_due_ = due + owed;
         }
         state.unlock();
         const PassageResult result = ResultFromSummary(summary, options_.update.strategy);
@@ -452,7 +453,8 @@ void MapWorker::Apply(const StoredPassage& record, const Passage& passage) {
         }
         if (owed > 0) {  // not applied: nothing owed for it
           std::lock_guard<std::mutex> owing(state_mu_);
-          relinearizations_due_ = std::max(relinearizations_due_.load() - owed, static_cast<int64_t>(relinearizing_.size()));
+          relinearizations_due_ =
+              std::max(relinearizations_due_.load() - owed, static_cast<int64_t>(relinearizing_.size()));
         }
         error = absl::StrCat("commit: ", committed.ToString());
         transient = IsTransientStorageError(committed) && !stopping_;

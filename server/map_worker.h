@@ -100,8 +100,8 @@ class MapWorker {
   absl::StatusOr<PassageUpdateSummary> Exclude(const StoredPassage& record);
   // Re-linearisations owed (MapUpdateOptions::relinearize_sigmas): relinearizations_per_passage
   // for each passage applied, counted before its commit (taken back if it fails), until done or
-  // until no retained passage qualifies; 0 when off. With the queue empty (GetMapInfo's queue_depth) and this 0, the map
-  // changes no more until something arrives.
+  // until no retained passage qualifies; 0 when off. With the queue empty (GetMapInfo's
+  // queue_depth) and this 0, the map changes no more until something arrives.
   int64_t relinearizations_due() const { return relinearizations_due_.load(); }
 
  private:
@@ -167,9 +167,10 @@ class MapWorker {
   // re-linearisation is due, the retained passage whose landmarks moved furthest since its factors
   // were taken, beyond the threshold, is taken again at the map's current estimate
   // (ComputePassageRelinearization, CommitPassageRelinearized). False when none was due or none
-  // qualified (then only those other workers are computing stay due). A failure is logged, counted as done, and that passage left until
-  // it is applied anew. Queued passages come first: a worker with a backlog applies it at full
-  // speed and catches up on its re-linearisations (up to kMaxRelinearizationsDue) once it is idle.
+  // qualified (then only those other workers are computing stay due). A failure is logged,
+  // counted as done, and that passage left until it is applied anew. Queued passages come first:
+  // a worker with a backlog applies it at full speed and catches up on its re-linearisations (up
+  // to kMaxRelinearizationsDue) once it is idle.
   bool RelinearizeOneWhileIdle();
   absl::Status Relinearize(const MapUpdater::PassageKey& key);
   // Deletes the stored uploads of `folded` passages (MapStoreInterface::PrunePassagePayloads); a

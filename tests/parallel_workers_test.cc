@@ -39,8 +39,12 @@ std::vector<Passage> InCommitOrder(MockVehicle* vehicle, const std::vector<Passa
 }
 
 // With options.relinearize_sigmas, each passage is followed by its re-linearisations, as the
-// service's worker does them when each passage finds it idle; `relinearized` counts them.
-MapState ApplyInOrder(const std::vector<Passage>& passages, const MapUpdateOptions& options, int* relinearized = nullptr) {
+// service's worker does them when each passage finds it idle; or, with `after_backlog`, they all
+// follow the last passage (as many as were owed), as after a backlog. `relinearized` counts them.
+MapState ApplyInOrder(const std::vector<Passage>& passages, MapUpdateOptions options, int* relinearized = nullptr,
+                      bool after_backlog = false) {
+  const int per_passage = options.relinearizations_per_passage;
+  if (after_backlog) options.relinearizations_per_passage = per_passage * static_cast<int>(passages.size());
   MapState map;
   MapUpdater updater(options);
   const auto passage_of = [&](const MapUpdater::PassageKey& key) -> absl::StatusOr<Passage> {
@@ -55,6 +59,7 @@ MapState ApplyInOrder(const std::vector<Passage>& passages, const MapUpdateOptio
     if (!update.ok()) continue;
     map.Apply(update->delta);
     updater.Applied(passage, update->delta);
+    if (after_backlog && &passage != &passages.back()) continue;
     const int count = RelinearizeStaleInMemory(passage_of, &updater, &map);
     if (relinearized != nullptr) *relinearized += count;
   }
@@ -213,24 +218,8 @@ TEST(ServiceRelinearization, ABacklogIsAppliedFirstAndItsRelinearisationsFollow)
     last_applied_version = std::max(last_applied_version, status->result().map_version());
   }
 
-  MapUpdateOptions replay_options = update;
-  replay_options.relinearizations_per_passage = static_cast<int>(passages.size());
-  MapState expected;
-  MapUpdater updater(replay_options);
-  for (const Passage& passage : passages) {
-    absl::StatusOr<PassageUpdate> u = updater.Compute(passage, expected);
-    ASSERT_TRUE(u.ok()) << passage.passage_id << ": " << u.status();
-    expected.Apply(u->delta);
-    updater.Applied(passage, u->delta);
-  }
-  const int relinearized = RelinearizeStaleInMemory(
-      [&](const MapUpdater::PassageKey& key) -> absl::StatusOr<Passage> {
-        for (const Passage& p : passages) {
-          if (p.vehicle_id == key.first && p.passage_id == key.second) return p;
-        }
-        return absl::NotFoundError(key.second);
-      },
-      &updater, &expected);
+  int relinearized = 0;
+  const MapState expected = ApplyInOrder(passages, update, &relinearized, /*after_backlog=*/true);
   EXPECT_GE(relinearized, 1) << "the scenario must make passages stale";
   EXPECT_GT(info->map_version(), last_applied_version) << "re-linearisations after the last passage";
   ASSERT_TRUE(server->store()->ReadCommittedMap([&](const MapState& map) { ExpectSameMap(expected, map); }));
