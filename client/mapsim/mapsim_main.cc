@@ -304,6 +304,36 @@ struct CityCommand {
   bool quiet = false;
 };
 
+// A city fleet's traffic and GNSS outages (CityScenarioOptions), in group "Traffic".
+void AddTrafficFlags(CLI::App* command, CityScenarioOptions* city, CLI::Option* needs = nullptr) {
+  const std::string traffic = "Traffic";
+  std::vector<CLI::Option*> options = {
+      command->add_option("--stop-probability", city->stop_probability,
+                          "before each intersection a vehicle stops (a red light) with probability X")
+          ->type_name("X"),
+      command->add_option("--stop-min-s", city->stop_min_s, "shortest wait at a stop, s")
+          ->default_val(city->stop_min_s)
+          ->type_name("S"),
+      command->add_option("--stop-max-s", city->stop_max_s, "longest wait at a stop, s")
+          ->default_val(city->stop_max_s)
+          ->type_name("S"),
+      command->add_option("--gnss-outage-probability", city->gnss_outage_probability,
+                          "a passage loses its GNSS (an underpass, an urban canyon) for a while with\n"
+                          "probability X; its first and last 10 s keep their fixes")
+          ->type_name("X"),
+      command->add_option("--gnss-outage-min-s", city->gnss_outage_min_s, "shortest outage, s")
+          ->default_val(city->gnss_outage_min_s)
+          ->type_name("S"),
+      command->add_option("--gnss-outage-max-s", city->gnss_outage_max_s, "longest outage, s")
+          ->default_val(city->gnss_outage_max_s)
+          ->type_name("S"),
+  };
+  for (CLI::Option* option : options) {
+    option->group(traffic);
+    if (needs != nullptr) option->needs(needs);
+  }
+}
+
 void AddCityFlags(CLI::App* command, CityCommand* c) {
   CityExperimentOptions& o = c->options;
   CityScenarioOptions& city = o.city;
@@ -331,6 +361,7 @@ void AddCityFlags(CLI::App* command, CityCommand* c) {
   command->add_option("--rate-variation", city.rate_variation,
                       "each vehicle's sensor rates scaled by a factor in [1-X, 1+X]")
       ->type_name("X");
+  AddTrafficFlags(command, &city);
   command->add_flag_callback("--no-occlusion", [&city] { city.occlusion = false; }, "buildings do not hide landmarks");
   AddNoiseScaleFlags(command, &c->scales);
   AddParsedOption(command, "--strategy", &o.update.strategy, &ParseUpdateStrategy, "cc | dc | cc-gsd")
@@ -637,6 +668,7 @@ void AddFleetFlags(CLI::App* command, FleetCommand* c) {
   command->add_option("--route-m", o.city_scenario.route_length_m, "distance driven per passage, m")
       ->needs(city)
       ->type_name("M");
+  AddTrafficFlags(command, &o.city_scenario, city);
   command->add_option("--out", c->out,
                       "output folder: passages.csv (one row per sampled map; the last row is the final map),\n"
                       "summary.json, errors.svg, map.geojson, arrival_order.txt (the scenario passage index of\n"

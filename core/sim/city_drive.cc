@@ -12,6 +12,7 @@ constexpr double kLookaheadM = 6.0;  // pure pursuit; on an arc of radius R it s
 constexpr double kArcStepRad = 0.05;
 constexpr double kAccelerationMps2 = 1.5;
 constexpr double kDecelerationMps2 = 2.0;
+constexpr double kStopBeforeKerbM = 2.0;  // a stopped vehicle waits this far before the crossing
 constexpr int kDx[4] = {1, 0, -1, 0};      // east, north, west, south
 constexpr int kDy[4] = {0, 1, 0, -1};
 
@@ -62,6 +63,7 @@ class LanePath {
 struct Route {
   LanePath lane;
   std::vector<double> turn_s_m;  // arc length at the middle of each turn's arc
+  std::vector<double> stop_s_m;  // arc length where the vehicle would stop before each intersection
   double heading_rad = 0.0;
 };
 
@@ -107,6 +109,7 @@ Route RandomRoute(const CityLayout& layout, double lane_offset_m, double length_
     const Eigen::Vector2d corner = node(i, j) + lane_offset_m * right(d) + turn_shift;
     if (next == d) {
       route.lane.Add(corner);
+      route.stop_s_m.push_back(route.lane.length_m() - layout.road_half_width_m() - kStopBeforeKerbM);
     } else {
       // A circular arc tangent to both lane lines; a right turn is tighter than a left one.
       const bool right_turn = next == (d + 3) % 4;
@@ -118,6 +121,7 @@ Route RandomRoute(const CityLayout& layout, double lane_offset_m, double length_
       for (int k = 0; k <= steps; ++k) {
         const double a = from + sweep * k / steps;
         route.lane.Add(center + radius_m * Eigen::Vector2d(std::cos(a), std::sin(a)));
+        if (k == 0) route.stop_s_m.push_back(route.lane.length_m() - kStopBeforeKerbM);
         if (k == steps / 2) route.turn_s_m.push_back(route.lane.length_m());
       }
     }
@@ -163,11 +167,53 @@ CityDrive DriveRandomRoute(const CityLayout& layout, const CityScenarioOptions& 
   const double turn_mps = std::min(options.turn_speed_mps, cruise_mps);
   const Eigen::Vector2d start = route.lane.points().front();
   Pose2 pose(start.x(), start.y(), route.heading_rad);
+
+  // Stops before intersections, drawn after the route (which then does not depend on them) and
+  // only when they are asked for (so that the passages of a seed stay what they were).
+  struct Stop {
+    double s_m, standing_s;
+  };
+  std::vector<Stop> stops;
+  double standing_total_s = 0.0;
+  if (options.stop_probability > 0.0) {
+    std::uniform_real_distribution<double> unit(0.0, 1.0), standing(options.stop_min_s, options.stop_max_s);
+    for (double stop_s_m : route.stop_s_m) {
+      if (unit(*rng) >= options.stop_probability) continue;
+      stops.push_back({stop_s_m, standing(*rng)});
+      standing_total_s += stops.back().standing_s;
+    }
+  }
+  size_t next_stop = 0;
+  double stand_until_s = -1.0;  // while standing, the time the vehicle drives on
+
   double s_m = 0.0, v = 0.0;
-  const int max_steps = static_cast<int>(options.route_length_m / (0.5 * turn_mps) / dt_s) + 10;
+  const int max_steps =
+      static_cast<int>((options.route_length_m / (0.5 * turn_mps) + standing_total_s) / dt_s) + 10 + 2 * stops.size();
   for (int j = 0; j < max_steps; ++j) {
+    const double t_s = j * dt_s;
     s_m = route.lane.Project(pose.head<2>(), s_m);
-    const double allowed = AllowedSpeed(route.turn_s_m, s_m, cruise_mps, turn_mps);
+    double allowed = AllowedSpeed(route.turn_s_m, s_m, cruise_mps, turn_mps);
+    while (next_stop < stops.size() && stand_until_s < 0.0 && stops[next_stop].s_m < s_m - 1.0) ++next_stop;
+    if (next_stop < stops.size()) {
+      const double gap_m = stops[next_stop].s_m - s_m;
+      // Standing once the next step would reach the stop line; braking at kDecelerationMps2 before.
+      if (stand_until_s < 0.0 && gap_m <= v * dt_s + 1e-3) {
+        stand_until_s = t_s + stops[next_stop].standing_s;
+        ++drive.stops;
+      }
+      if (stand_until_s >= 0.0 && t_s >= stand_until_s) {
+        ++next_stop;
+        stand_until_s = -1.0;
+      } else if (stand_until_s >= 0.0) {
+        allowed = 0.0;
+      } else {
+        // The speed from which steps of dt_s, each losing kDecelerationMps2 * dt_s, cover gap_m:
+        // gap = v^2 / (2 a) + v dt / 2.
+        const double half_step = 0.5 * kDecelerationMps2 * dt_s;
+        allowed = std::min(allowed, std::sqrt(half_step * half_step + 2.0 * kDecelerationMps2 * std::max(0.0, gap_m)) -
+                                        half_step);
+      }
+    }
     v = j == 0 ? allowed : std::min(allowed, v + kAccelerationMps2 * dt_s);
     const Eigen::Vector2d ahead = route.lane.PointAt(s_m + kLookaheadM) - pose.head<2>();
     const double c = std::cos(pose.z()), s = std::sin(pose.z());
@@ -178,7 +224,7 @@ CityDrive DriveRandomRoute(const CityLayout& layout, const CityScenarioOptions& 
     const double steering =
         std::asin(std::clamp(curvature * drive.wheelbase_m, -max_curvature_wheelbase, max_curvature_wheelbase));
     drive.poses.push_back(pose);
-    drive.inputs.push_back({j * dt_s, v, steering});
+    drive.inputs.push_back({t_s, v, steering});
     if (drive.length_m >= options.route_length_m) break;
     pose = BicycleStep(pose, v, steering, dt_s, drive.wheelbase_m);
     drive.length_m += v * dt_s;

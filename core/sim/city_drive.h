@@ -25,6 +25,7 @@ struct CityDrive {
   double length_m = 0.0;    // distance driven from t = 0 to duration_s
   std::vector<Eigen::Vector2d> lane_m;  // the lane the driver followed, as a polyline
   int turns = 0;                        // left and right turns at intersections
+  int stops = 0;                        // times it stood still before an intersection
 
   // True pose at t_s, by the same bicycle steps.
   Pose2 PoseAt(double t_s) const;
@@ -39,7 +40,8 @@ double TurnRadiusM(const CityLayout& layout, bool right_turn);
 // intersection at random among the streets ahead, left and right (no U-turn). The driver follows
 // the lane (straight, then arcs through turns) by pure pursuit, so the curvature is continuous, with steering limited
 // to options.max_steering_rad; cruises at `cruise_mps` and slows to options.turn_speed_mps through
-// turns. Only the westernmost `streets_x` north-south streets (and the east-west streets between
+// turns. With options.stop_probability it brakes to a standstill before some intersections and
+// waits there (options.stop_min_s .. stop_max_s). Only the westernmost `streets_x` north-south streets (and the east-west streets between
 // them) are driven; all of them when it is larger. All randomness is drawn from `rng`.
 CityDrive DriveRandomRoute(const CityLayout& layout, const CityScenarioOptions& options, double dt_s,
                            double cruise_mps, std::mt19937_64* rng, int streets_x);

@@ -2,6 +2,7 @@
 
 #include <cmath>
 #include <string>
+#include <tuple>
 
 #include "absl/strings/str_cat.h"
 
@@ -81,6 +82,18 @@ absl::Status CityScenarioOptions::Validate() const {
   if (late_from_passage < 0) return Invalid("late_from_passage", absl::StrCat("must be >= 0, got ", late_from_passage));
   if (vehicles < 1) return Invalid("vehicles", absl::StrCat("must be >= 1, got ", vehicles));
   if (!(rate_variation < 0.5)) return Invalid("rate_variation", absl::StrCat("must be < 0.5, got ", rate_variation));
+  for (const auto& [field, value] : {std::pair<const char*, double>{"stop_probability", stop_probability},
+                                     {"gnss_outage_probability", gnss_outage_probability}}) {
+    if (!(value >= 0.0 && value <= 1.0)) return Invalid(field, absl::StrCat("must lie in [0, 1], got ", value));
+  }
+  for (const auto& [min_field, min_s, max_field, max_s] :
+       {std::tuple<const char*, double, const char*, double>{"stop_min_s", stop_min_s, "stop_max_s", stop_max_s},
+        {"gnss_outage_min_s", gnss_outage_min_s, "gnss_outage_max_s", gnss_outage_max_s}}) {
+    if (absl::Status s = CheckNonNegative(min_field, min_s); !s.ok()) return s;
+    if (!(max_s >= min_s && max_s <= 3600.0)) {
+      return Invalid(max_field, absl::StrCat("must lie in [", min_field, " = ", min_s, ", 3600], got ", max_s));
+    }
+  }
   if (!(gnss_ar1_alpha >= 0.0 && gnss_ar1_alpha < 1.0)) return Invalid("gnss_ar1_alpha", "must lie in [0, 1)");
   if (!std::isfinite(camera_yaw_bias_rad)) return Invalid("camera_yaw_bias_rad", "must be finite");
   if (!(max_detection_range_m > min_detection_range_m)) {

@@ -46,6 +46,17 @@ struct CityScenarioOptions {
   int late_from_passage = 0;
   // Each vehicle's sensor rates are those below times a factor drawn in [1 - x, 1 + x]. 0 = off.
   double rate_variation = 0.0;
+  // Traffic: before each intersection of its route the vehicle stops (a red light, a give-way)
+  // with this probability, standing still for a time uniform in [stop_min_s, stop_max_s]. 0 = never.
+  double stop_probability = 0.0;
+  double stop_min_s = 5.0;
+  double stop_max_s = 40.0;
+  // A GNSS outage (an underpass, an urban canyon): with this probability a passage has no fix for a
+  // time uniform in [gnss_outage_min_s, gnss_outage_max_s], placed at random inside the passage
+  // (its first and last 10 s keep their fixes). 0 = never.
+  double gnss_outage_probability = 0.0;
+  double gnss_outage_min_s = 10.0;
+  double gnss_outage_max_s = 60.0;
 
   // --- Sensors ---
   NoiseConfig noise = NoiseConfig::kWhite;

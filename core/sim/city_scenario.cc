@@ -12,6 +12,7 @@ namespace {
 
 constexpr uint64_t kVehicleStream = 0x7E41C1Eull;
 constexpr uint64_t kPassageStream = 0xC17Dull;
+constexpr uint64_t kOutageStream = 0x07A6Eull;
 
 bool HasYawBias(NoiseConfig noise) { return noise == NoiseConfig::kYawBias || noise == NoiseConfig::kGnssAr1YawBias; }
 bool HasGnssAr1(NoiseConfig noise) { return noise == NoiseConfig::kGnssAr1 || noise == NoiseConfig::kGnssAr1YawBias; }
@@ -78,6 +79,21 @@ std::pair<Passage, CityDrive> CityScenario::MakePassageWithTruth(int index) cons
   p.noise.gnss_correlation_time_s = gnss.CorrelationTimeS();  // the passage declares its GNSS process
   p.gnss = SimulateGnss([&drive](double t) { return drive.PoseAt(t); }, drive.duration_s, frame(), o.calibration,
                         gnss, &noise);
+  // An outage removes fixes after they are drawn: the receiver's error evolves through it, and
+  // the other measurements of the passage are those it has without an outage.
+  if (o.gnss_outage_probability > 0.0) {
+    std::mt19937_64 rng(SplitMix64(PassageSeed(o.seed, index) ^ kOutageStream));
+    std::uniform_real_distribution<double> unit(0.0, 1.0);
+    const double length_s = std::uniform_real_distribution<double>(o.gnss_outage_min_s, o.gnss_outage_max_s)(rng);
+    constexpr double kKeptAtEndsS = 10.0;
+    const double room_s = drive.duration_s - 2.0 * kKeptAtEndsS - length_s;
+    if (unit(rng) < o.gnss_outage_probability && room_s > 0.0) {
+      const double from_s = kKeptAtEndsS + room_s * unit(rng);
+      p.gnss.erase(std::remove_if(p.gnss.begin(), p.gnss.end(),
+                                  [&](const GnssFix& f) { return f.t_s >= from_s && f.t_s < from_s + length_s; }),
+                   p.gnss.end());
+    }
+  }
 
   const int frames = static_cast<int>(std::floor(drive.duration_s * vehicle.camera_rate_hz + 1e-9)) + 1;
   for (int k = 0; k < frames; ++k) {

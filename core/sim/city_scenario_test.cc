@@ -161,6 +161,67 @@ TEST(CityScenario, RouteHasTheRequestedLengthAndStaysOnTheStreets) {
   EXPECT_GT(turns, 4);  // eight 600 m drives on 150 m blocks do turn
 }
 
+TEST(CityScenario, VehiclesStopBeforeIntersectionsAndDriveTheSameRoute) {
+  CityScenarioOptions options = Small();
+  const CityScenario plain = Make(options);
+  options.stop_probability = 1.0;
+  options.stop_min_s = 10.0;
+  options.stop_max_s = 20.0;
+  const CityScenario stopping = Make(options);
+  int stops = 0;
+  for (int i = 0; i < 6; ++i) {
+    const CityDrive a = plain.TrueDrive(i), b = stopping.TrueDrive(i);
+    EXPECT_EQ(a.stops, 0);
+    EXPECT_EQ(a.lane_m, b.lane_m) << "the same route, " << i;
+    EXPECT_GE(b.length_m, options.route_length_m);
+    stops += b.stops;
+    // Every stop is a run of zero speed of 10 to 20 s, reached by braking at about 2 m/s^2, the
+    // last step from a crawl.
+    int still = 0, runs = 0;
+    for (size_t j = 0; j < b.inputs.size(); ++j) {
+      const double v = b.inputs[j].speed_mps;
+      if (j > 0 && v > 0.0) {
+        EXPECT_GE(v - b.inputs[j - 1].speed_mps, -2.1 * b.dt_s) << i << " at " << b.inputs[j].t_s;
+      } else if (j > 0) {
+        EXPECT_LE(b.inputs[j - 1].speed_mps, 0.5) << i << " at " << b.inputs[j].t_s;
+      }
+      if (v == 0.0) {
+        ++still;
+      } else if (still > 0) {
+        EXPECT_GE(still * b.dt_s, 10.0 - 1e-6);
+        EXPECT_LE(still * b.dt_s, 20.0 + 2.0 * b.dt_s);
+        ++runs;
+        still = 0;
+      }
+    }
+    EXPECT_EQ(runs, b.stops) << i;
+    EXPECT_NEAR(b.duration_s - a.duration_s, 15.0 * b.stops, 5.0 * b.stops + 10.0) << i;
+  }
+  EXPECT_GT(stops, 6) << "600 m drives on 150 m blocks cross intersections";
+}
+
+TEST(CityScenario, AGnssOutageRemovesTheFixesOfOneIntervalInsideThePassage) {
+  CityScenarioOptions options = Small();
+  const CityScenario plain = Make(options);
+  options.gnss_outage_probability = 1.0;
+  options.gnss_outage_min_s = 15.0;
+  options.gnss_outage_max_s = 25.0;
+  const CityScenario outage = Make(options);
+  for (int i = 0; i < 6; ++i) {
+    const Passage a = plain.MakePassage(i), b = outage.MakePassage(i);
+    ASSERT_TRUE(ValidatePassage(b).ok()) << ValidatePassage(b);
+    EXPECT_EQ(a.odometry.size(), b.odometry.size());
+    EXPECT_EQ(a.detections.size(), b.detections.size());
+    double longest_gap_s = 0.0;
+    for (size_t j = 1; j < b.gnss.size(); ++j) longest_gap_s = std::max(longest_gap_s, b.gnss[j].t_s - b.gnss[j - 1].t_s);
+    EXPECT_GE(longest_gap_s, 15.0) << i;
+    EXPECT_LE(longest_gap_s, 25.0 + 1.0 + 1e-9) << i;
+    EXPECT_LE(b.gnss.front().t_s, 1e-9);
+    EXPECT_NEAR(b.gnss.back().t_s, a.gnss.back().t_s, 1e-9);
+    EXPECT_NEAR(a.gnss.size() - b.gnss.size(), longest_gap_s - 1.0, 1.0 + 1e-9) << i;
+  }
+}
+
 TEST(CityScenario, ALateDistrictIsDrivenOnlyFromItsFirstPassageOn) {
   CityScenarioOptions options = Small();
   options.blocks_x = 4;
@@ -266,6 +327,10 @@ TEST(CityScenario, RefusesInvalidOptionsNamingTheField) {
       {"gnss_ar1_alpha", [](CityScenarioOptions* o) { o->gnss_ar1_alpha = 1.0; }},
       {"max_detection_range_m", [](CityScenarioOptions* o) { o->max_detection_range_m = 4.0; }},
       {"origin", [](CityScenarioOptions* o) { o->origin.lat_deg = 91.0; }},
+      {"stop_probability", [](CityScenarioOptions* o) { o->stop_probability = 1.5; }},
+      {"stop_max_s", [](CityScenarioOptions* o) { o->stop_max_s = 1.0; }},
+      {"gnss_outage_probability", [](CityScenarioOptions* o) { o->gnss_outage_probability = -0.1; }},
+      {"gnss_outage_min_s", [](CityScenarioOptions* o) { o->gnss_outage_min_s = NAN; }},
   };
   for (const auto& [field, mutate] : cases) {
     CityScenarioOptions options;
