@@ -25,11 +25,17 @@ int SubgraphDimension(const PassageGraph& graph, const NodeRange& range);
 // a range's innovations alone fix its position to about the stationary sigma.
 constexpr double kMinSubgraphCorrelationTimes = 3.0;
 
+// A cut between two ranges needs a GNSS fix within this many seconds (plus two of the passage's
+// median fix intervals) on each side of it; otherwise the two ranges are one (a GNSS outage is not
+// cut, see JoinUnanchoredCuts in subdivision.cc).
+constexpr double kCutAnchorS = 5.0;
+
 // Splits the graph along time into the fewest ranges whose dimension is at most max_dim, with the
 // sizes balanced (a small remainder at the end would be weakly anchored). A single node whose
 // dimension already exceeds max_dim forms its own range. max_dim <= 0: one range. With coloured
 // GNSS noise, at most as many ranges as the passage spans kMinSubgraphCorrelationTimes (at least
-// one), balanced the same way.
+// one), balanced the same way. Ranges whose cut would fall in a GNSS outage are then joined (see
+// kCutAnchorS), so a range can exceed max_dim there.
 std::vector<NodeRange> SubdivideGraph(const PassageGraph& graph, int max_dim);
 
 }  // namespace crowdmap

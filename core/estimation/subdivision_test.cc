@@ -115,13 +115,22 @@ TEST_F(SubdivisionTest, NonPositiveBoundGivesOneRange) {
   }
 }
 
-TEST(SubdivideGraph, ABoundBelowOneNodeGivesOneRangePerNode) {
+TEST(SubdivideGraph, ABoundBelowOneNodeGivesOneRangePerGnssNode) {
+  // Every node alone, but a range without a fix is no anchored piece: the nodes of detections
+  // alone join the range of the fix before them (the first ones the fix after them).
   const PassageGraph g = SimulatedGraph(4);
   const std::vector<NodeRange> ranges = SubdivideGraph(g, 2);
-  ASSERT_EQ(static_cast<int>(ranges.size()), g.node_count());
-  for (int k = 0; k < g.node_count(); ++k) {
-    EXPECT_EQ(ranges[k].first, k);
-    EXPECT_EQ(ranges[k].last, k);
+  std::set<int> gnss_nodes;
+  for (const GnssObservation& fix : g.gnss) gnss_nodes.insert(fix.node);
+  ASSERT_LT(gnss_nodes.size(), static_cast<size_t>(g.node_count())) << "the graph has nodes without a fix";
+  ASSERT_EQ(ranges.size(), gnss_nodes.size());
+  for (size_t k = 0; k < ranges.size(); ++k) {
+    if (k > 0) {
+      EXPECT_EQ(ranges[k].first, ranges[k - 1].last + 1);
+    }
+    int fixes = 0;
+    for (int node = ranges[k].first; node <= ranges[k].last; ++node) fixes += gnss_nodes.count(node);
+    EXPECT_EQ(fixes, 1) << k;
   }
 }
 
@@ -129,6 +138,49 @@ TEST(SubdivideGraph, TheThesisGraphSplitsIntoTwoOrThreeAtFiveHundred) {
   const std::vector<NodeRange> ranges = SubdivideGraph(SimulatedGraph(50), 500);
   EXPECT_GE(ranges.size(), 2u);
   EXPECT_LE(ranges.size(), 3u);
+}
+
+TEST(SubdivideGraph, NoCutFallsInAGnssOutage) {
+  ScenarioOptions options;
+  options.landmarks = 100;
+  GraphOptions graph_options;
+  graph_options.refine_initial_poses = false;
+  Passage passage = Scenario::Create(options)->MakePassage(0);
+  const PassageGraph whole = *BuildPassageGraph(passage, graph_options);
+  const std::vector<NodeRange> cuts = SubdivideGraph(whole, 500);
+  ASSERT_GE(cuts.size(), 2u);
+  // A 40 s outage around where the first cut falls with every fix.
+  const double cut_s = whole.node_times_s[cuts.front().last];
+  passage.gnss.erase(std::remove_if(passage.gnss.begin(), passage.gnss.end(),
+                                    [&](const GnssFix& f) { return std::abs(f.t_s - cut_s) < 20.0; }),
+                     passage.gnss.end());
+  const PassageGraph graph = *BuildPassageGraph(passage, graph_options);
+  const std::vector<NodeRange> ranges = SubdivideGraph(graph, 500);
+  ASSERT_GE(ranges.size(), 1u);
+  EXPECT_LT(ranges.size(), cuts.size() + 1);
+  EXPECT_EQ(ranges.front().first, 0);
+  EXPECT_EQ(ranges.back().last, graph.node_count() - 1);
+  // Fixes at 1 Hz: each side of every cut has one within kCutAnchorS + 2 s.
+  auto fix_within = [&](const NodeRange& r, int at) {
+    for (const GnssObservation& fix : graph.gnss) {
+      if (fix.node >= r.first && fix.node <= r.last &&
+          std::abs(graph.node_times_s[fix.node] - graph.node_times_s[at]) <= kCutAnchorS + 2.0) {
+        return true;
+      }
+    }
+    return false;
+  };
+  bool joined = false;
+  for (size_t k = 1; k < ranges.size(); ++k) {
+    EXPECT_EQ(ranges[k].first, ranges[k - 1].last + 1);
+    EXPECT_TRUE(fix_within(ranges[k - 1], ranges[k - 1].last)) << k;
+    EXPECT_TRUE(fix_within(ranges[k], ranges[k].first)) << k;
+  }
+  for (const NodeRange& r : ranges) {
+    const double from_s = graph.node_times_s[r.first], to_s = graph.node_times_s[r.last];
+    if (from_s < cut_s - 20.0 && to_s > cut_s + 20.0) joined = true;
+  }
+  EXPECT_TRUE(joined) << "one range bridges the outage";
 }
 
 TEST(SubdivideGraph, CorrelatedGnssKeepsEveryRangeThreeCorrelationTimesLong) {
