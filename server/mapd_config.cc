@@ -179,6 +179,10 @@ std::unique_ptr<CLI::App> NewMapdCommandLine(MapdConfig* config) {
                  "prior, and keep it (GetVehicle, mapctl vehicles; false: declared calibrations are taken\n"
                  "as exact)")
       ->type_name("BOOL");
+  AddMapdSetting(app, "speed-scale-prior-sigma", &u.speed_scale_prior_sigma,
+                 "estimate each passage's wheel-speed scale (tyre radius, pressure, wear), prior mean 1 with\n"
+                 "this sigma (0: the encoders' speeds are taken as unbiased)")
+      ->type_name("X");
   AddMapdSetting(app, "fleet-yaw-prior-vehicles", &u.fleet_camera_yaw_prior_vehicles,
                  "with estimate-camera-yaw: once the map has N vehicles' records, a new vehicle's camera\n"
                  "yaw prior is centred on the fleet's mean (width their spread, at least 1 degree) instead\n"
@@ -254,6 +258,7 @@ MapUpdateOptions MapdDefaultUpdateOptions() {
   u.estimate_camera_yaw = true;
   u.fleet_camera_yaw_prior_vehicles = 10;
   u.relinearize_sigmas = 6.0;
+  u.speed_scale_prior_sigma = 0.03;
   return u;
 }
 
@@ -274,6 +279,7 @@ std::string DescribeMapdConfig(const MapdConfig& config) {
       " max-new-landmark-ray-sigma-m=", u.max_new_landmark_ray_sigma_m, " max-chi2-per-dof=", u.max_chi2_per_dof,
       " estimate-camera-yaw=", u.estimate_camera_yaw ? "true" : "false",
       " fleet-yaw-prior-vehicles=", u.fleet_camera_yaw_prior_vehicles,
+      " speed-scale-prior-sigma=", u.speed_scale_prior_sigma,
       " metrics-listen=", o.metrics_listen.empty() ? "none" : EscapeForLog(o.metrics_listen),
       " http-listen=", o.http_listen.empty() ? "none" : EscapeForLog(o.http_listen),
       " viewer-basemap=", o.viewer_basemap.empty() ? "none" : EscapeForLog(o.viewer_basemap),

@@ -150,6 +150,11 @@ void AddMapUpdateFlags(CLI::App* command, MapUpdateOptions* update) {
                       "degree) instead of 0, as mapd's flag of that name (mapd: 10; here 0 = off)")
       ->check(NonNegative())
       ->type_name("N");
+  command->add_option("--speed-scale-prior-sigma", update->speed_scale_prior_sigma,
+                      "estimate each passage's wheel-speed scale, prior mean 1 with this sigma (e.g. 0.03;\n"
+                      "mapd: 0.03; here 0 = off: the speeds taken as unbiased)")
+      ->check(NonNegative())
+      ->type_name("X");
   // Gates given in sigmas, kept as squared Mahalanobis distances.
   const auto add_sigmas = [command](const std::string& flag, double* mahalanobis2, const std::string& description) {
     command->add_option_function<double>(flag, [mahalanobis2](double sigmas) { *mahalanobis2 = sigmas * sigmas; },
@@ -356,6 +361,10 @@ void AddCityFlags(CLI::App* command, CityCommand* c) {
       ->type_name("X");
   command->add_option("--vehicle-yaw-bias-sigma-rad", city.vehicle_yaw_bias_sigma_rad,
                       "each vehicle's own camera yaw error, Gaussian")
+      ->type_name("X");
+  command->add_option("--vehicle-speed-scale-sigma", city.vehicle_speed_scale_sigma,
+                      "each vehicle's own wheel-speed scale error: its encoders report the speed times\n"
+                      "1 + X times a Gaussian draw (e.g. 0.02 for 2%)")
       ->type_name("X");
   AddSensorRateFlags(command, &city);
   command->add_option("--rate-variation", city.rate_variation,

@@ -18,6 +18,11 @@ ceres::CostFunction* OdometryFactor::Create(const RelativeMotion& motion) {
       new OdometryFactor(motion.delta, SqrtInformation(motion.cov)));
 }
 
+ceres::CostFunction* ScaledOdometryFactor::Create(const RelativeMotion& motion) {
+  return new ceres::AutoDiffCostFunction<ScaledOdometryFactor, 3, 3, 3, 1>(
+      new ScaledOdometryFactor(motion.delta, SqrtInformation(motion.cov)));
+}
+
 ceres::CostFunction* GnssFactor::Create(const Eigen::Vector2d& measured, const Eigen::Matrix2d& cov,
                                         const Eigen::Vector2d& lever_arm) {
   return new ceres::AutoDiffCostFunction<GnssFactor, 2, 3>(new GnssFactor(measured, lever_arm, SqrtInformation(cov)));

@@ -89,6 +89,43 @@ TEST(OdometryFactor, ResidualIsZeroForThePredictedPoseAndWrapsTheAngle) {
   EXPECT_LT(r.norm(), 1e-9);
 }
 
+TEST(ScaledOdometryFactor, JacobianMatchesFiniteDifferences) {
+  std::mt19937 rng(2);
+  std::uniform_real_distribution<double> u(-3.0, 3.0);
+  for (int trial = 0; trial < 20; ++trial) {
+    RelativeMotion motion;
+    motion.delta = Pose2(6.0 + u(rng), 0.3 * u(rng), 0.1 * u(rng));
+    motion.cov = RandomCovariance3(rng);
+    std::unique_ptr<ceres::CostFunction> cost(ScaledOdometryFactor::Create(motion));
+    ExpectJacobiansMatchFiniteDifferences(
+        *cost, {{u(rng), u(rng), u(rng)}, {u(rng) + 6.0, u(rng), u(rng)}, {1.0 + 0.02 * u(rng)}}, 1e-5);
+  }
+}
+
+TEST(ScaledOdometryFactor, IsTheOdometryFactorAtScaleOneAndScalesTheDisplacement) {
+  RelativeMotion motion;
+  motion.delta = Pose2(7.9, 0.8, 0.4);
+  motion.cov = Eigen::Matrix3d::Identity() * 1e-4;
+  std::unique_ptr<ceres::CostFunction> plain(OdometryFactor::Create(motion));
+  std::unique_ptr<ceres::CostFunction> scaled(ScaledOdometryFactor::Create(motion));
+  const Pose2 a(3.0, -2.0, 0.7);
+  Pose2 b = ComposeMotion(a, Pose2(7.5, 1.2, 0.35));
+  double one = 1.0;
+  const double* plain_params[] = {a.data(), b.data()};
+  const double* scaled_params[] = {a.data(), b.data(), &one};
+  Eigen::Vector3d r_plain, r_scaled;
+  ASSERT_TRUE(plain->Evaluate(plain_params, r_plain.data(), nullptr));
+  ASSERT_TRUE(scaled->Evaluate(scaled_params, r_scaled.data(), nullptr));
+  EXPECT_LT((r_plain - r_scaled).norm(), 1e-12);
+  // 3% further, the same turn.
+  double k = 1.03;
+  b = ComposeMotion(a, Pose2(k * 7.9, k * 0.8, 0.4));
+  const double* params[] = {a.data(), b.data(), &k};
+  Eigen::Vector3d r;
+  ASSERT_TRUE(scaled->Evaluate(params, r.data(), nullptr));
+  EXPECT_LT(r.norm(), 1e-10);
+}
+
 TEST(GnssFactor, JacobianMatchesFiniteDifferences) {
   std::mt19937 rng(2);
   std::uniform_real_distribution<double> u(-3.0, 3.0);

@@ -140,11 +140,16 @@ absl::Status SolvePoseGraph(const Calibration& calib, int max_iterations, Passag
 
 void AddPoseGraphFactors(const PassageGraph& graph, int first, int last, const Eigen::Vector2d& gnss_lever_arm_m,
                          ceres::LossFunction* loss, std::vector<Pose2>* poses, ceres::Problem* problem,
-                         bool independent_fixes) {
+                         bool independent_fixes, double* speed_scale) {
   auto pose = [&](int node) { return (*poses)[node - first].data(); };
   for (Pose2& p : *poses) problem->AddParameterBlock(p.data(), 3);
   for (int k = first; k < last; ++k) {
-    problem->AddResidualBlock(OdometryFactor::Create(graph.motions[k]), loss, pose(k), pose(k + 1));
+    if (speed_scale != nullptr) {
+      problem->AddResidualBlock(ScaledOdometryFactor::Create(graph.motions[k]), loss, pose(k), pose(k + 1),
+                                speed_scale);
+    } else {
+      problem->AddResidualBlock(OdometryFactor::Create(graph.motions[k]), loss, pose(k), pose(k + 1));
+    }
   }
   const double tau = independent_fixes ? 0.0 : graph.gnss_correlation_time_s;
   for (size_t j = 0; j < graph.gnss.size(); ++j) {

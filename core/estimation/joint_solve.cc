@@ -143,14 +143,22 @@ absl::StatusOr<PassageUpdate> SolveJointly(const std::vector<Passage>& passages,
   // (the vehicles' stored estimates already hold these passages, so taking them as priors here
   // would count the passages twice). Per passage, the passages' factors stay independent.
   std::vector<double> yaw_offset_rad(count, 0.0);
+  // With the wheel-speed scale estimated: one scale per passage, each with the fixed prior.
+  std::vector<double> speed_scale(count, 1.0);
+  const bool scaled = options.speed_scale_prior_sigma > 0.0;
   for (int p = 0; p < count; ++p) {
     weights.push_back(std::make_unique<ceres::LossFunctionWrapper>(new ceres::TrivialLoss(), ceres::TAKE_OWNERSHIP));
     std::vector<ceres::ResidualBlockId> before;
     problem.GetResidualBlocks(&before);
     AddPoseGraphFactors(graphs[p], 0, graphs[p].node_count() - 1, passages[p].calibration.gnss_lever_arm_m,
-                        weights[p].get(), &poses[p], &problem);
+                        weights[p].get(), &poses[p], &problem, /*independent_fixes=*/false,
+                        scaled ? &speed_scale[p] : nullptr);
     problem.GetResidualBlocks(&blocks_of[p]);
     blocks_of[p].erase(blocks_of[p].begin(), blocks_of[p].begin() + before.size());
+    if (scaled) {
+      blocks_of[p].push_back(problem.AddResidualBlock(
+          ScalarPriorFactor::Create(1.0, options.speed_scale_prior_sigma), nullptr, &speed_scale[p]));
+    }
     if (options.estimate_camera_yaw) {
       blocks_of[p].push_back(problem.AddResidualBlock(
           ScalarPriorFactor::Create(0.0, options.camera_yaw_prior_sigma_rad), nullptr, &yaw_offset_rad[p]));
@@ -184,9 +192,9 @@ absl::StatusOr<PassageUpdate> SolveJointly(const std::vector<Passage>& passages,
       double cost = 0.0;
       std::vector<double> residuals;
       if (!problem.Evaluate(evaluate, &cost, &residuals, nullptr, nullptr)) continue;
-      // (a yaw offset is one more parameter; its prior is among the residuals)
+      // (a yaw offset or a speed scale is one more parameter; its prior is among the residuals)
       const double dof = static_cast<double>(residuals.size()) - 3.0 * poses[p].size() - landmark_dims_of[p] -
-                         (options.estimate_camera_yaw ? 1.0 : 0.0);
+                         (options.estimate_camera_yaw ? 1.0 : 0.0) - (scaled ? 1.0 : 0.0);
       const double chi2 = 2.0 * cost;
       if (const double variance_factor = VarianceFactor(chi2, dof, options.inflation_test_sigmas);
           variance_factor > 1.0) {

@@ -141,7 +141,15 @@ absl::StatusOr<SetAsideRequest> UpdateFromSubgraph(const Passage& passage, const
   problem_options.loss_function_ownership = ceres::DO_NOT_TAKE_OWNERSHIP;
   ceres::Problem problem(problem_options);
   // The measurement weight scales every measurement residual; the map prior is never weighted.
-  AddPoseGraphFactors(graph, range.first, range.last, calib.gnss_lever_arm_m, &measurement_weight, &poses, &problem);
+  // The wheel-speed scale: this subgraph's own state, its prior the same in every subgraph.
+  double speed_scale = 1.0;
+  double* speed_scale_block = options.speed_scale_prior_sigma > 0.0 ? &speed_scale : nullptr;
+  AddPoseGraphFactors(graph, range.first, range.last, calib.gnss_lever_arm_m, &measurement_weight, &poses, &problem,
+                      /*independent_fixes=*/false, speed_scale_block);
+  if (speed_scale_block != nullptr) {
+    problem.AddResidualBlock(ScalarPriorFactor::Create(1.0, options.speed_scale_prior_sigma), nullptr,
+                             speed_scale_block);
+  }
   if (options.estimate_camera_yaw) {
     problem.AddResidualBlock(
         ScalarPriorFactor::Create(yaw_offset_rad, std::sqrt(vehicle.camera_yaw_variance_rad2)), nullptr,
@@ -215,6 +223,11 @@ absl::StatusOr<SetAsideRequest> UpdateFromSubgraph(const Passage& passage, const
     vehicle = ConsiderCameraYawSolve(vehicle, yaw_base_rad + yaw_offset_rad, yaw.given_landmarks,
                                      yaw.from_landmarks);
     vehicle.updated_unix_ms = passage.start_time_unix_ms;
+  }
+  if (speed_scale_block != nullptr) {
+    const GraphLinearization::ScalarMarginal scale = linearization->MarginalVariance(speed_scale_block);
+    summary->speed_scale = speed_scale;
+    summary->speed_scale_sigma = std::sqrt(scale.given_landmarks + scale.from_landmarks);
   }
 
   const int64_t seen_ms = passage.start_time_unix_ms;
@@ -351,6 +364,10 @@ absl::Status MapUpdateOptions::Validate() const {
     return absl::InvalidArgumentError(
         absl::StrCat("camera_yaw_prior_sigma_rad: must lie in (0, 1), got ", camera_yaw_prior_sigma_rad));
   }
+  if (!(speed_scale_prior_sigma >= 0.0 && speed_scale_prior_sigma <= 0.2)) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("speed_scale_prior_sigma: must lie in [0, 0.2] (0 = off), got ", speed_scale_prior_sigma));
+  }
   if (fleet_camera_yaw_prior_vehicles < 0) {
     return absl::InvalidArgumentError(absl::StrCat("fleet_camera_yaw_prior_vehicles: must be >= 0 (0 = off), got ",
                                                    fleet_camera_yaw_prior_vehicles));
@@ -373,7 +390,10 @@ std::string PassageUpdateSummary::Brief() const {
          (camera_yaw_sigma_rad > 0.0 ? absl::StrFormat(" camera_yaw_deg=%.3f camera_yaw_sigma_deg=%.3f",
                                                         camera_yaw_offset_rad * 180.0 / M_PI,
                                                         camera_yaw_sigma_rad * 180.0 / M_PI)
-                                     : std::string());
+                                     : std::string()) +
+         (speed_scale_sigma > 0.0 ? absl::StrFormat(" speed_scale=%.4f speed_scale_sigma=%.4f", speed_scale,
+                                                     speed_scale_sigma)
+                                  : std::string());
 }
 
 namespace {

@@ -45,6 +45,10 @@ struct PassageUpdateSummary {
   // after the passage, and its standard deviation.
   double camera_yaw_offset_rad = 0.0;
   double camera_yaw_sigma_rad = 0.0;
+  // With the wheel-speed scale estimated (MapUpdateOptions::speed_scale_prior_sigma): the last
+  // subgraph's estimate and its standard deviation.
+  double speed_scale = 0.0;
+  double speed_scale_sigma = 0.0;
   int64_t map_version = 0;  // version after the update
   int joint_passages = 0;       // passages solved jointly (warm-up or re-solve); 0 = sequential update
   bool joint_rejected = false;  // the joint solve was not usable, this is the sequential update

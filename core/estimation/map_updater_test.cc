@@ -59,6 +59,11 @@ TEST(MapUpdateOptions, RejectsOutOfRangeValuesNamingTheField) {
   options = MapUpdateOptions();
   options.relinearize_until_passages = -1;
   EXPECT_NE(options.Validate().message().find("relinearize_until_passages"), std::string::npos);
+  for (double sigma : {-0.01, 0.5, static_cast<double>(NAN)}) {
+    options = MapUpdateOptions();
+    options.speed_scale_prior_sigma = sigma;
+    EXPECT_NE(options.Validate().message().find("speed_scale_prior_sigma"), std::string::npos) << sigma;
+  }
   EXPECT_TRUE(MapUpdateOptions().Validate().ok());
 }
 
@@ -683,6 +688,24 @@ TEST(MapUpdater, PassagesThroughGnssOutagesPlaceNoLandmarkFarOff) {
               map.landmark_count(), mean, worst);
   EXPECT_LT(mean, 2.0);
   EXPECT_LT(worst, 20.0);
+}
+
+// Every vehicle's encoders off by its own 2% (sigma) of the speed. Taken as exact, the errors
+// stretch and shrink each vehicle's streets; with the scale of the distance travelled estimated in
+// every subgraph the map stays consistent.
+TEST(ComputePassageUpdate, WheelSpeedScaleErrorsAreEstimated) {
+  CityScenarioOptions city;
+  city.route_length_m = 1000.0;
+  city.vehicle_speed_scale_sigma = 0.02;
+  MapUpdateOptions options = SequentialUpdatesOnly();
+  const CityMapErrors ignored = ApplyCityPassages(city, 16, options);
+  options.speed_scale_prior_sigma = 0.03;
+  const CityMapErrors estimated = ApplyCityPassages(city, 16, options);
+  std::printf("wheel-speed scale errors, 16 passages: NEES/dof %.2f ignored, %.2f estimated\n",
+              ignored.mean_nees_per_dof, estimated.mean_nees_per_dof);
+  EXPECT_GT(ignored.mean_nees_per_dof, 2.0);
+  EXPECT_LT(estimated.mean_nees_per_dof, 1.3);
+  EXPECT_LT(estimated.max_mahalanobis, ignored.max_mahalanobis);
 }
 
 TEST(ComputePassageUpdate, DetectionsReportedUnderANeighboursIdAreSetAsideAsOutliers) {

@@ -41,6 +41,7 @@ absl::Status CityScenarioOptions::Validate() const {
        {std::pair<const char*, double>{"street_jitter_m", street_jitter_m},
         {"landmark_kerb_offset_min_m", landmark_kerb_offset_min_m}, {"corner_clearance_m", corner_clearance_m},
         {"vehicle_yaw_bias_sigma_rad", vehicle_yaw_bias_sigma_rad}, {"min_detection_range_m", min_detection_range_m},
+        {"vehicle_speed_scale_sigma", vehicle_speed_scale_sigma},
         {"rate_variation", rate_variation}, {"noise_model.speed_sigma_mps", noise_model.speed_sigma_mps},
         {"noise_model.steering_sigma_rad", noise_model.steering_sigma_rad},
         {"noise_model.pixel_sigma_px", noise_model.pixel_sigma_px}}) {
@@ -81,6 +82,9 @@ absl::Status CityScenarioOptions::Validate() const {
   }
   if (late_from_passage < 0) return Invalid("late_from_passage", absl::StrCat("must be >= 0, got ", late_from_passage));
   if (vehicles < 1) return Invalid("vehicles", absl::StrCat("must be >= 1, got ", vehicles));
+  if (!(vehicle_speed_scale_sigma <= 0.1)) {
+    return Invalid("vehicle_speed_scale_sigma", absl::StrCat("must be <= 0.1, got ", vehicle_speed_scale_sigma));
+  }
   if (!(rate_variation < 0.5)) return Invalid("rate_variation", absl::StrCat("must be < 0.5, got ", rate_variation));
   for (const auto& [field, value] : {std::pair<const char*, double>{"stop_probability", stop_probability},
                                      {"gnss_outage_probability", gnss_outage_probability}}) {

@@ -67,6 +67,9 @@ struct CityScenarioOptions {
   double gnss_ar1_alpha = 0.988;          // with noise gnss-ar1 and ar1+yaw
   double camera_yaw_bias_rad = 0.009;     // with noise yaw-bias and ar1+yaw, the same on every vehicle
   double vehicle_yaw_bias_sigma_rad = 0.0;  // each vehicle's own camera yaw error, Gaussian; 0 = off
+  // Each vehicle's wheel-speed scale error (tyre radius, pressure, wear): its encoders report the
+  // speed times 1 + this sigma times a Gaussian draw. 0 = off.
+  double vehicle_speed_scale_sigma = 0.0;
   double min_detection_range_m = 5.0;
   double max_detection_range_m = 50.0;
   bool occlusion = true;  // buildings hide the landmarks behind them

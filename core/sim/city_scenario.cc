@@ -42,6 +42,8 @@ CityVehicle CityScenario::Vehicle(int vehicle_index) const {
   v.true_camera = o.calibration;
   v.true_camera.camera_yaw_rad += o.vehicle_yaw_bias_sigma_rad * normal(rng);
   if (HasYawBias(o.noise)) v.true_camera.camera_yaw_rad += o.camera_yaw_bias_rad;
+  // Drawn last and only when asked for, so that the other draws stay what they were.
+  if (o.vehicle_speed_scale_sigma > 0.0) v.speed_scale = 1.0 + o.vehicle_speed_scale_sigma * normal(rng);
   return v;
 }
 
@@ -70,6 +72,7 @@ std::pair<Passage, CityDrive> CityScenario::MakePassageWithTruth(int index) cons
   p.calibration = o.calibration;
   p.noise = o.noise_model;
   p.odometry = SimulateOdometry(drive.inputs, drive.duration_s, o.noise_model, &noise);
+  for (OdometrySample& sample : p.odometry) sample.speed_mps *= vehicle.speed_scale;
 
   GnssSimulation gnss;
   gnss.rate_hz = vehicle.gnss_rate_hz;

@@ -22,6 +22,7 @@ struct CityVehicle {
   double gnss_rate_hz = 1.0;
   double camera_rate_hz = 2.0;
   Calibration true_camera;  // the reported calibration plus this vehicle's camera yaw error
+  double speed_scale = 1.0;  // its encoders report the true speed times this
 };
 
 // A landmark a camera sees, with its true (noise-free) pixel.

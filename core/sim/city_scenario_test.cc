@@ -222,6 +222,29 @@ TEST(CityScenario, AGnssOutageRemovesTheFixesOfOneIntervalInsideThePassage) {
   }
 }
 
+TEST(CityScenario, EachVehiclesEncodersReportTheSpeedTimesItsOwnScale) {
+  CityScenarioOptions options = Small();
+  options.noise_model.speed_sigma_mps = 0.0;
+  const CityScenario exact = Make(options);
+  options.vehicle_speed_scale_sigma = 0.02;
+  const CityScenario scaled = Make(options);
+  std::vector<double> scales;
+  for (int i = 0; i < options.vehicles; ++i) {
+    const Passage a = exact.MakePassage(i), b = scaled.MakePassage(i);
+    ASSERT_EQ(a.odometry.size(), b.odometry.size());
+    const double scale = scaled.Vehicle(i).speed_scale;
+    EXPECT_EQ(exact.Vehicle(i).speed_scale, 1.0);
+    for (size_t j = 0; j < a.odometry.size(); ++j) {
+      EXPECT_NEAR(b.odometry[j].speed_mps, scale * a.odometry[j].speed_mps, 1e-12);
+      EXPECT_EQ(b.odometry[j].steering_rad, a.odometry[j].steering_rad);
+    }
+    EXPECT_EQ(a.gnss.size(), b.gnss.size()) << "the truth and the other sensors stay";
+    scales.push_back(scale);
+  }
+  EXPECT_NE(scales[0], scales[1]);
+  for (double scale : scales) EXPECT_NEAR(scale, 1.0, 0.1);
+}
+
 TEST(CityScenario, ALateDistrictIsDrivenOnlyFromItsFirstPassageOn) {
   CityScenarioOptions options = Small();
   options.blocks_x = 4;
@@ -328,6 +351,7 @@ TEST(CityScenario, RefusesInvalidOptionsNamingTheField) {
       {"max_detection_range_m", [](CityScenarioOptions* o) { o->max_detection_range_m = 4.0; }},
       {"origin", [](CityScenarioOptions* o) { o->origin.lat_deg = 91.0; }},
       {"stop_probability", [](CityScenarioOptions* o) { o->stop_probability = 1.5; }},
+      {"vehicle_speed_scale_sigma", [](CityScenarioOptions* o) { o->vehicle_speed_scale_sigma = 0.5; }},
       {"stop_max_s", [](CityScenarioOptions* o) { o->stop_max_s = 1.0; }},
       {"gnss_outage_probability", [](CityScenarioOptions* o) { o->gnss_outage_probability = -0.1; }},
       {"gnss_outage_min_s", [](CityScenarioOptions* o) { o->gnss_outage_min_s = NAN; }},
