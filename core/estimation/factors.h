@@ -31,17 +31,24 @@ class OdometryFactor {
 
   template <typename T>
   bool operator()(const T* a, const T* b, T* residual) const {
-    const T c = cos(a[2]), s = sin(a[2]);
-    const T dx = b[0] - a[0], dy = b[1] - a[1];
-    Eigen::Matrix<T, 3, 1> r;
-    r << c * dx + s * dy - T(delta_.x()), -s * dx + c * dy - T(delta_.y()),
-        NormalizeAngle(b[2] - a[2] - T(delta_.z()));
-    Eigen::Map<Eigen::Matrix<T, 3, 1>> out(residual);
-    out = sqrt_info_.cast<T>() * r;
+    Residual(a, b, T(1.0), delta_, sqrt_info_, residual);
     return true;
   }
 
   static ceres::CostFunction* Create(const RelativeMotion& motion);
+
+  // The residual with the displacement delta_xy taken `scale` times (ScaledOdometryFactor).
+  template <typename T>
+  static void Residual(const T* a, const T* b, const T& scale, const Pose2& delta, const Eigen::Matrix3d& sqrt_info,
+                       T* residual) {
+    const T c = cos(a[2]), s = sin(a[2]);
+    const T dx = b[0] - a[0], dy = b[1] - a[1];
+    Eigen::Matrix<T, 3, 1> r;
+    r << c * dx + s * dy - scale * T(delta.x()), -s * dx + c * dy - scale * T(delta.y()),
+        NormalizeAngle(b[2] - a[2] - T(delta.z()));
+    Eigen::Map<Eigen::Matrix<T, 3, 1>> out(residual);
+    out = sqrt_info.cast<T>() * r;
+  }
 
  private:
   Pose2 delta_;
@@ -61,13 +68,7 @@ class ScaledOdometryFactor {
 
   template <typename T>
   bool operator()(const T* a, const T* b, const T* scale, T* residual) const {
-    const T c = cos(a[2]), s = sin(a[2]);
-    const T dx = b[0] - a[0], dy = b[1] - a[1];
-    Eigen::Matrix<T, 3, 1> r;
-    r << c * dx + s * dy - scale[0] * T(delta_.x()), -s * dx + c * dy - scale[0] * T(delta_.y()),
-        NormalizeAngle(b[2] - a[2] - T(delta_.z()));
-    Eigen::Map<Eigen::Matrix<T, 3, 1>> out(residual);
-    out = sqrt_info_.cast<T>() * r;
+    OdometryFactor::Residual(a, b, scale[0], delta_, sqrt_info_, residual);
     return true;
   }
 

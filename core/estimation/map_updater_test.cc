@@ -638,6 +638,17 @@ TEST(MapUpdater, JointSolvesOfAYoungCityMapLeaveItsInformationPositiveDefinite) 
   });
 }
 
+// The mean and the largest distance of `map`'s landmarks from the truth (m).
+std::pair<double, double> MeanAndWorstError(const CityScenario& scenario, const MapState& map) {
+  double worst = 0.0, sum = 0.0;
+  map.ForEachLandmark([&](const Landmark& l) {
+    const double error = (scenario.frame().ToLocal(l.position) - scenario.landmarks()[l.id - 1].position_m).norm();
+    worst = std::max(worst, error);
+    sum += error;
+  });
+  return {sum / map.landmark_count(), worst};
+}
+
 // The young map's joint solves on the street grid, vehicles with their own sensor rates: before
 // they estimated only what the sequential updates had created and checked every landmark they
 // moved, a few landmarks (placed by two nearly parallel rays) ended kilometres off
@@ -649,13 +660,7 @@ TEST(MapUpdater, JointSolvesOfAYoungCityMapPlaceNoLandmarkFarOff) {
   absl::StatusOr<CityScenario> scenario = CityScenario::Create(city);
   ASSERT_TRUE(scenario.ok()) << scenario.status();
   const MapState map = ApplyCityPassagesThroughUpdater(city, 16, MapUpdateOptions{});
-  double worst = 0.0, sum = 0.0;
-  map.ForEachLandmark([&](const Landmark& l) {
-    const double error = (scenario->frame().ToLocal(l.position) - scenario->landmarks()[l.id - 1].position_m).norm();
-    worst = std::max(worst, error);
-    sum += error;
-  });
-  const double mean = sum / map.landmark_count();
+  const auto [mean, worst] = MeanAndWorstError(*scenario, map);
   std::printf("city, 16 passages with joint solves: %zu landmarks, mean error %.3f m, worst %.2f m\n",
               map.landmark_count(), mean, worst);
   EXPECT_LT(mean, 2.0);
@@ -677,13 +682,7 @@ TEST(MapUpdater, PassagesThroughGnssOutagesPlaceNoLandmarkFarOff) {
   absl::StatusOr<CityScenario> scenario = CityScenario::Create(city);
   ASSERT_TRUE(scenario.ok()) << scenario.status();
   const MapState map = ApplyCityPassagesThroughUpdater(city, 13, MapUpdateOptions{});
-  double worst = 0.0, sum = 0.0;
-  map.ForEachLandmark([&](const Landmark& l) {
-    const double error = (scenario->frame().ToLocal(l.position) - scenario->landmarks()[l.id - 1].position_m).norm();
-    worst = std::max(worst, error);
-    sum += error;
-  });
-  const double mean = sum / map.landmark_count();
+  const auto [mean, worst] = MeanAndWorstError(*scenario, map);
   std::printf("city with GNSS outages, 13 passages: %zu landmarks, mean error %.3f m, worst %.2f m\n",
               map.landmark_count(), mean, worst);
   EXPECT_LT(mean, 2.0);
