@@ -258,7 +258,6 @@ MapUpdateOptions MapdDefaultUpdateOptions() {
   u.estimate_camera_yaw = true;
   u.fleet_camera_yaw_prior_vehicles = 10;
   u.relinearize_sigmas = 6.0;
-  u.speed_scale_prior_sigma = 0.03;
   return u;
 }
 

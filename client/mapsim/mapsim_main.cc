@@ -152,7 +152,7 @@ void AddMapUpdateFlags(CLI::App* command, MapUpdateOptions* update) {
       ->type_name("N");
   command->add_option("--speed-scale-prior-sigma", update->speed_scale_prior_sigma,
                       "estimate each passage's wheel-speed scale, prior mean 1 with this sigma (e.g. 0.03;\n"
-                      "mapd: 0.03; here 0 = off: the speeds taken as unbiased)")
+                      "0 = off: the speeds taken as unbiased, as mapd by default)")
       ->check(NonNegative())
       ->type_name("X");
   // Gates given in sigmas, kept as squared Mahalanobis distances.
