@@ -15,6 +15,7 @@
 #include <spdlog/spdlog.h>
 
 #include "absl/strings/str_cat.h"
+#include "absl/strings/str_format.h"
 #include "core/estimation/passage_exclusion.h"
 #include "server/request_log.h"
 #include "server/wire_convert.h"
@@ -444,12 +445,15 @@ void MapWorker::Apply(const StoredPassage& record, const Passage& passage) {
           spdlog::info(
               "event=applied passage={} vehicle={} id={} nodes={} subgraphs={} landmarks_updated={} "
               "landmarks_created={} landmarks_conditioned={} solve_ms={:.1f} total_ms={:.1f} commit_ms={:.1f} "
-              "factors_added={} map_version={} recomputed={} commit_wait_ms={:.1f} trim_ms={:.1f} speed_scale={:.4f} "
-              "speed_scale_sigma={:.4f}",
+              "factors_added={} map_version={} recomputed={} commit_wait_ms={:.1f} trim_ms={:.1f}{}",
               record.passage_id, record.vehicle_id, record.id, result.nodes, result.subgraphs,
               result.landmarks_updated, result.landmarks_created, result.landmarks_conditioned, result.solve_ms,
               result.total_ms, commit_ms, delta.added_factors.size(), delta.version, recomputed, commit_wait_ms,
-              trim_ms, summary.speed_scale, summary.speed_scale_sigma);
+              trim_ms,
+              summary.speed_scale_sigma > 0.0
+                  ? absl::StrFormat(" speed_scale=%.4f speed_scale_sigma=%.4f", summary.speed_scale,
+                                    summary.speed_scale_sigma)
+                  : std::string());
           return;
         }
         if (owed > 0) {  // not applied: nothing owed for it
