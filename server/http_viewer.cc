@@ -243,12 +243,8 @@ HttpResponse HttpViewer::Api(const std::string& path, const std::string& query, 
 }
 
 HttpResponse HttpViewer::Info() const {
-  const int64_t due_before = RelinearizationsDue(worker_);  // around the stats, as GetMapInfo
-  absl::StatusOr<MapStats> stats = store_->GetStats();
-  if (!stats.ok()) return FromStatus(stats.status());
-  const int64_t due = std::max(due_before, RelinearizationsDue(worker_));
   pb::MapInfo info;
-  MapInfoToProto(*stats, update_, due, &info);
+  if (absl::Status s = ReadMapInfo(*store_, update_, worker_, &info); !s.ok()) return FromStatus(s);
   return Json(200, ToJson(info));
 }
 

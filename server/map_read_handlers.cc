@@ -22,10 +22,14 @@ void AddLandmarks(const LandmarkPage& page, Response* response) {
 
 }  // namespace
 
-int64_t RelinearizationsDue(const MapWorker* worker) { return worker != nullptr ? worker->relinearizations_due() : 0; }
-
-void MapInfoToProto(const MapStats& stats, const MapUpdateOptions& update, int64_t relinearizations_due,
-                    pb::MapInfo* info) {
+absl::Status ReadMapInfo(MapStoreInterface& store, const MapUpdateOptions& update, const MapWorker* worker,
+                         pb::MapInfo* info) {
+  auto due = [worker] { return worker != nullptr ? worker->relinearizations_due() : int64_t{0}; };
+  const int64_t due_before = due();
+  absl::StatusOr<MapStats> read = store.GetStats();
+  if (!read.ok()) return read.status();
+  const MapStats& stats = *read;
+  info->set_relinearizations_due(std::max(due_before, due()));
   info->set_map_version(stats.map_version);
   info->set_landmark_count(stats.landmark_count);
   info->set_factor_count(stats.factor_count);
@@ -44,7 +48,7 @@ void MapInfoToProto(const MapStats& stats, const MapUpdateOptions& update, int64
   info->set_max_subgraph_dim(update.max_subgraph_dim);
   info->set_window_hops(update.window_hops);
   info->set_relinearize_sigmas(update.relinearize_sigmas);
-  info->set_relinearizations_due(relinearizations_due);
+  return absl::OkStatus();
 }
 
 grpc::ServerUnaryReactor* MapService::GetTile(grpc::CallbackServerContext* ctx, const pb::GetTileRequest* request,
@@ -172,15 +176,10 @@ grpc::Status MapService::GetMapInfo(grpc::ServerContext* ctx, const pb::GetMapIn
                                     pb::MapInfo* response) {
   RequestLog log("GetMapInfo", ctx);
   if (auto who = CheckAccess(context_->auth, *ctx, Permission::kReadMap, &log); !who.ok()) return log.Done(who.status());
-  // What is owed, before and after the stats, the larger: a re-linearisation is committed before it
-  // stops being owed, and a passage's owed ones are counted before its commit, so an answer with
-  // nothing queued and nothing owed carries the map's final version.
-  const int64_t due_before = RelinearizationsDue(context_->worker);
-  absl::StatusOr<MapStats> stats = context_->store->GetStats();
-  if (!stats.ok()) return log.Done(stats.status());
-  const int64_t due = std::max(due_before, RelinearizationsDue(context_->worker));
-  MapInfoToProto(*stats, context_->update, due, response);
-  log.Add(absl::StrCat("map_version=", stats->map_version, " queue_depth=", stats->queue_depth(),
+  if (absl::Status s = ReadMapInfo(*context_->store, context_->update, context_->worker, response); !s.ok()) {
+    return log.Done(s);
+  }
+  log.Add(absl::StrCat("map_version=", response->map_version(), " queue_depth=", response->queue_depth(),
                        " relinearizations_due=", response->relinearizations_due()));
   return log.Done(absl::OkStatus());
 }

@@ -39,12 +39,13 @@ struct MapServiceContext {
   StreamLimiter* streams = nullptr;
 };
 
-// GetMapInfo's answer: the store's counts and the estimator's settings (also the map viewer's).
-// The re-linearisations `worker` owes (0 without one). Read it before and after the stats that go
-// with it and report the larger (see GetMapInfo).
-int64_t RelinearizationsDue(const MapWorker* worker);
-void MapInfoToProto(const MapStats& stats, const MapUpdateOptions& update, int64_t relinearizations_due,
-                    pb::MapInfo* info);
+// GetMapInfo's answer (also the map viewer's): the store's counts, the estimator's settings and the
+// re-linearisations `worker` (null: none) owes, read before and after the stats and the larger
+// taken: a re-linearisation is committed before it stops being owed, and a passage's owed ones
+// are counted before its commit, so an answer with nothing queued and nothing owed carries the
+// map's final version. The store's error when it cannot answer.
+absl::Status ReadMapInfo(MapStoreInterface& store, const MapUpdateOptions& update, const MapWorker* worker,
+                         pb::MapInfo* info);
 
 // mapservice.v1.MapService: one thin handler per RPC; conversion in wire_convert, errors through
 // ToGrpcStatus, one log line per request.
