@@ -51,7 +51,7 @@ RelativeMotion Preintegrate(const std::vector<OdometrySample>& odometry, double 
   // Steering noise shrinks the measured turn on average: E[sin(xi + n)] = sin(xi) exp(-var / 2).
   // Scaling the turn by exp(var / 2) makes it unbiased; otherwise each curve is under-turned by
   // 0.1% of its angle with the thesis's steering noise, the same on every passage of the road,
-  // which no number of passages averages out (it was most of the maps' joint over-confidence).
+  // which no number of passages averages out (on the loop the maps moved by 0.1 mm with it).
   const double turn_unbias = std::exp(0.5 * input_cov(1, 1));
   // First sample whose hold interval reaches past t0.
   auto it = std::upper_bound(odometry.begin(), odometry.end(), t0,
