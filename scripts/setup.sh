@@ -24,7 +24,7 @@ PACKAGES=(
   build-essential cmake ninja-build pkg-config git
   libceres-dev libsuitesparse-dev libeigen3-dev libgoogle-glog-dev libgflags-dev
   libgrpc++-dev libprotobuf-dev protobuf-compiler protobuf-compiler-grpc
-  libsqlite3-dev sqlite3 libspdlog-dev libfmt-dev
+  libsqlite3-dev sqlite3 libspdlog-dev libfmt-dev libssl-dev
   libgeographiclib-dev libabsl-dev prometheus-cpp-dev
   libcivetweb-dev libjs-leaflet
   python3 python3-yaml

@@ -109,7 +109,8 @@ absl::Status MapService::AcceptUpload(const Principal& who, const pb::Passage& w
   if (auto s = context_->quotas->Admit(wire.vehicle_id(), wire_bytes); !s.ok()) return s;
   absl::StatusOr<Passage> passage = PassageFromProto(wire);
   if (!passage.ok()) return passage.status();
-  NewPassage upload{passage->vehicle_id, passage->passage_id, std::move(payload), NowUnixMs()};
+  NewPassage upload{passage->vehicle_id, passage->passage_id, std::move(payload), NowUnixMs(),
+                    PassageContentDigest(*passage)};
   absl::StatusOr<EnqueueOutcome> outcome = context_->committer->Commit(std::move(upload));
   if (!outcome.ok()) return outcome.status();
   if (!outcome->duplicate && context_->worker != nullptr) context_->worker->Wake();

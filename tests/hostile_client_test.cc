@@ -131,6 +131,9 @@ class Hostile : public ::testing::Test {
     PassageToProto(scenario_.MakePassage(index), &wire);
     wire.set_vehicle_id(vehicle_id);
     wire.set_passage_id(passage_id);
+    // Each key its own drive (one drive under two keys is refused): started at its own time.
+    wire.set_start_time_unix_ms(wire.start_time_unix_ms() +
+                                static_cast<int64_t>(std::hash<std::string>{}(vehicle_id + "/" + passage_id) % 1000000));
     return wire;
   }
 

@@ -100,6 +100,7 @@ TEST_F(MalformedRequest, WellFormedRawUploadsAreAccepted) {
   // The raw client itself works: the same bytes, unchanged, are acknowledged on both RPCs.
   EXPECT_TRUE(UploadRaw(ValidRequest()).ok());
   valid_.set_passage_id(valid_.passage_id() + "-chunked");
+  valid_.set_start_time_unix_ms(valid_.start_time_unix_ms() + 1);  // another drive: the same one is taken once
   const std::string passage = valid_.SerializeAsString();
   EXPECT_TRUE(UploadChunksRaw({Chunk(passage.substr(0, 1000)), Chunk(passage.substr(1000))}).ok());
   auto listed = server_->store()->ListPassages(PassageQuery{});

@@ -555,6 +555,33 @@ TEST_F(ServiceRpc, SamePassageUploadedTwiceIsQueuedOnceAndAppliedOnce) {
   map->ForEachLandmark([](const Landmark& l) { EXPECT_EQ(l.passages_seen, 1); });
 }
 
+TEST_F(ServiceRpc, TheSameDriveUnderOtherIdsIsRefusedAndAppliedOnce) {
+  Start(true);
+  const Passage p = scenario_.MakePassage(0);
+  MustUpload(p);
+  // A client that retries with a fresh id, or replays a drive under other vehicles' names.
+  for (const auto& [vehicle, passage] : {std::pair<std::string, std::string>{p.vehicle_id, "retry-1"},
+                                         std::pair<std::string, std::string>{"another-vehicle", p.passage_id}}) {
+    Passage again = p;
+    again.vehicle_id = vehicle;
+    again.passage_id = passage;
+    auto r = client_->Upload(again);
+    ASSERT_FALSE(r.ok()) << passage;
+    EXPECT_EQ(r.status().code(), absl::StatusCode::kAlreadyExists) << r.status();
+    EXPECT_NE(r.status().message().find(p.vehicle_id + "/" + p.passage_id), std::string::npos) << r.status();
+  }
+  // Another drive is taken, though it differs from the first by one detection's pixel.
+  Passage other = p;
+  other.passage_id = "nearly-the-same";
+  other.detections.front().u_px += 0.5;
+  EXPECT_FALSE(MustUpload(other).duplicate());
+  auto info = client_->WaitUntilIdle();
+  ASSERT_TRUE(info.ok());
+  EXPECT_EQ(info->passages_applied(), 2);
+  auto refused = client_->GetPassage("another-vehicle", p.passage_id);
+  EXPECT_EQ(refused.status().code(), absl::StatusCode::kNotFound) << "a refused upload leaves no record";
+}
+
 TEST_F(ServiceRpc, ConcurrentDuplicateUploadsGetOneRecord) {
   Start(true);
   const Passage p = scenario_.MakePassage(0);

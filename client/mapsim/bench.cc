@@ -93,12 +93,15 @@ absl::StatusOr<BenchResult> RunBench(const BenchOptions& options) {
   if (!start.ok()) return start.status();
   const int64_t finished_at_start = start->passages_applied() + start->passages_rejected() + start->passages_failed();
 
-  // Passages are generated before timing; a run tag keeps their ids new on a reused database.
-  const std::string tag = absl::StrCat("bench-", absl::ToUnixMillis(absl::Now()));
+  // Passages are generated before timing. On a reused database the run's time keeps them new:
+  // in their ids, and in their start times (the server takes one drive once, whatever its ids).
+  const int64_t run_ms = absl::ToUnixMillis(absl::Now());
+  const std::string tag = absl::StrCat("bench-", run_ms);
   std::vector<pb::Passage> wire(options.passages);
   for (int i = 0; i < options.passages; ++i) {
     PassageToProto(scenario->passages[i], &wire[i]);
     wire[i].set_passage_id(absl::StrCat(tag, "-", i));
+    wire[i].set_start_time_unix_ms(run_ms + i);
   }
   scenario->passages.clear();
 

@@ -4,6 +4,7 @@
 #include <string>
 
 #include <Eigen/LU>
+#include <openssl/evp.h>
 
 #include "absl/strings/str_cat.h"
 
@@ -195,6 +196,69 @@ absl::Status ValidatePassage(const Passage& p) {
     }
   }
   return absl::OkStatus();
+}
+
+namespace {
+
+// The bytes a digest is taken of: each number's bit pattern, in a fixed order.
+class DigestBytes {
+ public:
+  void Add(double v) { Append(&v, sizeof v); }
+  void Add(int64_t v) { Append(&v, sizeof v); }
+  void Add(const Eigen::Vector2d& v) {
+    Add(v.x());
+    Add(v.y());
+  }
+  const std::string& bytes() const { return bytes_; }
+
+ private:
+  void Append(const void* p, size_t n) { bytes_.append(static_cast<const char*>(p), n); }
+  std::string bytes_ = "crowdmap.passage-content.v1";
+};
+
+}  // namespace
+
+std::string PassageContentDigest(const Passage& passage) {
+  DigestBytes b;
+  b.Add(passage.start_time_unix_ms);
+  const Calibration& c = passage.calibration;
+  b.Add(c.wheelbase_m);
+  b.Add(c.gnss_lever_arm_m);
+  b.Add(c.camera_position_m);
+  b.Add(c.camera_yaw_rad);
+  b.Add(c.fx_px);
+  b.Add(c.cx_px);
+  b.Add(c.image_width_px);
+  const NoiseModel& n = passage.noise;
+  b.Add(n.speed_sigma_mps);
+  b.Add(n.steering_sigma_rad);
+  b.Add(n.pixel_sigma_px);
+  b.Add(n.gnss_correlation_time_s);
+  b.Add(n.gnss_process_sigma_m);
+  // Each list with its length first, so that no sample can pass for another list's.
+  b.Add(static_cast<int64_t>(passage.odometry.size()));
+  for (const OdometrySample& o : passage.odometry) {
+    b.Add(o.t_s);
+    b.Add(o.speed_mps);
+    b.Add(o.steering_rad);
+  }
+  b.Add(static_cast<int64_t>(passage.gnss.size()));
+  for (const GnssFix& g : passage.gnss) {
+    b.Add(g.t_s);
+    b.Add(g.lat_deg);
+    b.Add(g.lon_deg);
+    for (int i = 0; i < 4; ++i) b.Add(g.cov_en_m2(i));
+  }
+  b.Add(static_cast<int64_t>(passage.detections.size()));
+  for (const Detection& d : passage.detections) {
+    b.Add(d.t_s);
+    b.Add(static_cast<int64_t>(d.landmark_id));
+    b.Add(d.u_px);
+  }
+  unsigned char digest[EVP_MAX_MD_SIZE];
+  unsigned int size = 0;
+  EVP_Digest(b.bytes().data(), b.bytes().size(), digest, &size, EVP_sha256(), nullptr);
+  return std::string(reinterpret_cast<const char*>(digest), size);
 }
 
 }  // namespace crowdmap

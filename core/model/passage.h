@@ -82,6 +82,12 @@ struct Passage {
   std::vector<Detection> detections;
 };
 
+// SHA-256 (32 raw bytes) of what the passage measured: its start time, calibration, noise model
+// and every sample, fix and detection, bit for bit, but not its vehicle_id or passage_id. Two
+// uploads with the same digest are the same drive: the service takes it once, whatever ids it
+// comes under, since a drive counted twice makes the map twice as sure of its errors.
+std::string PassageContentDigest(const Passage& passage);
+
 // Checks a passage before it is accepted. The message names the offending field with its index,
 // e.g. "gnss[12].lat_deg: latitude 91.2 outside [-90, 90]". Returns InvalidArgument on failure.
 absl::Status ValidatePassage(const Passage& passage);

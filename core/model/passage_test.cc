@@ -184,5 +184,55 @@ TEST(ValidatePassage, NamesTheIndexOfALateBadFix) {
   EXPECT_NE(ValidatePassage(p).message().find("91"), std::string::npos) << "the message shows the bad value";
 }
 
+TEST(PassageContentDigest, IsTheSameUnderOtherIdsAndDiffersWithAnyMeasurement) {
+  const Passage passage = SimulatedPassage();
+  const std::string digest = PassageContentDigest(passage);
+  EXPECT_EQ(digest.size(), 32u);
+  Passage renamed = passage;
+  renamed.vehicle_id = "another-vehicle";
+  renamed.passage_id = "another-passage";
+  EXPECT_EQ(PassageContentDigest(renamed), digest);
+
+  // Any one measured number changed, by the least a double can change, is another drive.
+  const std::vector<std::pair<const char*, std::function<void(Passage*)>>> changes = {
+      {"start time", [](Passage* p) { ++p->start_time_unix_ms; }},
+      {"wheelbase", [](Passage* p) { p->calibration.wheelbase_m = std::nextafter(p->calibration.wheelbase_m, 10.0); }},
+      {"lever arm", [](Passage* p) { p->calibration.gnss_lever_arm_m.y() += 1e-9; }},
+      {"camera position", [](Passage* p) { p->calibration.camera_position_m.x() += 1e-9; }},
+      {"camera yaw", [](Passage* p) { p->calibration.camera_yaw_rad += 1e-9; }},
+      {"focal length", [](Passage* p) { p->calibration.fx_px += 1e-6; }},
+      {"principal point", [](Passage* p) { p->calibration.cx_px += 1e-6; }},
+      {"image width", [](Passage* p) { p->calibration.image_width_px += 1.0; }},
+      {"speed sigma", [](Passage* p) { p->noise.speed_sigma_mps += 1e-9; }},
+      {"steering sigma", [](Passage* p) { p->noise.steering_sigma_rad += 1e-9; }},
+      {"pixel sigma", [](Passage* p) { p->noise.pixel_sigma_px += 1e-9; }},
+      {"gnss correlation", [](Passage* p) { p->noise.gnss_correlation_time_s = 60.0; }},
+      {"gnss process sigma", [](Passage* p) { p->noise.gnss_process_sigma_m = 3.0; }},
+      {"odometry speed", [](Passage* p) { p->odometry.back().speed_mps = std::nextafter(p->odometry.back().speed_mps, 100.0); }},
+      {"odometry steering", [](Passage* p) { p->odometry[3].steering_rad += 1e-12; }},
+      {"odometry time", [](Passage* p) { p->odometry.back().t_s += 1e-9; }},
+      {"one sample fewer", [](Passage* p) { p->odometry.pop_back(); }},
+      {"gnss latitude", [](Passage* p) { p->gnss[1].lat_deg = std::nextafter(p->gnss[1].lat_deg, 90.0); }},
+      {"gnss longitude", [](Passage* p) { p->gnss[1].lon_deg += 1e-12; }},
+      {"gnss covariance", [](Passage* p) { p->gnss[0].cov_en_m2(0, 1) = p->gnss[0].cov_en_m2(1, 0) = 0.01; }},
+      {"gnss time", [](Passage* p) { p->gnss.back().t_s += 1e-9; }},
+      {"detection pixel", [](Passage* p) { p->detections[5].u_px += 1e-9; }},
+      {"detection landmark", [](Passage* p) { p->detections[5].landmark_id += 1; }},
+      {"detection time", [](Passage* p) { p->detections.back().t_s += 1e-9; }},
+      // The same numbers in other lists are another drive: each list's length is part of it.
+      {"a detection fewer, a fix more",
+       [](Passage* p) {
+         p->detections.pop_back();
+         p->gnss.push_back(p->gnss.back());
+         p->gnss.back().t_s += 1.0;
+       }},
+  };
+  for (const auto& [what, change] : changes) {
+    Passage other = passage;
+    change(&other);
+    EXPECT_NE(PassageContentDigest(other), digest) << what;
+  }
+}
+
 }  // namespace
 }  // namespace crowdmap

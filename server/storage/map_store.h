@@ -73,6 +73,9 @@ struct NewPassage {
   std::string passage_id;
   std::string payload;
   int64_t received_unix_ms = 0;
+  // PassageContentDigest of the passage: an upload under a new key whose digest the queue already
+  // holds is refused (AlreadyExists). Empty: not compared.
+  std::string content_digest = {};
 };
 
 struct EnqueueOutcome {
@@ -130,7 +133,9 @@ class MapStoreInterface {
 
   // Commits new uploads in one transaction, in order. Per item: the outcome, or
   // ResourceExhausted when the queue already holds `max_queue` passages (0 = unbounded).
-  // Duplicates of existing keys (or of earlier items) return the original record.
+  // Duplicates of existing keys (or of earlier items) return the original record; an upload under
+  // a new key with the content digest of an earlier one (the same drive sent again under other
+  // ids) is AlreadyExists, naming the earlier upload.
   virtual absl::StatusOr<std::vector<absl::StatusOr<EnqueueOutcome>>> EnqueuePassages(
       const std::vector<NewPassage>& passages, int64_t max_queue) = 0;
 

@@ -62,6 +62,9 @@ class SqliteMapStore : public MapStoreInterface {
   static absl::StatusOr<std::optional<StoredPassage>> ReadPassageByKey(SqliteConnection* db,
                                                                       const std::string& vehicle_id,
                                                                       const std::string& passage_id);
+  // The earliest upload with this content digest (NewPassage::content_digest).
+  static absl::StatusOr<std::optional<StoredPassage>> ReadPassageByContent(SqliteConnection* db,
+                                                                           const std::string& digest);
   static absl::StatusOr<int64_t> ReadMapVersion(SqliteConnection* db);
   static absl::Status WriteLandmark(SqliteConnection* db, const Landmark& landmark);
   static absl::Status WriteVehicle(SqliteConnection* db, const VehicleCalibration& vehicle);

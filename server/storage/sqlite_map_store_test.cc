@@ -193,6 +193,48 @@ TEST(SqliteMapStore, DuplicateKeyReturnsOriginalRecordAndStoresNothingNew) {
   EXPECT_EQ(*store->GetPassagePayload((*first)[0]->record.id), "first");
 }
 
+TEST(SqliteMapStore, TheSameContentUnderANewKeyIsRefusedNamingTheFirstUpload) {
+  TempDir dir;
+  const std::string path = dir.File("map.db");
+  const std::string digest(32, '\x7f'), other(32, '\x01');
+  {
+    auto store = OpenStore(path);
+    NewPassage first = MakeUpload("v", "p", "first");
+    first.content_digest = digest;
+    auto out = store->EnqueuePassages({first}, 0);
+    ASSERT_TRUE(out.ok() && (*out)[0].ok());
+  }
+  // After a restart: its own key is still the idempotent duplicate; a new key with the same
+  // content is refused, in a batch whose other uploads go through.
+  auto store = OpenStore(path);
+  NewPassage retry = MakeUpload("v", "p", "first");
+  retry.content_digest = digest;
+  NewPassage replay = MakeUpload("w", "q", "first");
+  replay.content_digest = digest;
+  NewPassage fresh = MakeUpload("w", "r", "other");
+  fresh.content_digest = other;
+  NewPassage untagged = MakeUpload("w", "s", "first");  // no digest: not compared
+  auto out = store->EnqueuePassages({retry, replay, fresh, untagged}, 0);
+  ASSERT_TRUE(out.ok());
+  ASSERT_TRUE((*out)[0].ok());
+  EXPECT_TRUE((*out)[0]->duplicate);
+  EXPECT_EQ((*out)[1].status().code(), absl::StatusCode::kAlreadyExists);
+  EXPECT_NE((*out)[1].status().message().find("passage v/p"), std::string::npos) << (*out)[1].status();
+  EXPECT_NE((*out)[1].status().message().find("queued"), std::string::npos) << (*out)[1].status();
+  ASSERT_TRUE((*out)[2].ok());
+  EXPECT_FALSE((*out)[2]->duplicate);
+  EXPECT_TRUE((*out)[3].ok());
+  EXPECT_EQ(SqlInt(SqliteQueuePath(path), "SELECT COUNT(*) FROM passages"), 3);
+  EXPECT_FALSE(store->FindPassage("w", "q").ok());
+  // Inside one batch as well.
+  NewPassage a = MakeUpload("x", "1"), b = MakeUpload("y", "2");
+  a.content_digest = b.content_digest = std::string(32, '\x02');
+  auto batch = store->EnqueuePassages({a, b}, 0);
+  ASSERT_TRUE(batch.ok());
+  EXPECT_TRUE((*batch)[0].ok());
+  EXPECT_EQ((*batch)[1].status().code(), absl::StatusCode::kAlreadyExists);
+}
+
 TEST(SqliteMapStore, FullQueueRejectsNewUploadsButAnswersDuplicates) {
   TempDir dir;
   const std::string path = dir.File("map.db");

@@ -99,6 +99,14 @@ absl::StatusOr<std::optional<StoredPassage>> SqliteMapStore::ReadPassageByKey(Sq
   return ReadOne(*stmt);
 }
 
+absl::StatusOr<std::optional<StoredPassage>> SqliteMapStore::ReadPassageByContent(SqliteConnection* db,
+                                                                                 const std::string& digest) {
+  auto stmt = db->Prepare(absl::StrCat(kPassageColumns, "WHERE p.content_digest = ?1 ORDER BY p.id LIMIT 1"));
+  if (!stmt.ok()) return stmt.status();
+  stmt->BindBlob(1, digest);
+  return ReadOne(*stmt);
+}
+
 absl::StatusOr<std::vector<absl::StatusOr<EnqueueOutcome>>> SqliteMapStore::EnqueuePassages(
     const std::vector<NewPassage>& passages, int64_t max_queue) {
   SqliteFile::Writer writer = queue_->LockWriter();
@@ -117,19 +125,36 @@ absl::StatusOr<std::vector<absl::StatusOr<EnqueueOutcome>>> SqliteMapStore::Enqu
       outcomes.push_back(EnqueueOutcome{**existing, true});
       continue;
     }
+    if (!p.content_digest.empty()) {
+      auto same = ReadPassageByContent(db, p.content_digest);
+      if (!same.ok()) return same.status();
+      if (same->has_value()) {
+        const StoredPassage& original = **same;
+        outcomes.push_back(absl::AlreadyExistsError(absl::StrCat(
+            "passage: its measurements are identical to those of passage ", original.vehicle_id, "/",
+            original.passage_id, " (id ", original.id, ", ", PassageStateName(original.state),
+            "); a drive is taken once, whatever ids it is uploaded under")));
+        continue;
+      }
+    }
     if (max_queue > 0 && *depth >= max_queue) {
       outcomes.push_back(absl::ResourceExhaustedError(
           absl::StrCat("passage queue is full (", *depth, " of ", max_queue, " passages); retry later")));
       continue;
     }
     auto insert = db->Prepare(
-        "INSERT INTO passages (vehicle_id, passage_id, state, received_unix_ms, size_bytes) "
-        "VALUES (?1, ?2, 1, ?3, ?4)");
+        "INSERT INTO passages (vehicle_id, passage_id, state, received_unix_ms, size_bytes, content_digest) "
+        "VALUES (?1, ?2, 1, ?3, ?4, ?5)");
     if (!insert.ok()) return insert.status();
     insert->Bind(1, std::string_view(p.vehicle_id))
         .Bind(2, std::string_view(p.passage_id))
         .Bind(3, p.received_unix_ms)
         .Bind(4, static_cast<int64_t>(p.payload.size()));
+    if (p.content_digest.empty()) {
+      insert->BindNull(5);
+    } else {
+      insert->BindBlob(5, p.content_digest);
+    }
     if (auto s = insert->Run(); !s.ok()) return s;
     const int64_t id = db->LastInsertRowId();
     auto payload = db->Prepare("INSERT INTO passage_payloads (id, payload) VALUES (?1, ?2)");

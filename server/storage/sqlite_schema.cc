@@ -404,6 +404,13 @@ const std::vector<Migration>& QueueMigrations() {
       // (nothing can take it again: it can no longer be excluded, and the young map's joint solves
       // are over by then); the record stays, with the time.
       {"ALTER TABLE passages ADD COLUMN payload_pruned_unix_ms INTEGER NOT NULL DEFAULT 0;", nullptr},
+      // 3 -> 4: the SHA-256 of each upload's measurements (PassageContentDigest), so that the same
+      // drive sent again under other ids is refused. NULL for uploads queued before.
+      {R"sql(
+      ALTER TABLE passages ADD COLUMN content_digest BLOB;
+      CREATE INDEX passages_by_content ON passages (content_digest) WHERE content_digest IS NOT NULL;
+      )sql",
+       nullptr},
   };
   return kMigrations;
 }
