@@ -135,6 +135,13 @@ TEST(MapdConfig, ReadsUpdateOptions) {
   auto bad_reads = ParseWithEnvironment({}, {{"MAPD_READ_WINDOW_HOPS", "-2"}});
   ASSERT_FALSE(bad_reads.ok());
   EXPECT_NE(bad_reads.status().message().find("read_window_hops"), std::string::npos) << bad_reads.status();
+  EXPECT_EQ(c->server.worker.update.detections_per_landmark, 5);
+  auto all = ParseWithEnvironment({"--detections-per-landmark", "0"}, {});
+  ASSERT_TRUE(all.ok()) << all.status();
+  EXPECT_EQ(all->server.worker.update.detections_per_landmark, 0);
+  auto too_few = ParseWithEnvironment({}, {{"MAPD_DETECTIONS_PER_LANDMARK", "2"}});
+  ASSERT_FALSE(too_few.ok());
+  EXPECT_NE(too_few.status().message().find("detections_per_landmark"), std::string::npos) << too_few.status();
   EXPECT_EQ(c->server.worker.nice, 10);
   auto n = ParseWithEnvironment({}, {{"MAPD_WORKER_NICE", "0"}});
   ASSERT_TRUE(n.ok()) << n.status();

@@ -130,6 +130,17 @@ void AddMapUpdateFlags(CLI::App* command, MapUpdateOptions* update) {
                       "keep the factors of the last N passages apart (removable, re-linearisable), as mapd's\n"
                       "flag of that name; older ones are folded into the base (0 = keep all)")
       ->type_name("N");
+  command->add_option("--detections-per-landmark", update->detections_per_landmark,
+                      "last K >= 3 detections per landmark and passage (a new landmark needs 3), 0 = all")
+      ->type_name("K");
+  command->add_option("--detection-spacing-s", update->detection_spacing_s,
+                      "the K detections kept at least S seconds apart (0: the last K frames)")
+      ->check(NonNegative())
+      ->type_name("S");
+  command->add_option("--detection-spacing-m", update->detection_spacing_m,
+                      "...and M metres of travel apart: none while the vehicle stands still (0: by time alone)")
+      ->check(NonNegative())
+      ->type_name("M");
   command->add_option("--max-subgraph-dim", update->max_subgraph_dim,
                       "cc-gsd: at most D state dimensions per subgraph (mapd's flag of that name)")
       ->type_name("D");
@@ -196,13 +207,6 @@ void AddExperimentFlags(CLI::App* command, ExperimentCommand* c) {
   command->add_option("--passages", o.passages, "simulated passages, applied in order")->type_name("P");
   command->add_option("--strategy", o.strategy, "cc | dc | cc-gsd | triangulation")->type_name("S");
   command->add_option("--out", c->out, "output folder: passages.csv, summary.json, errors.svg")->type_name("DIR");
-  command->add_option("--detections-per-landmark", o.update.detections_per_landmark,
-                      "last K >= 3 detections per landmark and passage (a new landmark needs 3), 0 = all")
-      ->type_name("K");
-  command->add_option("--detection-spacing-s", o.update.detection_spacing_s,
-                      "the K detections kept at least S seconds apart (0: the last K frames)")
-      ->check(NonNegative())
-      ->type_name("S");
   AddMapUpdateFlags(command, &o.update);
   command->add_option("--edge-margin-sigmas", o.update.edge_margin_sigmas,
                       "do not use detections of map landmarks predicted within M pixel sigmas of the image\n"

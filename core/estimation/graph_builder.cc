@@ -14,36 +14,69 @@
 namespace crowdmap {
 namespace {
 
-// The last K detections of every landmark (all with K = 0), in time order. With K > 0 and a
-// spacing, only detections of "grid frames" count: the first camera frame (distinct detection
-// time, within `tolerance_s`) in each interval [n spacing, (n + 1) spacing) of the passage's time.
-// Every landmark then keeps detections of the same frames, which share pose nodes whatever the
-// camera's rate (at a rate of 1 / spacing or less every frame is a grid frame).
-std::vector<const Detection*> SelectDetections(const std::vector<Detection>& detections, int per_landmark,
-                                               double spacing_s, double tolerance_s) {
+// Distance (m) the vehicle has travelled since the passage start at each of `times` (sorted):
+// the odometry's speeds, each held until the next sample, integrated in absolute value.
+std::vector<double> TravelledAt(const std::vector<OdometrySample>& odometry, const std::vector<double>& times) {
+  std::vector<double> travelled;
+  travelled.reserve(times.size());
+  double distance = 0.0;  // up to odometry[i].t_s
+  size_t i = 0;
+  for (double t : times) {
+    while (i + 1 < odometry.size() && odometry[i + 1].t_s <= t) {
+      distance += std::abs(odometry[i].speed_mps) * (odometry[i + 1].t_s - odometry[i].t_s);
+      ++i;
+    }
+    const double partial = i < odometry.size() && t > odometry[i].t_s ? std::abs(odometry[i].speed_mps) * (t - odometry[i].t_s) : 0.0;
+    travelled.push_back(distance + partial);
+  }
+  return travelled;
+}
+
+// The last K detections of every landmark (all with K = 0), in time order. With a spacing in time
+// or distance, only detections of "grid frames" count: the first camera frame (distinct detection
+// time, within `tolerance_s`) in each interval [n spacing_s, (n + 1) spacing_s) of the passage's
+// time, if the vehicle has travelled at least spacing_m since the grid frame before. Every landmark
+// then keeps detections of the same frames, which share pose nodes whatever the camera's rate (at
+// a rate of 1 / spacing_s or less every frame is a grid frame while the vehicle moves), and a
+// vehicle standing still adds no frame: a camera that does not move sees the same view with the
+// same detector error, which counted again and again would make the passage sure of it.
+std::vector<const Detection*> SelectDetections(const std::vector<Detection>& detections,
+                                               const std::vector<OdometrySample>& odometry, int per_landmark,
+                                               double spacing_s, double spacing_m, double tolerance_s) {
   std::vector<double> grid_frames;  // sorted
-  if (per_landmark > 0 && spacing_s > 0.0) {
+  const bool grid = spacing_s > 0.0 || spacing_m > 0.0;
+  if (grid) {
     std::vector<double> times;
     times.reserve(detections.size());
     for (const Detection& d : detections) times.push_back(d.t_s);
     std::sort(times.begin(), times.end());
+    const std::vector<double> travelled = TravelledAt(odometry, times);
     double bucket = -std::numeric_limits<double>::infinity();
-    for (double t : times) {
-      const double b = std::floor((t + tolerance_s) / spacing_s);
-      if (b > bucket) grid_frames.push_back(t);
-      bucket = std::max(bucket, b);
+    double last_frame_t = -std::numeric_limits<double>::infinity(), last_frame_m = 0.0;
+    for (size_t i = 0; i < times.size(); ++i) {
+      const double t = times[i];
+      if (t - last_frame_t <= tolerance_s) continue;  // the same frame
+      const double b = spacing_s > 0.0 ? std::floor((t + tolerance_s) / spacing_s) : t;
+      const bool first = grid_frames.empty();
+      if (first || (b > bucket && travelled[i] - last_frame_m >= spacing_m)) {
+        grid_frames.push_back(t);
+        bucket = b;
+        last_frame_t = t;
+        last_frame_m = travelled[i];
+      }
     }
   }
   const auto on_grid = [&](double t) {
-    if (grid_frames.empty()) return true;
+    if (!grid) return true;
     const auto it = std::lower_bound(grid_frames.begin(), grid_frames.end(), t - tolerance_s);
     return it != grid_frames.end() && *it <= t + tolerance_s;
   };
   std::map<LandmarkId, int> remaining;
   std::vector<const Detection*> kept;
   for (auto it = detections.rbegin(); it != detections.rend(); ++it) {
+    if (!on_grid(it->t_s)) continue;
     int& left = remaining.try_emplace(it->landmark_id, per_landmark).first->second;
-    if (per_landmark > 0 && (left == 0 || !on_grid(it->t_s))) continue;
+    if (per_landmark > 0 && left == 0) continue;
     --left;
     kept.push_back(&*it);
   }
@@ -179,8 +212,9 @@ absl::StatusOr<PassageGraph> BuildPassageGraph(const Passage& passage, const Gra
   PassageGraph g;
   g.frame = LocalFrame(options.frame_origin.value_or(LatLon{passage.gnss.front().lat_deg, passage.gnss.front().lon_deg}));
 
-  const std::vector<const Detection*> used = SelectDetections(
-      passage.detections, options.detections_per_landmark, options.detection_spacing_s, options.node_merge_tolerance_s);
+  const std::vector<const Detection*> used =
+      SelectDetections(passage.detections, passage.odometry, options.detections_per_landmark,
+                       options.detection_spacing_s, options.detection_spacing_m, options.node_merge_tolerance_s);
   g.detections_dropped = static_cast<int>(passage.detections.size() - used.size());
 
   std::vector<double> times;

@@ -14,11 +14,13 @@
 namespace crowdmap {
 
 struct GraphOptions {
-  // Detections used per landmark: the last K of the passage (0 = all); with K > 0 and a spacing,
-  // only those of the first camera frame in each interval of `detection_spacing_s` (every
-  // landmark keeps the same frames, whatever the camera's rate).
+  // Detections used per landmark: the last K of the passage (0 = all); with a spacing, only those
+  // of the first camera frame in each interval of `detection_spacing_s` once the vehicle has
+  // travelled `detection_spacing_m` since the frame before (every landmark keeps the same frames,
+  // whatever the camera's rate; none are added while the vehicle stands still).
   int detections_per_landmark = 5;
   double detection_spacing_s = 0.0;
+  double detection_spacing_m = 0.0;
   // Measurement times closer than this share one pose node.
   double node_merge_tolerance_s = 1e-3;
   int max_init_iterations = 50;

@@ -124,6 +124,46 @@ TEST(GraphBuilder, KeepsTheLastDetectionsOfFramesOnAGridOfTheSpacing) {
   EXPECT_EQ(GraphDetections(last), LastDetections(passage, 5));
 }
 
+// A vehicle that stops for a minute with a landmark in view: with a spacing in metres the stop
+// adds one frame, the first after arriving, and none after it until the vehicle has moved on.
+TEST(GraphBuilder, AVehicleStandingStillAddsNoFrames) {
+  Passage p;
+  p.vehicle_id = "v";
+  p.passage_id = "stop";
+  // 10 m/s for 10 s, standing from 10 s to 70 s, 10 m/s again until 80 s; a 2 Hz camera sees one
+  // landmark all along.
+  for (int i = 0; i <= 800; ++i) {
+    const double t = 0.1 * i;
+    p.odometry.push_back({t, t >= 10.0 - 1e-9 && t < 70.0 - 1e-9 ? 0.0 : 10.0, 0.0});
+  }
+  for (int i = 0; i <= 80; ++i) {
+    GnssFix f;
+    f.t_s = i;
+    f.lat_deg = 48.0;
+    f.lon_deg = 2.0 + (i <= 10 ? i : i <= 70 ? 10 : i - 60) * 10.0 / 74500.0;
+    p.gnss.push_back(f);
+  }
+  for (int i = 0; i < 160; ++i) p.detections.push_back({0.5 * i, 7, 900.0});
+  GraphOptions options;
+  options.detections_per_landmark = 0;
+  options.detection_spacing_s = 0.5;
+  EXPECT_EQ(BuildPassageGraph(p, options)->detections.size(), 160u) << "by time alone, every frame";
+  options.detection_spacing_m = 1.0;
+  const PassageGraph g = *BuildPassageGraph(p, options);
+  std::vector<double> times, expected;
+  for (const CameraObservation& d : g.detections) times.push_back(g.node_times_s[d.node]);
+  for (int i = 0; i < 160; ++i) {
+    const double t = 0.5 * i;
+    if (t <= 10.0 || t >= 70.5) expected.push_back(t);  // 5 m apart while moving; t = 10 arrives
+  }
+  EXPECT_EQ(times, expected);
+  // With the last five: those of the drive on, not five views of the stop.
+  options.detections_per_landmark = 5;
+  const PassageGraph last = *BuildPassageGraph(p, options);
+  ASSERT_EQ(last.detections.size(), 5u);
+  EXPECT_EQ(last.node_times_s[last.detections.front().node], 77.5);
+}
+
 // A camera of 2 Hz or slower: every frame is a grid frame, so the spacing changes nothing.
 TEST_F(GraphBuilderTest, TheSpacingKeepsEveryFrameOfATwoHertzCamera) {
   GraphOptions spaced;

@@ -42,6 +42,12 @@ struct MapUpdateOptions {
   // rates"); at 2 Hz or slower every frame is on it.
   int detections_per_landmark = 5;
   double detection_spacing_s = 0.5;
+  // ...and of those only frames taken after the vehicle travelled this far (m) since the grid frame
+  // before: a vehicle standing still (parked, at a red light) adds no detections. A camera that
+  // does not move sees the same view, whose detector error is the same from frame to frame; taken
+  // as independent, twenty minutes parked in front of a sign would be 2,400 measurements of one
+  // bearing. 0 = by time alone.
+  double detection_spacing_m = 1.0;
   // Detections of map landmarks predicted less than this many pixel sigmas from the image border
   // are not used: the detector reports only what falls inside the image, which biases those
   // inwards (see InitializeLandmarks). Sequential updates only (not the warm-up's joint solve).

@@ -295,6 +295,10 @@ absl::Status MapUpdateOptions::Validate() const {
     return absl::InvalidArgumentError(
         absl::StrCat("detection_spacing_s: must lie in [0, 60] s, got ", detection_spacing_s));
   }
+  if (!(detection_spacing_m >= 0.0 && detection_spacing_m <= 100.0)) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("detection_spacing_m: must lie in [0, 100] m, got ", detection_spacing_m));
+  }
   if (!(min_new_landmark_parallax_rad >= 0.0 && min_new_landmark_parallax_rad < 1.5)) {
     return absl::InvalidArgumentError(
         absl::StrCat("min_new_landmark_parallax_rad: must lie in [0, 1.5), got ", min_new_landmark_parallax_rad));
@@ -532,6 +536,7 @@ GraphOptions UpdateGraphOptions(const MapUpdateOptions& options) {
   GraphOptions graph;
   graph.detections_per_landmark = options.detections_per_landmark;
   graph.detection_spacing_s = options.detection_spacing_s;
+  graph.detection_spacing_m = options.detection_spacing_m;
   return graph;
 }
 
