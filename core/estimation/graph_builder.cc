@@ -26,8 +26,8 @@ std::vector<double> TravelledAt(const std::vector<OdometrySample>& odometry, con
       distance += std::abs(odometry[i].speed_mps) * (odometry[i + 1].t_s - odometry[i].t_s);
       ++i;
     }
-    const double partial = i < odometry.size() && t > odometry[i].t_s ? std::abs(odometry[i].speed_mps) * (t - odometry[i].t_s) : 0.0;
-    travelled.push_back(distance + partial);
+    const bool inside = i < odometry.size() && t > odometry[i].t_s;
+    travelled.push_back(distance + (inside ? std::abs(odometry[i].speed_mps) * (t - odometry[i].t_s) : 0.0));
   }
   return travelled;
 }
@@ -35,11 +35,11 @@ std::vector<double> TravelledAt(const std::vector<OdometrySample>& odometry, con
 // The last K detections of every landmark (all with K = 0), in time order. With a spacing in time
 // or distance, only detections of "grid frames" count: the first camera frame (distinct detection
 // time, within `tolerance_s`) in each interval [n spacing_s, (n + 1) spacing_s) of the passage's
-// time, if the vehicle has travelled at least spacing_m since the grid frame before. Every landmark
-// then keeps detections of the same frames, which share pose nodes whatever the camera's rate (at
-// a rate of 1 / spacing_s or less every frame is a grid frame while the vehicle moves), and a
-// vehicle standing still adds no frame: a camera that does not move sees the same view with the
-// same detector error, which counted again and again would make the passage sure of it.
+// time that is taken once the vehicle has travelled spacing_m since the grid frame before. Every
+// landmark then keeps detections of the same frames, which share pose nodes whatever the camera's
+// rate (at a rate of 1 / spacing_s or less every frame is a grid frame while the vehicle moves),
+// and a vehicle standing still adds no frame: a camera that does not move sees the same view with
+// the same detector error, which counted again and again would make the passage sure of it.
 std::vector<const Detection*> SelectDetections(const std::vector<Detection>& detections,
                                                const std::vector<OdometrySample>& odometry, int per_landmark,
                                                double spacing_s, double spacing_m, double tolerance_s) {
