@@ -168,9 +168,21 @@ absl::Status Upload(const Arguments& args, Context& ctx) {
     files.emplace_back(path, *std::move(passage));
   }
   if (!ctx.json) *ctx.out << absl::StrFormat("%-32s %8s  %-14s %-16s %-10s %s\n", "FILE", "ID", "VEHICLE", "PASSAGE", "STATE", "DUPLICATE");
+  // A file the server refuses for what it holds (invalid, the same drive as an earlier upload) is
+  // reported and the others are still sent; anything else (unreachable, not allowed, queue full)
+  // stops here, since the files after it would fare no better.
+  int refused = 0;
+  absl::Status first_refusal;
   for (const auto& [path, passage] : files) {
     absl::StatusOr<pb::UploadPassageResponse> response = ctx.client->Upload(passage);
-    if (!response.ok()) return absl::Status(response.status().code(), absl::StrCat(path, ": ", response.status().message()));
+    if (!response.ok()) {
+      const absl::Status status(response.status().code(), absl::StrCat(path, ": ", response.status().message()));
+      const absl::StatusCode code = status.code();
+      if (code != absl::StatusCode::kInvalidArgument && code != absl::StatusCode::kAlreadyExists) return status;
+      ctx.Warn() << EscapeForTerminal(OneLine(status.ToString())) << "\n";
+      if (refused++ == 0) first_refusal = status;
+      continue;
+    }
     if (ctx.json) {
       *ctx.out << ToJson(*response);
     } else {
@@ -180,7 +192,9 @@ absl::Status Upload(const Arguments& args, Context& ctx) {
                                   response->duplicate() ? "yes" : "no");
     }
   }
-  return absl::OkStatus();
+  if (refused == 0) return absl::OkStatus();
+  return absl::Status(first_refusal.code(), absl::StrCat(refused, " of ", files.size(), " files refused, the first ",
+                                                         first_refusal.message()));
 }
 
 // The passage named by a command's one argument: a server id, or VEHICLE/PASSAGE_ID.
@@ -569,7 +583,9 @@ std::unique_ptr<CLI::App> NewMapctlCommandLine(std::map<std::string, MapctlComma
   };
 
   auto [upload, upload_args] = add("upload", "upload passage files (protobuf JSON or binary mapservice.v1.Passage)", &Upload);
-  upload->add_option("FILE", upload_args->positional, "passage files");
+  upload->add_option("FILE", upload_args->positional,
+                     "passage files; one the server refuses (invalid, a drive already uploaded) is reported\n"
+                     "and the rest are still sent (exit code 1)");
   add_passage_command("status", "one passage", &Status);
   auto [passages, passages_args] = add("passages", "uploaded passages", &Passages);
   passages

@@ -17,6 +17,7 @@
 #include "absl/strings/str_format.h"
 #include "absl/strings/str_replace.h"
 #include "client/api/map_client.h"
+#include "client/api/passage_files.h"
 #include "client/mapsim/fleet.h"
 #include "core/geo/tiles.h"
 #include "server/testing/temp_dir.h"
@@ -104,6 +105,26 @@ TEST_F(MapctlTest, InfoShowsTheEmptyMapAndItsStrategy) {
   EXPECT_TRUE(absl::StrContains(j.out, "\"landmark_count\": \"0\"")) << j.out;
   EXPECT_TRUE(absl::StrContains(j.out, "\"map_version\": \"0\"")) << j.out;
   EXPECT_TRUE(absl::StrContains(j.out, "\"passages_failed\": \"0\"")) << j.out;
+}
+
+// The same drive saved again under another passage id is refused; the files after it are still
+// sent, and the exit code says that one was refused.
+TEST_F(MapctlTest, AFileRefusedForItsContentDoesNotStopTheOthers) {
+  ASSERT_TRUE(ExportPassages(scenario_, 2, /*binary=*/true, dir_.File("pb")).ok());
+  absl::StatusOr<pb::Passage> copy = ReadPassageFile(dir_.File("pb/passage-00000.pb"));
+  ASSERT_TRUE(copy.ok()) << copy.status();
+  copy->set_passage_id("saved-again");
+  {
+    std::ofstream out(dir_.File("copy.pb"), std::ios::binary);
+    out << copy->SerializeAsString();
+  }
+  CliRun r = Mapctl({"upload", dir_.File("pb/passage-00000.pb"), dir_.File("copy.pb"), dir_.File("pb/passage-00001.pb")},
+                    address_);
+  EXPECT_EQ(r.code, 1) << r.err;
+  EXPECT_EQ(Count(r.out, "queued"), 2) << r.out;
+  EXPECT_TRUE(absl::StrContains(r.err, "copy.pb")) << r.err;
+  EXPECT_TRUE(absl::StrContains(r.err, "ALREADY_EXISTS")) << r.err;
+  EXPECT_TRUE(absl::StrContains(r.err, "1 of 3 files refused")) << r.err;
 }
 
 TEST_F(MapctlTest, UploadedFilesAreAppliedAndListed) {
