@@ -5,10 +5,12 @@
 #include <sys/socket.h>
 #include <unistd.h>
 
+#include <chrono>
 #include <fstream>
 #include <map>
 #include <regex>
 #include <set>
+#include <thread>
 
 #include "server/testing/temp_dir.h"
 #include "server/wire_convert.h"
@@ -92,9 +94,17 @@ TEST(Metrics, ScrapedValuesMatchTheRpcsUploadsAndAppliedPassages) {
   auto info = vehicle.GetMapInfo();
   ASSERT_TRUE(info.ok());
 
-  const std::string text = HttpGet(server->metrics_port(), "/metrics");
-  ASSERT_FALSE(text.empty()) << "no answer from the metrics endpoint";
-  std::map<std::string, double> m = ParseExposition(text);
+  // The worker records a passage's timings once its commit is durable, so a scrape right after
+  // the store shows it applied can miss the last one: scrape until all three are there.
+  std::string text;
+  std::map<std::string, double> m;
+  for (const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(10);;) {
+    text = HttpGet(server->metrics_port(), "/metrics");
+    ASSERT_FALSE(text.empty()) << "no answer from the metrics endpoint";
+    m = ParseExposition(text);
+    if (m["mapd_passage_commit_seconds_count"] >= 3 || std::chrono::steady_clock::now() > deadline) break;
+    std::this_thread::sleep_for(std::chrono::milliseconds(20));
+  }
   EXPECT_EQ(m["mapd_rpc_duration_seconds_count" + Rpc("UploadPassage", "OK")], 4);
   EXPECT_EQ(m["mapd_rpc_duration_seconds_count" + Rpc("GetPassage", "NOT_FOUND")], 2);
   EXPECT_GT(m["mapd_rpc_duration_seconds_sum" + Rpc("UploadPassage", "OK")], 0);

@@ -14,28 +14,31 @@
 namespace crowdmap {
 namespace {
 
-// Distance (m) the vehicle has travelled since the passage start at each of `times` (sorted):
-// the odometry's speeds, each held until the next sample, integrated in absolute value.
-std::vector<double> TravelledAt(const std::vector<OdometrySample>& odometry, const std::vector<double>& times) {
-  std::vector<double> travelled;
-  travelled.reserve(times.size());
-  double distance = 0.0;  // up to odometry[i].t_s
+// Where the vehicle is along its path (m from the passage start) at each of `times` (sorted): the
+// odometry's speeds, each held until the next sample, integrated with their signs. Where the view
+// changes, not how far the wheels turned: a vehicle that backs up and drives on returns to where
+// it was, and the noise of speeds read while standing still (zero-mean) does not add up to
+// travel as their absolute values would (at 0.56 m/s and 25 Hz, 27 m a minute).
+std::vector<double> PathPositionAt(const std::vector<OdometrySample>& odometry, const std::vector<double>& times) {
+  std::vector<double> position;
+  position.reserve(times.size());
+  double s = 0.0;  // at odometry[i].t_s
   size_t i = 0;
   for (double t : times) {
     while (i + 1 < odometry.size() && odometry[i + 1].t_s <= t) {
-      distance += std::abs(odometry[i].speed_mps) * (odometry[i + 1].t_s - odometry[i].t_s);
+      s += odometry[i].speed_mps * (odometry[i + 1].t_s - odometry[i].t_s);
       ++i;
     }
     const bool inside = i < odometry.size() && t > odometry[i].t_s;
-    travelled.push_back(distance + (inside ? std::abs(odometry[i].speed_mps) * (t - odometry[i].t_s) : 0.0));
+    position.push_back(s + (inside ? odometry[i].speed_mps * (t - odometry[i].t_s) : 0.0));
   }
-  return travelled;
+  return position;
 }
 
 // The last K detections of every landmark (all with K = 0), in time order. With a spacing in time
 // or distance, only detections of "grid frames" count: the first camera frame (distinct detection
 // time, within `tolerance_s`) in each interval [n spacing_s, (n + 1) spacing_s) of the passage's
-// time that is taken once the vehicle has travelled spacing_m since the grid frame before. Every
+// time that is taken once the vehicle is spacing_m along its path from the grid frame before. Every
 // landmark then keeps detections of the same frames, which share pose nodes whatever the camera's
 // rate (at a rate of 1 / spacing_s or less every frame is a grid frame while the vehicle moves),
 // and a vehicle standing still adds no frame: a camera that does not move sees the same view with
@@ -50,7 +53,7 @@ std::vector<const Detection*> SelectDetections(const std::vector<Detection>& det
     times.reserve(detections.size());
     for (const Detection& d : detections) times.push_back(d.t_s);
     std::sort(times.begin(), times.end());
-    const std::vector<double> travelled = TravelledAt(odometry, times);
+    const std::vector<double> along = PathPositionAt(odometry, times);
     double bucket = -std::numeric_limits<double>::infinity();
     double last_frame_t = -std::numeric_limits<double>::infinity(), last_frame_m = 0.0;
     for (size_t i = 0; i < times.size(); ++i) {
@@ -58,11 +61,11 @@ std::vector<const Detection*> SelectDetections(const std::vector<Detection>& det
       if (t - last_frame_t <= tolerance_s) continue;  // the same frame
       const double b = spacing_s > 0.0 ? std::floor((t + tolerance_s) / spacing_s) : t;
       const bool first = grid_frames.empty();
-      if (first || (b > bucket && travelled[i] - last_frame_m >= spacing_m)) {
+      if (first || (b > bucket && std::abs(along[i] - last_frame_m) >= spacing_m)) {
         grid_frames.push_back(t);
         bucket = b;
         last_frame_t = t;
-        last_frame_m = travelled[i];
+        last_frame_m = along[i];
       }
     }
   }

@@ -162,6 +162,15 @@ TEST(GraphBuilder, AVehicleStandingStillAddsNoFrames) {
   const PassageGraph last = *BuildPassageGraph(p, options);
   ASSERT_EQ(last.detections.size(), 5u);
   EXPECT_EQ(last.node_times_s[last.detections.front().node], 77.5);
+  // Encoders that read noise while the wheels stand still (+-0.5 m/s, zero-mean): no travel.
+  for (OdometrySample& o : p.odometry) {
+    if (o.speed_mps == 0.0) o.speed_mps = (std::lround(o.t_s * 10.0) % 2 == 0) ? 0.5 : -0.5;
+  }
+  options.detections_per_landmark = 0;
+  const PassageGraph noisy = *BuildPassageGraph(p, options);
+  std::vector<double> noisy_times;
+  for (const CameraObservation& d : noisy.detections) noisy_times.push_back(noisy.node_times_s[d.node]);
+  EXPECT_EQ(noisy_times, expected);
 }
 
 // A camera of 2 Hz or slower: every frame is a grid frame, so the spacing changes nothing.

@@ -42,8 +42,10 @@ struct MapUpdateOptions {
   // rates"); at 2 Hz or slower every frame is on it.
   int detections_per_landmark = 5;
   double detection_spacing_s = 0.5;
-  // ...and of those only frames taken after the vehicle travelled this far (m) since the grid frame
-  // before: a vehicle standing still (parked, at a red light) adds no detections. A camera that
+  // ...and of those only frames taken once the vehicle is this far (m) along its path from the grid
+  // frame before (its speeds integrated with their signs, so that zero-mean noise read while the
+  // wheels stand still is no travel): a vehicle standing still (parked, at a red light) adds no
+  // detections. A camera that
   // does not move sees the same view, whose detector error is the same from frame to frame; taken
   // as independent, twenty minutes parked in front of a sign would be 2,400 measurements of one
   // bearing. 0 = by time alone.
