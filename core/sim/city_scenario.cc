@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <cmath>
 #include <random>
+#include <unordered_map>
 
 #include "absl/strings/str_cat.h"
 #include "core/sim/sensor_simulation.h"
@@ -98,14 +99,25 @@ std::pair<Passage, CityDrive> CityScenario::MakePassageWithTruth(int index) cons
     }
   }
 
+  // A camera standing still sees the same image, and its detector makes the same error on it: each
+  // landmark's pixel error is drawn again only once the vehicle has moved since its last draw
+  // (while moving, one draw per frame and landmark, as before stops existed).
+  struct PixelError {
+    Pose2 drawn_at;
+    double error_px = 0.0;
+  };
+  std::unordered_map<LandmarkId, PixelError> pixel_errors;
   const int frames = static_cast<int>(std::floor(drive.duration_s * vehicle.camera_rate_hz + 1e-9)) + 1;
   for (int k = 0; k < frames; ++k) {
     const double t = k / vehicle.camera_rate_hz;
-    for (const VisibleLandmark& seen : VisibleLandmarks(drive.PoseAt(t), vehicle.true_camera)) {
-      double u = 0.0;
-      if (DetectedPixel(seen.u_px, vehicle.true_camera, o.noise_model.pixel_sigma_px, &noise, &u)) {
-        p.detections.push_back({t, seen.id, u});
+    const Pose2 pose = drive.PoseAt(t);
+    for (const VisibleLandmark& seen : VisibleLandmarks(pose, vehicle.true_camera)) {
+      auto [it, fresh] = pixel_errors.try_emplace(seen.id);
+      if (fresh || (it->second.drawn_at - pose).norm() > 1e-9) {
+        it->second = {pose, o.noise_model.pixel_sigma_px * noise.Normal()};
       }
+      const double u = seen.u_px + it->second.error_px;
+      if (u >= 0.0 && u <= vehicle.true_camera.image_width_px) p.detections.push_back({t, seen.id, u});
     }
   }
   return {std::move(p), std::move(drive)};

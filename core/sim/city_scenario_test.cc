@@ -4,6 +4,7 @@
 #include <chrono>
 #include <cmath>
 #include <functional>
+#include <map>
 #include <string>
 #include <vector>
 
@@ -198,6 +199,37 @@ TEST(CityScenario, VehiclesStopBeforeIntersectionsAndDriveTheSameRoute) {
     EXPECT_NEAR(b.duration_s - a.duration_s, 15.0 * b.stops, 5.0 * b.stops + 10.0) << i;
   }
   EXPECT_GT(stops, 6) << "600 m drives on 150 m blocks cross intersections";
+}
+
+// A camera standing still sees the same image: its detector's error on a landmark is the same in
+// every frame of a stop, and drawn anew once the vehicle moves.
+TEST(CityScenario, AStoppedCameraMakesTheSameDetectionErrorInEveryFrame) {
+  CityScenarioOptions options = Small();
+  options.stop_probability = 1.0;
+  options.stop_min_s = 10.0;
+  options.stop_max_s = 20.0;
+  const CityScenario stopping = Make(options);
+  int repeated = 0, moving_pairs = 0, moving_equal = 0;
+  for (int i = 0; i < 6; ++i) {
+    const auto [passage, drive] = stopping.MakePassageWithTruth(i);
+    std::map<LandmarkId, const Detection*> previous;
+    for (const Detection& d : passage.detections) {
+      const Detection* before = previous[d.landmark_id];
+      previous[d.landmark_id] = &d;
+      if (before == nullptr) continue;
+      const bool still = (drive.PoseAt(before->t_s) - drive.PoseAt(d.t_s)).norm() < 1e-9;
+      if (still) {
+        EXPECT_EQ(d.u_px, before->u_px) << i << " landmark " << d.landmark_id << " at " << d.t_s;
+        ++repeated;
+      } else {
+        ++moving_pairs;
+        moving_equal += d.u_px == before->u_px;
+      }
+    }
+  }
+  EXPECT_GT(repeated, 100) << "landmarks in view during the stops";
+  EXPECT_GT(moving_pairs, 1000);
+  EXPECT_EQ(moving_equal, 0);
 }
 
 TEST(CityScenario, AGnssOutageRemovesTheFixesOfOneIntervalInsideThePassage) {
