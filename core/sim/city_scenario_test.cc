@@ -162,12 +162,18 @@ TEST(CityScenario, RouteHasTheRequestedLengthAndStaysOnTheStreets) {
   EXPECT_GT(turns, 4);  // eight 600 m drives on 150 m blocks do turn
 }
 
-TEST(CityScenario, VehiclesStopBeforeIntersectionsAndDriveTheSameRoute) {
+// The small city, its vehicles stopping 10 to 20 s before every intersection.
+CityScenarioOptions StoppingEverywhere() {
   CityScenarioOptions options = Small();
-  const CityScenario plain = Make(options);
   options.stop_probability = 1.0;
   options.stop_min_s = 10.0;
   options.stop_max_s = 20.0;
+  return options;
+}
+
+TEST(CityScenario, VehiclesStopBeforeIntersectionsAndDriveTheSameRoute) {
+  const CityScenario plain = Make(Small());
+  const CityScenarioOptions options = StoppingEverywhere();
   const CityScenario stopping = Make(options);
   int stops = 0;
   for (int i = 0; i < 6; ++i) {
@@ -204,11 +210,7 @@ TEST(CityScenario, VehiclesStopBeforeIntersectionsAndDriveTheSameRoute) {
 // A camera standing still sees the same image: its detector's error on a landmark is the same in
 // every frame of a stop, and drawn anew once the vehicle moves.
 TEST(CityScenario, AStoppedCameraMakesTheSameDetectionErrorInEveryFrame) {
-  CityScenarioOptions options = Small();
-  options.stop_probability = 1.0;
-  options.stop_min_s = 10.0;
-  options.stop_max_s = 20.0;
-  const CityScenario stopping = Make(options);
+  const CityScenario stopping = Make(StoppingEverywhere());
   int repeated = 0, moving_pairs = 0, moving_equal = 0;
   for (int i = 0; i < 6; ++i) {
     const auto [passage, drive] = stopping.MakePassageWithTruth(i);
