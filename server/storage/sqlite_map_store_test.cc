@@ -219,20 +219,23 @@ TEST(SqliteMapStore, TheSameContentUnderANewKeyIsRefusedNamingTheFirstUpload) {
   ASSERT_TRUE((*out)[0].ok());
   EXPECT_TRUE((*out)[0]->duplicate);
   EXPECT_EQ((*out)[1].status().code(), absl::StatusCode::kAlreadyExists);
-  EXPECT_NE((*out)[1].status().message().find("passage v/p"), std::string::npos) << (*out)[1].status();
-  EXPECT_NE((*out)[1].status().message().find("queued"), std::string::npos) << (*out)[1].status();
+  // Another vehicle's upload is named by its queue id and state, not by its ids.
+  EXPECT_NE((*out)[1].status().message().find("another vehicle (id 1, queued)"), std::string::npos)
+      << (*out)[1].status();
+  EXPECT_EQ((*out)[1].status().message().find("v/p"), std::string::npos) << (*out)[1].status();
   ASSERT_TRUE((*out)[2].ok());
   EXPECT_FALSE((*out)[2]->duplicate);
   EXPECT_TRUE((*out)[3].ok());
   EXPECT_EQ(SqlInt(SqliteQueuePath(path), "SELECT COUNT(*) FROM passages"), 3);
   EXPECT_FALSE(store->FindPassage("w", "q").ok());
   // Inside one batch as well.
-  NewPassage a = MakeUpload("x", "1"), b = MakeUpload("y", "2");
+  NewPassage a = MakeUpload("x", "1"), b = MakeUpload("x", "2");
   a.content_digest = b.content_digest = std::string(32, '\x02');
   auto batch = store->EnqueuePassages({a, b}, 0);
   ASSERT_TRUE(batch.ok());
   EXPECT_TRUE((*batch)[0].ok());
   EXPECT_EQ((*batch)[1].status().code(), absl::StatusCode::kAlreadyExists);
+  EXPECT_NE((*batch)[1].status().message().find("passage x/1 (id"), std::string::npos) << (*batch)[1].status();
 }
 
 TEST(SqliteMapStore, FullQueueRejectsNewUploadsButAnswersDuplicates) {

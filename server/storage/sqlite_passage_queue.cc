@@ -129,11 +129,15 @@ absl::StatusOr<std::vector<absl::StatusOr<EnqueueOutcome>>> SqliteMapStore::Enqu
       auto same = ReadPassageByContent(db, p.content_digest);
       if (!same.ok()) return same.status();
       if (same->has_value()) {
+        // Another vehicle's ids are not told (its queue id is: operators can look it up, and a
+        // vehicle may read only its own passages).
         const StoredPassage& original = **same;
-        outcomes.push_back(absl::AlreadyExistsError(absl::StrCat(
-            "passage: its measurements are identical to those of passage ", original.vehicle_id, "/",
-            original.passage_id, " (id ", original.id, ", ", PassageStateName(original.state),
-            "); a drive is taken once, whatever ids it is uploaded under")));
+        const std::string which = original.vehicle_id == p.vehicle_id
+                                      ? absl::StrCat("passage ", original.vehicle_id, "/", original.passage_id)
+                                      : std::string("an upload of another vehicle");
+        outcomes.push_back(absl::AlreadyExistsError(
+            absl::StrCat("passage: its measurements are identical to those of ", which, " (id ", original.id, ", ",
+                         PassageStateName(original.state), "); a drive is taken once, whatever ids it comes under")));
         continue;
       }
     }
