@@ -15,7 +15,6 @@
 #include <spdlog/spdlog.h>
 
 #include "absl/strings/str_cat.h"
-#include "absl/strings/str_format.h"
 #include "core/estimation/passage_exclusion.h"
 #include "server/request_log.h"
 #include "server/wire_convert.h"
@@ -449,11 +448,7 @@ void MapWorker::Apply(const StoredPassage& record, const Passage& passage) {
               record.passage_id, record.vehicle_id, record.id, result.nodes, result.subgraphs,
               result.landmarks_updated, result.landmarks_created, result.landmarks_conditioned, result.solve_ms,
               result.total_ms, commit_ms, delta.added_factors.size(), delta.version, recomputed, commit_wait_ms,
-              trim_ms,
-              summary.speed_scale_sigma > 0.0
-                  ? absl::StrFormat(" speed_scale=%.4f speed_scale_sigma=%.4f", summary.speed_scale,
-                                    summary.speed_scale_sigma)
-                  : std::string());
+              trim_ms, summary.SpeedScaleBrief());
           return;
         }
         if (owed > 0) {  // not applied: nothing owed for it

@@ -60,14 +60,20 @@ TEST(SqrtInformation, WhitensTheCovariance) {
   EXPECT_TRUE((s.transpose() * s).isApprox(cov.inverse(), 1e-10));
 }
 
+// A random preintegrated motion of about 6 m with a small turn.
+RelativeMotion RandomMotion(std::mt19937& rng) {
+  std::uniform_real_distribution<double> u(-3.0, 3.0);
+  RelativeMotion motion;
+  motion.delta = Pose2(6.0 + u(rng), 0.3 * u(rng), 0.1 * u(rng));
+  motion.cov = RandomCovariance3(rng);
+  return motion;
+}
+
 TEST(OdometryFactor, JacobianMatchesFiniteDifferences) {
   std::mt19937 rng(1);
   std::uniform_real_distribution<double> u(-3.0, 3.0);
   for (int trial = 0; trial < 20; ++trial) {
-    RelativeMotion motion;
-    motion.delta = Pose2(6.0 + u(rng), 0.3 * u(rng), 0.1 * u(rng));
-    motion.cov = RandomCovariance3(rng);
-    std::unique_ptr<ceres::CostFunction> cost(OdometryFactor::Create(motion));
+    std::unique_ptr<ceres::CostFunction> cost(OdometryFactor::Create(RandomMotion(rng)));
     ExpectJacobiansMatchFiniteDifferences(
         *cost, {{u(rng), u(rng), u(rng)}, {u(rng) + 6.0, u(rng), u(rng)}}, 1e-5);
   }
@@ -93,10 +99,7 @@ TEST(ScaledOdometryFactor, JacobianMatchesFiniteDifferences) {
   std::mt19937 rng(2);
   std::uniform_real_distribution<double> u(-3.0, 3.0);
   for (int trial = 0; trial < 20; ++trial) {
-    RelativeMotion motion;
-    motion.delta = Pose2(6.0 + u(rng), 0.3 * u(rng), 0.1 * u(rng));
-    motion.cov = RandomCovariance3(rng);
-    std::unique_ptr<ceres::CostFunction> cost(ScaledOdometryFactor::Create(motion));
+    std::unique_ptr<ceres::CostFunction> cost(ScaledOdometryFactor::Create(RandomMotion(rng)));
     ExpectJacobiansMatchFiniteDifferences(
         *cost, {{u(rng), u(rng), u(rng)}, {u(rng) + 6.0, u(rng), u(rng)}, {1.0 + 0.02 * u(rng)}}, 1e-5);
   }

@@ -395,9 +395,12 @@ std::string PassageUpdateSummary::Brief() const {
                                                         camera_yaw_offset_rad * 180.0 / M_PI,
                                                         camera_yaw_sigma_rad * 180.0 / M_PI)
                                      : std::string()) +
-         (speed_scale_sigma > 0.0 ? absl::StrFormat(" speed_scale=%.4f speed_scale_sigma=%.4f", speed_scale,
-                                                     speed_scale_sigma)
-                                  : std::string());
+         SpeedScaleBrief();
+}
+
+std::string PassageUpdateSummary::SpeedScaleBrief() const {
+  if (!(speed_scale_sigma > 0.0)) return "";
+  return absl::StrFormat(" speed_scale=%.4f speed_scale_sigma=%.4f", speed_scale, speed_scale_sigma);
 }
 
 namespace {

@@ -54,6 +54,9 @@ struct PassageUpdateSummary {
   bool joint_rejected = false;  // the joint solve was not usable, this is the sequential update
 
   std::string Brief() const;
+  // " speed_scale=... speed_scale_sigma=..." when the scale was estimated, "" otherwise (a part of
+  // Brief() that the service's applied-passage line carries too).
+  std::string SpeedScaleBrief() const;
 };
 
 struct PassageUpdate {
