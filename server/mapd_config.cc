@@ -115,8 +115,9 @@ std::unique_ptr<CLI::App> NewMapdCommandLine(MapdConfig* config) {
                  "detections used per landmark and passage: the last N of the frames 0.5 s and 1 m of travel\n"
                  "apart (0: all of them, >= 3 otherwise). All gave the simulator's city fleets 20% less\n"
                  "error over ten seeds with NEES/dof 0.94-0.99 against 0.89-0.90, an independent fleet 5%\n"
-                 "less; the default stays the thesis's 5 until the documented figures are measured again\n"
-                 "(docs/results.md, \"All detections of each landmark\")")
+                 "less; but the vehicles' camera-yaw records grow over-confident on a road driven the same\n"
+                 "way many times, and a camera error not estimated costs more, so the default stays the\n"
+                 "thesis's 5 (docs/results.md, \"All detections on the thesis loop\")")
       ->type_name("N");
   AddMapdSetting(app, "warmup-passages", &u.warmup_passages,
                  "a new map's first N passages are solved jointly, re-solved with each one, so their arrival\n"

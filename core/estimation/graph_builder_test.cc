@@ -36,6 +36,13 @@ std::multiset<DetectionKey> GraphDetections(const PassageGraph& g) {
   return out;
 }
 
+// The thesis's rule, the default: the last five detections of each landmark.
+GraphOptions LastFive() {
+  GraphOptions options;
+  options.detections_per_landmark = 5;
+  return options;
+}
+
 class GraphBuilderTest : public testing::Test {
  protected:
   GraphBuilderTest() {
@@ -49,7 +56,7 @@ class GraphBuilderTest : public testing::Test {
 };
 
 TEST_F(GraphBuilderTest, NodeTimesAreTheSortedUnionOfGnssAndUsedDetectionTimes) {
-  const PassageGraph g = *BuildPassageGraph(passage_, GraphOptions());
+  const PassageGraph g = *BuildPassageGraph(passage_, LastFive());
   std::set<double> expected;
   for (const GnssFix& f : passage_.gnss) expected.insert(f.t_s);
   for (const DetectionKey& d : LastDetections(passage_, 5)) expected.insert(std::get<0>(d));
@@ -59,7 +66,7 @@ TEST_F(GraphBuilderTest, NodeTimesAreTheSortedUnionOfGnssAndUsedDetectionTimes) 
 }
 
 TEST_F(GraphBuilderTest, KeepsTheLastFiveDetectionsOfEachLandmark) {
-  const PassageGraph g = *BuildPassageGraph(passage_, GraphOptions());
+  const PassageGraph g = *BuildPassageGraph(passage_, LastFive());
   const std::multiset<DetectionKey> expected = LastDetections(passage_, 5);
   EXPECT_EQ(GraphDetections(g), expected);
   EXPECT_EQ(g.detections_dropped, static_cast<int>(passage_.detections.size() - expected.size()));
@@ -110,7 +117,7 @@ TEST(GraphBuilder, KeepsTheLastDetectionsOfFramesOnAGridOfTheSpacing) {
       expected.insert({list[i]->t_s, id, list[i]->u_px});
     }
   }
-  GraphOptions spaced;
+  GraphOptions spaced = LastFive();
   spaced.detection_spacing_s = 0.5;
   const PassageGraph g = *BuildPassageGraph(passage, spaced);
   EXPECT_EQ(GraphDetections(g), expected);
@@ -120,7 +127,7 @@ TEST(GraphBuilder, KeepsTheLastDetectionsOfFramesOnAGridOfTheSpacing) {
   const PassageGraph g2 = *BuildPassageGraph(Scenario::Create(slow)->MakePassage(3), spaced);
   EXPECT_LT(g.node_count(), 1.1 * g2.node_count());
   // Without the spacing: the last five frames.
-  const PassageGraph last = *BuildPassageGraph(passage, GraphOptions());
+  const PassageGraph last = *BuildPassageGraph(passage, LastFive());
   EXPECT_EQ(GraphDetections(last), LastDetections(passage, 5));
 }
 
@@ -175,13 +182,13 @@ TEST(GraphBuilder, AVehicleStandingStillAddsNoFrames) {
 
 // A camera of 2 Hz or slower: every frame is a grid frame, so the spacing changes nothing.
 TEST_F(GraphBuilderTest, TheSpacingKeepsEveryFrameOfATwoHertzCamera) {
-  GraphOptions spaced;
+  GraphOptions spaced = LastFive();
   spaced.detection_spacing_s = 0.5;
   EXPECT_EQ(GraphDetections(*BuildPassageGraph(passage_, spaced)), LastDetections(passage_, 5));
 }
 
 TEST_F(GraphBuilderTest, EveryObservationPointsAtTheNodeOfItsTime) {
-  const PassageGraph g = *BuildPassageGraph(passage_, GraphOptions());
+  const PassageGraph g = *BuildPassageGraph(passage_, LastFive());
   ASSERT_EQ(g.gnss.size(), passage_.gnss.size());
   for (size_t j = 0; j < g.gnss.size(); ++j) {
     const GnssObservation& o = g.gnss[j];

@@ -138,38 +138,48 @@ TEST(ComputePassageUpdate, BoundedWindowStaysConservative) {
   // With a window of one link the prior and the written marginals come from windows that do not
   // cover the map: no marginal the map stores may be smaller than the exact marginal of the
   // information it holds, and the estimate stays close to the exact update's. Partial drives (300
-  // to 600 m of the 2 km loop), so that a passage's window leaves part of the map out.
+  // to 600 m of the 2 km loop), so that a passage's window leaves part of the map out. With the
+  // last 5 detections per landmark and with all of them.
   ScenarioOptions scenario_options;
   scenario_options.landmarks = 50;
   scenario_options.piece_min_m = 300.0;
   scenario_options.piece_max_m = 600.0;
   const Scenario scenario = *Scenario::Create(scenario_options);
-  MapUpdateOptions exact, windowed;
-  windowed.window_hops = 1;
-  windowed.max_subgraph_dim = 60;  // several subgraphs, so that the map is not one clique
-  exact.max_subgraph_dim = 60;
-  MapState exact_map, windowed_map;
-  for (int p = 0; p < 8; ++p) {
-    absl::StatusOr<PassageUpdate> e = ComputePassageUpdate(scenario.MakePassage(p), exact, exact_map);
-    absl::StatusOr<PassageUpdate> w = ComputePassageUpdate(scenario.MakePassage(p), windowed, windowed_map);
-    ASSERT_TRUE(e.ok() && w.ok()) << e.status() << w.status();
-    exact_map.Apply(e->delta);
-    windowed_map.Apply(w->delta);
+  for (const int detections : {5, 0}) {
+    SCOPED_TRACE(absl::StrCat("detections per landmark ", detections));
+    MapUpdateOptions exact, windowed;
+    exact.detections_per_landmark = windowed.detections_per_landmark = detections;
+    windowed.window_hops = 1;
+    windowed.max_subgraph_dim = 60;  // several subgraphs, so that the map is not one clique
+    exact.max_subgraph_dim = 60;
+    MapState exact_map, windowed_map;
+    for (int p = 0; p < 8; ++p) {
+      absl::StatusOr<PassageUpdate> e = ComputePassageUpdate(scenario.MakePassage(p), exact, exact_map);
+      absl::StatusOr<PassageUpdate> w = ComputePassageUpdate(scenario.MakePassage(p), windowed, windowed_map);
+      ASSERT_TRUE(e.ok() && w.ok()) << e.status() << w.status();
+      exact_map.Apply(e->delta);
+      windowed_map.Apply(w->delta);
+    }
+    ASSERT_EQ(exact_map.landmark_count(), windowed_map.landmark_count());
+    int less_confident = 0;
+    for (LandmarkId id : windowed_map.LandmarkIds()) {
+      absl::StatusOr<Eigen::MatrixXd> marginal = JointCovariance(windowed_map, {id});
+      ASSERT_TRUE(marginal.ok()) << marginal.status();
+      const Eigen::Matrix2d difference = windowed_map.FindLandmark(id)->cov_en_m2 - *marginal;
+      // (to 1e-6 m^2: the graph's East/North frame at the landmark and the map's at its anchor
+      // differ by a rotation of offset / earth radius)
+      EXPECT_GT(Eigen::SelfAdjointEigenSolver<Eigen::Matrix2d>(difference).eigenvalues().minCoeff(), -1e-6) << id;
+      less_confident += difference.trace() > 1e-9;
+      // A landmark outside a passage's window keeps its estimate where the exact update moves it
+      // through its correlation with what the passage saw: measured up to 0.05 of its sigma with
+      // the last 5 detections, 0.46 with all of them (0.77 m on sigmas of 3 m in this young map).
+      const Landmark& exact_landmark = *exact_map.FindLandmark(id);
+      const Eigen::Vector2d offset = EastNorthOffset(exact_landmark.position, windowed_map.FindLandmark(id)->position);
+      EXPECT_LT(std::sqrt(offset.dot(exact_landmark.cov_en_m2.ldlt().solve(offset))), 0.75)
+          << id << ": " << offset.norm() << " m";
+    }
+    EXPECT_GT(less_confident, 0) << "the windows lost some information";
   }
-  ASSERT_EQ(exact_map.landmark_count(), windowed_map.landmark_count());
-  int less_confident = 0;
-  for (LandmarkId id : windowed_map.LandmarkIds()) {
-    absl::StatusOr<Eigen::MatrixXd> marginal = JointCovariance(windowed_map, {id});
-    ASSERT_TRUE(marginal.ok()) << marginal.status();
-    const Eigen::Matrix2d difference = windowed_map.FindLandmark(id)->cov_en_m2 - *marginal;
-    // (to 1e-6 m^2: the graph's East/North frame at the landmark and the map's at its anchor differ
-    // by a rotation of offset / earth radius)
-    EXPECT_GT(Eigen::SelfAdjointEigenSolver<Eigen::Matrix2d>(difference).eigenvalues().minCoeff(), -1e-6) << id;
-    less_confident += difference.trace() > 1e-9;
-    EXPECT_LT(EastNorthOffset(exact_map.FindLandmark(id)->position, windowed_map.FindLandmark(id)->position).norm(), 0.5)
-        << id;
-  }
-  EXPECT_GT(less_confident, 0) << "the windows lost some information";
 }
 
 TEST(ComputePassageUpdate, NewLandmarksNeedRaysSpanningTheMinimumParallax) {
@@ -1118,7 +1128,7 @@ TEST(CameraYawEstimation, AFirstPassageNarrowsTheDefaultPriorAndRecordsTheVehicl
   EXPECT_EQ(map.FindVehicle(passage.vehicle_id)->camera_yaw_offset_rad, v.camera_yaw_offset_rad);
 }
 
-TEST(CameraYawEstimation, EachVehiclesBiasIsRecoveredWithinThreeSigmaAndTheMapBeatsIgnoringIt) {
+TEST(CameraYawEstimation, EachVehiclesBiasIsRecoveredWithinThreeSigmaAndTheMapIsMoreConsistentThanIgnoringIt) {
   const int vehicles = 3, passages = 24;
   const Scenario scenario = MakeFleetScenario(25, vehicles, 2);
   std::vector<int> order(passages);
@@ -1141,10 +1151,16 @@ TEST(CameraYawEstimation, EachVehiclesBiasIsRecoveredWithinThreeSigmaAndTheMapBe
     // (ConsiderCameraYawSolve).
     EXPECT_LT(sigma, 0.3 * MapUpdateOptions().camera_yaw_prior_sigma_rad) << v;
   }
+  // The biases ignored, their common errors are in no covariance: the map is more sure of itself
+  // than with them estimated (joint NEES/dof 0.81 against 0.76 here; lower with them estimated in
+  // all 12 runs of `mapsim experiment --landmarks 25 --passages 24 --vehicles 3
+  // --vehicle-yaw-bias-sigma-rad 0.0087 --seed 2..7`, with the last 5 and with all detections).
+  // After 24 passages the error is lower in only 6 of those 12 runs (0.514 against 0.532 m here),
+  // up to 10% higher in one, and the marginal NEES in 7.
   const MapErrorMetrics with = EvaluateMap(estimated, scenario.landmarks());
   const MapErrorMetrics without = EvaluateMap(run(false), scenario.landmarks());
-  EXPECT_LT(with.mean_dist_err_m, without.mean_dist_err_m);
-  EXPECT_LT(with.nees_per_dof, without.nees_per_dof);
+  EXPECT_LT(with.joint_nees_per_dof, without.joint_nees_per_dof);
+  EXPECT_LT(with.mean_dist_err_m, 1.05 * without.mean_dist_err_m);
 }
 
 // Every passage a vehicle of its own, every camera turned by the same 0.009 rad (one model, one
