@@ -79,6 +79,8 @@ TEST(MapsimExitCodes, UsageErrorsExitWithTwoAndOneLine) {
       {{"passage-consistency", "--noise", "pink"}, "unknown 'pink'"},
       {{"localize", "--landmarks", "a,b"}, "Could not convert: --landmarks = a,b"},
       {{"reproduce", "--jobs", "two"}, "Could not convert: --jobs = two"},
+      {{"reproduce", "--seeds", "0"}, "seeds: must be >= 1"},
+      {{"reproduce", "--detections-per-landmark", "2"}, "detections_per_landmark: must be 0 (all) or >= 3"},
       {{"fleet", "--vehicles", "0"}, "vehicles: must be >= 1"},
       {{"fleet", "--route-m", "900"}, "--route-m requires --city"},
       {{"fleet", "--tls-cert", "c.pem"}, "--tls-cert"},

@@ -648,6 +648,9 @@ void AddReproduceFlags(CLI::App* command, ReproduceOptions* o) {
                       "of their mean NEES, were the maps consistent, is at most X (0 = no further seeds)")
       ->type_name("X");
   command->add_option("--max-seeds", o->max_seeds, "at most M seeds per cell")->type_name("M");
+  command->add_option("--detections-per-landmark", o->detections_per_landmark,
+                      "every experiment uses the last K >= 3 detections per landmark and passage, 0 = all")
+      ->type_name("K");
 }
 
 #if CROWDMAP_MAPSIM_SERVICE
@@ -836,7 +839,10 @@ std::unique_ptr<CLI::App> NewMapsimCommandLine(Commands* c, std::map<std::string
                    [c] { return RunCityCommand(c->city); }),
                &c->city);
   AddReproduceFlags(add("reproduce", "run the thesis's table 5.2 and robustness grids",
-                        [c] { return RunReproduction(c->reproduce); }),
+                        [c] {
+                          if (absl::Status s = c->reproduce.Validate(); !s.ok()) return AsUsageError(s);
+                          return RunReproduction(c->reproduce);
+                        }),
                     &c->reproduce);
   AddLocalizeFlags(add("localize",
                        "thesis Table 5.5: one ~4 km passage localised without and with the map (the thesis's\n"

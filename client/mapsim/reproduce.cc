@@ -79,6 +79,7 @@ Job MakeJob(const ReproduceOptions& o, const ExperimentOptions& cell, uint64_t s
                           cell.update.estimate_camera_yaw ? "_yaw" : "", "_s", seed);
   job.options.scenario.seed = seed;
   job.options.passages = o.passages;
+  job.options.update.detections_per_landmark = o.detections_per_landmark;
   return job;
 }
 
@@ -156,8 +157,9 @@ std::string Report(const ReproduceOptions& o, const std::deque<Job>& jobs, doubl
       "number of seeds: the CC and CC+GSD cells take further seeds until that standard deviation is at most "
       "%.2f (at most %d seeds), and their errors and times are means over the same seeds. Joint NEES uses the "
       "cross-covariances. Time is the median wall time to apply one passage. Thesis times are Python on a Xeon "
-      "Silver 4114.\n\n",
-      o.passages, seeds, wall_s, o.jobs, o.nees_sd_target, o.max_seeds);
+      "Silver 4114. Detections per landmark and passage: %s.\n\n",
+      o.passages, seeds, wall_s, o.jobs, o.nees_sd_target, o.max_seeds,
+      o.detections_per_landmark == 0 ? std::string("all") : absl::StrCat("the last ", o.detections_per_landmark));
   md += "## Table 5.2: white noise\n\n"
         "| N | CC (ours) | CC (thesis) | DC (ours) | DC (thesis) | CC+GSD (ours) | CC+GSD (thesis) | NEES CC | NEES DC "
         "| NEES CC+GSD | joint NEES CC / CC+GSD | ms CC | ms DC | ms CC+GSD | thesis s CC / DC / CC+GSD |\n"
@@ -264,14 +266,23 @@ std::vector<uint64_t> FurtherSeeds(const ReproduceOptions& o, const std::deque<J
 
 }  // namespace
 
+absl::Status ReproduceOptions::Validate() const {
+  if (passages < 1) return absl::InvalidArgumentError(absl::StrCat("passages: must be >= 1, got ", passages));
+  if (jobs < 1) return absl::InvalidArgumentError(absl::StrCat("jobs: must be >= 1, got ", jobs));
+  if (seeds < 1) return absl::InvalidArgumentError(absl::StrCat("seeds: must be >= 1, got ", seeds));
+  if (max_seeds < seeds) {
+    return absl::InvalidArgumentError(absl::StrCat("max_seeds: must be >= seeds (", seeds, "), got ", max_seeds));
+  }
+  if (!(nees_sd_target >= 0.0)) {
+    return absl::InvalidArgumentError(absl::StrCat("nees_sd_target: must be >= 0, got ", nees_sd_target));
+  }
+  MapUpdateOptions update;
+  update.detections_per_landmark = detections_per_landmark;
+  return update.Validate();
+}
+
 absl::Status RunReproduction(const ReproduceOptions& o) {
-  if (o.seeds < 1) return absl::InvalidArgumentError(absl::StrCat("seeds: must be >= 1, got ", o.seeds));
-  if (o.max_seeds < o.seeds) {
-    return absl::InvalidArgumentError(absl::StrCat("max_seeds: must be >= seeds (", o.seeds, "), got ", o.max_seeds));
-  }
-  if (!(o.nees_sd_target >= 0.0)) {
-    return absl::InvalidArgumentError(absl::StrCat("nees_sd_target: must be >= 0, got ", o.nees_sd_target));
-  }
+  if (absl::Status s = o.Validate(); !s.ok()) return s;
   if (o.jobs > 1) {  // the experiments' threads call the BLAS at once
     if (absl::Status s = CheckBlasIsSafeForConcurrentCalls(); !s.ok()) return s;
   }
@@ -335,7 +346,7 @@ absl::Status RunReproduction(const ReproduceOptions& o) {
     }
   };
   std::vector<std::thread> threads;
-  for (int t = 0; t < std::max(1, o.jobs); ++t) threads.emplace_back(worker);
+  for (int t = 0; t < o.jobs; ++t) threads.emplace_back(worker);
   for (std::thread& t : threads) t.join();
   const double wall_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
 

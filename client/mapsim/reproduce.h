@@ -4,6 +4,7 @@
 #include <string>
 
 #include "absl/status/status.h"
+#include "core/estimation/map_update_options.h"
 
 namespace crowdmap {
 
@@ -19,6 +20,11 @@ struct ReproduceOptions {
   // landmarks, 0.3 at 25-100), so a mean over few seeds cannot tell 1.0 from 1.4. 0: no more seeds.
   double nees_sd_target = 0.2;
   int max_seeds = 20;
+  // Detections used per landmark and passage in every experiment (MapUpdateOptions's; 0 = all).
+  int detections_per_landmark = MapUpdateOptions().detections_per_landmark;
+
+  // InvalidArgument naming the first field out of range.
+  absl::Status Validate() const;
 };
 
 // Runs the thesis's table 5.2 grid (N in {4,25,50,75,100} x {cc, dc, cc-gsd}, white noise) and its

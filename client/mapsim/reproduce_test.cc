@@ -75,7 +75,23 @@ TEST(Reproduce, ConsistencyCellsTakeSeedsUntilTheirMeanNeesIsPreciseEnough) {
   EXPECT_NE(md.substr(at, md.find('\n', at) - at).find(" (3) |"), std::string::npos) << md;
 }
 
-TEST(Reproduce, RefusesZeroSeeds) {
+TEST(Reproduce, EveryExperimentUsesTheDetectionsAskedFor) {
+  ReproduceOptions options;
+  TempDir scratch;  // a fresh directory: no leftover of another run
+  options.out_dir = (std::filesystem::path(scratch.path()) / "reproduce_all").string();
+  options.passages = 2;
+  options.seeds = 1;
+  options.nees_sd_target = 0.0;
+  options.detections_per_landmark = 0;
+  ASSERT_TRUE(RunReproduction(options).ok());
+  const std::filesystem::path out(options.out_dir);
+  for (const char* name : {"n4_dc_white_s1", "n100_cc-gsd_white_s1", "n50_cc-gsd_white_v20_yaw_s1"}) {
+    EXPECT_NE(ReadAll(out / name / "summary.json").find("\"detections_per_landmark\": 0"), std::string::npos) << name;
+  }
+  EXPECT_NE(ReadAll(out / "reproduction.md").find("Detections per landmark and passage: all."), std::string::npos);
+}
+
+TEST(Reproduce, RefusesBadOptionsNamingTheField) {
   ReproduceOptions options;
   TempDir scratch;  // a fresh directory: no leftover of another run
   options.out_dir = (std::filesystem::path(scratch.path()) / "reproduce_none").string();
@@ -89,6 +105,15 @@ TEST(Reproduce, RefusesZeroSeeds) {
   options.max_seeds = 20;
   options.nees_sd_target = -1.0;
   EXPECT_NE(RunReproduction(options).message().find("nees_sd_target"), std::string::npos);
+  options.nees_sd_target = 0.2;
+  options.detections_per_landmark = 1;  // no landmark could be created
+  EXPECT_NE(RunReproduction(options).message().find("detections_per_landmark"), std::string::npos);
+  options.detections_per_landmark = 5;
+  options.jobs = 0;
+  EXPECT_NE(RunReproduction(options).message().find("jobs"), std::string::npos);
+  options.jobs = 2;
+  options.passages = 0;
+  EXPECT_NE(RunReproduction(options).message().find("passages"), std::string::npos);
 }
 
 }  // namespace
