@@ -15,11 +15,18 @@ std::string ReadAll(const std::filesystem::path& path) {
   return std::string((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
 }
 
-TEST(Reproduce, RunsEveryExperimentForEachSeedAndReportsTheMeans) {
+// A reproduction of 2 passages per experiment into `scratch`, a fresh directory (no leftover of
+// another run).
+ReproduceOptions SmallReproduction(const TempDir& scratch) {
   ReproduceOptions options;
-  TempDir scratch;  // a fresh directory: no leftover of another run
   options.out_dir = (std::filesystem::path(scratch.path()) / "reproduce").string();
   options.passages = 2;
+  return options;
+}
+
+TEST(Reproduce, RunsEveryExperimentForEachSeedAndReportsTheMeans) {
+  TempDir scratch;
+  ReproduceOptions options = SmallReproduction(scratch);
   options.seed = 4;
   options.seeds = 2;
   options.nees_sd_target = 0.0;  // no further seeds
@@ -54,10 +61,8 @@ TEST(Reproduce, RunsEveryExperimentForEachSeedAndReportsTheMeans) {
 }
 
 TEST(Reproduce, ConsistencyCellsTakeSeedsUntilTheirMeanNeesIsPreciseEnough) {
-  ReproduceOptions options;
-  TempDir scratch;  // a fresh directory: no leftover of another run
-  options.out_dir = (std::filesystem::path(scratch.path()) / "reproduce_more").string();
-  options.passages = 2;
+  TempDir scratch;
+  ReproduceOptions options = SmallReproduction(scratch);
   options.seeds = 1;
   options.max_seeds = 3;
   options.nees_sd_target = 1e-6;  // never reached: every CC and CC+GSD cell takes max_seeds
@@ -76,10 +81,8 @@ TEST(Reproduce, ConsistencyCellsTakeSeedsUntilTheirMeanNeesIsPreciseEnough) {
 }
 
 TEST(Reproduce, EveryExperimentUsesTheDetectionsAskedFor) {
-  ReproduceOptions options;
-  TempDir scratch;  // a fresh directory: no leftover of another run
-  options.out_dir = (std::filesystem::path(scratch.path()) / "reproduce_all").string();
-  options.passages = 2;
+  TempDir scratch;
+  ReproduceOptions options = SmallReproduction(scratch);
   options.seeds = 1;
   options.nees_sd_target = 0.0;
   options.detections_per_landmark = 0;
@@ -92,9 +95,8 @@ TEST(Reproduce, EveryExperimentUsesTheDetectionsAskedFor) {
 }
 
 TEST(Reproduce, RefusesBadOptionsNamingTheField) {
-  ReproduceOptions options;
-  TempDir scratch;  // a fresh directory: no leftover of another run
-  options.out_dir = (std::filesystem::path(scratch.path()) / "reproduce_none").string();
+  TempDir scratch;
+  ReproduceOptions options = SmallReproduction(scratch);
   options.seeds = 0;
   const absl::Status s = RunReproduction(options);
   EXPECT_EQ(s.code(), absl::StatusCode::kInvalidArgument);
