@@ -328,6 +328,7 @@ absl::Status WriteExperimentOutputs(const ExperimentOptions& options, const Expe
       {"vehicle_yaw_within_2sigma", result.vehicle_yaw.within_2sigma_fraction},
       {"vehicle_yaw_nees", result.vehicle_yaw.nees},
       {"vehicle_yaw_rms_error_rad", result.vehicle_yaw.rms_error_rad},
+      {"vehicle_yaw_mean_error_rad", result.vehicle_yaw.mean_error_rad},
   };
   nlohmann::ordered_json& vehicle_yaw = summary["vehicle_yaw"] = nlohmann::ordered_json::array();
   for (const VehicleYawError& e : result.vehicle_yaw.vehicles) {

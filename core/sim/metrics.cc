@@ -13,7 +13,7 @@ VehicleYawMetrics EvaluateVehicleYaw(const MapReaderInterface& map,
                                      const std::vector<std::pair<std::string, double>>& truth) {
   VehicleYawMetrics m;
   int within = 0;
-  double squared = 0.0, nees = 0.0;
+  double sum = 0.0, squared = 0.0, nees = 0.0;
   for (const auto& [vehicle_id, truth_rad] : truth) {
     VehicleYawError e;
     e.vehicle_id = vehicle_id;
@@ -26,6 +26,7 @@ VehicleYawMetrics EvaluateVehicleYaw(const MapReaderInterface& map,
       const double error = e.estimate_rad - truth_rad;
       ++m.estimated;
       if (std::abs(error) <= 2.0 * e.sigma_rad) ++within;
+      sum += error;
       squared += error * error;
       nees += error * error / (e.sigma_rad * e.sigma_rad);
     }
@@ -34,6 +35,7 @@ VehicleYawMetrics EvaluateVehicleYaw(const MapReaderInterface& map,
   if (m.estimated > 0) {
     m.within_2sigma_fraction = static_cast<double>(within) / m.estimated;
     m.rms_error_rad = std::sqrt(squared / m.estimated);
+    m.mean_error_rad = sum / m.estimated;
     m.nees = nees / m.estimated;
   }
   return m;

@@ -59,6 +59,11 @@ struct VehicleYawMetrics {
   int estimated = 0;                      // vehicles with an estimate
   double within_2sigma_fraction = 0.0;    // of those estimated: |error| <= 2 sigma (95.4% if consistent)
   double rms_error_rad = 0.0;
+  // The mean of the errors, with their signs: what the vehicles' records share. Independent
+  // records put it near 0 (within rms_error_rad / sqrt(estimated)); on a road every vehicle drives
+  // the same way it is the map's own bias seen through the camera (docs/results.md, "All
+  // detections on the thesis loop").
+  double mean_error_rad = 0.0;
   double nees = 0.0;                      // mean of (error / sigma)^2; 1 when consistent
 };
 
