@@ -253,6 +253,7 @@ absl::Status WriteCityOutputs(const CityExperimentOptions& options, const CityEx
       {"vehicle_yaw_nees", result.vehicle_yaw.nees},
       {"vehicle_yaw_rms_error_rad", result.vehicle_yaw.rms_error_rad},
       {"vehicle_yaw_mean_error_rad", result.vehicle_yaw.mean_error_rad},
+      {"vehicle_yaw_mean_sigma_rad", result.vehicle_yaw.mean_sigma_rad},
   };
   std::ofstream json(std::filesystem::path(dir) / "summary.json");
   json << summary.dump(2) << "\n";

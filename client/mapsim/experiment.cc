@@ -329,6 +329,7 @@ absl::Status WriteExperimentOutputs(const ExperimentOptions& options, const Expe
       {"vehicle_yaw_nees", result.vehicle_yaw.nees},
       {"vehicle_yaw_rms_error_rad", result.vehicle_yaw.rms_error_rad},
       {"vehicle_yaw_mean_error_rad", result.vehicle_yaw.mean_error_rad},
+      {"vehicle_yaw_mean_sigma_rad", result.vehicle_yaw.mean_sigma_rad},
   };
   nlohmann::ordered_json& vehicle_yaw = summary["vehicle_yaw"] = nlohmann::ordered_json::array();
   for (const VehicleYawError& e : result.vehicle_yaw.vehicles) {

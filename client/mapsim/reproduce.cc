@@ -236,11 +236,7 @@ std::string Report(const ReproduceOptions& o, const std::deque<Job>& jobs, doubl
       const double rms = std::sqrt(Mean(rs, [](const ExperimentResult& r) {
         return r.vehicle_yaw.mean_error_rad * r.vehicle_yaw.mean_error_rad;
       }));
-      const double sigma = Mean(rs, [](const ExperimentResult& r) {
-        double sum = 0.0;  // over the vehicles with an estimate
-        for (const VehicleYawError& e : r.vehicle_yaw.vehicles) sum += std::isnan(e.estimate_rad) ? 0.0 : e.sigma_rad;
-        return r.vehicle_yaw.estimated > 0 ? sum / r.vehicle_yaw.estimated : 0.0;
-      });
+      const double sigma = Mean(rs, [](const ExperimentResult& r) { return r.vehicle_yaw.mean_sigma_rad; });
       shared = absl::StrFormat("%.2f / %.2f", 1e3 * rms, 1e3 * sigma);
     }
     absl::StrAppendFormat(

@@ -13,7 +13,7 @@ VehicleYawMetrics EvaluateVehicleYaw(const MapReaderInterface& map,
                                      const std::vector<std::pair<std::string, double>>& truth) {
   VehicleYawMetrics m;
   int within = 0;
-  double sum = 0.0, squared = 0.0, nees = 0.0;
+  double sum = 0.0, squared = 0.0, nees = 0.0, sigmas = 0.0;
   for (const auto& [vehicle_id, truth_rad] : truth) {
     VehicleYawError e;
     e.vehicle_id = vehicle_id;
@@ -27,6 +27,7 @@ VehicleYawMetrics EvaluateVehicleYaw(const MapReaderInterface& map,
       ++m.estimated;
       if (std::abs(error) <= 2.0 * e.sigma_rad) ++within;
       sum += error;
+      sigmas += e.sigma_rad;
       squared += error * error;
       nees += error * error / (e.sigma_rad * e.sigma_rad);
     }
@@ -36,6 +37,7 @@ VehicleYawMetrics EvaluateVehicleYaw(const MapReaderInterface& map,
     m.within_2sigma_fraction = static_cast<double>(within) / m.estimated;
     m.rms_error_rad = std::sqrt(squared / m.estimated);
     m.mean_error_rad = sum / m.estimated;
+    m.mean_sigma_rad = sigmas / m.estimated;
     m.nees = nees / m.estimated;
   }
   return m;

@@ -64,6 +64,7 @@ struct VehicleYawMetrics {
   // the same way it is the map's own bias seen through the camera (docs/results.md, "All
   // detections on the thesis loop").
   double mean_error_rad = 0.0;
+  double mean_sigma_rad = 0.0;            // of the estimated vehicles' records
   double nees = 0.0;                      // mean of (error / sigma)^2; 1 when consistent
 };
 

@@ -113,6 +113,7 @@ TEST(EvaluateVehicleYaw, CountsEstimatesWithinTwoSigmaAndSkipsVehiclesWithout) {
   EXPECT_NEAR(m.nees, (1.0 + 9.0) / 2.0, 1e-9);
   EXPECT_NEAR(m.rms_error_rad, std::sqrt((1e-6 + 9e-6) / 2.0), 1e-12);
   EXPECT_NEAR(m.mean_error_rad, (0.001 - 0.003) / 2.0, 1e-12);
+  EXPECT_NEAR(m.mean_sigma_rad, 0.001, 1e-12);
   EXPECT_EQ(m.vehicles[0].passages, 10);
   EXPECT_TRUE(std::isnan(m.vehicles[2].estimate_rad));
 }
