@@ -16,8 +16,8 @@ namespace crowdmap {
 struct GraphOptions {
   // Detections used per landmark: the last K of the passage (0 = all); with a spacing, only those
   // of the first camera frame in each interval of `detection_spacing_s` once the vehicle is
-  // `detection_spacing_m` along its path from the frame before (every landmark keeps the same frames,
-  // whatever the camera's rate; none are added while the vehicle stands still).
+  // `detection_spacing_m` along its path from the frame before (every landmark keeps the same
+  // frames, whatever the camera's rate; none are added while the vehicle stands still).
   int detections_per_landmark = 5;
   double detection_spacing_s = 0.0;
   double detection_spacing_m = 0.0;

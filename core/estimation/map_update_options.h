@@ -45,10 +45,9 @@ struct MapUpdateOptions {
   // ...and of those only frames taken once the vehicle is this far (m) along its path from the grid
   // frame before (its speeds integrated with their signs, so that zero-mean noise read while the
   // wheels stand still is no travel): a vehicle standing still (parked, at a red light) adds no
-  // detections. A camera that
-  // does not move sees the same view, whose detector error is the same from frame to frame; taken
-  // as independent, twenty minutes parked in front of a sign would be 2,400 measurements of one
-  // bearing. 0 = by time alone.
+  // detections. A camera that does not move sees the same view, whose detector error is the same
+  // from frame to frame; taken as independent, twenty minutes parked in front of a sign would be
+  // 2,400 measurements of one bearing. 0 = by time alone.
   double detection_spacing_m = 1.0;
   // Detections of map landmarks predicted less than this many pixel sigmas from the image border
   // are not used: the detector reports only what falls inside the image, which biases those
