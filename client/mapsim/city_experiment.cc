@@ -237,6 +237,7 @@ absl::Status WriteCityOutputs(const CityExperimentOptions& options, const CityEx
         {"failed_faulty_passages", result.failed_faulty_passages},
         {"failed_clean_passages", result.failed_clean_passages}}},
       {"relinearize_sigmas", options.update.relinearize_sigmas},
+      {"relinearize_area_passages", options.update.relinearize_area_passages},
       {"nees_per_dof", result.nees_per_dof},
       {"landmarks_in_layout", result.layout_landmarks},
       {"landmarks_mapped", result.errors.size()},

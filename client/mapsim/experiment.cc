@@ -301,6 +301,7 @@ absl::Status WriteExperimentOutputs(const ExperimentOptions& options, const Expe
       {"failed_passages", result.failed_passages},
       {"relinearized_passages", result.relinearized_passages},
       {"relinearize_sigmas", options.update.relinearize_sigmas},
+      {"relinearize_area_passages", options.update.relinearize_area_passages},
       {"inflated_passages", result.inflated_passages},
       {"max_subgraph_dim", options.update.max_subgraph_dim},
       {"detections_per_landmark", options.update.detections_per_landmark},

@@ -152,6 +152,11 @@ void AddMapUpdateFlags(CLI::App* command, MapUpdateOptions* update) {
   command->add_option("--relinearizations-per-passage", update->relinearizations_per_passage,
                       "at most K such re-linearisations per passage")
       ->type_name("K");
+  command->add_option("--relinearize-area-passages", update->relinearize_area_passages,
+                      "take each such passage again together with up to N - 1 other stale passages on\n"
+                      "its landmarks, in one joint solve against the rest of the map (0 or 1: alone)")
+      ->check(NonNegative())
+      ->type_name("N");
   command->add_flag("--estimate-camera-yaw", update->estimate_camera_yaw,
                     "estimate each vehicle's camera yaw offset, its history the prior, as mapd does\n"
                     "(summary.json: vehicle_yaw, estimate against truth per vehicle)");

@@ -1,5 +1,7 @@
-// The joint solve of a young map's passages (warm-up and re-solves): ComputeBatchUpdate.
+// The joint solve of passages: a young map's (warm-up and re-solves, ComputeBatchUpdate) and the
+// retained passages of one area of a grown map (ComputeAreaRelinearization).
 #include <algorithm>
+#include <cmath>
 #include <map>
 #include <memory>
 #include <set>
@@ -14,15 +16,19 @@
 #include "core/estimation/factors.h"
 #include "core/estimation/landmark_update.h"
 #include "core/estimation/map_updater.h"
+#include "core/estimation/passage_exclusion.h"
 #include "core/estimation/subgraph_steps.h"
 
 namespace crowdmap {
 namespace {
 
-// The joint solve of ComputeBatchUpdate, started from `single`, the sequential update of the last
-// passage on `map`.
+// The joint solve of `passages`. The map without their factors is its prior: nothing in a young
+// map whose every factor is theirs (ComputeBatchUpdate, which gives `single`, the sequential update
+// of the last passage on `map`, a map that holds the others), the rest of the map around them when
+// they were all applied before (`single` null: ComputeAreaRelinearization).
 absl::StatusOr<PassageUpdate> SolveJointly(const std::vector<Passage>& passages, const MapUpdateOptions& options,
-                                           const MapReaderInterface& map, const PassageUpdate& single) {
+                                           const MapReaderInterface& map, const PassageUpdate* single) {
+  const bool area = single == nullptr;
   const auto start = std::chrono::steady_clock::now();
   const int count = static_cast<int>(passages.size());
   auto failed = [&](int p, const absl::Status& s) {
@@ -53,7 +59,9 @@ absl::StatusOr<PassageUpdate> SolveJointly(const std::vector<Passage>& passages,
   // hold back (too few rays, too little parallax, too far: the creation rules of
   // MapUpdateOptions) are no better determined here, and two rays can place them kilometres off.
   MapOverlay guess(map);
-  for (const auto& [id, record] : single.delta.landmarks) guess.PutLandmark(record);
+  if (single != nullptr) {
+    for (const auto& [id, record] : single->delta.landmarks) guess.PutLandmark(record);
+  }
   std::map<LandmarkId, Eigen::Vector2d> initial;
   for (int p = 0; p < count; ++p) {
     for (const CameraObservation& d : graphs[p].detections) {
@@ -96,15 +104,37 @@ absl::StatusOr<PassageUpdate> SolveJointly(const std::vector<Passage>& passages,
                             options.min_new_landmark_parallax_rad, /*min_new_detections=*/2, &seen[p]);
   }
 
+  // The map without the passages' factors, re-solved where they were: the solve's prior. A
+  // landmark they alone informed leaves it. Every landmark a factor of theirs was on must be
+  // estimated again: it would otherwise lose their information, down to none at all.
+  const bool correlated = options.strategy != UpdateStrategy::kDecorrelated;
+  MapWindowOptions window;
+  window.hops = correlated ? options.window_hops : 1;
+  MapOverlay overlay(map);
+  const int64_t version = overlay.BumpVersion();
+  std::map<LandmarkId, std::string> touched;  // a landmark their factors were on: one such passage
+  for (const Passage& passage : passages) {
+    std::vector<int64_t> factor_ids;
+    overlay.AppendPassageFactorIds(passage.vehicle_id, passage.passage_id, &factor_ids);
+    for (int64_t id : factor_ids) {
+      for (LandmarkId l : overlay.FindFactor(id)->landmarks) touched.emplace(l, passage.passage_id);
+      overlay.RemoveFactor(id);
+    }
+  }
+  auto informed = [&](LandmarkId id) {
+    return overlay.FindLandmark(id) != nullptr && overlay.Information(id, id).factors > 0;
+  };
+
   // A landmark left with a single usable detection over all the passages (its others behind the
-  // camera at the localised poses) is not determined by the joint solve: set it aside with it.
+  // camera at the localised poses) and nothing else on it is not determined by the joint solve:
+  // set it aside with it.
   std::map<LandmarkId, int> usable_detections;
   for (int p = 0; p < count; ++p) {
     for (size_t i = 0; i < seen[p].ids.size(); ++i) usable_detections[seen[p].ids[i]] += seen[p].detections[i].size();
   }
   std::unordered_set<LandmarkId> undetermined;
   for (const auto& [id, n] : usable_detections) {
-    if (n < 2) undetermined.insert(id);
+    if (n < 2 && !informed(id)) undetermined.insert(id);
   }
   for (int p = 0; p < count; ++p) summary.detections_dropped += SetAside(undetermined, {}, &seen[p]);
 
@@ -120,22 +150,64 @@ absl::StatusOr<PassageUpdate> SolveJointly(const std::vector<Passage>& passages,
   if (seen_by.empty()) return absl::InvalidArgumentError("detections: no landmark of the passages could be estimated");
   std::vector<LandmarkId> ids;
   for (const auto& [id, n] : seen_by) ids.push_back(id);
-  std::map<LandmarkId, Eigen::Vector2d> position;  // the landmarks' parameter blocks
-  for (LandmarkId id : ids) position[id] = initial[id];
+
+  for (const auto& [id, passage_id] : touched) {
+    if (!seen_by.count(id)) {
+      return absl::FailedPreconditionError(absl::StrCat("landmark ", id, ": passage ", passage_id,
+                                                        " informs it, but the joint solve could not use its "
+                                                        "detections of it"));
+    }
+  }
+  std::vector<LandmarkId> left, removed;
+  for (const auto& [id, passage_id] : touched) {
+    if (!informed(id)) {
+      overlay.RemoveLandmark(id);
+      removed.push_back(id);
+      continue;
+    }
+    // What is left must fix the landmark as a new one is fixed. A prior weaker than that (a ray or
+    // two of other passages: its mean anywhere along them) let an area's joint solve slide one 67 m
+    // along it (at an 11.9 m sigma). Refused, the passages are taken one at a time instead.
+    if (const double sigma_m = ConditionalSigmaM(overlay, id); !(sigma_m <= options.max_new_landmark_ray_sigma_m)) {
+      return absl::FailedPreconditionError(absl::StrFormat(
+          "landmark %d would be left weakly determined without the %d passages (sigma %.3g m along its weakest "
+          "direction, over %.3g m allowed): not solved jointly",
+          id, count, sigma_m, options.max_new_landmark_ray_sigma_m));
+    }
+    left.push_back(id);
+  }
+  if (!left.empty()) {
+    MarginalRefresh refresh;
+    refresh.others = true;  // information was removed: every marginal in the window grows
+    absl::StatusOr<int> conditioned = ResolveAround(left, refresh, window, version, [](Landmark*) {}, &overlay);
+    if (!conditioned.ok()) return conditioned.status();
+  }
+
+  // The landmarks' parameter blocks; their prior, the map without the passages (its mean is
+  // where the blocks stand when it is added; the solve then starts from the guess).
+  LandmarkUpdate landmarks(frame, &overlay, ids);
+  std::map<LandmarkId, int> index_of;
   std::map<LandmarkId, double*> block_of;
   std::vector<double*> landmark_blocks;
-  for (auto& [id, x] : position) {
-    block_of[id] = x.data();
-    landmark_blocks.push_back(x.data());
+  for (int i = 0; i < landmarks.size(); ++i) {
+    index_of[landmarks.id(i)] = i;
+    block_of[landmarks.id(i)] = landmarks.block(i);
+    landmark_blocks.push_back(landmarks.block(i));
   }
 
   // One problem; each passage's measurements carry their own weight (consistency test below).
   ceres::Problem::Options problem_options;
   problem_options.loss_function_ownership = ceres::DO_NOT_TAKE_OWNERSHIP;
   ceres::Problem problem(problem_options);
+  LandmarkUpdateOptions prior_options;
+  prior_options.correlated = correlated;
+  prior_options.window = window;
+  if (absl::Status s = landmarks.AddMapPrior(prior_options, &problem); !s.ok()) return s;
+  for (int i = 0; i < landmarks.size(); ++i) Eigen::Map<Eigen::Vector2d>(landmarks.block(i)) = initial[landmarks.id(i)];
   std::vector<std::unique_ptr<ceres::LossFunctionWrapper>> weights;
   std::vector<std::vector<ceres::ResidualBlockId>> blocks_of(count);
   std::vector<double> landmark_dims_of(count, 0.0);  // the landmarks' dimensions, shared by detections
+  std::unordered_set<ceres::ResidualBlockId> camera_blocks;
   std::map<LandmarkId, int> detections_of;
   for (int p = 0; p < count; ++p) {
     for (size_t i = 0; i < seen[p].ids.size(); ++i) detections_of[seen[p].ids[i]] += seen[p].detections[i].size();
@@ -170,9 +242,11 @@ absl::StatusOr<PassageUpdate> SolveJointly(const std::vector<Passage>& passages,
         blocks_of[p].push_back(AddCameraResidual(d->u_px, passages[p].noise.pixel_sigma_px, passages[p].calibration,
                                                  weights[p].get(), poses[p][d->node].data(), block_of[id],
                                                  options.estimate_camera_yaw ? &yaw_offset_rad[p] : nullptr, &problem));
+        camera_blocks.insert(blocks_of[p].back());
         ++summary.detections_used;
       }
-      landmark_dims_of[p] += 2.0 * seen[p].detections[i].size() / detections_of[id];
+      // (a landmark of the prior is fixed by it: its dimensions cost the passages nothing)
+      if (!landmarks.in_map(index_of[id])) landmark_dims_of[p] += 2.0 * seen[p].detections[i].size() / detections_of[id];
     }
   }
 
@@ -182,6 +256,35 @@ absl::StatusOr<PassageUpdate> SolveJointly(const std::vector<Passage>& passages,
   summary.solver_iterations += static_cast<int>(solver_summary.iterations.size());
   if (!solver_summary.IsSolutionUsable()) {
     return absl::InternalError(absl::StrCat("joint solve unusable: ", solver_summary.message));
+  }
+  // An area's passages were each applied with the residual test of the sequential update
+  // (options.max_detection_residual_sigmas): their detections beyond it are set aside here too, and
+  // the solve is repeated without them. (A young map's are not: its estimate is still metres off.)
+  if (area && options.max_detection_residual_sigmas > 0.0) {
+    int outliers = 0;
+    for (int p = 0; p < count; ++p) {
+      auto outlier = [&](ceres::ResidualBlockId id) {
+        if (!camera_blocks.count(id)) return false;
+        double cost = 0.0, residual = 0.0;
+        if (problem.EvaluateResidualBlock(id, /*apply_loss_function=*/false, &cost, &residual, nullptr) &&
+            std::abs(residual) <= options.max_detection_residual_sigmas) {
+          return false;
+        }
+        problem.RemoveResidualBlock(id);
+        ++outliers;
+        return true;
+      };
+      blocks_of[p].erase(std::remove_if(blocks_of[p].begin(), blocks_of[p].end(), outlier), blocks_of[p].end());
+    }
+    if (outliers > 0) {
+      summary.detections_outliers += outliers;
+      summary.detections_used -= outliers;
+      Solve(options, SolverOptions(options.max_solver_iterations), &problem, &solver_summary);
+      summary.solver_iterations += static_cast<int>(solver_summary.iterations.size());
+      if (!solver_summary.IsSolutionUsable()) {
+        return absl::InternalError(absl::StrCat("joint solve unusable without its outliers: ", solver_summary.message));
+      }
+    }
   }
   // The consistency test of UpdateFromSubgraph, passage by passage: the chi-square of each
   // passage's residuals against its share of the degrees of freedom.
@@ -214,6 +317,27 @@ absl::StatusOr<PassageUpdate> SolveJointly(const std::vector<Passage>& passages,
   }
   summary.solve_ms = MillisecondsSince(solve_start);
   summary.final_cost = solver_summary.final_cost;
+  // A landmark only these passages informed re-enters the map as a new one would: the rays of one
+  // of them must pin it down at the joint solution (WellDeterminedNewLandmark). Rays that barely
+  // cross let the solve slide it far along them, and the map would hold it there.
+  if (area) {
+    for (LandmarkId id : removed) {
+      bool pinned = false;
+      for (int p = 0; p < count && !pinned; ++p) {
+        const auto it = std::find(seen[p].ids.begin(), seen[p].ids.end(), id);
+        if (it == seen[p].ids.end()) continue;
+        const RayGeometry geometry = NewLandmarkGeometry(
+            poses[p], 0, seen[p].detections[it - seen[p].ids.begin()], landmarks.position(index_of.at(id)),
+            passages[p].calibration, passages[p].noise.pixel_sigma_px);
+        pinned = WellDeterminedNewLandmark(geometry, options);
+      }
+      if (!pinned) {
+        return absl::FailedPreconditionError(absl::StrFormat(
+            "landmark %d: only the %d passages inform it, and none of their rays pins it down as a new landmark's must",
+            id, count));
+      }
+    }
+  }
   const int dof = problem.NumResiduals() - problem.NumParameters();
   if (options.max_chi2_per_dof > 0.0 && dof > 0 && 2.0 * solver_summary.final_cost > options.max_chi2_per_dof * dof) {
     return absl::FailedPreconditionError(
@@ -236,38 +360,20 @@ absl::StatusOr<PassageUpdate> SolveJointly(const std::vector<Passage>& passages,
   if (!linearization.ok()) return linearization.status();
 
   // The result replaces the factors of the passages, at one new version of `map`; a passage's
-  // factor carries its share of the bias correction.
+  // factor carries its share of the bias correction. A landmark that left the map with them comes
+  // back with its record (its anchor); its estimate and marginal are written below.
   const auto covariance_start = std::chrono::steady_clock::now();
-  MapOverlay overlay(map);
-  std::vector<int64_t> factor_ids;
-  for (LandmarkId id : ids) {
-    if (map.FindLandmark(id) != nullptr) map.AppendFactorIds(id, &factor_ids);
+  if (area) {
+    for (LandmarkId id : removed) overlay.PutLandmark(*map.FindLandmark(id));
   }
-  std::set<std::pair<std::string, std::string>> batch;
-  for (const Passage& passage : passages) batch.emplace(passage.vehicle_id, passage.passage_id);
-  for (int64_t id : factor_ids) {
-    const MapFactor* f = overlay.FindFactor(id);
-    if (f == nullptr || !batch.count({f->vehicle_id, f->passage_id})) continue;
-    // A replaced factor must not reach a landmark the joint solve does not estimate again (its
-    // detections unusable at the joint poses): that landmark would lose the passage's information,
-    // down to none at all.
-    for (LandmarkId l : f->landmarks) {
-      if (!seen_by.count(l)) {
-        return absl::FailedPreconditionError(absl::StrCat("landmark ", l, ": passage ", f->passage_id,
-                                                          " informs it, but the joint solve could not use its "
-                                                          "detections of it"));
-      }
-    }
-    overlay.RemoveFactor(id);
-  }
-  const bool correlated = options.strategy != UpdateStrategy::kDecorrelated;
+  auto position = [&](LandmarkId id) { return landmarks.position(index_of.at(id)); };
   if (correlated) {
     // At the corrected solution x_c = x* + b: Lambda_p x_c - g_p(x*) sums to Lambda x_c - g(x*),
     // the joint solution less the solver's shortfall (zero at an exact optimum).
     for (int p = 0; p < count; ++p) {
       const int k = static_cast<int>(seen[p].ids.size());
       Eigen::VectorXd x(2 * k);
-      for (int i = 0; i < k; ++i) x.segment<2>(2 * i) = position[seen[p].ids[i]];
+      for (int i = 0; i < k; ++i) x.segment<2>(2 * i) = position(seen[p].ids[i]);
       MapFactor f;
       f.vehicle_id = passages[p].vehicle_id;
       f.passage_id = passages[p].passage_id;
@@ -285,18 +391,21 @@ absl::StatusOr<PassageUpdate> SolveJointly(const std::vector<Passage>& passages,
       f.passage_id = passages.back().passage_id;
       f.landmarks = {ids[i]};
       f.information = cov.block<2, 2>(2 * i, 2 * i).inverse();
-      f.information_vector = f.information * position[ids[i]];
-      AddLocalFactor(frame, position[ids[i]], std::move(f), &overlay);
+      f.information_vector = f.information * position(ids[i]);
+      AddLocalFactor(frame, position(ids[i]), std::move(f), &overlay);
     }
   }
-  const int64_t version = overlay.BumpVersion();
+  // A young map's passages are all it has seen; an area's were counted when they were applied.
   auto touch = [&](Landmark* record) {
+    if (const Landmark* before = map.FindLandmark(record->id); area && before != nullptr) {
+      record->passages_seen = before->passages_seen;
+      record->last_seen_unix_ms = before->last_seen_unix_ms;
+      return;
+    }
     record->passages_seen = seen_by[record->id];
     record->last_seen_unix_ms = last_seen_ms[record->id];
   };
-  MapWindowOptions window;
-  window.hops = correlated ? options.window_hops : 1;
-  // The joint solve's marginals are the map's: no prior, every factor of the passages replaced.
+  // Every factor of the passages replaced: their landmarks' marginals and those of the window.
   MarginalRefresh refresh;
   refresh.others = true;  // other landmarks' factors are replaced too, when the passages saw them
   absl::StatusOr<int> conditioned = ResolveAround(ids, refresh, window, version, touch, &overlay);
@@ -304,9 +413,22 @@ absl::StatusOr<PassageUpdate> SolveJointly(const std::vector<Passage>& passages,
   summary.landmarks_conditioned = *conditioned;
   Yield(options);
   summary.covariance_ms += MillisecondsSince(covariance_start);
+  // What only the passages informed, they must fix again as a new landmark must be fixed: a
+  // landmark they now set aside would be left free along a ray.
+  if (area) {
+    for (LandmarkId id : removed) {
+      if (const double sigma_m = ConditionalSigmaM(overlay, id); !(sigma_m <= options.max_new_landmark_ray_sigma_m)) {
+        return absl::FailedPreconditionError(absl::StrFormat(
+            "landmark %d would be left undetermined by the %d passages solved jointly (sigma %.3g m along its weakest "
+            "direction, over %.3g m allowed)",
+            id, count, sigma_m, options.max_new_landmark_ray_sigma_m));
+      }
+    }
+  }
   MapDelta delta = overlay.TakeDelta();
-  // The vehicles' estimates are those of the sequential update of the last passage.
-  delta.vehicles = single.delta.vehicles;
+  // The vehicles' estimates are those of the sequential update of the last passage; an area's
+  // passages were all taken into their vehicles' records when they were applied.
+  if (single != nullptr) delta.vehicles = single->delta.vehicles;
   for (auto& [id, vehicle] : delta.vehicles) vehicle.version = delta.version;
   for (const auto& [id, record] : delta.landmarks) {
     if (seen_by.count(id)) ++(map.FindLandmark(id) != nullptr ? summary.landmarks_updated : summary.landmarks_created);
@@ -322,11 +444,11 @@ absl::StatusOr<PassageUpdate> SolveJointly(const std::vector<Passage>& passages,
 // the last passage on `map`, or `map`'s own for the landmarks that update did not touch). Both
 // estimate the same landmarks from nearly the same information, so they differ by far less than
 // that region, unless the joint solve converged to another minimum.
-std::string JointSolutionRejected(const MapReaderInterface& map, const PassageUpdate& single, const PassageUpdate& joint,
+std::string JointSolutionRejected(const MapReaderInterface& map, const MapDelta& single, const PassageUpdate& joint,
                                   double max_mahalanobis2) {
   for (const auto& [id, joint_record] : joint.delta.landmarks) {
-    const auto it = single.delta.landmarks.find(id);
-    const Landmark* sequential = it != single.delta.landmarks.end() ? &it->second : map.FindLandmark(id);
+    const auto it = single.landmarks.find(id);
+    const Landmark* sequential = it != single.landmarks.end() ? &it->second : map.FindLandmark(id);
     if (sequential == nullptr) continue;
     const Eigen::Vector2d offset = EastNorthOffset(sequential->position, joint_record.position);
     const Eigen::LDLT<Eigen::Matrix2d> cov(sequential->cov_en_m2);
@@ -382,8 +504,8 @@ absl::StatusOr<PassageUpdate> ComputeBatchUpdate(const std::vector<Passage>& pas
   if (passages.front().gnss.empty()) return absl::InvalidArgumentError("gnss: passage needs at least 2 GNSS fixes");
   absl::StatusOr<PassageUpdate> single = ComputePassageUpdate(passages.back(), options, map);
   if (!single.ok()) return single.status();
-  absl::StatusOr<PassageUpdate> joint = SolveJointly(passages, options, map, *single);
-  std::string rejected = joint.ok() ? JointSolutionRejected(map, *single, *joint, options.max_joint_mahalanobis2)
+  absl::StatusOr<PassageUpdate> joint = SolveJointly(passages, options, map, &*single);
+  std::string rejected = joint.ok() ? JointSolutionRejected(map, single->delta, *joint, options.max_joint_mahalanobis2)
                                     : std::string(joint.status().message());
   if (joint.ok() && !rejected.empty() && FitsEveryPassage(*joint, options)) {
     if (const std::string undetermined = UndeterminedLandmark(*joint, options.max_new_landmark_range_m);
@@ -401,6 +523,25 @@ absl::StatusOr<PassageUpdate> ComputeBatchUpdate(const std::vector<Passage>& pas
                passages.back().passage_id, rejected);
   single->summary.joint_rejected = true;
   return single;
+}
+
+absl::StatusOr<PassageUpdate> ComputeAreaRelinearization(const std::vector<Passage>& passages,
+                                                         const MapUpdateOptions& options, const MapReaderInterface& map) {
+  if (absl::Status s = options.Validate(); !s.ok()) return s;
+  if (passages.empty()) return absl::InvalidArgumentError("passages: a joint solve needs at least one passage");
+  if (options.strategy == UpdateStrategy::kDecorrelated) {
+    return absl::InvalidArgumentError("strategy: an area's joint solve needs the map's correlations (cc or cc-gsd)");
+  }
+  for (const Passage& passage : passages) {
+    if (passage.gnss.empty()) return absl::InvalidArgumentError("gnss: passage needs at least 2 GNSS fixes");
+  }
+  absl::StatusOr<PassageUpdate> joint = SolveJointly(passages, options, map, nullptr);
+  if (!joint.ok()) return joint.status();
+  if (const std::string rejected = JointSolutionRejected(map, MapDelta(), *joint, options.max_joint_mahalanobis2);
+      !rejected.empty()) {
+    return absl::FailedPreconditionError(absl::StrCat("joint solve of ", passages.size(), " passages: ", rejected));
+  }
+  return joint;
 }
 
 }  // namespace crowdmap

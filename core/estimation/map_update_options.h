@@ -180,6 +180,11 @@ struct MapUpdateOptions {
   // mapped for the first time on day 300 gets the same treatment as the first. 0 = off.
   double relinearize_sigmas = 0.0;
   int relinearizations_per_passage = 1;
+  // With N >= 2, the stalest passage is taken again together with up to N - 1 other stale retained
+  // passages on its landmarks, in one joint solve against the rest of the map
+  // (MapUpdater::AreaOf, ComputeAreaRelinearization): the area's own young-map joint solve.
+  // 0 or 1: the passage alone.
+  int relinearize_area_passages = 0;
   // Called between the steps of an update (after every solver iteration and every stage of a
   // subgraph's update: at most a few milliseconds apart, mostly well under one), on the thread
   // computing it. A service gives its request threads the CPU there (see server/map_worker.cc).

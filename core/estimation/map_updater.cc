@@ -349,6 +349,11 @@ absl::Status MapUpdateOptions::Validate() const {
   if (!(relinearize_sigmas >= 0.0)) {
     return absl::InvalidArgumentError(absl::StrCat("relinearize_sigmas: must be >= 0 (0 = off), got ", relinearize_sigmas));
   }
+  if (relinearize_area_passages < 0) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("relinearize_area_passages: must be >= 0 (0 or 1 = the passage alone), got ",
+                     relinearize_area_passages));
+  }
   if (relinearizations_per_passage < 0) {
     return absl::InvalidArgumentError(
         absl::StrCat("relinearizations_per_passage: must be >= 0, got ", relinearizations_per_passage));
@@ -688,6 +693,18 @@ void MapUpdater::RecordLinearization(const MapDelta& delta) {
   for (auto& [key, landmarks] : taken) linearized_at_[key] = std::move(landmarks);
 }
 
+double MapUpdater::Staleness(const std::vector<std::pair<LandmarkId, LatLon>>& landmarks,
+                             const MapReaderInterface& map) {
+  double largest = 0.0;
+  for (const auto& [id, then] : landmarks) {
+    const Landmark* now = map.FindLandmark(id);
+    if (now == nullptr) continue;
+    const Eigen::Vector2d moved = EastNorthOffset(then, now->position);
+    largest = std::max(largest, moved.dot(now->cov_en_m2.ldlt().solve(moved)));
+  }
+  return largest;
+}
+
 std::optional<MapUpdater::PassageKey> MapUpdater::StalestPassage(const MapReaderInterface& map,
                                                                  const std::set<PassageKey>& skip) const {
   if (options_.relinearize_sigmas <= 0.0) return std::nullopt;
@@ -695,18 +712,46 @@ std::optional<MapUpdater::PassageKey> MapUpdater::StalestPassage(const MapReader
   double largest = options_.relinearize_sigmas * options_.relinearize_sigmas;
   for (const auto& [key, landmarks] : linearized_at_) {
     if (skip.count(key) > 0) continue;
-    for (const auto& [id, then] : landmarks) {
-      const Landmark* now = map.FindLandmark(id);
-      if (now == nullptr) continue;
-      const Eigen::Vector2d moved = EastNorthOffset(then, now->position);
-      const double mahalanobis2 = moved.dot(now->cov_en_m2.ldlt().solve(moved));
-      if (mahalanobis2 > largest) {
-        largest = mahalanobis2;
-        stalest = key;
-      }
+    if (const double staleness = Staleness(landmarks, map); staleness > largest) {
+      largest = staleness;
+      stalest = key;
     }
   }
   return stalest;
+}
+
+std::vector<MapUpdater::PassageKey> MapUpdater::AreaOf(const PassageKey& stalest, const MapReaderInterface& map) const {
+  std::vector<PassageKey> area = {stalest};
+  const auto it = linearized_at_.find(stalest);
+  if (options_.relinearize_area_passages < 2 || it == linearized_at_.end()) return area;
+  std::set<LandmarkId> its;
+  for (const auto& [id, then] : it->second) its.insert(id);
+  std::vector<std::pair<double, PassageKey>> neighbours;
+  for (const auto& [key, landmarks] : linearized_at_) {
+    if (key == stalest) continue;
+    const bool shares = std::any_of(landmarks.begin(), landmarks.end(),
+                                    [&](const std::pair<LandmarkId, LatLon>& l) { return its.count(l.first) > 0; });
+    if (!shares) continue;
+    if (const double staleness = Staleness(landmarks, map); staleness > 1.0) neighbours.emplace_back(staleness, key);
+  }
+  std::sort(neighbours.rbegin(), neighbours.rend());
+  for (const auto& [staleness, key] : neighbours) {
+    if (static_cast<int>(area.size()) >= options_.relinearize_area_passages) break;
+    area.push_back(key);
+  }
+  return area;
+}
+
+absl::StatusOr<PassageUpdate> ComputeRelinearization(const std::vector<Passage>& area, const MapUpdateOptions& options,
+                                                     const MapReaderInterface& map) {
+  if (area.empty()) return absl::InvalidArgumentError("passages: nothing to re-linearise");
+  if (area.size() > 1) {
+    absl::StatusOr<PassageUpdate> joint = ComputeAreaRelinearization(area, options, map);
+    if (joint.ok()) return joint;
+    spdlog::info("passage={} vehicle={} its area of {} passages not solved jointly, the passage alone instead: {}",
+                 area.front().passage_id, area.front().vehicle_id, area.size(), joint.status().ToString());
+  }
+  return ComputePassageRelinearization(area.front(), options, map);
 }
 
 int MapUpdater::RelinearizeStale(const MapReaderInterface& map,
@@ -717,10 +762,19 @@ int MapUpdater::RelinearizeStale(const MapReaderInterface& map,
   for (int round = 0; round < options_.relinearizations_per_passage; ++round) {
     const std::optional<PassageKey> key = StalestPassage(map);
     if (!key) break;
-    absl::StatusOr<Passage> passage = passage_of(*key);
-    absl::StatusOr<PassageUpdate> update =
-        passage.ok() ? ComputePassageRelinearization(*passage, options_, map) : passage.status();
-    absl::Status status = update.ok() ? apply(*key, *update) : update.status();
+    std::vector<Passage> area;
+    absl::Status status;
+    for (const PassageKey& member : AreaOf(*key, map)) {
+      absl::StatusOr<Passage> passage = passage_of(member);
+      if (passage.ok()) {
+        area.push_back(*std::move(passage));
+      } else if (area.empty()) {
+        status = passage.status();  // the stalest itself; another is just left out
+        break;
+      }
+    }
+    absl::StatusOr<PassageUpdate> update = status.ok() ? ComputeRelinearization(area, options_, map) : status;
+    status = update.ok() ? apply(*key, *update) : update.status();
     if (!status.ok()) {
       RelinearizationFailed(*key);
       if (on_error) on_error(*key, status);

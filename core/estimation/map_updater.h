@@ -106,6 +106,27 @@ absl::StatusOr<PassageUpdate> ComputePassageRelinearization(const Passage& passa
 absl::StatusOr<PassageUpdate> ComputeBatchUpdate(const std::vector<Passage>& passages, const MapUpdateOptions& options,
                                                  const MapReaderInterface& map);
 
+// Takes the contributions of `passages`, all applied to `map` and retained there, again in one joint
+// solve at the map's current estimate, with the rest of the map as its prior: the joint solve of
+// ComputeBatchUpdate for one area of a grown map (a street mapped late gets what a young map's
+// first streets get). Their factors are replaced by those of the joint solution, landmarks they
+// alone informed included; the vehicles' records stay. An area's detections beyond
+// options.max_detection_residual_sigmas are set aside, as the sequential update sets them aside.
+// Refused (FailedPrecondition, nothing changed) when the rest of the map fixes one of their
+// landmarks worse than a new landmark must be (options.max_new_landmark_ray_sigma_m), when a
+// landmark only they inform is not pinned down by one passage's rays as a new one must be
+// (WellDeterminedNewLandmark) or left fixed worse than that, when they cannot use their detections
+// of a landmark they informed, or when the solution moves a landmark out of the map's confidence
+// region (options.max_joint_mahalanobis2). Not with dc. Other errors as for ComputePassageUpdate.
+absl::StatusOr<PassageUpdate> ComputeAreaRelinearization(const std::vector<Passage>& passages,
+                                                         const MapUpdateOptions& options, const MapReaderInterface& map);
+
+// The re-linearisation of a stale passage, `area`'s first, with the other passages of its area
+// (MapUpdater::AreaOf): their joint solve (ComputeAreaRelinearization) or, when there are none or
+// it is refused, the passage alone (ComputePassageRelinearization, whose errors it returns).
+absl::StatusOr<PassageUpdate> ComputeRelinearization(const std::vector<Passage>& area, const MapUpdateOptions& options,
+                                                     const MapReaderInterface& map);
+
 // Whether the map's `count`-th passage (1-based) is applied by the joint solve of all its passages:
 // during the warm-up, and (except with dc) at each doubling of the count until
 // options.relinearize_until_passages.
@@ -180,14 +201,21 @@ class MapUpdater {
   // is 0). Passages applied before this updater was made count as taken at the estimate it found.
   // Passages in `skip` are passed over (a service's re-linearisations under way).
   std::optional<PassageKey> StalestPassage(const MapReaderInterface& map, const std::set<PassageKey>& skip = {}) const;
-  // Records that a passage's re-linearisation (ComputePassageRelinearization), `delta`, was
-  // applied: its factors were taken where the delta puts their landmarks.
+  // The passages to take again with `stalest` in one joint solve (options.relinearize_area_passages):
+  // `stalest` first, then the other retained passages on one of its landmarks whose own landmarks
+  // moved by more than one sigma since their factors were taken, stalest first, up to
+  // options.relinearize_area_passages in all. Just `stalest` when that option is below 2.
+  std::vector<PassageKey> AreaOf(const PassageKey& stalest, const MapReaderInterface& map) const;
+  // Records that a passage's re-linearisation (ComputePassageRelinearization, or
+  // ComputeAreaRelinearization for several), `delta`, was applied: their factors were taken where
+  // the delta puts their landmarks.
   void Relinearized(const MapDelta& delta) { RecordLinearization(delta); }
   // A passage whose re-linearisation failed is not proposed again until it is applied anew.
   void RelinearizationFailed(const PassageKey& key) { linearized_at_.erase(key); }
   // Re-linearises up to options.relinearizations_per_passage of the stalest passages, one at a
-  // time: `passage_of` returns a retained passage's data, `apply` commits a change to the map the
-  // updater reads (and fails if it could not). Returns how many were applied; a passage whose
+  // time, each with its area (AreaOf, solved jointly; alone when that solve is refused): `passage_of`
+  // returns a retained passage's data, `apply` commits a change to the map the updater reads (and
+  // fails if it could not). Returns how many were applied; a passage whose
   // re-linearisation fails is skipped (reported through `on_error`), never retried in a loop.
   int RelinearizeStale(const MapReaderInterface& map,
                        const std::function<absl::StatusOr<Passage>(const PassageKey&)>& passage_of,
@@ -200,6 +228,9 @@ class MapUpdater {
  private:
   // Records where the factors of each passage in `delta` were taken: its landmarks' positions.
   void RecordLinearization(const MapDelta& delta);
+  // The largest move of a landmark of `landmarks` since they were recorded, squared, in the
+  // landmark's current standard deviations.
+  static double Staleness(const std::vector<std::pair<LandmarkId, LatLon>>& landmarks, const MapReaderInterface& map);
   // How many of the oldest retained passages one more passage pushes out of the retention.
   size_t Leaving() const;
 

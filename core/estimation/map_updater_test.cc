@@ -59,6 +59,9 @@ TEST(MapUpdateOptions, RejectsOutOfRangeValuesNamingTheField) {
   options = MapUpdateOptions();
   options.relinearize_until_passages = -1;
   EXPECT_NE(options.Validate().message().find("relinearize_until_passages"), std::string::npos);
+  options = MapUpdateOptions();
+  options.relinearize_area_passages = -1;
+  EXPECT_NE(options.Validate().message().find("relinearize_area_passages"), std::string::npos);
   for (double sigma : {-0.01, 0.5, static_cast<double>(NAN)}) {
     options = MapUpdateOptions();
     options.speed_scale_prior_sigma = sigma;
@@ -1027,6 +1030,143 @@ TEST(MapUpdater, RelinearizesTheStalestPassageOnceTheMapHasMovedAwayFromIt) {
   EXPECT_GT(relinearized, 0);
   options.relinearize_sigmas = 0.0;
   EXPECT_FALSE(MapUpdater(options).StalestPassage(run.map).has_value());
+}
+
+// A map that is the joint solution of its passages is a fixed point of their joint solve: some of
+// them taken again jointly, against the rest of the map as the prior, find the same solution (the
+// rest's factors were taken there) and the same information. Without the bias correction, which
+// the rest's factors carry from where they were taken, that holds to the solver's convergence.
+TEST(ComputeAreaRelinearization, PassagesOfAJointSolutionTakenAgainChangeNothing) {
+  const Scenario scenario = MakeScenario(10);
+  MapUpdateOptions options = SequentialUpdatesOnly();
+  options.bias_correction = false;
+  std::vector<Passage> passages;
+  for (int i = 0; i < 6; ++i) passages.push_back(scenario.MakePassage(i));
+  MapState map;
+  map.Apply(ComputeBatchUpdate(passages, options, map)->delta);
+  absl::StatusOr<PassageUpdate> again = ComputeAreaRelinearization({passages[1], passages[3]}, options, map);
+  ASSERT_TRUE(again.ok()) << again.status();
+  EXPECT_EQ(again->summary.joint_passages, 2);
+  EXPECT_TRUE(again->delta.vehicles.empty()) << "the vehicles' records already hold the passages";
+  MapState after = map;
+  after.Apply(again->delta);
+  ASSERT_EQ(after.landmark_count(), map.landmark_count());
+  EXPECT_LT(LargestOffsetM(map, after), 1e-5);
+  double largest_change = 0.0;  // of a marginal covariance, relative
+  map.ForEachLandmark([&](const Landmark& l) {
+    const Landmark& now = *after.FindLandmark(l.id);
+    largest_change = std::max(largest_change, (now.cov_en_m2 - l.cov_en_m2).norm() / l.cov_en_m2.norm());
+    EXPECT_EQ(now.passages_seen, l.passages_seen) << "the passages were counted when they were applied";
+  });
+  std::printf("landmarks moved by %.2e m at most, marginal covariances by %.2e of theirs\n",
+              LargestOffsetM(map, after), largest_change);
+  EXPECT_LT(largest_change, 1e-4);  // the poses re-solved from another start: the Jacobians differ a little
+  for (int i = 0; i < 6; ++i) {
+    std::vector<int64_t> factors;
+    after.AppendPassageFactorIds(passages[i].vehicle_id, passages[i].passage_id, &factors);
+    ASSERT_FALSE(factors.empty());
+    const bool taken_again = i == 1 || i == 3;
+    for (int64_t id : factors) EXPECT_EQ(id > map.last_factor_id(), taken_again) << "passage " << i;
+  }
+}
+
+// A map made one passage at a time keeps each factor where its passage found the map. Every
+// passage taken again jointly (nothing else in the map) is the joint solve of them all; its first
+// passages alone, against the later ones as the prior, bring it most of the way there.
+TEST(ComputeAreaRelinearization, BringsASequentialMapTowardsTheJointSolutionOfItsPassages) {
+  const Scenario scenario = MakeScenario(25);
+  const MapUpdateOptions options = SequentialUpdatesOnly();
+  std::vector<Passage> passages;
+  MapState sequential, before_last;
+  for (int i = 0; i < 6; ++i) {
+    passages.push_back(scenario.MakePassage(i));
+    if (i == 5) before_last = sequential;
+    sequential.Apply(ComputePassageUpdate(passages.back(), options, sequential)->delta);
+  }
+  MapState joint = before_last;
+  joint.Apply(ComputeBatchUpdate(passages, options, before_last)->delta);
+
+  absl::StatusOr<PassageUpdate> all = ComputeAreaRelinearization(passages, options, sequential);
+  ASSERT_TRUE(all.ok()) << all.status();
+  MapState all_again = sequential;
+  all_again.Apply(all->delta);
+  const std::vector<Passage> first(passages.begin(), passages.begin() + 3);
+  absl::StatusOr<PassageUpdate> area = ComputeAreaRelinearization(first, options, sequential);
+  ASSERT_TRUE(area.ok()) << area.status();
+  MapState area_again = sequential;
+  area_again.Apply(area->delta);
+
+  const double sequential_m = LargestOffsetM(sequential, joint);
+  const double all_m = LargestOffsetM(all_again, joint);
+  const double area_m = LargestOffsetM(area_again, joint);
+  std::printf("from the joint solution: sequential %.4f m, first 3 again %.4f m, all again %.2e m\n", sequential_m,
+              area_m, all_m);
+  EXPECT_LT(all_m, 1e-3);  // the same problem from another start
+  EXPECT_LT(area_m, 0.5 * sequential_m);
+}
+
+TEST(ComputeAreaRelinearization, RefusesWhatItCannotSolveNamingTheField) {
+  const Scenario scenario = MakeScenario(10);
+  MapUpdateOptions options = SequentialUpdatesOnly();
+  MapState map;
+  map.Apply(ComputePassageUpdate(scenario.MakePassage(0), options, map)->delta);
+  absl::StatusOr<PassageUpdate> none = ComputeAreaRelinearization({}, options, map);
+  EXPECT_TRUE(absl::IsInvalidArgument(none.status()));
+  EXPECT_NE(none.status().message().find("passages"), absl::string_view::npos) << none.status();
+  options.strategy = UpdateStrategy::kDecorrelated;
+  absl::StatusOr<PassageUpdate> dc = ComputeAreaRelinearization({scenario.MakePassage(0)}, options, map);
+  EXPECT_TRUE(absl::IsInvalidArgument(dc.status()));
+  EXPECT_NE(dc.status().message().find("strategy"), absl::string_view::npos) << dc.status();
+}
+
+// After four passages, two of them leave the loop's landmarks fixed worse than a new landmark must
+// be (3 m): a joint solve of the other two against that prior could slide one along its rays, so it
+// is refused, and the stale passage is taken again alone.
+TEST(ComputeAreaRelinearization, IsRefusedAgainstAPriorWeakerThanANewLandmarksAndTheStalePassageGoesAlone) {
+  const Scenario scenario = MakeScenario(10);
+  const MapUpdateOptions options = SequentialUpdatesOnly();
+  std::vector<Passage> passages;
+  MapState map;
+  for (int i = 0; i < 4; ++i) {
+    passages.push_back(scenario.MakePassage(i));
+    map.Apply(ComputePassageUpdate(passages.back(), options, map)->delta);
+  }
+  absl::StatusOr<PassageUpdate> joint = ComputeAreaRelinearization({passages[0], passages[1]}, options, map);
+  EXPECT_TRUE(absl::IsFailedPrecondition(joint.status())) << joint.status();
+  EXPECT_NE(joint.status().message().find("weakly determined"), absl::string_view::npos) << joint.status();
+  absl::StatusOr<PassageUpdate> alone = ComputeRelinearization({passages[0], passages[1]}, options, map);
+  ASSERT_TRUE(alone.ok()) << alone.status();
+  EXPECT_EQ(alone->summary.joint_passages, 0);
+  for (const auto& [id, factor] : alone->delta.added_factors) EXPECT_EQ(factor.passage_id, passages[0].passage_id);
+}
+
+TEST(MapUpdater, TakesTheStalestPassageAgainWithTheStalePassagesOfItsArea) {
+  const Scenario scenario = MakeScenario(10);
+  MapUpdateOptions options = SequentialUpdatesOnly();
+  options.relinearize_sigmas = 0.5;
+  options.relinearize_area_passages = 3;
+  RelinearizingMap run(options);
+  for (int i = 0; i < 7; ++i) ASSERT_TRUE(run.Take(scenario.MakePassage(i)));
+  const std::optional<MapUpdater::PassageKey> stalest = run.updater.StalestPassage(run.map);
+  ASSERT_TRUE(stalest.has_value());
+  const std::vector<MapUpdater::PassageKey> area = run.updater.AreaOf(*stalest, run.map);
+  ASSERT_EQ(area.size(), 3u) << "the first passages' landmarks, seen by all, moved by more than a sigma since";
+  EXPECT_EQ(area.front(), *stalest);
+  EXPECT_EQ(std::set<MapUpdater::PassageKey>(area.begin(), area.end()).size(), area.size());
+  options.relinearize_area_passages = 1;
+  EXPECT_EQ(MapUpdater(options, {}, 0, &run.map).AreaOf(*stalest, run.map).size(), 1u);
+
+  const int64_t last_factor = run.map.last_factor_id();
+  ASSERT_EQ(run.Relinearize(), 1);
+  for (const Passage& passage : run.applied) {
+    std::vector<int64_t> factors;
+    run.map.AppendPassageFactorIds(passage.vehicle_id, passage.passage_id, &factors);
+    const bool in_area = std::count(area.begin(), area.end(), MapUpdater::PassageKey{passage.vehicle_id,
+                                                                                      passage.passage_id}) > 0;
+    for (int64_t id : factors) EXPECT_EQ(id > last_factor, in_area) << passage.passage_id;
+  }
+  EXPECT_TRUE(MapWindow::Build(run.map, run.map.LandmarkIds(), MapWindowOptions()).ok())
+      << "the map's information is positive definite";
 }
 
 }  // namespace
