@@ -154,7 +154,8 @@ void AddMapUpdateFlags(CLI::App* command, MapUpdateOptions* update) {
       ->type_name("K");
   command->add_option("--relinearize-area-passages", update->relinearize_area_passages,
                       "take each such passage again together with up to N - 1 other stale passages on\n"
-                      "its landmarks, in one joint solve against the rest of the map (0 or 1: alone)")
+                      "its landmarks, in one joint solve against the rest of the map (0 or 1: alone;\n"
+                      "not better so far: docs/results.md, \"The per-area joint solve\")")
       ->check(NonNegative())
       ->type_name("N");
   command->add_flag("--estimate-camera-yaw", update->estimate_camera_yaw,

@@ -183,7 +183,9 @@ struct MapUpdateOptions {
   // With N >= 2, the stalest passage is taken again together with up to N - 1 other stale retained
   // passages on its landmarks, in one joint solve against the rest of the map
   // (MapUpdater::AreaOf, ComputeAreaRelinearization): the area's own young-map joint solve.
-  // 0 or 1: the passage alone.
+  // 0 or 1: the passage alone. Off, and not in mapd: with areas of 4 a district mapped late had 5%
+  // more error over five seeds than with one passage at a time (docs/results.md, "The per-area
+  // joint solve").
   int relinearize_area_passages = 0;
   // Called between the steps of an update (after every solver iteration and every stage of a
   // subgraph's update: at most a few milliseconds apart, mostly well under one), on the thread
