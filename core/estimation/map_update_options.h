@@ -180,10 +180,11 @@ struct MapUpdateOptions {
   // mapped for the first time on day 300 gets the same treatment as the first. 0 = off.
   double relinearize_sigmas = 0.0;
   int relinearizations_per_passage = 1;
-  // With N >= 2, the stalest passage is taken again together with up to N - 1 other stale retained
+  // With N >= 1, the stalest passage is taken again together with up to N - 1 other stale retained
   // passages on its landmarks, in one joint solve against the rest of the map
-  // (MapUpdater::AreaOf, ComputeAreaRelinearization): the area's own young-map joint solve.
-  // 0 or 1: the passage alone. Off, and not in mapd: with areas of 4 a district mapped late had 5%
+  // (MapUpdater::AreaOf, ComputeAreaRelinearization): the area's own young-map joint solve; with 1
+  // the passage alone, solved whole. 0: the passage's subgraphs applied anew
+  // (ComputePassageRelinearization). Not in mapd: with areas of 4 a district mapped late had 5%
   // more error over five seeds than with one passage at a time (docs/results.md, "The per-area
   // joint solve").
   int relinearize_area_passages = 0;

@@ -351,7 +351,7 @@ absl::Status MapUpdateOptions::Validate() const {
   }
   if (relinearize_area_passages < 0) {
     return absl::InvalidArgumentError(
-        absl::StrCat("relinearize_area_passages: must be >= 0 (0 or 1 = the passage alone), got ",
+        absl::StrCat("relinearize_area_passages: must be >= 0 (0 = the passage's subgraphs anew), got ",
                      relinearize_area_passages));
   }
   if (relinearizations_per_passage < 0) {
@@ -745,7 +745,7 @@ std::vector<MapUpdater::PassageKey> MapUpdater::AreaOf(const PassageKey& stalest
 absl::StatusOr<PassageUpdate> ComputeRelinearization(const std::vector<Passage>& area, const MapUpdateOptions& options,
                                                      const MapReaderInterface& map) {
   if (area.empty()) return absl::InvalidArgumentError("passages: nothing to re-linearise");
-  if (area.size() > 1) {
+  if (options.relinearize_area_passages >= 1) {
     absl::StatusOr<PassageUpdate> joint = ComputeAreaRelinearization(area, options, map);
     if (joint.ok()) return joint;
     spdlog::info("passage={} vehicle={} its area of {} passages not solved jointly, the passage alone instead: {}",

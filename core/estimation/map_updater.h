@@ -122,8 +122,9 @@ absl::StatusOr<PassageUpdate> ComputeAreaRelinearization(const std::vector<Passa
                                                          const MapUpdateOptions& options, const MapReaderInterface& map);
 
 // The re-linearisation of a stale passage, `area`'s first, with the other passages of its area
-// (MapUpdater::AreaOf): their joint solve (ComputeAreaRelinearization) or, when there are none or
-// it is refused, the passage alone (ComputePassageRelinearization, whose errors it returns).
+// (MapUpdater::AreaOf): with options.relinearize_area_passages >= 1 their joint solve
+// (ComputeAreaRelinearization), also of the passage alone; with 0, or when that is refused, the
+// passage alone by its subgraphs (ComputePassageRelinearization, whose errors it returns).
 absl::StatusOr<PassageUpdate> ComputeRelinearization(const std::vector<Passage>& area, const MapUpdateOptions& options,
                                                      const MapReaderInterface& map);
 

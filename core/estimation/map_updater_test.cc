@@ -967,14 +967,14 @@ struct RelinearizingMap {
   }
   // The updater's re-linearisations of the stale passages; how many were applied.
   int Relinearize() {
-    return RelinearizeStaleInMemory(
-        [this](const MapUpdater::PassageKey& key) -> absl::StatusOr<Passage> {
-          for (const Passage& p : applied) {
-            if (p.vehicle_id == key.first && p.passage_id == key.second) return p;
-          }
-          return absl::NotFoundError("not applied");
-        },
-        &updater, &map);
+    return RelinearizeStaleInMemory([this](const MapUpdater::PassageKey& key) { return PassageOf(key); }, &updater,
+                                    &map);
+  }
+  absl::StatusOr<Passage> PassageOf(const MapUpdater::PassageKey& key) const {
+    for (const Passage& p : applied) {
+      if (p.vehicle_id == key.first && p.passage_id == key.second) return p;
+    }
+    return absl::NotFoundError("not applied");
   }
 
   MapUpdater updater;
@@ -1124,7 +1124,8 @@ TEST(ComputeAreaRelinearization, RefusesWhatItCannotSolveNamingTheField) {
 // is refused, and the stale passage is taken again alone.
 TEST(ComputeAreaRelinearization, IsRefusedAgainstAPriorWeakerThanANewLandmarksAndTheStalePassageGoesAlone) {
   const Scenario scenario = MakeScenario(10);
-  const MapUpdateOptions options = SequentialUpdatesOnly();
+  MapUpdateOptions options = SequentialUpdatesOnly();
+  options.relinearize_area_passages = 2;
   std::vector<Passage> passages;
   MapState map;
   for (int i = 0; i < 4; ++i) {
@@ -1155,6 +1156,15 @@ TEST(MapUpdater, TakesTheStalestPassageAgainWithTheStalePassagesOfItsArea) {
   EXPECT_EQ(std::set<MapUpdater::PassageKey>(area.begin(), area.end()).size(), area.size());
   options.relinearize_area_passages = 1;
   EXPECT_EQ(MapUpdater(options, {}, 0, &run.map).AreaOf(*stalest, run.map).size(), 1u);
+  const absl::StatusOr<Passage> stalest_passage = run.PassageOf(*stalest);
+  ASSERT_TRUE(stalest_passage.ok()) << stalest_passage.status();
+  absl::StatusOr<PassageUpdate> alone_jointly = ComputeRelinearization({*stalest_passage}, options, run.map);
+  ASSERT_TRUE(alone_jointly.ok()) << alone_jointly.status();
+  EXPECT_EQ(alone_jointly->summary.joint_passages, 1) << "with 1, the passage alone through the joint solve";
+  options.relinearize_area_passages = 0;
+  absl::StatusOr<PassageUpdate> by_subgraphs = ComputeRelinearization({*stalest_passage}, options, run.map);
+  ASSERT_TRUE(by_subgraphs.ok()) << by_subgraphs.status();
+  EXPECT_EQ(by_subgraphs->summary.joint_passages, 0) << "with 0, its subgraphs anew";
 
   const int64_t last_factor = run.map.last_factor_id();
   ASSERT_EQ(run.Relinearize(), 1);
