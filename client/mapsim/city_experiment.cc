@@ -13,6 +13,7 @@
 
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
+#include "core/estimation/cramer_rao.h"
 
 namespace crowdmap {
 namespace {
@@ -39,7 +40,55 @@ std::vector<double> ErrorsM(const std::vector<CityLandmarkError>& errors) {
 }
 
 
+// Vehicle `v`'s true camera yaw offset from the calibration its passages declare.
+constexpr double kCityCrlbLandmarkPriorSigmaM = 1000.0;
+
+double CameraYawOffsetRad(const CityScenario& city, int v) {
+  return city.Vehicle(v).true_camera.camera_yaw_rad - city.options().calibration.camera_yaw_rad;
+}
+
+// `json` for a figure that may be NaN (not computed): null then.
+nlohmann::ordered_json FiniteOrNull(double x) { return std::isfinite(x) ? nlohmann::ordered_json(x) : nullptr; }
+
 }  // namespace
+
+double CityLandmarkError::crlb_error_m() const {
+  return crlb_cov_m2 ? ExpectedDistance(*crlb_cov_m2) : std::nan("");
+}
+
+double CityLandmarkError::crlb_mahalanobis2() const {
+  if (!crlb_cov_m2) return std::nan("");
+  const Eigen::Vector2d error = estimate_m - truth_m;
+  return error.dot(crlb_cov_m2->ldlt().solve(error));
+}
+
+absl::StatusOr<std::map<LandmarkId, Eigen::Matrix2d>> CityCramerRao(const CityScenario& city,
+                                                                    const std::vector<int>& indices,
+                                                                    const MapUpdateOptions& update) {
+  GraphOptions graph = UpdateGraphOptions(update);
+  graph.frame_origin = city.frame().origin();
+  const auto true_landmark = [&](LandmarkId id) -> std::optional<Eigen::Vector2d> {
+    if (id < 1 || id > static_cast<LandmarkId>(city.landmark_count())) return std::nullopt;
+    return city.landmarks()[id - 1].position_m;
+  };
+  // A city's passages glimpse some landmark along one ray; the estimator holds it back, and the
+  // bound's 1 km prior keeps it from making the others' bound singular.
+  CramerRaoBound bound(update.estimate_camera_yaw ? update.camera_yaw_prior_sigma_rad : 0.0,
+                       kCityCrlbLandmarkPriorSigmaM);
+  for (int index : indices) {
+    const auto [passage, drive] = city.MakePassageWithTruth(index);
+    const std::optional<double> yaw =
+        update.estimate_camera_yaw ? std::optional<double>(CameraYawOffsetRad(city, index % city.options().vehicles))
+                                   : std::nullopt;
+    absl::StatusOr<PassageFisherInformation> info = PassageLandmarkInformation(
+        passage, graph, [&drive = drive](double t) { return drive.PoseAt(t); }, true_landmark, yaw);
+    if (!info.ok()) {
+      return absl::Status(info.status().code(), absl::StrCat("passage ", index, ": ", info.status().message()));
+    }
+    bound.Add(*info);
+  }
+  return bound.Covariances();
+}
 
 absl::Status CityExperimentOptions::Validate() const {
   if (passages < 1) return absl::InvalidArgumentError(absl::StrCat("passages: must be >= 1, got ", passages));
@@ -57,13 +106,13 @@ std::string CityExperimentResult::Brief() const {
       "layout_landmarks=%d landmarks_mapped=%d passages=%d failed=%d (faulty %d, clean %d) faulty=%d "
       "quarantined=%d relinearized=%d inflated=%d held_back=%d disagreeing=%d detections_used=%d "
       "detections_outliers=%d mean_error_m=%.4f median_error_m=%.4f "
-      "p95_error_m=%.4f nees_per_dof=%.3f p50_ms=%.1f p95_ms=%.1f vehicle_yaw_within_2sigma=%.3f "
-      "vehicle_yaw_nees=%.3f",
+      "p95_error_m=%.4f nees_per_dof=%.3f crlb_mean_error_m=%.4f error_over_crlb=%.3f crlb_nees_per_dof=%.3f "
+      "p50_ms=%.1f p95_ms=%.1f vehicle_yaw_within_2sigma=%.3f vehicle_yaw_nees=%.3f",
       layout_landmarks, errors.size(), passages, failed_passages, failed_faulty_passages, failed_clean_passages,
       faulty_passages, quarantined_passages, relinearized_passages, inflated_passages, landmarks_held_back,
-      landmarks_disagreeing, detections_used, detections_outliers,
-      mean_error_m, median_error_m, p95_error_m, nees_per_dof, p50_ms, p95_ms, vehicle_yaw.within_2sigma_fraction,
-      vehicle_yaw.nees);
+      landmarks_disagreeing, detections_used, detections_outliers, mean_error_m, median_error_m, p95_error_m,
+      nees_per_dof, crlb_mean_error_m, error_over_crlb, crlb_nees_per_dof, p50_ms, p95_ms,
+      vehicle_yaw.within_2sigma_fraction, vehicle_yaw.nees);
 }
 
 std::vector<CityLandmarkError> CityMapErrors(const MapState& map, const CityScenario& city) {
@@ -89,6 +138,46 @@ std::vector<CityLandmarkError> CityMapErrors(const MapState& map, const CityScen
   return errors;
 }
 
+namespace {
+
+// The bound of the `applied` passages beside each mapped landmark's error (result->errors), and its
+// means; a log line instead where it is not computed (CityExperimentOptions::crlb).
+void AddCityCramerRao(const CityScenario& city, const std::vector<int>& applied, const CityExperimentOptions& options,
+                      CityExperimentResult* result) {
+  if (city.landmark_count() > kCityCrlbMaxLandmarks) {
+    spdlog::info("Cramer-Rao bound not computed: {} landmarks in the layout, over {} (the bound is dense)",
+                 city.landmark_count(), kCityCrlbMaxLandmarks);
+    return;
+  }
+  if (options.city.vehicle_speed_scale_sigma != 0.0) {
+    spdlog::info("Cramer-Rao bound not computed: the estimator does not model the vehicles' wheel-speed scale errors");
+    return;
+  }
+  spdlog::info("Cramer-Rao bound of the {} passages applied...", applied.size());
+  absl::StatusOr<std::map<LandmarkId, Eigen::Matrix2d>> bound = CityCramerRao(city, applied, options.update);
+  if (!bound.ok()) {
+    spdlog::warn("Cramer-Rao bound not computed: {}", bound.status().ToString());
+    return;
+  }
+  double error_sum = 0.0, bound_sum = 0.0, nees_sum = 0.0;
+  int n = 0;
+  for (CityLandmarkError& e : result->errors) {
+    const auto it = bound->find(e.id);
+    if (it == bound->end()) continue;  // every mapped landmark was seen by an applied passage
+    e.crlb_cov_m2 = it->second;
+    error_sum += e.error_m();
+    bound_sum += e.crlb_error_m();
+    nees_sum += 0.5 * e.crlb_mahalanobis2();
+    ++n;
+  }
+  if (n == 0) return;
+  result->crlb_mean_error_m = bound_sum / n;
+  result->error_over_crlb = error_sum / bound_sum;
+  result->crlb_nees_per_dof = nees_sum / n;
+}
+
+}  // namespace
+
 absl::StatusOr<CityExperimentResult> RunCityExperiment(const CityExperimentOptions& options,
                                                        const std::function<void(const CityProgress&)>& progress) {
   if (absl::Status s = options.Validate(); !s.ok()) return s;
@@ -103,6 +192,7 @@ absl::StatusOr<CityExperimentResult> RunCityExperiment(const CityExperimentOptio
   MapState map;
   MapUpdater updater(options.update);
   std::map<MapUpdater::PassageKey, int> index_of;
+  std::vector<int> applied;  // passage indices, in order
   const auto make_passage = [&](int index, InjectedFaults* faults) {
     Passage passage = city->MakePassage(index);
     const InjectedFaults injected = InjectFaults(options.faults, index, city->frame(), &passage);
@@ -128,6 +218,7 @@ absl::StatusOr<CityExperimentResult> RunCityExperiment(const CityExperimentOptio
       map.Apply(update->delta);
       updater.Applied(passage, update->delta);
       index_of[{passage.vehicle_id, passage.passage_id}] = i;
+      applied.push_back(i);
       result.landmarks_held_back += update->summary.landmarks_held_back;
       result.landmarks_disagreeing += update->summary.landmarks_disagreeing;
       result.inflated_passages += update->summary.max_variance_factor > 1.0 ? 1 : 0;
@@ -161,6 +252,7 @@ absl::StatusOr<CityExperimentResult> RunCityExperiment(const CityExperimentOptio
     }
   }
   result.errors = CityMapErrors(map, *city);
+  if (options.crlb) AddCityCramerRao(*city, applied, options, &result);
   const std::vector<double> errors_m = ErrorsM(result.errors);
   result.mean_error_m = Mean(errors_m);
   result.median_error_m = Quantile(errors_m, 0.5);
@@ -170,9 +262,7 @@ absl::StatusOr<CityExperimentResult> RunCityExperiment(const CityExperimentOptio
   result.p95_ms = Quantile(result.passage_ms, 0.95);
   std::vector<std::pair<std::string, double>> yaw_truth;
   for (int v = 0; v < options.city.vehicles; ++v) {
-    const CityVehicle vehicle = city->Vehicle(v);
-    yaw_truth.emplace_back(vehicle.vehicle_id,
-                           vehicle.true_camera.camera_yaw_rad - options.city.calibration.camera_yaw_rad);
+    yaw_truth.emplace_back(city->Vehicle(v).vehicle_id, CameraYawOffsetRad(*city, v));
   }
   result.vehicle_yaw = EvaluateVehicleYaw(map, yaw_truth);
   return result;
@@ -185,11 +275,13 @@ absl::Status WriteCityOutputs(const CityExperimentOptions& options, const CityEx
   if (ec) return absl::InternalError(absl::StrCat("cannot create ", dir, ": ", ec.message()));
 
   std::ofstream csv(std::filesystem::path(dir) / "landmarks.csv");
-  csv << "landmark,true_east_m,true_north_m,est_east_m,est_north_m,error_m,sigma_east_m,sigma_north_m,mahalanobis2\n";
+  csv << "landmark,true_east_m,true_north_m,est_east_m,est_north_m,error_m,sigma_east_m,sigma_north_m,mahalanobis2,"
+         "crlb_error_m,crlb_mahalanobis2\n";
   for (const CityLandmarkError& e : result.errors) {
-    csv << absl::StrFormat("%d,%.4f,%.4f,%.4f,%.4f,%.4f,%.4f,%.4f,%.4f\n", e.id, e.truth_m.x(), e.truth_m.y(),
+    csv << absl::StrFormat("%d,%.4f,%.4f,%.4f,%.4f,%.4f,%.4f,%.4f,%.4f,", e.id, e.truth_m.x(), e.truth_m.y(),
                            e.estimate_m.x(), e.estimate_m.y(), e.error_m(), e.sigma_east_m, e.sigma_north_m,
-                           e.mahalanobis2);
+                           e.mahalanobis2)
+        << (e.crlb_cov_m2 ? absl::StrFormat("%.4f,%.4f\n", e.crlb_error_m(), e.crlb_mahalanobis2()) : ",\n");
   }
   csv.close();
   if (!csv) return absl::InternalError(absl::StrCat("cannot write ", dir, "/landmarks.csv"));
@@ -245,6 +337,9 @@ absl::Status WriteCityOutputs(const CityExperimentOptions& options, const CityEx
       {"mean_error_m", result.mean_error_m},
       {"median_error_m", result.median_error_m},
       {"p95_error_m", result.p95_error_m},
+      {"crlb_mean_error_m", FiniteOrNull(result.crlb_mean_error_m)},
+      {"error_over_crlb", FiniteOrNull(result.error_over_crlb)},
+      {"crlb_nees_per_dof", FiniteOrNull(result.crlb_nees_per_dof)},
       {"p50_ms_per_passage", result.p50_ms},
       {"p95_ms_per_passage", result.p95_ms},
       {"estimate_camera_yaw", options.update.estimate_camera_yaw},

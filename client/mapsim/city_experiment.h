@@ -1,7 +1,10 @@
 #ifndef CROWDMAP_CLIENT_MAPSIM_CITY_EXPERIMENT_H_
 #define CROWDMAP_CLIENT_MAPSIM_CITY_EXPERIMENT_H_
 
+#include <cmath>
 #include <functional>
+#include <map>
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -22,6 +25,11 @@ struct CityExperimentOptions {
   MapUpdateOptions update;
   FaultOptions faults;               // injected into the passages (none by default)
   int progress_every_passages = 10;  // progress callback period
+  // The Cramer-Rao bound of the passages applied (CityCramerRao), beside each landmark's error.
+  // Skipped, with a log line, for a layout of more than kCityCrlbMaxLandmarks landmarks (the bound
+  // is dense) and with wheel-speed scale errors (CityScenarioOptions::vehicle_speed_scale_sigma),
+  // which the estimator does not model.
+  bool crlb = true;
 
   absl::Status Validate() const;
 };
@@ -34,6 +42,13 @@ struct CityLandmarkError {
   double sigma_east_m = 0.0;
   double sigma_north_m = 0.0;
   double mahalanobis2 = 0.0;  // of the error, in the landmark's marginal covariance
+  // The Cramer-Rao bound's marginal covariance of the landmark (city frame, m^2); none when the
+  // bound was not computed.
+  std::optional<Eigen::Matrix2d> crlb_cov_m2;
+  // The bound's expected distance error, and the error's squared Mahalanobis distance in the
+  // bound's covariance; NaN without the bound.
+  double crlb_error_m() const;
+  double crlb_mahalanobis2() const;
   double error_m() const { return (estimate_m - truth_m).norm(); }
 };
 
@@ -76,6 +91,12 @@ struct CityExperimentResult {
   double median_error_m = 0.0;
   double p95_error_m = 0.0;
   double nees_per_dof = 0.0;  // marginal NEES per degree of freedom, mean over the mapped landmarks
+  // Over the mapped landmarks, with the bound: its mean expected distance error, the map's mean
+  // error over it, and the mean of crlb_mahalanobis2 / 2 (1 for an efficient unbiased map). NaN
+  // without the bound.
+  double crlb_mean_error_m = std::nan("");
+  double error_over_crlb = std::nan("");
+  double crlb_nees_per_dof = std::nan("");
   double p50_ms = 0.0;
   double p95_ms = 0.0;
   // Each vehicle's estimated camera yaw offset against its true one (no estimates without
@@ -88,6 +109,20 @@ struct CityExperimentResult {
 
 // The mapped landmarks of `map` against the scenario's truth, by id.
 std::vector<CityLandmarkError> CityMapErrors(const MapState& map, const CityScenario& city);
+
+// Largest layout whose Cramer-Rao bound RunCityExperiment computes: the bound inverts the dense
+// information of every landmark seen (4,000 landmarks: 8,000 x 8,000, 0.5 GB).
+inline constexpr size_t kCityCrlbMaxLandmarks = 4000;
+
+// The Cramer-Rao bound (core/estimation/cramer_rao.h) of the city passages `indices`, as simulated
+// before any injected fault, each landmark's marginal covariance in the city frame. With
+// update.estimate_camera_yaw each vehicle's camera yaw offset is a state of the bound, with the
+// estimator's prior. Every landmark has a diffuse prior (1 km), so that one seen along a single
+// ray, which the estimator holds back, leaves the others' bound finite; its own is then of the
+// prior's size.
+absl::StatusOr<std::map<LandmarkId, Eigen::Matrix2d>> CityCramerRao(const CityScenario& city,
+                                                                    const std::vector<int>& indices,
+                                                                    const MapUpdateOptions& update);
 
 absl::StatusOr<CityExperimentResult> RunCityExperiment(const CityExperimentOptions& options,
                                                        const std::function<void(const CityProgress&)>& progress = nullptr);

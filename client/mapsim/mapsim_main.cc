@@ -154,8 +154,9 @@ void AddMapUpdateFlags(CLI::App* command, MapUpdateOptions* update) {
       ->type_name("K");
   command->add_option("--relinearize-area-passages", update->relinearize_area_passages,
                       "take each such passage again together with up to N - 1 other stale passages on\n"
-                      "its landmarks, in one joint solve against the rest of the map (0 or 1: alone;\n"
-                      "not better so far: docs/results.md, \"The per-area joint solve\")")
+                      "its landmarks, in one joint solve against the rest of the map (1: the passage\n"
+                      "alone, solved whole; 0: its subgraphs anew; docs/results.md, \"The per-area\n"
+                      "joint solve\")")
       ->check(NonNegative())
       ->type_name("N");
   command->add_flag("--estimate-camera-yaw", update->estimate_camera_yaw,
@@ -377,6 +378,11 @@ void AddCityFlags(CLI::App* command, CityCommand* c) {
                       "1 + X times a Gaussian draw (e.g. 0.02 for 2%)")
       ->type_name("X");
   AddSensorRateFlags(command, &city);
+  command->add_flag_callback("--no-crlb", [&o] { o.crlb = false; },
+                             "skip the Cramer-Rao bound of the passages applied (summary.json:\n"
+                             "crlb_mean_error_m, error_over_crlb, crlb_nees_per_dof; landmarks.csv: each\n"
+                             "landmark's crlb_error_m, crlb_mahalanobis2). Not computed over 4,000 landmarks\n"
+                             "(it is dense) or with wheel-speed scale errors, which are not modelled");
   command->add_option("--rate-variation", city.rate_variation,
                       "each vehicle's sensor rates scaled by a factor in [1-X, 1+X]")
       ->type_name("X");

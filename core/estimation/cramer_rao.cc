@@ -173,7 +173,14 @@ void CramerRaoBound::Add(const PassageFisherInformation& passage) {
   std::vector<int> to;
   for (LandmarkId id : passage.landmarks) {
     auto it = landmark_offset_.find(id);
-    if (it == landmark_offset_.end()) it = landmark_offset_.emplace(id, Grow(2)).first;
+    if (it == landmark_offset_.end()) {
+      it = landmark_offset_.emplace(id, Grow(2)).first;
+      if (landmark_prior_sigma_m_ > 0.0) {
+        const double prior = 1.0 / (landmark_prior_sigma_m_ * landmark_prior_sigma_m_);
+        information_(it->second, it->second) += prior;
+        information_(it->second + 1, it->second + 1) += prior;
+      }
+    }
     to.push_back(it->second);
     to.push_back(it->second + 1);
   }

@@ -51,8 +51,11 @@ class CramerRaoBound {
   // `camera_yaw_prior_sigma_rad`: the estimator's prior on a vehicle's camera yaw offset, added
   // once per vehicle whose passages carry the yaw state (a Bayesian bound: the prior is
   // information the estimator has). 0: no prior.
-  explicit CramerRaoBound(double camera_yaw_prior_sigma_rad = 0.0)
-      : camera_yaw_prior_sigma_rad_(camera_yaw_prior_sigma_rad) {}
+  // `landmark_prior_sigma_m`: a diffuse prior added once per landmark (0: none). It keeps the bound
+  // finite where the passages see a landmark along one ray only (the estimator holds such a
+  // landmark back), and changes the others' by about (their sigma / this)^2, relatively.
+  explicit CramerRaoBound(double camera_yaw_prior_sigma_rad = 0.0, double landmark_prior_sigma_m = 0.0)
+      : camera_yaw_prior_sigma_rad_(camera_yaw_prior_sigma_rad), landmark_prior_sigma_m_(landmark_prior_sigma_m) {}
 
   void Add(const PassageFisherInformation& passage);
   // The bound on each landmark seen so far: its 2x2 block of the inverse of the summed
@@ -75,6 +78,7 @@ class CramerRaoBound {
   Eigen::MatrixXd information_;  // its leading dim_ x dim_ block; the rest is spare capacity
   int dim_ = 0;
   double camera_yaw_prior_sigma_rad_;
+  double landmark_prior_sigma_m_;
 };
 
 // Expected distance |e| of a zero-mean 2-D Gaussian error with covariance `cov`: the bound's

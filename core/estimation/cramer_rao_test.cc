@@ -122,6 +122,34 @@ TEST(CramerRaoBound, JointCovarianceIsTheBlockOfTheInverseOfTheSummedInformation
   EXPECT_EQ(bound.JointCovariance({7, 8}).status().code(), absl::StatusCode::kInvalidArgument);
 }
 
+// A landmark seen along one ray makes the summed information singular; the diffuse landmark prior
+// is added once per landmark, as information, and leaves a well-determined landmark's bound as it was.
+TEST(CramerRaoBound, ALandmarkPriorKeepsTheBoundFiniteWhereARayLeavesALandmarkOpen) {
+  // Landmark 1 well determined (sigma 0.1 m), landmark 2 along x only, coupled to landmark 1.
+  Eigen::MatrixXd information = Eigen::MatrixXd::Zero(4, 4);
+  information.topLeftCorner(2, 2) = 100.0 * Eigen::Matrix2d::Identity();
+  information(2, 2) = 50.0;
+  information(0, 2) = information(2, 0) = 20.0;
+  const PassageFisherInformation passage{{1, 2}, std::nullopt, information};
+  CramerRaoBound without;
+  without.Add(passage);
+  EXPECT_EQ(without.Covariances().status().code(), absl::StatusCode::kFailedPrecondition);
+
+  CramerRaoBound with(0.0, 1000.0);
+  with.Add(passage);
+  with.Add(passage);  // the prior comes once per landmark, not per passage
+  Eigen::MatrixXd sum = 2.0 * information;
+  sum.diagonal().array() += 1e-6;
+  const Eigen::MatrixXd inverse = sum.inverse();
+  absl::StatusOr<std::map<LandmarkId, Eigen::Matrix2d>> bound = with.Covariances();
+  ASSERT_TRUE(bound.ok()) << bound.status();
+  EXPECT_LT((bound->at(1) - inverse.topLeftCorner(2, 2)).norm(), 1e-9 * inverse.topLeftCorner(2, 2).norm());
+  EXPECT_NEAR(bound->at(2)(1, 1), 1e6, 1.0) << "the open direction has the prior's variance";
+  // Landmark 1's bound without the open landmark's y: the Schur complement of its x alone.
+  const Eigen::Matrix3d determined = Eigen::Matrix3d(sum.topLeftCorner(3, 3));
+  EXPECT_LT((bound->at(1) - determined.inverse().topLeftCorner(2, 2)).norm(), 1e-6 * bound->at(1).norm());
+}
+
 TEST(CramerRaoBound, TheSamePassageTwiceHalvesTheBound) {
   const LoopBound loop = MakeLoop(10, 1);
   const PassageFisherInformation info = Information(loop, 0);
