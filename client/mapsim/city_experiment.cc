@@ -39,16 +39,52 @@ std::vector<double> ErrorsM(const std::vector<CityLandmarkError>& errors) {
   return out;
 }
 
-
-// Vehicle `v`'s true camera yaw offset from the calibration its passages declare.
+// The diffuse prior of every landmark in a city's Cramer-Rao bound (CityCramerRao).
 constexpr double kCityCrlbLandmarkPriorSigmaM = 1000.0;
 
+// Vehicle `v`'s true camera yaw offset from the calibration its passages declare.
 double CameraYawOffsetRad(const CityScenario& city, int v) {
   return city.Vehicle(v).true_camera.camera_yaw_rad - city.options().calibration.camera_yaw_rad;
 }
 
 // `json` for a figure that may be NaN (not computed): null then.
 nlohmann::ordered_json FiniteOrNull(double x) { return std::isfinite(x) ? nlohmann::ordered_json(x) : nullptr; }
+
+// The bound of the `applied` passages beside each mapped landmark's error (result->errors), and its
+// means; a log line instead where it is not computed (CityExperimentOptions::crlb).
+void AddCityCramerRao(const CityScenario& city, const std::vector<int>& applied, const CityExperimentOptions& options,
+                      CityExperimentResult* result) {
+  if (city.landmark_count() > kCityCrlbMaxLandmarks) {
+    spdlog::info("Cramer-Rao bound not computed: {} landmarks in the layout, over {} (the bound is dense)",
+                 city.landmark_count(), kCityCrlbMaxLandmarks);
+    return;
+  }
+  if (options.city.vehicle_speed_scale_sigma != 0.0) {
+    spdlog::info("Cramer-Rao bound not computed: the estimator does not model the vehicles' wheel-speed scale errors");
+    return;
+  }
+  spdlog::info("Cramer-Rao bound of the {} passages applied...", applied.size());
+  absl::StatusOr<std::map<LandmarkId, Eigen::Matrix2d>> bound = CityCramerRao(city, applied, options.update);
+  if (!bound.ok()) {
+    spdlog::warn("Cramer-Rao bound not computed: {}", bound.status().ToString());
+    return;
+  }
+  double error_sum = 0.0, bound_sum = 0.0, nees_sum = 0.0;
+  int n = 0;
+  for (CityLandmarkError& e : result->errors) {
+    const auto it = bound->find(e.id);
+    if (it == bound->end()) continue;  // none: every mapped landmark was seen by an applied passage
+    e.crlb_cov_m2 = it->second;
+    error_sum += e.error_m();
+    bound_sum += e.crlb_error_m();
+    nees_sum += 0.5 * e.crlb_mahalanobis2();
+    ++n;
+  }
+  if (n == 0) return;
+  result->crlb_mean_error_m = bound_sum / n;
+  result->error_over_crlb = error_sum / bound_sum;
+  result->crlb_nees_per_dof = nees_sum / n;
+}
 
 }  // namespace
 
@@ -137,46 +173,6 @@ std::vector<CityLandmarkError> CityMapErrors(const MapState& map, const CityScen
   std::sort(errors.begin(), errors.end(), [](const auto& a, const auto& b) { return a.id < b.id; });
   return errors;
 }
-
-namespace {
-
-// The bound of the `applied` passages beside each mapped landmark's error (result->errors), and its
-// means; a log line instead where it is not computed (CityExperimentOptions::crlb).
-void AddCityCramerRao(const CityScenario& city, const std::vector<int>& applied, const CityExperimentOptions& options,
-                      CityExperimentResult* result) {
-  if (city.landmark_count() > kCityCrlbMaxLandmarks) {
-    spdlog::info("Cramer-Rao bound not computed: {} landmarks in the layout, over {} (the bound is dense)",
-                 city.landmark_count(), kCityCrlbMaxLandmarks);
-    return;
-  }
-  if (options.city.vehicle_speed_scale_sigma != 0.0) {
-    spdlog::info("Cramer-Rao bound not computed: the estimator does not model the vehicles' wheel-speed scale errors");
-    return;
-  }
-  spdlog::info("Cramer-Rao bound of the {} passages applied...", applied.size());
-  absl::StatusOr<std::map<LandmarkId, Eigen::Matrix2d>> bound = CityCramerRao(city, applied, options.update);
-  if (!bound.ok()) {
-    spdlog::warn("Cramer-Rao bound not computed: {}", bound.status().ToString());
-    return;
-  }
-  double error_sum = 0.0, bound_sum = 0.0, nees_sum = 0.0;
-  int n = 0;
-  for (CityLandmarkError& e : result->errors) {
-    const auto it = bound->find(e.id);
-    if (it == bound->end()) continue;  // every mapped landmark was seen by an applied passage
-    e.crlb_cov_m2 = it->second;
-    error_sum += e.error_m();
-    bound_sum += e.crlb_error_m();
-    nees_sum += 0.5 * e.crlb_mahalanobis2();
-    ++n;
-  }
-  if (n == 0) return;
-  result->crlb_mean_error_m = bound_sum / n;
-  result->error_over_crlb = error_sum / bound_sum;
-  result->crlb_nees_per_dof = nees_sum / n;
-}
-
-}  // namespace
 
 absl::StatusOr<CityExperimentResult> RunCityExperiment(const CityExperimentOptions& options,
                                                        const std::function<void(const CityProgress&)>& progress) {
