@@ -3,7 +3,8 @@
 # `mapsim city --passages 60`, routes of 400 and 1000 m, the four noise models, with and without
 # per-vehicle camera errors (each vehicle's yaw estimated), sensor rates +-20% per vehicle, two
 # seeds (noise and layout). Prints one line per run, then the passages refused (false refusals:
-# every passage is clean) and the mean error and NEES per noise model.
+# every passage is clean) and the mean error, NEES and error over the Cramer-Rao bound per noise
+# model.
 #   scripts/city-sweep.sh [OUT_DIR]        (default out/city-sweep; JOBS=2 runs two at a time,
 #                                           EXTRA_FLAGS="..." adds mapsim city flags to every run)
 # About 15 minutes with JOBS=2 on a 2-core machine. Runs already in OUT_DIR are kept.
@@ -26,7 +27,7 @@ done; done; done; done | xargs -P "$JOBS" -L 1 bash -c '
       --estimate-camera-yaw --rate-variation 0.2 --seed "$seed" --layout-seed "$seed" ${EXTRA_FLAGS:-} --out "'"$OUT"'/$name" \
       --quiet > "'"$OUT"'/$name.log" 2>&1
   fi
-  echo "$name $(tail -n 1 "'"$OUT"'/$name.log" | grep -o "failed=[0-9]*\|quarantined=[0-9]*\|mean_error_m=[0-9.]*\|nees_per_dof=[0-9.]*" | tr "\n" " ")"'
+  echo "$name $(tail -n 1 "'"$OUT"'/$name.log" | grep -o "failed=[0-9]*\|quarantined=[0-9]*\| mean_error_m=[0-9.]*\| nees_per_dof=[0-9.]*\|error_over_crlb=[0-9.na]*" | tr "\n" " ")"'
 /usr/bin/python3 - "$OUT" <<'PY'
 import json, pathlib, sys
 runs = [json.loads(p.read_text()) | {"name": p.parent.name} for p in sorted(pathlib.Path(sys.argv[1]).glob("*/summary.json"))]
@@ -36,8 +37,11 @@ quarantined = sum(r["passages_quarantined"] for r in runs)
 print(f"{len(runs)} runs, {passages} passages, {refused} refused ({100.0 * refused / max(passages, 1):.2f}%; {quarantined} of them quarantined)")
 def line(label, sel):
     nees = [r["nees_per_dof"] for r in sel]
+    bound = [r["error_over_crlb"] for r in sel if r.get("error_over_crlb") is not None]
+    against_bound = (f", error / CRLB {sum(bound) / len(bound):.2f} (runs {min(bound):.2f} to {max(bound):.2f})"
+                     if len(bound) == len(sel) else "")
     print(f"{label}: mean error {sum(r['mean_error_m'] for r in sel) / len(sel):.3f} m, "
-          f"NEES/dof {sum(nees) / len(nees):.2f} (runs {min(nees):.2f} to {max(nees):.2f}) over {len(sel)} runs")
+          f"NEES/dof {sum(nees) / len(nees):.2f} (runs {min(nees):.2f} to {max(nees):.2f}){against_bound} over {len(sel)} runs")
 for noise in ("white", "gnss-ar1", "yaw-bias", "ar1+yaw"):
     sel = [r for r in runs if r["name"].startswith(noise + "-r")]
     if sel:
