@@ -207,14 +207,14 @@ class MapUpdater {
   // moved by more than one sigma since their factors were taken, stalest first, up to
   // options.relinearize_area_passages in all. Just `stalest` when that option is below 2.
   std::vector<PassageKey> AreaOf(const PassageKey& stalest, const MapReaderInterface& map) const;
-  // Records that a passage's re-linearisation (ComputePassageRelinearization, or
-  // ComputeAreaRelinearization for several), `delta`, was applied: their factors were taken where
-  // the delta puts their landmarks.
+  // Records that a re-linearisation (ComputePassageRelinearization, or ComputeAreaRelinearization
+  // for an area), `delta`, was applied: its passages' factors were taken where the delta puts their
+  // landmarks.
   void Relinearized(const MapDelta& delta) { RecordLinearization(delta); }
   // A passage whose re-linearisation failed is not proposed again until it is applied anew.
   void RelinearizationFailed(const PassageKey& key) { linearized_at_.erase(key); }
   // Re-linearises up to options.relinearizations_per_passage of the stalest passages, one at a
-  // time, each with its area (AreaOf, solved jointly; alone when that solve is refused): `passage_of`
+  // time, each with its area (AreaOf; ComputeRelinearization says how it is solved): `passage_of`
   // returns a retained passage's data, `apply` commits a change to the map the updater reads (and
   // fails if it could not). Returns how many were applied; a passage whose
   // re-linearisation fails is skipped (reported through `on_error`), never retried in a loop.
