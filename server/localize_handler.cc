@@ -1,7 +1,6 @@
 // MapService::LocalizePassage: a passage localised against the map, read-only.
 #include <cmath>
 #include <optional>
-#include <unordered_map>
 #include <vector>
 
 #include "absl/strings/str_cat.h"
@@ -13,27 +12,15 @@
 namespace crowdmap {
 namespace {
 
-// The page's landmarks with their joint covariance from the page's marginals and cross blocks (all
-// read at the page's map version).
+// The page's landmarks with their joint covariance (read with it, at the page's map version).
 LocalizationMap LocalizationMapFromPage(const LandmarkPage& page) {
   LocalizationMap map;
   map.version = page.map_version;
-  std::unordered_map<LandmarkId, int> index;
-  const int n = static_cast<int>(page.landmarks.size());
-  map.cov_en_m2 = Eigen::MatrixXd::Zero(2 * n, 2 * n);
   for (const Landmark& l : page.landmarks) {
-    const int at = static_cast<int>(map.ids.size());
-    index[l.id] = at;
     map.ids.push_back(l.id);
     map.positions.push_back(l.position);
-    map.cov_en_m2.block<2, 2>(2 * at, 2 * at) = l.cov_en_m2;
   }
-  for (const auto& [pair, block] : page.cross) {
-    const auto a = index.find(pair.first), b = index.find(pair.second);
-    if (a == index.end() || b == index.end()) continue;
-    map.cov_en_m2.block<2, 2>(2 * a->second, 2 * b->second) = block;
-    map.cov_en_m2.block<2, 2>(2 * b->second, 2 * a->second) = block.transpose();
-  }
+  map.cov_en_m2 = page.landmarks.empty() ? Eigen::MatrixXd(0, 0) : page.covariance;
   return map;
 }
 

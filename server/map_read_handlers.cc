@@ -14,12 +14,6 @@ constexpr int kDefaultRegionPage = 1000;
 constexpr int kMaxRegionPage = 10000;
 constexpr std::chrono::milliseconds kWatchPoll{500};
 
-template <typename Response>
-void AddLandmarks(const LandmarkPage& page, Response* response) {
-  for (const Landmark& l : page.landmarks) LandmarkToProto(l, response->add_landmarks());
-  for (const auto& [pair, block] : page.cross) CrossToProto(pair, block, response->add_cross_covariances());
-}
-
 }  // namespace
 
 absl::Status ReadMapInfo(MapStoreInterface& store, const MapUpdateOptions& update, const MapWorker* worker,
@@ -76,6 +70,9 @@ grpc::Status MapService::ServeTile(grpc::ServerContextBase* ctx, const pb::GetTi
     return log.Done(absl::InvalidArgumentError(
         absl::StrCat("tile: ", tile.z, "/", tile.x, "/", tile.y, " is not a tile at the storage zoom ", kStorageZoom)));
   }
+  absl::StatusOr<pb::CovarianceFormat> format = CovarianceFormatFromProto(
+      request->covariance_format(), request->include_cross_covariance(), "covariance_format");
+  if (!format.ok()) return log.Done(format.status());
   absl::StatusOr<LandmarkPage> page = context_->store->GetTile(tile, request->include_cross_covariance());
   if (!page.ok()) return log.Done(page.status());
   *response->mutable_tile() = request->tile();
@@ -83,7 +80,7 @@ grpc::Status MapService::ServeTile(grpc::ServerContextBase* ctx, const pb::GetTi
   for (const Landmark& l : page->landmarks) tile_version = std::max(tile_version, l.version);
   response->set_tile_version(tile_version);
   response->set_map_version(page->map_version);
-  AddLandmarks(*page, response);
+  LandmarkPageToProto(*page, *format, response);
   log.Add(absl::StrCat("landmarks=", page->landmarks.size()));
   return log.Done(absl::OkStatus());
 }
@@ -101,6 +98,9 @@ grpc::Status MapService::ServeRegion(grpc::ServerContextBase* ctx, const pb::Que
   const std::string query =
       absl::StrFormat("region|%a|%a|%a|%a|%d", request->box().min_lat_deg(), request->box().min_lon_deg(),
                       request->box().max_lat_deg(), request->box().max_lon_deg(), request->include_cross_covariance());
+  absl::StatusOr<pb::CovarianceFormat> format = CovarianceFormatFromProto(
+      request->covariance_format(), request->include_cross_covariance(), "covariance_format");
+  if (!format.ok()) return log.Done(format.status());
   absl::StatusOr<int64_t> after = ParsePageToken(request->page_token(), query);
   if (!after.ok()) return log.Done(after.status());
   const int limit = request->page_size() == 0 ? kDefaultRegionPage : request->page_size();
@@ -108,9 +108,9 @@ grpc::Status MapService::ServeRegion(grpc::ServerContextBase* ctx, const pb::Que
       context_->store->QueryRegion(*box, *after, limit, request->include_cross_covariance());
   if (!page.ok()) return log.Done(page.status());
   response->set_map_version(page->map_version);
-  AddLandmarks(*page, response);
+  LandmarkPageToProto(*page, *format, response);
   if (page->more) response->set_next_page_token(MakePageToken(page->landmarks.back().id, query));
-  log.Add(absl::StrCat("landmarks=", page->landmarks.size(), " cross=", page->cross.size()));
+  log.Add(absl::StrCat("landmarks=", page->landmarks.size(), " covariance_dim=", page->covariance.rows()));
   return log.Done(absl::OkStatus());
 }
 

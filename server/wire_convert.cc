@@ -190,10 +190,58 @@ Landmark LandmarkFromProto(const pb::Landmark& wire) {
   return l;
 }
 
-void CrossToProto(const LandmarkPair& pair, const Eigen::Matrix2d& block, pb::CrossCovariance* wire) {
-  wire->set_first_id(pair.first);
-  wire->set_second_id(pair.second);
-  MatrixToProto(block, wire->mutable_cov_m2());
+absl::StatusOr<pb::CovarianceFormat> CovarianceFormatFromProto(int format, bool include_cross, const char* field) {
+  if (!pb::CovarianceFormat_IsValid(format)) {
+    return absl::InvalidArgumentError(absl::StrCat(field, ": unknown value ", format));
+  }
+  if (format != pb::COVARIANCE_FORMAT_UNSPECIFIED && !include_cross) {
+    return absl::InvalidArgumentError(absl::StrCat(field, ": set without include_cross_covariance"));
+  }
+  return format == pb::COVARIANCE_FORMAT_PACKED ? pb::COVARIANCE_FORMAT_PACKED : pb::COVARIANCE_FORMAT_BLOCKS;
+}
+
+void CovarianceToBlocks(const LandmarkPage& page, google::protobuf::RepeatedPtrField<pb::CrossCovariance>* wire) {
+  const Eigen::MatrixXd& cov = page.covariance;
+  const int n = static_cast<int>(page.landmarks.size());
+  wire->Reserve(wire->size() + n * (n - 1) / 2);
+  for (int i = 0; i < n; ++i) {
+    for (int j = i + 1; j < n; ++j) {
+      const bool ordered = page.landmarks[i].id < page.landmarks[j].id;
+      pb::CrossCovariance* c = wire->Add();
+      c->set_first_id(page.landmarks[ordered ? i : j].id);
+      c->set_second_id(page.landmarks[ordered ? j : i].id);
+      MatrixToProto(ordered ? Eigen::Matrix2d(cov.block<2, 2>(2 * i, 2 * j))
+                            : Eigen::Matrix2d(cov.block<2, 2>(2 * j, 2 * i)),
+                    c->mutable_cov_m2());
+    }
+  }
+}
+
+void CovarianceToPacked(const Eigen::MatrixXd& covariance, pb::PackedCovariance* wire) {
+  const int dim = static_cast<int>(covariance.rows());
+  wire->set_dim(dim);
+  google::protobuf::RepeatedField<double>* upper = wire->mutable_upper_m2();
+  upper->Resize(dim * (dim + 1) / 2, 0.0);
+  double* out = upper->mutable_data();
+  for (int r = 0; r < dim; ++r) {
+    for (int c = r; c < dim; ++c) *out++ = covariance(r, c);
+  }
+}
+
+absl::StatusOr<Eigen::MatrixXd> CovarianceFromPacked(const pb::PackedCovariance& wire, int landmarks,
+                                                     const char* field) {
+  const int dim = 2 * landmarks;
+  if (wire.dim() != dim || wire.upper_m2_size() != dim * (dim + 1) / 2) {
+    return absl::InvalidArgumentError(absl::StrCat(field, ": dim ", wire.dim(), " with ", wire.upper_m2_size(),
+                                                   " values for ", landmarks, " landmarks (want dim ", dim, " with ",
+                                                   dim * (dim + 1) / 2, ")"));
+  }
+  Eigen::MatrixXd cov(dim, dim);
+  const double* in = wire.upper_m2().data();
+  for (int r = 0; r < dim; ++r) {
+    for (int c = r; c < dim; ++c) cov(r, c) = cov(c, r) = *in++;
+  }
+  return cov;
 }
 
 pb::PassageState PassageStateToProto(PassageState state) {

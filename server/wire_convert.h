@@ -39,7 +39,31 @@ Landmark LandmarkFromProto(const pb::Landmark& wire);
 // The wire carries the yaw offset's standard deviation, the store its variance.
 void VehicleToProto(const VehicleCalibration& vehicle, pb::Vehicle* wire);
 VehicleCalibration VehicleFromProto(const pb::Vehicle& wire);
-void CrossToProto(const LandmarkPair& pair, const Eigen::Matrix2d& block, pb::CrossCovariance* wire);
+
+// The covariance layout a read asked for: BLOCKS for UNSPECIFIED. InvalidArgument naming `field`
+// for a value outside the enum, or for a layout asked without the covariance (`include_cross`).
+absl::StatusOr<pb::CovarianceFormat> CovarianceFormatFromProto(int format, bool include_cross, const char* field);
+// The joint covariance of a page's landmarks (LandmarkPage::covariance) on the wire: one block per
+// pair, the smaller id first, or the packed upper triangle.
+void CovarianceToBlocks(const LandmarkPage& page, google::protobuf::RepeatedPtrField<pb::CrossCovariance>* wire);
+void CovarianceToPacked(const Eigen::MatrixXd& covariance, pb::PackedCovariance* wire);
+// The matrix of a PackedCovariance of `landmarks` landmarks; InvalidArgument naming `field` when
+// its size does not match.
+absl::StatusOr<Eigen::MatrixXd> CovarianceFromPacked(const pb::PackedCovariance& wire, int landmarks,
+                                                     const char* field);
+// A page of landmarks into a GetTileResponse or QueryRegionResponse, with its covariance (if read)
+// in `format`.
+template <typename Response>
+void LandmarkPageToProto(const LandmarkPage& page, pb::CovarianceFormat format, Response* response) {
+  response->mutable_landmarks()->Reserve(static_cast<int>(page.landmarks.size()));
+  for (const Landmark& l : page.landmarks) LandmarkToProto(l, response->add_landmarks());
+  if (page.covariance.size() == 0) return;
+  if (format == pb::COVARIANCE_FORMAT_PACKED) {
+    CovarianceToPacked(page.covariance, response->mutable_packed_covariance());
+  } else {
+    CovarianceToBlocks(page, response->mutable_cross_covariances());
+  }
+}
 
 void StoredPassageToProto(const StoredPassage& record, pb::PassageStatus* wire);
 pb::PassageState PassageStateToProto(PassageState state);

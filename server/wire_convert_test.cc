@@ -182,5 +182,58 @@ TEST(WireConvert, BoundingBoxOutOfRangeNamesTheField) {
   EXPECT_NE(b.status().message().find("box.min_lon_deg"), absl::string_view::npos);
 }
 
+TEST(WireConvert, CovarianceBlocksPutTheSmallerIdFirst) {
+  LandmarkPage page;
+  page.landmarks.resize(2);
+  page.landmarks[0].id = 9;
+  page.landmarks[1].id = 4;
+  page.covariance.resize(4, 4);
+  page.covariance << 1, 2, 3, 4,  //
+      2, 5, 6, 7,                 //
+      3, 6, 8, 9,                 //
+      4, 7, 9, 10;
+  google::protobuf::RepeatedPtrField<pb::CrossCovariance> blocks;
+  CovarianceToBlocks(page, &blocks);
+  ASSERT_EQ(blocks.size(), 1);
+  EXPECT_EQ(blocks[0].first_id(), 4);
+  EXPECT_EQ(blocks[0].second_id(), 9);
+  // Rows in landmark 4's axes (page rows 2 and 3), columns in landmark 9's.
+  EXPECT_EQ(blocks[0].cov_m2().ee(), 3);
+  EXPECT_EQ(blocks[0].cov_m2().en(), 6);
+  EXPECT_EQ(blocks[0].cov_m2().ne(), 4);
+  EXPECT_EQ(blocks[0].cov_m2().nn(), 7);
+}
+
+TEST(WireConvert, PackedCovarianceIsTheUpperTriangleRowByRow) {
+  const int n = 3, dim = 2 * n;
+  Eigen::MatrixXd cov(dim, dim);
+  for (int r = 0; r < dim; ++r) {
+    for (int c = 0; c < dim; ++c) cov(r, c) = 10 * std::min(r, c) + std::max(r, c);
+  }
+  pb::PackedCovariance packed;
+  CovarianceToPacked(cov, &packed);
+  EXPECT_EQ(packed.dim(), dim);
+  ASSERT_EQ(packed.upper_m2_size(), dim * (dim + 1) / 2);
+  for (int r = 0; r < dim; ++r) {
+    const int start = r * (4 * n - r + 1) / 2;  // as map.proto documents
+    for (int c = r; c < dim; ++c) EXPECT_EQ(packed.upper_m2(start + c - r), cov(r, c)) << r << "," << c;
+  }
+  absl::StatusOr<Eigen::MatrixXd> back = CovarianceFromPacked(packed, n, "packed_covariance");
+  ASSERT_TRUE(back.ok()) << back.status();
+  EXPECT_EQ(*back, cov);
+  absl::StatusOr<Eigen::MatrixXd> wrong = CovarianceFromPacked(packed, n + 1, "packed_covariance");
+  EXPECT_EQ(wrong.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_EQ(wrong.status().message().rfind("packed_covariance:", 0), 0u) << wrong.status();
+}
+
+TEST(WireConvert, CovarianceFormatNeedsTheCovarianceAndAKnownValue) {
+  EXPECT_EQ(*CovarianceFormatFromProto(pb::COVARIANCE_FORMAT_UNSPECIFIED, false, "f"), pb::COVARIANCE_FORMAT_BLOCKS);
+  EXPECT_EQ(*CovarianceFormatFromProto(pb::COVARIANCE_FORMAT_UNSPECIFIED, true, "f"), pb::COVARIANCE_FORMAT_BLOCKS);
+  EXPECT_EQ(*CovarianceFormatFromProto(pb::COVARIANCE_FORMAT_PACKED, true, "f"), pb::COVARIANCE_FORMAT_PACKED);
+  EXPECT_EQ(CovarianceFormatFromProto(pb::COVARIANCE_FORMAT_PACKED, false, "f").status().code(),
+            absl::StatusCode::kInvalidArgument);
+  EXPECT_EQ(CovarianceFormatFromProto(9, true, "f").status().code(), absl::StatusCode::kInvalidArgument);
+}
+
 }  // namespace
 }  // namespace crowdmap

@@ -2,7 +2,9 @@
 // SQLite file.
 #include <grpcpp/generic/generic_stub.h>
 
+#include <cmath>
 #include <future>
+#include <map>
 #include <set>
 #include <thread>
 #include <tuple>
@@ -279,6 +281,90 @@ TEST_F(ServiceRpc, QueryRegionPagesCoverTheMapWithCovariances) {
   EXPECT_EQ(ids.size(), 6u);
   // The download is the region's joint Gaussian: one factor on all its landmarks.
   EXPECT_EQ(full->factor_count(), 1u);
+}
+
+// The packed layout carries the same matrix as the blocks, on both reads with covariances; a
+// layout asked without the covariance, or outside the enum, is refused by name.
+TEST_F(ServiceRpc, PackedCovarianceIsTheMatrixOfTheBlocks) {
+  Start(true);
+  for (int i = 0; i < 2; ++i) MustUpload(scenario_.MakePassage(i));
+  ASSERT_TRUE(client_->WaitUntilIdle().ok());
+  // The matrix the blocks give, in the order of `landmarks`.
+  auto from_blocks = [](const auto& landmarks, const auto& blocks) {
+    const int n = landmarks.size();
+    std::map<int64_t, int> index;
+    for (int i = 0; i < n; ++i) index[landmarks[i].id()] = i;
+    Eigen::MatrixXd cov = Eigen::MatrixXd::Constant(2 * n, 2 * n, std::nan(""));
+    for (int i = 0; i < n; ++i) {
+      const pb::Matrix2& m = landmarks[i].cov_en_m2();
+      cov.block<2, 2>(2 * i, 2 * i) << m.ee(), m.en(), m.ne(), m.nn();
+    }
+    for (const pb::CrossCovariance& c : blocks) {
+      const int a = index.at(c.first_id()), b = index.at(c.second_id());
+      Eigen::Matrix2d block;
+      block << c.cov_m2().ee(), c.cov_m2().en(), c.cov_m2().ne(), c.cov_m2().nn();
+      cov.block<2, 2>(2 * a, 2 * b) = block;
+      cov.block<2, 2>(2 * b, 2 * a) = block.transpose();
+    }
+    return cov;
+  };
+  pb::QueryRegionRequest region;
+  *region.mutable_box() = MockVehicle::World();
+  region.set_include_cross_covariance(true);
+  pb::QueryRegionResponse blocks, packed;
+  {
+    grpc::ClientContext ctx;
+    ASSERT_TRUE(client_->stub()->QueryRegion(&ctx, region, &blocks).ok());
+  }
+  region.set_covariance_format(pb::COVARIANCE_FORMAT_PACKED);
+  {
+    grpc::ClientContext ctx;
+    ASSERT_TRUE(client_->stub()->QueryRegion(&ctx, region, &packed).ok());
+  }
+  const int n = blocks.landmarks_size();
+  ASSERT_GE(n, 3);
+  ASSERT_EQ(blocks.cross_covariances_size(), n * (n - 1) / 2);
+  EXPECT_FALSE(blocks.has_packed_covariance());
+  ASSERT_EQ(packed.landmarks_size(), n);
+  EXPECT_EQ(packed.cross_covariances_size(), 0);
+  absl::StatusOr<Eigen::MatrixXd> matrix = CovarianceFromPacked(packed.packed_covariance(), n, "packed_covariance");
+  ASSERT_TRUE(matrix.ok()) << matrix.status();
+  const Eigen::MatrixXd expected = from_blocks(blocks.landmarks(), blocks.cross_covariances());
+  ASSERT_TRUE(expected.allFinite());
+  EXPECT_LT((*matrix - expected).cwiseAbs().maxCoeff(), 1e-15);
+
+  const TileId tile = TileContaining(scenario_.landmarks()[0].position);
+  pb::GetTileRequest tile_request;
+  tile_request.mutable_tile()->set_z(tile.z);
+  tile_request.mutable_tile()->set_x(tile.x);
+  tile_request.mutable_tile()->set_y(tile.y);
+  tile_request.set_include_cross_covariance(true);
+  pb::GetTileResponse tile_blocks, tile_packed;
+  {
+    grpc::ClientContext ctx;
+    ASSERT_TRUE(client_->stub()->GetTile(&ctx, tile_request, &tile_blocks).ok());
+  }
+  tile_request.set_covariance_format(pb::COVARIANCE_FORMAT_PACKED);
+  {
+    grpc::ClientContext ctx;
+    ASSERT_TRUE(client_->stub()->GetTile(&ctx, tile_request, &tile_packed).ok());
+  }
+  ASSERT_GT(tile_packed.landmarks_size(), 0);
+  matrix = CovarianceFromPacked(tile_packed.packed_covariance(), tile_packed.landmarks_size(), "packed_covariance");
+  ASSERT_TRUE(matrix.ok()) << matrix.status();
+  EXPECT_LT((*matrix - from_blocks(tile_blocks.landmarks(), tile_blocks.cross_covariances())).cwiseAbs().maxCoeff(),
+            1e-15);
+
+  region.set_include_cross_covariance(false);
+  grpc::ClientContext no_cov_ctx;
+  grpc::Status refused = client_->stub()->QueryRegion(&no_cov_ctx, region, &packed);
+  EXPECT_EQ(refused.error_code(), grpc::StatusCode::INVALID_ARGUMENT);
+  EXPECT_EQ(refused.error_message().rfind("covariance_format:", 0), 0u) << refused.error_message();
+  tile_request.set_covariance_format(static_cast<pb::CovarianceFormat>(7));
+  grpc::ClientContext unknown_ctx;
+  refused = client_->stub()->GetTile(&unknown_ctx, tile_request, &tile_packed);
+  EXPECT_EQ(refused.error_code(), grpc::StatusCode::INVALID_ARGUMENT);
+  EXPECT_EQ(refused.error_message().rfind("covariance_format:", 0), 0u) << refused.error_message();
 }
 
 TEST_F(ServiceRpc, ExcludePassageGivesTheMapWithoutIt) {

@@ -1,6 +1,5 @@
 #include "client/api/map_client.h"
 
-#include <map>
 
 #include <Eigen/Cholesky>
 
@@ -322,6 +321,7 @@ absl::StatusOr<RegionMap> MapClient::QueryRegion(const pb::BoundingBox& box, boo
     request.set_page_size(10000);
     request.set_page_token(token);
     request.set_include_cross_covariance(include_cross);
+    if (include_cross) request.set_covariance_format(pb::COVARIANCE_FORMAT_PACKED);
     pb::QueryRegionResponse response;
     if (absl::Status s = FromGrpcStatus(stub_->QueryRegion(&ctx, request, &response)); !s.ok()) return s;
     if (!token.empty() && response.map_version() != region.map_version) {
@@ -329,8 +329,12 @@ absl::StatusOr<RegionMap> MapClient::QueryRegion(const pb::BoundingBox& box, boo
     }
     region.map_version = response.map_version();
     region.landmarks.insert(region.landmarks.end(), response.landmarks().begin(), response.landmarks().end());
-    region.cross_covariances.insert(region.cross_covariances.end(), response.cross_covariances().begin(),
-                                    response.cross_covariances().end());
+    if (include_cross && response.landmarks_size() > 0) {
+      absl::StatusOr<Eigen::MatrixXd> cov =
+          CovarianceFromPacked(response.packed_covariance(), response.landmarks_size(), "packed_covariance");
+      if (!cov.ok()) return absl::DataLossError(absl::StrCat("QueryRegion response: ", cov.status().message()));
+      region.page_covariances.push_back(*std::move(cov));
+    }
     token = response.next_page_token();
   } while (!token.empty());
   return region;
@@ -342,29 +346,20 @@ absl::StatusOr<MapState> MapClient::DownloadMap(const pb::BoundingBox& box) {
   // The region's Gaussian in information form: one factor with the inverse of its joint
   // covariance, the landmarks anchored at their positions.
   MapState map;
-  std::map<LandmarkId, int> index;
   MapFactor factor;
   factor.id = 1;
   for (const pb::Landmark& l : region->landmarks) {
     Landmark record = LandmarkFromProto(l);
     record.anchor = record.position;
-    index[record.id] = static_cast<int>(factor.landmarks.size());
     factor.landmarks.push_back(record.id);
     map.PutLandmark(record);
   }
   const int n = 2 * static_cast<int>(factor.landmarks.size());
   Eigen::MatrixXd cov = Eigen::MatrixXd::Zero(n, n);
-  for (const pb::Landmark& l : region->landmarks) {
-    const int i = 2 * index[l.id()];
-    cov.block<2, 2>(i, i) = map.FindLandmark(l.id())->cov_en_m2;
-  }
-  for (const pb::CrossCovariance& c : region->cross_covariances) {
-    if (!index.count(c.first_id()) || !index.count(c.second_id())) continue;
-    Eigen::Matrix2d block;
-    block << c.cov_m2().ee(), c.cov_m2().en(), c.cov_m2().ne(), c.cov_m2().nn();
-    const int i = 2 * index[c.first_id()], j = 2 * index[c.second_id()];
-    cov.block<2, 2>(i, j) = block;
-    cov.block<2, 2>(j, i) = block.transpose();
+  int at = 0;
+  for (const Eigen::MatrixXd& page : region->page_covariances) {
+    cov.block(at, at, page.rows(), page.rows()) = page;
+    at += static_cast<int>(page.rows());
   }
   if (n > 0) {
     Eigen::LLT<Eigen::MatrixXd> llt(0.5 * (cov + cov.transpose()));

@@ -42,10 +42,13 @@ struct MapClientOptions {
   absl::Status Validate() const;
 };
 
-// Every landmark of a region (all pages) with the cross blocks among each page's landmarks.
+// Every landmark of a region (all pages), and on request the joint covariance of each page's.
 struct RegionMap {
   std::vector<pb::Landmark> landmarks;
-  std::vector<pb::CrossCovariance> cross_covariances;
+  // Page by page, the joint covariance of the page's landmarks (metres^2, East and North rows of
+  // each landmark in the order of `landmarks`); empty without covariances. Landmarks of two pages
+  // are read apart: their cross blocks are not known.
+  std::vector<Eigen::MatrixXd> page_covariances;
   int64_t map_version = 0;  // highest version seen over the pages
 };
 

@@ -16,8 +16,12 @@ std::vector<LandmarkId> IdsOf(const LandmarkPage& page) {
   return ids;
 }
 
-// Puts the joint covariance `cov` of the page's landmarks (in page order) into the page.
-void PutCovariance(const std::vector<LandmarkId>& ids, const Eigen::MatrixXd& cov, LandmarkPage* page);
+// Puts the joint covariance `cov` of the page's landmarks (in page order) into the page, its
+// diagonal blocks as the landmarks' own.
+void PutCovariance(const Eigen::MatrixXd& cov, LandmarkPage* page) {
+  for (size_t i = 0; i < page->landmarks.size(); ++i) page->landmarks[i].cov_en_m2 = cov.block<2, 2>(2 * i, 2 * i);
+  page->covariance = cov;
+}
 
 }  // namespace
 
@@ -28,7 +32,7 @@ absl::Status AppendCrossCovariances(const MapReaderInterface& map, int window_ho
   options.hops = window_hops;
   absl::StatusOr<Eigen::MatrixXd> cov = JointCovariance(map, ids, options);
   if (!cov.ok()) return cov.status();
-  PutCovariance(ids, *cov, page);
+  PutCovariance(*cov, page);
   return absl::OkStatus();
 }
 
@@ -37,7 +41,7 @@ absl::Status AppendCrossCovariances(const MapWindow& window, LandmarkPage* page)
   const std::vector<LandmarkId> ids = IdsOf(*page);
   absl::StatusOr<Eigen::MatrixXd> cov = window.Covariance(ids);
   if (!cov.ok()) return cov.status();
-  PutCovariance(ids, *cov, page);
+  PutCovariance(*cov, page);
   return absl::OkStatus();
 }
 
@@ -53,28 +57,9 @@ absl::Status AppendCrossCovariances(const MapWindow& window, const Eigen::Matrix
     rows.push_back(2 * k);
     rows.push_back(2 * k + 1);
   }
-  PutCovariance(ids, window_covariance(rows, rows), page);
+  PutCovariance(window_covariance(rows, rows), page);
   return absl::OkStatus();
 }
-
-namespace {
-
-void PutCovariance(const std::vector<LandmarkId>& ids, const Eigen::MatrixXd& cov_matrix, LandmarkPage* page) {
-  const Eigen::MatrixXd* cov = &cov_matrix;
-  const size_t n = ids.size();
-  page->cross.reserve(page->cross.size() + n * (n - 1) / 2);
-  for (size_t i = 0; i < n; ++i) {
-    page->landmarks[i].cov_en_m2 = cov->block<2, 2>(2 * i, 2 * i);
-    for (size_t j = i + 1; j < n; ++j) {
-      const bool ordered = ids[i] < ids[j];
-      const Eigen::Matrix2d block = ordered ? Eigen::Matrix2d(cov->block<2, 2>(2 * i, 2 * j))
-                                            : Eigen::Matrix2d(cov->block<2, 2>(2 * j, 2 * i));
-      page->cross.emplace_back(ordered ? LandmarkPair{ids[i], ids[j]} : LandmarkPair{ids[j], ids[i]}, block);
-    }
-  }
-}
-
-}  // namespace
 
 absl::StatusOr<LandmarkProvenance> ProvenanceOf(const MapReaderInterface& map, LandmarkId id) {
   const Landmark* landmark = map.FindLandmark(id);

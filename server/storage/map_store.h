@@ -97,13 +97,12 @@ struct PassageQuery {
 };
 
 // Ordered key of a landmark pair (first < second).
-using LandmarkPair = std::pair<LandmarkId, LandmarkId>;
 
 struct LandmarkPage {
   std::vector<Landmark> landmarks;            // increasing id
-  // Cross-covariances among `landmarks` (every pair, first < second), recovered from the map's
-  // information on request.
-  std::vector<std::pair<LandmarkPair, Eigen::Matrix2d>> cross;
+  // On request, the joint covariance of `landmarks`, recovered from the map's information:
+  // metres^2, rows 2i and 2i + 1 the East and North axes at landmarks[i]. Empty otherwise.
+  Eigen::MatrixXd covariance;
   int64_t map_version = 0;
   bool more = false;  // further landmarks match after the last one returned
 };

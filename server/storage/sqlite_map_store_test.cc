@@ -1124,14 +1124,21 @@ class SqliteMapStoreReads : public ::testing::TestWithParam<bool> {
 // The covariance SqliteMapStoreReads' map gives a page of its landmarks: each landmark's own, and
 // every cross block zero but that of 100 and 101 (their joint factor).
 void ExpectTheReadsCovariance(const LandmarkPage& page) {
-  for (const auto& [pair, block] : page.cross) {
-    EXPECT_LT(pair.first, pair.second);
-    const double expected = pair == LandmarkPair{100, 101} ? 0.01 : 0.0;
-    EXPECT_LT((block - Eigen::Matrix2d::Constant(expected)).cwiseAbs().maxCoeff(), 1e-12)
-        << pair.first << "," << pair.second;
-  }
-  for (const Landmark& l : page.landmarks) {
-    EXPECT_LT((l.cov_en_m2 - MakeLandmark(l.id, 0, 0, 0).cov_en_m2).cwiseAbs().maxCoeff(), 1e-12) << l.id;
+  const size_t n = page.landmarks.size();
+  ASSERT_EQ(page.covariance.rows(), static_cast<Eigen::Index>(2 * n));
+  ASSERT_EQ(page.covariance.cols(), static_cast<Eigen::Index>(2 * n));
+  for (size_t i = 0; i < n; ++i) {
+    const Landmark& a = page.landmarks[i];
+    EXPECT_LT((a.cov_en_m2 - MakeLandmark(a.id, 0, 0, 0).cov_en_m2).cwiseAbs().maxCoeff(), 1e-12) << a.id;
+    EXPECT_EQ(Eigen::Matrix2d(page.covariance.block<2, 2>(2 * i, 2 * i)), a.cov_en_m2) << a.id;
+    for (size_t j = 0; j < n; ++j) {
+      if (i == j) continue;
+      const Landmark& b = page.landmarks[j];
+      const bool linked = std::minmax(a.id, b.id) == std::minmax(LandmarkId{100}, LandmarkId{101});
+      const Eigen::Matrix2d block = page.covariance.block<2, 2>(2 * i, 2 * j);
+      EXPECT_LT((block - Eigen::Matrix2d::Constant(linked ? 0.01 : 0.0)).cwiseAbs().maxCoeff(), 1e-12)
+          << a.id << "," << b.id;
+    }
   }
 }
 
@@ -1146,7 +1153,6 @@ TEST_P(SqliteMapStoreReads, QueryRegionReturnsExactlyTheLandmarksInsideTheBox) {
   EXPECT_FALSE(page->more);
   EXPECT_EQ(page->map_version, 3);
   // Every pair among them, from the factors: only 100 and 101 are correlated.
-  ASSERT_EQ(page->cross.size(), 15u);
   ExpectTheReadsCovariance(*page);
 }
 
@@ -1209,12 +1215,11 @@ TEST_P(SqliteMapStoreReads, GetLandmarksReturnsTheMappedOnesOfTheIdsWithTheirCov
   for (const Landmark& l : page->landmarks) ids.push_back(l.id);
   EXPECT_EQ(ids, (std::vector<LandmarkId>{100, 101, 107}));
   // The same blocks as a box read of them gives: only 100 and 101 are correlated.
-  ASSERT_EQ(page->cross.size(), 3u);
   ExpectTheReadsCovariance(*page);
   auto without = store_->GetLandmarks({124}, false);
   ASSERT_TRUE(without.ok());
   ASSERT_EQ(without->landmarks.size(), 1u);
-  EXPECT_TRUE(without->cross.empty());
+  EXPECT_EQ(without->covariance.size(), 0);
   auto none = store_->GetLandmarks({}, true);
   ASSERT_TRUE(none.ok());
   EXPECT_TRUE(none->landmarks.empty());
@@ -1330,23 +1335,21 @@ TEST_P(CachedMapStoreCovariance, ReadsFollowEveryCommit) {
       auto want = sqlite->QueryRegion(box, 0, 0, true);
       ASSERT_TRUE(got.ok() && want.ok()) << got.status() << want.status();
       ASSERT_EQ(got->landmarks.size(), 3u);
-      ASSERT_EQ(got->cross.size(), want->cross.size());
+      ASSERT_EQ(got->covariance.rows(), 6);
+      ASSERT_EQ(want->covariance.rows(), 6);
+      EXPECT_LT((got->covariance - want->covariance).cwiseAbs().maxCoeff(), 1e-12)
+          << "step " << step << " read " << read;
       for (size_t i = 0; i < got->landmarks.size(); ++i) {
         EXPECT_LT((got->landmarks[i].cov_en_m2 - want->landmarks[i].cov_en_m2).cwiseAbs().maxCoeff(), 1e-12)
             << "step " << step << " read " << read;
-      }
-      for (size_t k = 0; k < got->cross.size(); ++k) {
-        EXPECT_EQ(got->cross[k].first, want->cross[k].first);
-        EXPECT_LT((got->cross[k].second - want->cross[k].second).cwiseAbs().maxCoeff(), 1e-12);
       }
       // Two of the three, out of order: the same blocks.
       auto some = (*cached)->GetLandmarks({3, 1}, true);
       auto some_want = sqlite->GetLandmarks({3, 1}, true);
       ASSERT_TRUE(some.ok() && some_want.ok()) << some.status() << some_want.status();
       ASSERT_EQ(some->landmarks.size(), 2u);
-      ASSERT_EQ(some->cross.size(), 1u);
-      EXPECT_EQ(some->cross[0].first, some_want->cross[0].first);
-      EXPECT_LT((some->cross[0].second - some_want->cross[0].second).cwiseAbs().maxCoeff(), 1e-12);
+      ASSERT_EQ(some->covariance.rows(), 4);
+      EXPECT_LT((some->covariance - some_want->covariance).cwiseAbs().maxCoeff(), 1e-12);
       EXPECT_LT((some->landmarks[1].cov_en_m2 - some_want->landmarks[1].cov_en_m2).cwiseAbs().maxCoeff(), 1e-12);
     }
   }
