@@ -58,10 +58,69 @@ absl::StatusOr<LandmarkInformation> EliminateToLandmarks(ceres::Problem* problem
   return out;
 }
 
-absl::StatusOr<GraphLinearization> GraphLinearization::Compute(ceres::Problem* problem,
-                                                                const std::vector<double*>& landmarks) {
+absl::StatusOr<GraphLinearization> GraphLinearization::Compute(
+    ceres::Problem* problem, const std::vector<double*>& landmarks,
+    const std::vector<ceres::ResidualBlockId>& factor_leaves_out) {
+  std::vector<ceres::ResidualBlockId> residuals;
+  problem->GetResidualBlocks(&residuals);
+  absl::StatusOr<GraphLinearization> g = ComputeOver(problem, landmarks, residuals);
+  if (!g.ok() || factor_leaves_out.empty()) return g;
+  if (factor_leaves_out.size() == 1) g->factor_ = g->WithoutScalarPrior(problem, factor_leaves_out[0]);
+  if (!g->factor_) {
+    const auto left_out = [&](ceres::ResidualBlockId id) {
+      return std::find(factor_leaves_out.begin(), factor_leaves_out.end(), id) != factor_leaves_out.end();
+    };
+    residuals.erase(std::remove_if(residuals.begin(), residuals.end(), left_out), residuals.end());
+    absl::StatusOr<GraphLinearization> without = ComputeOver(problem, landmarks, residuals);
+    if (!without.ok()) return without.status();
+    g->factor_ = LandmarkMarginal{without->sigma_ll_, without->landmark_gradient_};
+  }
+  return g;
+}
+
+std::optional<GraphLinearization::LandmarkMarginal> GraphLinearization::WithoutScalarPrior(
+    ceres::Problem* problem, ceres::ResidualBlockId prior) const {
+  std::vector<double*> blocks;
+  problem->GetParameterBlocksForResidualBlock(prior, &blocks);
+  if (blocks.size() != 1 || problem->ParameterBlockSize(blocks[0]) != 1) return std::nullopt;
+  if (problem->GetCostFunctionForResidualBlock(prior)->num_residuals() != 1) return std::nullopt;
+  const auto at = offset_.find(blocks[0]);
+  if (at == offset_.end() || at->second >= other_dim_) return std::nullopt;
+  const int u = at->second;
+  // The prior's share of H and of the gradient: p at (u, u), q at u.
+  double residual = 0.0, derivative = 0.0;
+  double* jacobians[] = {&derivative};
+  if (!problem->EvaluateResidualBlock(prior, /*apply_loss_function=*/true, nullptr, &residual, jacobians)) {
+    return std::nullopt;
+  }
+  const double p = derivative * derivative, q = derivative * residual;
+  // A' = A - p e e^T:  A'^-1 = A^-1 + k A^-1 e e^T A^-1,  k = p / (1 - p a),  a = (A^-1)_uu.
+  Eigen::VectorXd unit = Eigen::VectorXd::Zero(other_dim_);
+  unit(u) = 1.0;
+  const Eigen::VectorXd a_inv_e = a_llt_->solve(unit);
+  const double a = a_inv_e(u), h = a_inv_e.dot(other_gradient_);
+  constexpr double kMinRemaining = 1e-9;  // of the information, what the rest must keep
+  if (!(1.0 - p * a > kMinRemaining)) return std::nullopt;
+  const double k = p / (1.0 - p * a);
+  // S' = S - k w w^T (w: row u of A^-1 B), inverted by Sherman-Morrison again.
+  const Eigen::VectorXd w = w_.row(u).transpose();
+  const Eigen::VectorXd sigma_w = sigma_ll_ * w;
+  const double t = w.dot(sigma_w);
+  if (!(1.0 - k * t > kMinRemaining)) return std::nullopt;
+  LandmarkMarginal out;
+  out.covariance = sigma_ll_ + (k / (1.0 - k * t)) * sigma_w * sigma_w.transpose();
+  out.covariance = 0.5 * (out.covariance + out.covariance.transpose()).eval();
+  // gradient' = g_L - W'^T (g_x - q e), W' = A'^-1 B.
+  out.gradient = landmark_gradient_ + (q - k * (h - q * a)) * w;
+  if (!out.covariance.allFinite() || !out.gradient.allFinite()) return std::nullopt;
+  return out;
+}
+
+absl::StatusOr<GraphLinearization> GraphLinearization::ComputeOver(ceres::Problem* problem,
+                                                                    const std::vector<double*>& landmarks,
+                                                                    std::vector<ceres::ResidualBlockId> residual_blocks) {
   GraphLinearization g;
-  problem->GetResidualBlocks(&g.residuals_);
+  g.residuals_ = std::move(residual_blocks);
   // The other blocks in the order the residuals first use them (the order they were added in),
   // then any no residual uses. Not GetParameterBlocks' order: that is by address, which differs
   // from run to run (a pose vector on the heap, a yaw state on the stack), and with it the
@@ -119,7 +178,8 @@ absl::StatusOr<GraphLinearization> GraphLinearization::Compute(ceres::Problem* p
   // The gradient J^T r with the other blocks eliminated: zero at an exact optimum.
   const Eigen::VectorXd gradient =
       g.jt_ * Eigen::Map<const Eigen::VectorXd>(residuals.data(), static_cast<int>(residuals.size()));
-  g.landmark_gradient_ = gradient.tail(nl) - g.w_.transpose() * gradient.head(nx);
+  g.other_gradient_ = gradient.head(nx);
+  g.landmark_gradient_ = gradient.tail(nl) - g.w_.transpose() * g.other_gradient_;
   g.s_llt_.compute(schur);
   if (g.s_llt_.info() != Eigen::Success) {
     return absl::InternalError("landmark covariance could not be computed (landmarks not observable)");

@@ -2,6 +2,7 @@
 #define CROWDMAP_CORE_ESTIMATION_GRAPH_LINEARIZATION_H_
 
 #include <memory>
+#include <optional>
 #include <unordered_map>
 #include <vector>
 
@@ -44,13 +45,22 @@ struct BiasCorrectionStats {
 // rank-deficient graph fails at either factorisation.
 class GraphLinearization {
  public:
-  static absl::StatusOr<GraphLinearization> Compute(ceres::Problem* problem, const std::vector<double*>& landmarks);
+  // `factor_leaves_out`: residual blocks whose information the landmarks' factor must not hold
+  // (factor_covariance() and factor_gradient(): as if the problem did not have them); everything
+  // else keeps them. A prior on one scalar block that is not a landmark (a calibration state's)
+  // is taken out by a rank-one downdate; anything else by a second linearisation without it.
+  static absl::StatusOr<GraphLinearization> Compute(ceres::Problem* problem, const std::vector<double*>& landmarks,
+                                                    const std::vector<ceres::ResidualBlockId>& factor_leaves_out = {});
 
   // Marginal covariance of the landmarks, in the order given (2 x 2 blocks).
   const Eigen::MatrixXd& landmark_covariance() const { return sigma_ll_; }
   // The cost's gradient in the landmarks with the other blocks eliminated, at the point it was
   // computed at: zero at an exact optimum, the solver's shortfall otherwise.
   const Eigen::VectorXd& landmark_gradient() const { return landmark_gradient_; }
+  // The same two without the residual blocks the factor leaves out (the same as the two above
+  // when it leaves none out).
+  const Eigen::MatrixXd& factor_covariance() const { return factor_ ? factor_->covariance : sigma_ll_; }
+  const Eigen::VectorXd& factor_gradient() const { return factor_ ? factor_->gradient : landmark_gradient_; }
   // Marginal variance of a scalar parameter block that is not a landmark (e.g. a camera yaw
   // offset), in its two parts: given the landmarks, (A^-1)_uu, and what the landmarks'
   // uncertainty adds, w_u Sigma_LL w_u^T. One sparse solve.
@@ -75,8 +85,20 @@ class GraphLinearization {
 
  private:
   GraphLinearization() = default;
+  // Over `residual_blocks` only (a subset of the problem's, in its order).
+  static absl::StatusOr<GraphLinearization> ComputeOver(ceres::Problem* problem, const std::vector<double*>& landmarks,
+                                                        std::vector<ceres::ResidualBlockId> residual_blocks);
   // Sigma = H^-1 at columns u, v (u, v on the pattern of H).
   double Sigma(int u, int v) const;
+  struct LandmarkMarginal {
+    Eigen::MatrixXd covariance;
+    Eigen::VectorXd gradient;
+  };
+  // The landmarks' covariance and gradient without `prior`, a residual on one scalar block that is
+  // not a landmark (Sherman-Morrison on A, then on the landmarks' Schur complement); nullopt when
+  // the block is of another kind, or the rest of the problem leaves the scalar (or the landmarks)
+  // too weakly determined for the downdate to be accurate.
+  std::optional<LandmarkMarginal> WithoutScalarPrior(ceres::Problem* problem, ceres::ResidualBlockId prior) const;
 
   std::vector<double*> ordered_;                  // other blocks, then the landmarks
   std::unordered_map<const double*, int> offset_; // column of each block
@@ -91,7 +113,9 @@ class GraphLinearization {
   Eigen::LLT<Eigen::MatrixXd> s_llt_;             // S = C - B^T A^-1 B
   Eigen::MatrixXd sigma_ll_;
   Eigen::VectorXd landmark_gradient_;
+  Eigen::VectorXd other_gradient_;                // the cost's gradient in the other blocks
   Eigen::MatrixXd w_sigma_;                       // A^-1 B Sigma_LL
+  std::optional<LandmarkMarginal> factor_;        // without the blocks the factor leaves out
 };
 
 }  // namespace crowdmap

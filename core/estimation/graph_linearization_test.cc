@@ -7,6 +7,8 @@
 #include <Eigen/Dense>
 #include <gtest/gtest.h>
 
+#include "core/estimation/factors.h"
+
 namespace crowdmap {
 namespace {
 
@@ -138,6 +140,55 @@ TEST(GraphLinearization, ScalarMarginalSplitsIntoTheVarianceGivenTheLandmarksAnd
   EXPECT_NEAR(m.given_landmarks, 1.0 / h(0, 0), 1e-12);
   EXPECT_NEAR(m.total(), h.inverse()(0, 0), 1e-12);
   EXPECT_GT(m.from_landmarks, 0.0);
+}
+
+// What the factor leaves out is as if the problem never had it, in both ways of taking it out: a
+// prior on the scalar state (a rank-one downdate) and a residual on the state and a landmark (a
+// second linearisation). The rest of the linearisation keeps the block.
+TEST(GraphLinearization, TheFactorWithoutABlockIsAsIfTheProblemNeverHadIt) {
+  for (const bool scalar_prior : {true, false}) {
+    auto linearize = [&](bool with_block, bool leave_it_out) {
+      std::mt19937 rng(11);
+      std::uniform_real_distribution<double> u(-1.0, 1.0);
+      double y = 0.3;
+      std::vector<Eigen::Vector2d> landmarks(2, Eigen::Vector2d(0.1, -0.2));
+      ceres::Problem problem;
+      for (int k = 0; k < 12; ++k) {
+        problem.AddResidualBlock(new ceres::AutoDiffCostFunction<ScalarLandmarkResidual, 1, 1, 2>(
+                                     new ScalarLandmarkResidual(u(rng), u(rng), u(rng), u(rng))),
+                                 nullptr, &y, landmarks[k % 2].data());
+      }
+      std::vector<ceres::ResidualBlockId> left_out;
+      if (with_block) {
+        // Away from the state's value: it pulls.
+        const ceres::ResidualBlockId block =
+            scalar_prior ? problem.AddResidualBlock(ScalarPriorFactor::Create(-0.5, 0.2), nullptr, &y)
+                         : problem.AddResidualBlock(new ceres::AutoDiffCostFunction<ScalarLandmarkResidual, 1, 1, 2>(
+                                                        new ScalarLandmarkResidual(3.0, 1.0, 0.0, 0.7)),
+                                                    nullptr, &y, landmarks[0].data());
+        if (leave_it_out) left_out.push_back(block);
+      }
+      absl::StatusOr<GraphLinearization> lin =
+          GraphLinearization::Compute(&problem, {landmarks[0].data(), landmarks[1].data()}, left_out);
+      EXPECT_TRUE(lin.ok()) << lin.status();
+      return lin;
+    };
+    const absl::StatusOr<GraphLinearization> never = linearize(false, false);
+    const absl::StatusOr<GraphLinearization> left_out = linearize(true, true);
+    const absl::StatusOr<GraphLinearization> kept = linearize(true, false);
+    ASSERT_TRUE(never.ok() && left_out.ok() && kept.ok());
+    const double tolerance = 1e-12 * never->landmark_covariance().cwiseAbs().maxCoeff();
+    EXPECT_LT((left_out->factor_covariance() - never->landmark_covariance()).cwiseAbs().maxCoeff(), tolerance)
+        << scalar_prior;
+    EXPECT_LT((left_out->factor_gradient() - never->landmark_gradient()).cwiseAbs().maxCoeff(), 1e-12)
+        << scalar_prior;
+    // The rest keeps it: the same as the linearisation that leaves nothing out.
+    EXPECT_EQ(left_out->landmark_covariance(), kept->landmark_covariance()) << scalar_prior;
+    EXPECT_EQ(kept->factor_covariance(), kept->landmark_covariance()) << scalar_prior;
+    EXPECT_GT((kept->landmark_covariance() - never->landmark_covariance()).cwiseAbs().maxCoeff(), 1e-3)
+        << scalar_prior;
+    EXPECT_GT((kept->landmark_gradient() - never->landmark_gradient()).cwiseAbs().maxCoeff(), 1e-3) << scalar_prior;
+  }
 }
 
 // Two scalar states and a landmark, a residual on all three.

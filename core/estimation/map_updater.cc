@@ -150,8 +150,9 @@ absl::StatusOr<SetAsideRequest> UpdateFromSubgraph(const Passage& passage, const
     problem.AddResidualBlock(ScalarPriorFactor::Create(1.0, options.speed_scale_prior_sigma), nullptr,
                              speed_scale_block);
   }
+  ceres::ResidualBlockId yaw_prior = nullptr;
   if (options.estimate_camera_yaw) {
-    problem.AddResidualBlock(
+    yaw_prior = problem.AddResidualBlock(
         ScalarPriorFactor::Create(yaw_offset_rad, std::sqrt(vehicle.camera_yaw_variance_rad2)), nullptr,
         &yaw_offset_rad);
   }
@@ -214,7 +215,16 @@ absl::StatusOr<SetAsideRequest> UpdateFromSubgraph(const Passage& passage, const
 
   std::vector<double*> landmark_blocks;
   for (int i = 0; i < update.size(); ++i) landmark_blocks.push_back(update.block(i));
-  absl::StatusOr<GraphLinearization> linearization = LinearizeSolution(&problem, landmark_blocks, options, summary);
+  // The map's factor leaves the yaw's prior out. The prior is the vehicle's record: what its
+  // earlier passages said about its camera, measured against the map, and their factors are in the
+  // map already. Kept in, every passage of the vehicle would add that information to the map again,
+  // and the map would take the turn that all of a vehicle's passages share as known ever better
+  // (docs/estimation.md, "Per-vehicle camera calibration"). The solve, its bias correction and the
+  // record's update keep it (GraphLinearization's factor_covariance and factor_gradient).
+  std::vector<ceres::ResidualBlockId> factor_leaves_out;
+  if (yaw_prior != nullptr) factor_leaves_out.push_back(yaw_prior);
+  absl::StatusOr<GraphLinearization> linearization =
+      LinearizeSolution(&problem, landmark_blocks, options, summary, factor_leaves_out);
   if (!linearization.ok()) return linearization.status();
   // The yaw state is eliminated with the poses in the landmarks' covariance; its own marginal, at
   // the bias-corrected solution, updates the vehicle's record.
@@ -237,7 +247,7 @@ absl::StatusOr<SetAsideRequest> UpdateFromSubgraph(const Passage& passage, const
     record->last_seen_unix_ms = std::max(record->last_seen_unix_ms, seen_ms);
   };
   absl::StatusOr<LandmarkUpdateStats> stats = update.Commit(
-      linearization->landmark_covariance(), linearization->landmark_gradient(), update_options, touch);
+      linearization->factor_covariance(), linearization->factor_gradient(), update_options, touch);
   if (!stats.ok()) return stats.status();
   Yield(options);
   summary->covariance_ms += stats->covariance_ms;

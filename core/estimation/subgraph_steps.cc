@@ -286,9 +286,11 @@ bool WellDeterminedNewLandmark(const RayGeometry& geometry, const MapUpdateOptio
 // After a usable solve: the landmarks' marginal covariance at the solution and (if enabled) the
 // second-order bias correction of the solution, with their times added to `summary`.
 absl::StatusOr<GraphLinearization> LinearizeSolution(ceres::Problem* problem, const std::vector<double*>& landmark_blocks,
-                                                     const MapUpdateOptions& options, PassageUpdateSummary* summary) {
+                                                     const MapUpdateOptions& options, PassageUpdateSummary* summary,
+                                                     const std::vector<ceres::ResidualBlockId>& factor_leaves_out) {
   const auto covariance_start = std::chrono::steady_clock::now();
-  absl::StatusOr<GraphLinearization> linearization = GraphLinearization::Compute(problem, landmark_blocks);
+  absl::StatusOr<GraphLinearization> linearization =
+      GraphLinearization::Compute(problem, landmark_blocks, factor_leaves_out);
   if (!linearization.ok()) return linearization.status();
   summary->covariance_ms += MillisecondsSince(covariance_start);
   Yield(options);

@@ -77,10 +77,12 @@ RayGeometry NewLandmarkGeometry(const std::vector<Pose2>& poses, int first_node,
 // Whether a new landmark may enter the map with this geometry (the options' creation rule).
 bool WellDeterminedNewLandmark(const RayGeometry& geometry, const MapUpdateOptions& options);
 
-// After a usable solve: the landmarks' marginal covariance and (if enabled) the second-order bias
+// After a usable solve: the landmarks' marginal covariance (and the factor's, without
+// `factor_leaves_out`: GraphLinearization::Compute) and (if enabled) the second-order bias
 // correction of the solution, with their times added to `summary`.
 absl::StatusOr<GraphLinearization> LinearizeSolution(ceres::Problem* problem, const std::vector<double*>& landmark_blocks,
-                                                     const MapUpdateOptions& options, PassageUpdateSummary* summary);
+                                                     const MapUpdateOptions& options, PassageUpdateSummary* summary,
+                                                     const std::vector<ceres::ResidualBlockId>& factor_leaves_out = {});
 
 // The consistency test of a solve: chi2 / dof when chi2 exceeds dof by more than `test_sigmas`
 // standard deviations (sqrt(2 dof)), the factor the measurement covariances are then inflated by;

@@ -34,8 +34,8 @@ VehicleCalibration NewVehicleCalibration(const std::string& vehicle_id, double p
 // the priors they were made with, so a prior narrowed to the fleet's would count the fleet again
 // in every new record, and narrow itself further with each generation (measured: over-confident
 // maps under AR(1) GNSS noise). When every vehicle's camera has the same error (a fleet of one
-// model and mount), a new vehicle then starts from that error instead of 0, and the map no longer
-// inherits the part of it that each new vehicle's prior would pull back toward 0.
+// model and mount), a new vehicle then starts from that error instead of 0, and its record comes
+// closer to it. (The map's factors leave a passage's yaw prior out, so no prior steers the map.)
 std::optional<VehicleCalibration> FleetCameraYawPrior(const std::vector<VehicleCalibration>& fleet,
                                                       const std::string& vehicle_id, int min_vehicles,
                                                       double min_sigma_rad);
