@@ -28,9 +28,10 @@ SCRATCH=$(mktemp -d /tmp/commits-under-reads.XXXXXX)
 READER_PIDS=()
 MAPD_PID=
 cleanup() {
-  [[ ${#READER_PIDS[@]} -gt 0 ]] && kill "${READER_PIDS[@]}" 2>/dev/null
-  [[ -n "$MAPD_PID" ]] && kill "$MAPD_PID" 2>/dev/null && wait "$MAPD_PID" 2>/dev/null
-  [[ -n "${KEEP:-}" ]] || rm -rf "$SCRATCH"
+  # `|| true`: a command that fails last in a list would end the trap (set -e) before the rest ran.
+  if [[ ${#READER_PIDS[@]} -gt 0 ]]; then kill "${READER_PIDS[@]}" 2>/dev/null || true; fi
+  if [[ -n "$MAPD_PID" ]]; then kill "$MAPD_PID" 2>/dev/null && wait "$MAPD_PID" 2>/dev/null || true; fi
+  if [[ -z "${KEEP:-}" ]]; then rm -rf "$SCRATCH"; fi
 }
 trap cleanup EXIT
 passage_files "$PASSAGES"

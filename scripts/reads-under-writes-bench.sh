@@ -29,9 +29,10 @@ SCRATCH=$(mktemp -d /tmp/reads-under-writes.XXXXXX)
 UPLOAD_PID=
 MAPD_PID=
 cleanup() {
-  [[ -n "$UPLOAD_PID" ]] && kill "$UPLOAD_PID" 2>/dev/null
-  [[ -n "$MAPD_PID" ]] && kill "$MAPD_PID" 2>/dev/null && wait "$MAPD_PID" 2>/dev/null
-  [[ -n "${KEEP:-}" ]] || rm -rf "$SCRATCH"
+  # `|| true`: a command that fails last in a list would end the trap (set -e) before the rest ran.
+  if [[ -n "$UPLOAD_PID" ]]; then kill "$UPLOAD_PID" 2>/dev/null || true; fi
+  if [[ -n "$MAPD_PID" ]]; then kill "$MAPD_PID" 2>/dev/null && wait "$MAPD_PID" 2>/dev/null || true; fi
+  if [[ -z "${KEEP:-}" ]]; then rm -rf "$SCRATCH"; fi
 }
 trap cleanup EXIT
 passage_files "$PASSAGES"
