@@ -26,14 +26,7 @@ GEN=${GEN:-$ROOT/gen}
 PORT=${PORT:-50391}
 SCRATCH=$(mktemp -d /tmp/commits-under-reads.XXXXXX)
 READER_PIDS=()
-MAPD_PID=
-cleanup() {
-  # `|| true`: a command that fails last in a list would end the trap (set -e) before the rest ran.
-  if [[ ${#READER_PIDS[@]} -gt 0 ]]; then kill "${READER_PIDS[@]}" 2>/dev/null || true; fi
-  if [[ -n "$MAPD_PID" ]]; then kill "$MAPD_PID" 2>/dev/null && wait "$MAPD_PID" 2>/dev/null || true; fi
-  if [[ -z "${KEEP:-}" ]]; then rm -rf "$SCRATCH"; fi
-}
-trap cleanup EXIT
+trap 'stop_bench "${READER_PIDS[@]}"' EXIT
 passage_files "$PASSAGES"
 copy_map "$MAP_DB" "$SCRATCH"
 # shellcheck disable=SC2086

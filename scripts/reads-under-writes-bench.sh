@@ -27,14 +27,7 @@ GEN=${GEN:-$ROOT/gen}
 PORT=${PORT:-50392}
 SCRATCH=$(mktemp -d /tmp/reads-under-writes.XXXXXX)
 UPLOAD_PID=
-MAPD_PID=
-cleanup() {
-  # `|| true`: a command that fails last in a list would end the trap (set -e) before the rest ran.
-  if [[ -n "$UPLOAD_PID" ]]; then kill "$UPLOAD_PID" 2>/dev/null || true; fi
-  if [[ -n "$MAPD_PID" ]]; then kill "$MAPD_PID" 2>/dev/null && wait "$MAPD_PID" 2>/dev/null || true; fi
-  if [[ -z "${KEEP:-}" ]]; then rm -rf "$SCRATCH"; fi
-}
-trap cleanup EXIT
+trap 'stop_bench ${UPLOAD_PID:+"$UPLOAD_PID"}' EXIT
 passage_files "$PASSAGES"
 copy_map "$MAP_DB" "$SCRATCH"
 # shellcheck disable=SC2086

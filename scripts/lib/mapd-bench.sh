@@ -7,6 +7,8 @@
 #                             listens (MAPD_PID), or exits with its log when it stops first
 #   finished_count LOG        passages that reached a final state (applied, rejected, failed, quarantined)
 #   wait_finished LOG N       waits until N passages are final, the count on stderr as it goes
+#   stop_bench PIDS...        for an EXIT trap: kills PIDS, stops MAPD_PID and waits for it, removes
+#                             SCRATCH unless KEEP is set
 
 usage_unless() {
   local script=$1
@@ -53,4 +55,11 @@ wait_finished() {
     echo -ne "\rfinished $(finished_count "$log")/$n" >&2
   done
   echo >&2
+}
+
+stop_bench() {
+  # `|| true`: a command that fails last in a list would end the trap (set -e) before the rest ran.
+  if [[ $# -gt 0 ]]; then kill "$@" 2>/dev/null || true; fi
+  if [[ -n "${MAPD_PID:-}" ]]; then kill "$MAPD_PID" 2>/dev/null && wait "$MAPD_PID" 2>/dev/null || true; fi
+  if [[ -z "${KEEP:-}" ]]; then rm -rf "$SCRATCH"; fi
 }
