@@ -2,6 +2,7 @@
 
 #include <cmath>
 #include <string>
+#include <unordered_map>
 
 #include "absl/strings/str_cat.h"
 #include "core/geo/tiles.h"
@@ -226,6 +227,30 @@ void CovarianceToPacked(const Eigen::MatrixXd& covariance, pb::PackedCovariance*
   for (int r = 0; r < dim; ++r) {
     for (int c = r; c < dim; ++c) *out++ = covariance(r, c);
   }
+}
+
+absl::StatusOr<Eigen::MatrixXd> CovarianceFromBlocks(const google::protobuf::RepeatedPtrField<pb::Landmark>& landmarks,
+                                                     const google::protobuf::RepeatedPtrField<pb::CrossCovariance>& blocks,
+                                                     const char* field) {
+  const int n = landmarks.size();
+  std::unordered_map<int64_t, int> index;
+  Eigen::MatrixXd cov = Eigen::MatrixXd::Zero(2 * n, 2 * n);
+  for (int i = 0; i < n; ++i) {
+    index[landmarks[i].id()] = i;
+    cov.block<2, 2>(2 * i, 2 * i) = MatrixFromProto(landmarks[i].cov_en_m2());
+  }
+  for (int k = 0; k < blocks.size(); ++k) {
+    const pb::CrossCovariance& c = blocks[k];
+    const auto a = index.find(c.first_id()), b = index.find(c.second_id());
+    if (a == index.end() || b == index.end()) {
+      return absl::InvalidArgumentError(absl::StrCat(field, "[", k, "]: landmarks ", c.first_id(), " and ",
+                                                     c.second_id(), " are not both in the response"));
+    }
+    const Eigen::Matrix2d block = MatrixFromProto(c.cov_m2());
+    cov.block<2, 2>(2 * a->second, 2 * b->second) = block;
+    cov.block<2, 2>(2 * b->second, 2 * a->second) = block.transpose();
+  }
+  return cov;
 }
 
 absl::StatusOr<Eigen::MatrixXd> CovarianceFromPacked(const pb::PackedCovariance& wire, int landmarks,

@@ -51,6 +51,12 @@ void CovarianceToPacked(const Eigen::MatrixXd& covariance, pb::PackedCovariance*
 // its size does not match.
 absl::StatusOr<Eigen::MatrixXd> CovarianceFromPacked(const pb::PackedCovariance& wire, int landmarks,
                                                      const char* field);
+// The same matrix from a landmark's own 2x2 covariances and the blocks between them (as a server
+// without the packed layout sends them); InvalidArgument naming `field` for a block of a landmark
+// not in `landmarks`. Pairs without a block are uncorrelated.
+absl::StatusOr<Eigen::MatrixXd> CovarianceFromBlocks(const google::protobuf::RepeatedPtrField<pb::Landmark>& landmarks,
+                                                     const google::protobuf::RepeatedPtrField<pb::CrossCovariance>& blocks,
+                                                     const char* field);
 // A page of landmarks into a GetTileResponse or QueryRegionResponse, with its covariance (if read)
 // in `format`.
 template <typename Response>

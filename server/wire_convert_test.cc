@@ -204,6 +204,31 @@ TEST(WireConvert, CovarianceBlocksPutTheSmallerIdFirst) {
   EXPECT_EQ(blocks[0].cov_m2().nn(), 7);
 }
 
+// The blocks a server sends give back the page's matrix; a block of a landmark the response does
+// not hold is refused by name.
+TEST(WireConvert, CovarianceFromBlocksIsThePagesMatrix) {
+  LandmarkPage page;
+  page.landmarks.resize(3);
+  const int ids[] = {9, 4, 7};
+  Eigen::MatrixXd a = Eigen::MatrixXd::Random(6, 6);
+  page.covariance = a * a.transpose() + Eigen::MatrixXd::Identity(6, 6);
+  google::protobuf::RepeatedPtrField<pb::Landmark> landmarks;
+  for (int i = 0; i < 3; ++i) {
+    page.landmarks[i].id = ids[i];
+    page.landmarks[i].cov_en_m2 = page.covariance.block<2, 2>(2 * i, 2 * i);
+    LandmarkToProto(page.landmarks[i], landmarks.Add());
+  }
+  google::protobuf::RepeatedPtrField<pb::CrossCovariance> blocks;
+  CovarianceToBlocks(page, &blocks);
+  absl::StatusOr<Eigen::MatrixXd> back = CovarianceFromBlocks(landmarks, blocks, "cross_covariances");
+  ASSERT_TRUE(back.ok()) << back.status();
+  EXPECT_LT((*back - page.covariance).cwiseAbs().maxCoeff(), 1e-15);
+  blocks[1].set_second_id(5);
+  absl::StatusOr<Eigen::MatrixXd> stray = CovarianceFromBlocks(landmarks, blocks, "cross_covariances");
+  EXPECT_EQ(stray.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_EQ(stray.status().message().rfind("cross_covariances[1]:", 0), 0u) << stray.status();
+}
+
 TEST(WireConvert, PackedCovarianceIsTheUpperTriangleRowByRow) {
   const int n = 3, dim = 2 * n;
   Eigen::MatrixXd cov(dim, dim);

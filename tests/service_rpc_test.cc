@@ -4,7 +4,6 @@
 
 #include <cmath>
 #include <future>
-#include <map>
 #include <set>
 #include <thread>
 #include <tuple>
@@ -289,25 +288,6 @@ TEST_F(ServiceRpc, PackedCovarianceIsTheMatrixOfTheBlocks) {
   Start(true);
   for (int i = 0; i < 2; ++i) MustUpload(scenario_.MakePassage(i));
   ASSERT_TRUE(client_->WaitUntilIdle().ok());
-  // The matrix the blocks give, in the order of `landmarks`.
-  auto from_blocks = [](const auto& landmarks, const auto& blocks) {
-    const int n = landmarks.size();
-    std::map<int64_t, int> index;
-    for (int i = 0; i < n; ++i) index[landmarks[i].id()] = i;
-    Eigen::MatrixXd cov = Eigen::MatrixXd::Constant(2 * n, 2 * n, std::nan(""));
-    for (int i = 0; i < n; ++i) {
-      const pb::Matrix2& m = landmarks[i].cov_en_m2();
-      cov.block<2, 2>(2 * i, 2 * i) << m.ee(), m.en(), m.ne(), m.nn();
-    }
-    for (const pb::CrossCovariance& c : blocks) {
-      const int a = index.at(c.first_id()), b = index.at(c.second_id());
-      Eigen::Matrix2d block;
-      block << c.cov_m2().ee(), c.cov_m2().en(), c.cov_m2().ne(), c.cov_m2().nn();
-      cov.block<2, 2>(2 * a, 2 * b) = block;
-      cov.block<2, 2>(2 * b, 2 * a) = block.transpose();
-    }
-    return cov;
-  };
   pb::QueryRegionRequest region;
   *region.mutable_box() = MockVehicle::World();
   region.set_include_cross_covariance(true);
@@ -329,9 +309,10 @@ TEST_F(ServiceRpc, PackedCovarianceIsTheMatrixOfTheBlocks) {
   EXPECT_EQ(packed.cross_covariances_size(), 0);
   absl::StatusOr<Eigen::MatrixXd> matrix = CovarianceFromPacked(packed.packed_covariance(), n, "packed_covariance");
   ASSERT_TRUE(matrix.ok()) << matrix.status();
-  const Eigen::MatrixXd expected = from_blocks(blocks.landmarks(), blocks.cross_covariances());
-  ASSERT_TRUE(expected.allFinite());
-  EXPECT_LT((*matrix - expected).cwiseAbs().maxCoeff(), 1e-15);
+  absl::StatusOr<Eigen::MatrixXd> expected =
+      CovarianceFromBlocks(blocks.landmarks(), blocks.cross_covariances(), "cross_covariances");
+  ASSERT_TRUE(expected.ok()) << expected.status();
+  EXPECT_LT((*matrix - *expected).cwiseAbs().maxCoeff(), 1e-15);
 
   const TileId tile = TileContaining(scenario_.landmarks()[0].position);
   pb::GetTileRequest tile_request;
@@ -352,8 +333,9 @@ TEST_F(ServiceRpc, PackedCovarianceIsTheMatrixOfTheBlocks) {
   ASSERT_GT(tile_packed.landmarks_size(), 0);
   matrix = CovarianceFromPacked(tile_packed.packed_covariance(), tile_packed.landmarks_size(), "packed_covariance");
   ASSERT_TRUE(matrix.ok()) << matrix.status();
-  EXPECT_LT((*matrix - from_blocks(tile_blocks.landmarks(), tile_blocks.cross_covariances())).cwiseAbs().maxCoeff(),
-            1e-15);
+  expected = CovarianceFromBlocks(tile_blocks.landmarks(), tile_blocks.cross_covariances(), "cross_covariances");
+  ASSERT_TRUE(expected.ok()) << expected.status();
+  EXPECT_LT((*matrix - *expected).cwiseAbs().maxCoeff(), 1e-15);
 
   region.set_include_cross_covariance(false);
   grpc::ClientContext no_cov_ctx;

@@ -330,8 +330,11 @@ absl::StatusOr<RegionMap> MapClient::QueryRegion(const pb::BoundingBox& box, boo
     region.map_version = response.map_version();
     region.landmarks.insert(region.landmarks.end(), response.landmarks().begin(), response.landmarks().end());
     if (include_cross && response.landmarks_size() > 0) {
+      // A server older than the packed layout answers with the blocks.
       absl::StatusOr<Eigen::MatrixXd> cov =
-          CovarianceFromPacked(response.packed_covariance(), response.landmarks_size(), "packed_covariance");
+          response.has_packed_covariance()
+              ? CovarianceFromPacked(response.packed_covariance(), response.landmarks_size(), "packed_covariance")
+              : CovarianceFromBlocks(response.landmarks(), response.cross_covariances(), "cross_covariances");
       if (!cov.ok()) return absl::DataLossError(absl::StrCat("QueryRegion response: ", cov.status().message()));
       region.page_covariances.push_back(*std::move(cov));
     }

@@ -200,6 +200,43 @@ TEST(MapClientRetries, ChunkedUploadsFollowTheSamePolicy) {
   EXPECT_EQ(refuse.calls(), 1);
 }
 
+// A server from before the packed layout: QueryRegion answers with a block per pair whatever
+// layout is asked for.
+class BlocksOnlyRegions final : public pb::MapService::Service {
+ public:
+  grpc::Status QueryRegion(grpc::ServerContext*, const pb::QueryRegionRequest* request,
+                           pb::QueryRegionResponse* response) override {
+    response->set_map_version(3);
+    for (int id : {4, 9}) {
+      pb::Landmark* l = response->add_landmarks();
+      l->set_id(id);
+      l->mutable_cov_en_m2()->set_ee(id);
+      l->mutable_cov_en_m2()->set_nn(id + 1);
+    }
+    if (request->include_cross_covariance()) {
+      pb::CrossCovariance* c = response->add_cross_covariances();
+      c->set_first_id(4);
+      c->set_second_id(9);
+      c->mutable_cov_m2()->set_en(0.5);
+    }
+    return grpc::Status::OK;
+  }
+};
+
+TEST(MapClient, ReadsTheCovarianceOfAServerWithoutThePackedLayout) {
+  BlocksOnlyRegions service;
+  FakeServer server(&service);
+  auto client = Client(server.address(), MapClientOptions().unary_upload_limit_bytes);
+  ASSERT_NE(client, nullptr);
+  absl::StatusOr<RegionMap> region = client->QueryRegion(WorldBox(), /*include_cross=*/true);
+  ASSERT_TRUE(region.ok()) << region.status();
+  ASSERT_EQ(region->page_covariances.size(), 1u);
+  Eigen::MatrixXd expected = Eigen::MatrixXd::Zero(4, 4);
+  expected.diagonal() << 4, 5, 9, 10;
+  expected(0, 3) = expected(3, 0) = 0.5;  // landmark 4's East with landmark 9's North
+  EXPECT_EQ(region->page_covariances[0], expected);
+}
+
 TEST(MapClientRetries, ServiceConfigCarriesThePolicyAndOptionsAreChecked) {
   MapClientOptions options;
   options.max_attempts = 4;
