@@ -57,6 +57,14 @@ absl::StatusOr<Eigen::MatrixXd> CovarianceFromPacked(const pb::PackedCovariance&
 absl::StatusOr<Eigen::MatrixXd> CovarianceFromBlocks(const google::protobuf::RepeatedPtrField<pb::Landmark>& landmarks,
                                                      const google::protobuf::RepeatedPtrField<pb::CrossCovariance>& blocks,
                                                      const char* field);
+// The joint covariance a GetTileResponse or QueryRegionResponse carries (asked with
+// include_cross_covariance): packed, or from the blocks of a server without the packed layout.
+template <typename Response>
+absl::StatusOr<Eigen::MatrixXd> CovarianceFromProto(const Response& response) {
+  return response.has_packed_covariance()
+             ? CovarianceFromPacked(response.packed_covariance(), response.landmarks_size(), "packed_covariance")
+             : CovarianceFromBlocks(response.landmarks(), response.cross_covariances(), "cross_covariances");
+}
 // A page of landmarks into a GetTileResponse or QueryRegionResponse, with its covariance (if read)
 // in `format`.
 template <typename Response>

@@ -305,6 +305,7 @@ absl::StatusOr<pb::GetTileResponse> MapClient::GetTile(int z, int x, int y, bool
   request.mutable_tile()->set_x(x);
   request.mutable_tile()->set_y(y);
   request.set_include_cross_covariance(include_cross);
+  if (include_cross) request.set_covariance_format(pb::COVARIANCE_FORMAT_PACKED);
   pb::GetTileResponse response;
   if (absl::Status s = FromGrpcStatus(stub_->GetTile(&ctx, request, &response)); !s.ok()) return s;
   return response;
@@ -330,11 +331,7 @@ absl::StatusOr<RegionMap> MapClient::QueryRegion(const pb::BoundingBox& box, boo
     region.map_version = response.map_version();
     region.landmarks.insert(region.landmarks.end(), response.landmarks().begin(), response.landmarks().end());
     if (include_cross && response.landmarks_size() > 0) {
-      // A server older than the packed layout answers with the blocks.
-      absl::StatusOr<Eigen::MatrixXd> cov =
-          response.has_packed_covariance()
-              ? CovarianceFromPacked(response.packed_covariance(), response.landmarks_size(), "packed_covariance")
-              : CovarianceFromBlocks(response.landmarks(), response.cross_covariances(), "cross_covariances");
+      absl::StatusOr<Eigen::MatrixXd> cov = CovarianceFromProto(response);
       if (!cov.ok()) return absl::DataLossError(absl::StrCat("QueryRegion response: ", cov.status().message()));
       region.page_covariances.push_back(*std::move(cov));
     }

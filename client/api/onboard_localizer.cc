@@ -1,7 +1,6 @@
 #include "client/api/onboard_localizer.h"
 
 #include <algorithm>
-#include <unordered_map>
 #include <utility>
 
 #include "absl/strings/str_cat.h"
@@ -14,29 +13,16 @@ absl::Status OnboardLocalizerOptions::Validate() const {
   return filter.Validate();
 }
 
-LocalizationMap LocalizationMapFromTile(const pb::GetTileResponse& tile) {
+absl::StatusOr<LocalizationMap> LocalizationMapFromTile(const pb::GetTileResponse& tile) {
   LocalizationMap map;
   map.version = tile.map_version();
-  std::unordered_map<int64_t, int> index;
   for (const pb::Landmark& wire : tile.landmarks()) {
-    index[wire.id()] = static_cast<int>(map.ids.size());
     map.ids.push_back(wire.id());
     map.positions.push_back({wire.lat_deg(), wire.lon_deg()});
   }
-  const int n = static_cast<int>(map.ids.size());
-  map.cov_en_m2 = Eigen::MatrixXd::Zero(2 * n, 2 * n);
-  for (int k = 0; k < n; ++k) {
-    map.cov_en_m2.block<2, 2>(2 * k, 2 * k) = LandmarkFromProto(tile.landmarks(k)).cov_en_m2;
-  }
-  for (const pb::CrossCovariance& cross : tile.cross_covariances()) {
-    const auto a = index.find(cross.first_id()), b = index.find(cross.second_id());
-    if (a == index.end() || b == index.end()) continue;
-    const pb::Matrix2& m = cross.cov_m2();
-    Eigen::Matrix2d block;
-    block << m.ee(), m.en(), m.ne(), m.nn();
-    map.cov_en_m2.block<2, 2>(2 * a->second, 2 * b->second) = block;
-    map.cov_en_m2.block<2, 2>(2 * b->second, 2 * a->second) = block.transpose();
-  }
+  absl::StatusOr<Eigen::MatrixXd> cov = CovarianceFromProto(tile);
+  if (!cov.ok()) return cov.status();
+  map.cov_en_m2 = *std::move(cov);
   return map;
 }
 
@@ -65,9 +51,14 @@ absl::StatusOr<const LocalizationMap*> OnboardLocalizer::Tile(const TileId& tile
     return absl::Status(response.status().code(),
                         absl::StrCat("GetTile ", tile.z, "/", tile.x, "/", tile.y, ": ", response.status().message()));
   }
+  absl::StatusOr<LocalizationMap> map = LocalizationMapFromTile(*response);
+  if (!map.ok()) {
+    return absl::DataLossError(
+        absl::StrCat("GetTile ", tile.z, "/", tile.x, "/", tile.y, ": ", map.status().message()));
+  }
   ++tiles_downloaded_;
   map_version_ = std::max(map_version_, response->map_version());
-  return &cache_.emplace(key, LocalizationMapFromTile(*response)).first->second;
+  return &cache_.emplace(key, *std::move(map)).first->second;
 }
 
 absl::Status OnboardLocalizer::Enter(const TileId& tile) {

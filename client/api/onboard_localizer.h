@@ -65,8 +65,10 @@ class OnboardLocalizer {
   int64_t map_version_ = 0;
 };
 
-// A GetTile response as the landmarks it holds with their joint covariance (East/North at each).
-LocalizationMap LocalizationMapFromTile(const pb::GetTileResponse& tile);
+// A GetTile response as the landmarks it holds with their joint covariance (East/North at each),
+// packed or as blocks; InvalidArgument naming the field when the covariance does not fit the
+// landmarks.
+absl::StatusOr<LocalizationMap> LocalizationMapFromTile(const pb::GetTileResponse& tile);
 
 }  // namespace crowdmap
 
