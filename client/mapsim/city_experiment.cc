@@ -44,7 +44,8 @@ constexpr double kCityCrlbLandmarkPriorSigmaM = 1000.0;
 
 // Vehicle `v`'s true camera yaw offset from the calibration its passages declare.
 double CameraYawOffsetRad(const CityScenario& city, int v) {
-  return city.Vehicle(v).true_camera.camera_yaw_rad - city.options().calibration.camera_yaw_rad;
+  const CityVehicle vehicle = city.Vehicle(v);
+  return vehicle.true_camera.camera_yaw_rad - vehicle.calibration.camera_yaw_rad;
 }
 
 // `json` for a figure that may be NaN (not computed): null then.
@@ -296,6 +297,8 @@ absl::Status WriteCityOutputs(const CityExperimentOptions& options, const CityEx
       {"seed", c.seed},
       {"layout_seed", c.layout_seed},
       {"noise", NoiseConfigName(c.noise)},
+      {"rate_variation", c.rate_variation},
+      {"vary_calibration", c.vary_calibration},
       {"traffic",
        {{"stop_probability", c.stop_probability},
         {"stop_s", {c.stop_min_s, c.stop_max_s}},

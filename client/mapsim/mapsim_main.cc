@@ -320,6 +320,18 @@ struct CityCommand {
   bool quiet = false;
 };
 
+// Each city vehicle's own calibration (CityScenarioOptions::vary_calibration).
+void AddVaryCalibrationFlag(CLI::App* command, CityScenarioOptions* city, CLI::Option* needs = nullptr) {
+  CLI::Option* option = command->add_flag(
+      "--vary-calibration", city->vary_calibration,
+      "each vehicle declares its own calibration, as in a fleet of several car models:\n"
+      "a 1280-2560 px image with a 50-110 degree field of view and its principal point\n"
+      "up to 3% off centre, the camera 0.5-2.5 m ahead and up to 0.5 m aside, turned up to\n"
+      "5 degrees, the GNSS antenna -0.5 to 2 m ahead and up to 0.5 m aside, a 2.4-3.2 m\n"
+      "wheelbase (uniform draws)");
+  if (needs != nullptr) option->needs(needs);
+}
+
 // A city fleet's traffic and GNSS outages (CityScenarioOptions), in group "Traffic".
 void AddTrafficFlags(CLI::App* command, CityScenarioOptions* city, CLI::Option* needs = nullptr) {
   const std::string traffic = "Traffic";
@@ -377,6 +389,7 @@ void AddCityFlags(CLI::App* command, CityCommand* c) {
                       "each vehicle's own wheel-speed scale error: its encoders report the speed times\n"
                       "1 + X times a Gaussian draw (e.g. 0.02 for 2%)")
       ->type_name("X");
+  AddVaryCalibrationFlag(command, &city);
   AddSensorRateFlags(command, &city);
   command->add_flag_callback("--no-crlb", [&o] { o.crlb = false; },
                              "skip the Cramer-Rao bound of the passages applied (summary.json:\n"
@@ -696,6 +709,7 @@ void AddFleetFlags(CLI::App* command, FleetCommand* c) {
   command->add_option("--route-m", o.city_scenario.route_length_m, "distance driven per passage, m")
       ->needs(city)
       ->type_name("M");
+  AddVaryCalibrationFlag(command, &o.city_scenario, city);
   AddTrafficFlags(command, &o.city_scenario, city);
   command->add_option("--out", c->out,
                       "output folder: passages.csv (one row per sampled map; the last row is the final map),\n"

@@ -68,7 +68,8 @@ absl::Status CityScenarioOptions::Validate() const {
   if (!(max_steering_rad < 1.2)) return Invalid("max_steering_rad", "must be < 1.2");
   // The lane's arcs through turns (see TurnRadiusM: 0.7 and 1.1 road widths) must be drivable at
   // the steering limit, and two of them must fit along the shortest block.
-  const double min_turn_radius_m = calibration.wheelbase_m / std::sin(max_steering_rad);
+  const double wheelbase_m = vary_calibration ? CalibrationSpread().wheelbase_max_m : calibration.wheelbase_m;
+  const double min_turn_radius_m = wheelbase_m / std::sin(max_steering_rad);
   if (!(min_turn_radius_m < 0.7 * road_width_m)) {
     return Invalid("max_steering_rad", absl::StrCat("the tightest turn it allows (", min_turn_radius_m,
                                                     " m radius) is wider than a right turn's lane (",

@@ -70,6 +70,10 @@ struct CityScenarioOptions {
   // Each vehicle's wheel-speed scale error (tyre radius, pressure, wear): its encoders report the
   // speed times 1 + this sigma times a Gaussian draw. 0 = off.
   double vehicle_speed_scale_sigma = 0.0;
+  // Each vehicle declares its own calibration (VariedCalibration): camera, its mount, the GNSS
+  // antenna and the wheelbase differ from one vehicle to the next, as in a fleet of several car
+  // models. false = every vehicle declares `calibration`.
+  bool vary_calibration = false;
   double min_detection_range_m = 5.0;
   double max_detection_range_m = 50.0;
   bool occlusion = true;  // buildings hide the landmarks behind them
@@ -78,6 +82,22 @@ struct CityScenarioOptions {
 
   // InvalidArgument naming the first bad field, e.g. "block_m: ...".
   absl::Status Validate() const;
+};
+
+// The spread of vary_calibration, each figure drawn uniformly per vehicle (in place of
+// `calibration`'s): a 1280-2560 px wide image with a 50-110 degree horizontal field of view, its principal point off
+// centre by up to 3% of the width; the camera 0.5-2.5 m ahead of the rear axle and up to 0.5 m to
+// either side, its axis up to 5 degrees off the vehicle's; the GNSS antenna 0.5 m behind to 2 m
+// ahead of the rear axle and up to 0.5 m to either side; a wheelbase of 2.4-3.2 m.
+struct CalibrationSpread {
+  static constexpr double kRadPerDegree = 3.14159265358979323846 / 180.0;
+  double image_width_min_px = 1280.0, image_width_max_px = 2560.0;
+  double fov_min_rad = 50.0 * kRadPerDegree, fov_max_rad = 110.0 * kRadPerDegree;
+  double principal_point_offset_max = 0.03;  // of the image width
+  double camera_x_min_m = 0.5, camera_x_max_m = 2.5, camera_y_max_m = 0.5;
+  double camera_yaw_max_rad = 5.0 * kRadPerDegree;
+  double antenna_x_min_m = -0.5, antenna_x_max_m = 2.0, antenna_y_max_m = 0.5;
+  double wheelbase_min_m = 2.4, wheelbase_max_m = 3.2;
 };
 
 }  // namespace crowdmap

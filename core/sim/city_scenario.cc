@@ -14,12 +14,30 @@ namespace {
 constexpr uint64_t kVehicleStream = 0x7E41C1Eull;
 constexpr uint64_t kPassageStream = 0xC17Dull;
 constexpr uint64_t kOutageStream = 0x07A6Eull;
+constexpr uint64_t kCalibrationStream = 0xCA11B8ull;
 
 bool HasYawBias(NoiseConfig noise) { return noise == NoiseConfig::kYawBias || noise == NoiseConfig::kGnssAr1YawBias; }
 bool HasGnssAr1(NoiseConfig noise) { return noise == NoiseConfig::kGnssAr1 || noise == NoiseConfig::kGnssAr1YawBias; }
 
 uint64_t PassageSeed(uint64_t seed, int index) {
   return SplitMix64(SplitMix64(seed ^ kPassageStream) ^ static_cast<uint64_t>(index));
+}
+
+// A vehicle's own calibration, drawn from CalibrationSpread on its own stream (the other draws of
+// the vehicle stay what they are without it).
+Calibration VariedCalibration(uint64_t seed, int vehicle_index) {
+  std::mt19937_64 rng(SplitMix64(SplitMix64(seed ^ kCalibrationStream) ^ static_cast<uint64_t>(vehicle_index)));
+  const auto uniform = [&rng](double lo, double hi) { return std::uniform_real_distribution<double>(lo, hi)(rng); };
+  const CalibrationSpread s;
+  Calibration c;
+  c.image_width_px = std::round(uniform(s.image_width_min_px, s.image_width_max_px));
+  c.fx_px = 0.5 * c.image_width_px / std::tan(0.5 * uniform(s.fov_min_rad, s.fov_max_rad));
+  c.cx_px = c.image_width_px * (0.5 + uniform(-s.principal_point_offset_max, s.principal_point_offset_max));
+  c.camera_position_m = {uniform(s.camera_x_min_m, s.camera_x_max_m), uniform(-s.camera_y_max_m, s.camera_y_max_m)};
+  c.camera_yaw_rad = uniform(-s.camera_yaw_max_rad, s.camera_yaw_max_rad);
+  c.gnss_lever_arm_m = {uniform(s.antenna_x_min_m, s.antenna_x_max_m), uniform(-s.antenna_y_max_m, s.antenna_y_max_m)};
+  c.wheelbase_m = uniform(s.wheelbase_min_m, s.wheelbase_max_m);
+  return c;
 }
 
 }  // namespace
@@ -40,7 +58,8 @@ CityVehicle CityScenario::Vehicle(int vehicle_index) const {
   v.odometry_rate_hz = o.odometry_rate_hz * rate_factor(rng);
   v.gnss_rate_hz = o.gnss_rate_hz * rate_factor(rng);
   v.camera_rate_hz = o.camera_rate_hz * rate_factor(rng);
-  v.true_camera = o.calibration;
+  v.calibration = o.vary_calibration ? VariedCalibration(o.seed, vehicle_index) : o.calibration;
+  v.true_camera = v.calibration;
   v.true_camera.camera_yaw_rad += o.vehicle_yaw_bias_sigma_rad * normal(rng);
   if (HasYawBias(o.noise)) v.true_camera.camera_yaw_rad += o.camera_yaw_bias_rad;
   // Drawn last and only when asked for, so that the other draws stay what they were.
@@ -51,10 +70,12 @@ CityVehicle CityScenario::Vehicle(int vehicle_index) const {
 CityDrive CityScenario::TrueDrive(int index) const {
   const CityVehicle vehicle = Vehicle(index % options_.vehicles);
   std::mt19937_64 rng(PassageSeed(options_.seed, index));
+  CityScenarioOptions driven = options_;  // driven with the vehicle's own wheelbase
+  driven.calibration = vehicle.calibration;
   const double cruise_mps = std::uniform_real_distribution<double>(options_.speed_min_mps, options_.speed_max_mps)(rng);
   const int streets_x = static_cast<int>(layout_.street_x_m().size()) -
                         (index < options_.late_from_passage ? options_.late_blocks_x : 0);
-  return DriveRandomRoute(layout_, options_, 1.0 / vehicle.odometry_rate_hz, cruise_mps, &rng, streets_x);
+  return DriveRandomRoute(layout_, driven, 1.0 / vehicle.odometry_rate_hz, cruise_mps, &rng, streets_x);
 }
 
 Passage CityScenario::MakePassage(int index) const { return MakePassageWithTruth(index).first; }
@@ -70,7 +91,7 @@ std::pair<Passage, CityDrive> CityScenario::MakePassageWithTruth(int index) cons
   p.passage_id = absl::StrCat("city-p", index, "-s", o.seed, "-l", o.layout_seed, "-g", o.blocks_x, "x", o.blocks_y,
                               "x", o.block_m, "-r", o.route_length_m, "-", NoiseConfigName(o.noise));
   p.start_time_unix_ms = 1767225600000LL + static_cast<int64_t>(index) * 300000;
-  p.calibration = o.calibration;
+  p.calibration = vehicle.calibration;
   p.noise = o.noise_model;
   p.odometry = SimulateOdometry(drive.inputs, drive.duration_s, o.noise_model, &noise);
   for (OdometrySample& sample : p.odometry) sample.speed_mps *= vehicle.speed_scale;
@@ -81,8 +102,8 @@ std::pair<Passage, CityDrive> CityScenario::MakePassageWithTruth(int index) cons
   gnss.ar1 = HasGnssAr1(o.noise);
   gnss.ar1_alpha = o.gnss_ar1_alpha;
   p.noise.gnss_correlation_time_s = gnss.CorrelationTimeS();  // the passage declares its GNSS process
-  p.gnss = SimulateGnss([&drive](double t) { return drive.PoseAt(t); }, drive.duration_s, frame(), o.calibration,
-                        gnss, &noise);
+  p.gnss = SimulateGnss([&drive](double t) { return drive.PoseAt(t); }, drive.duration_s, frame(),
+                        vehicle.calibration, gnss, &noise);
   // An outage removes fixes after they are drawn: the receiver's error evolves through it, and
   // the other measurements of the passage are those it has without an outage.
   if (o.gnss_outage_probability > 0.0) {

@@ -21,7 +21,8 @@ struct CityVehicle {
   double odometry_rate_hz = 25.0;
   double gnss_rate_hz = 1.0;
   double camera_rate_hz = 2.0;
-  Calibration true_camera;  // the reported calibration plus this vehicle's camera yaw error
+  Calibration calibration;  // what its passages declare (CityScenarioOptions::vary_calibration)
+  Calibration true_camera;  // `calibration` plus this vehicle's camera yaw error
   double speed_scale = 1.0;  // its encoders report the true speed times this
 };
 

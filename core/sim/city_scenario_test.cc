@@ -8,9 +8,11 @@
 #include <string>
 #include <vector>
 
+#include <Eigen/Geometry>
 #include <gtest/gtest.h>
 
 #include "core/model/motion_model.h"
+#include "core/sim/sensor_simulation.h"
 
 namespace crowdmap {
 namespace {
@@ -277,6 +279,74 @@ TEST(CityScenario, EachVehiclesEncodersReportTheSpeedTimesItsOwnScale) {
   }
   EXPECT_NE(scales[0], scales[1]);
   for (double scale : scales) EXPECT_NEAR(scale, 1.0, 0.1);
+}
+
+// A fleet of several car models: each vehicle declares its own calibration, within the spread,
+// and its passages are simulated with it: driven with its wheelbase, fixed at its antenna, seen
+// through its camera. Its other draws (the sensor rates) stay what they are without it.
+TEST(CityScenario, EachVehicleDeclaresItsOwnCalibrationAndIsSimulatedWithIt) {
+  CityScenarioOptions options = Small();
+  options.rate_variation = 0.2;
+  options.gnss_sigma_m = 1e-9;  // noise-free sensors: the passage must follow from the truth alone
+  options.noise_model.speed_sigma_mps = 0.0;
+  options.noise_model.steering_sigma_rad = 0.0;
+  options.noise_model.pixel_sigma_px = 0.0;
+  const CityScenario same = Make(options);
+  options.vary_calibration = true;
+  const CityScenario varied = Make(options);
+  const CalibrationSpread spread;
+  std::vector<Calibration> declared;
+  for (int v = 0; v < options.vehicles; ++v) {
+    const CityVehicle vehicle = varied.Vehicle(v);
+    const Calibration& c = vehicle.calibration;
+    EXPECT_EQ(vehicle.camera_rate_hz, same.Vehicle(v).camera_rate_hz) << v;
+    EXPECT_EQ(vehicle.gnss_rate_hz, same.Vehicle(v).gnss_rate_hz) << v;
+    EXPECT_EQ(same.Vehicle(v).calibration.fx_px, options.calibration.fx_px) << v;
+    EXPECT_GE(c.image_width_px, spread.image_width_min_px) << v;
+    EXPECT_LE(c.image_width_px, spread.image_width_max_px) << v;
+    const double fov_rad = 2.0 * std::atan(0.5 * c.image_width_px / c.fx_px);
+    EXPECT_GE(fov_rad, spread.fov_min_rad - 1e-9) << v;
+    EXPECT_LE(fov_rad, spread.fov_max_rad + 1e-9) << v;
+    EXPECT_LE(std::abs(c.cx_px / c.image_width_px - 0.5), spread.principal_point_offset_max) << v;
+    EXPECT_LE(std::abs(c.camera_yaw_rad), spread.camera_yaw_max_rad) << v;
+    EXPECT_GE(c.wheelbase_m, spread.wheelbase_min_m) << v;
+    EXPECT_LE(c.wheelbase_m, spread.wheelbase_max_m) << v;
+    EXPECT_EQ(vehicle.true_camera.camera_yaw_rad, c.camera_yaw_rad) << v << ": no yaw error asked for";
+    declared.push_back(c);
+  }
+  EXPECT_NE(declared[0].fx_px, declared[1].fx_px);
+  EXPECT_NE(declared[0].wheelbase_m, declared[1].wheelbase_m);
+
+  for (int i = 0; i < 2 * options.vehicles; ++i) {
+    const auto [passage, drive] = varied.MakePassageWithTruth(i);
+    const Calibration& c = declared[i % options.vehicles];
+    ASSERT_EQ(passage.calibration.fx_px, c.fx_px) << i;
+    ASSERT_EQ(passage.calibration.gnss_lever_arm_m, c.gnss_lever_arm_m) << i;
+    // Driven with its own wheelbase: dead reckoning with the declared one retraces the truth.
+    Pose2 pose = drive.poses.front();
+    double worst_m = 0.0;
+    for (size_t j = 0; j + 1 < passage.odometry.size(); ++j) {
+      const OdometrySample& o = passage.odometry[j];
+      pose = BicycleStep(pose, o.speed_mps, o.steering_rad, passage.odometry[j + 1].t_s - o.t_s, c.wheelbase_m);
+      worst_m = std::max(worst_m, (pose.head<2>() - drive.poses[j + 1].head<2>()).norm());
+    }
+    EXPECT_LT(worst_m, 1e-6) << i;
+    // Fixed at its antenna.
+    for (const GnssFix& fix : passage.gnss) {
+      const Pose2 truth = drive.PoseAt(fix.t_s);
+      const Eigen::Vector2d antenna = truth.head<2>() + Eigen::Rotation2Dd(truth.z()) * c.gnss_lever_arm_m;
+      ASSERT_LT((varied.frame().ToLocal(LatLon{fix.lat_deg, fix.lon_deg}) - antenna).norm(), 1e-3) << i;
+    }
+    // Seen through its camera: each detection is the true pixel of that camera.
+    ASSERT_FALSE(passage.detections.empty()) << i;
+    for (const Detection& d : passage.detections) {
+      double u = 0.0;
+      ASSERT_TRUE(TruePixel(drive.PoseAt(d.t_s), varied.landmarks()[d.landmark_id - 1].position_m, c,
+                            options.min_detection_range_m, options.max_detection_range_m, &u))
+          << i;
+      ASSERT_NEAR(d.u_px, u, 1e-9) << i;
+    }
+  }
 }
 
 TEST(CityScenario, ALateDistrictIsDrivenOnlyFromItsFirstPassageOn) {
