@@ -178,6 +178,10 @@ std::unique_ptr<CLI::App> NewMapdCommandLine(MapdConfig* config) {
   AddMapdSetting(app, "max-new-landmark-ray-sigma-m", &u.max_new_landmark_ray_sigma_m,
                  "a new landmark is created only when its own rays fix it to X metres")
       ->type_name("X");
+  AddMapdSetting(app, "max-new-landmark-bias-sigmas", &u.max_new_landmark_bias_sigmas,
+                 "...and when the second-order bias correction moves it by at most X of its sigmas (0 = no\n"
+                 "such test)")
+      ->type_name("X");
   AddMapdSetting(app, "max-chi2-per-dof", &u.max_chi2_per_dof,
                  "refuse a passage when a subgraph's solve leaves chi2 above X per degree of freedom (0 =\n"
                  "never; see README)")
@@ -283,7 +287,8 @@ std::string DescribeMapdConfig(const MapdConfig& config) {
       " max-detection-residual-sigmas=", u.max_detection_residual_sigmas,
       " max-landmark-shift-sigmas=", std::sqrt(u.max_landmark_shift_mahalanobis2),
       " max-update-shift-sigmas=", std::sqrt(u.max_update_shift_mahalanobis2),
-      " max-new-landmark-ray-sigma-m=", u.max_new_landmark_ray_sigma_m, " max-chi2-per-dof=", u.max_chi2_per_dof,
+      " max-new-landmark-ray-sigma-m=", u.max_new_landmark_ray_sigma_m,
+      " max-new-landmark-bias-sigmas=", u.max_new_landmark_bias_sigmas, " max-chi2-per-dof=", u.max_chi2_per_dof,
       " estimate-camera-yaw=", u.estimate_camera_yaw ? "true" : "false",
       " fleet-yaw-prior-vehicles=", u.fleet_camera_yaw_prior_vehicles,
       " speed-scale-prior-sigma=", u.speed_scale_prior_sigma,

@@ -163,7 +163,7 @@ TEST(MapdConfig, VersionFlagIsRecognised) {
 
 TEST(MapdConfig, ReadsTheTrustRules) {
   auto c = ParseWithEnvironment({"--max-detection-residual-sigmas", "4", "--max-landmark-shift-sigmas=6",
-                                 "--max-new-landmark-ray-sigma-m", "2.5"},
+                                 "--max-new-landmark-ray-sigma-m", "2.5", "--max-new-landmark-bias-sigmas", "2"},
                                 {{"MAPD_MAX_CHI2_PER_DOF", "8"}, {"MAPD_MAX_UPDATE_SHIFT_SIGMAS", "4"}});
   ASSERT_TRUE(c.ok()) << c.status();
   const MapUpdateOptions& u = c->server.worker.update;
@@ -176,6 +176,8 @@ TEST(MapdConfig, ReadsTheTrustRules) {
   EXPECT_NE(negative_sigmas.status().message().find("max-update-shift-sigmas"), std::string::npos)
       << negative_sigmas.status();
   EXPECT_EQ(u.max_new_landmark_ray_sigma_m, 2.5);
+  EXPECT_EQ(u.max_new_landmark_bias_sigmas, 2.0);
+  EXPECT_EQ(MapUpdateOptions().max_new_landmark_bias_sigmas, 1.0);
   EXPECT_EQ(u.max_chi2_per_dof, 8.0);
   auto bad = ParseWithEnvironment({"--max-detection-residual-sigmas", "many"}, {});
   ASSERT_FALSE(bad.ok());
@@ -183,6 +185,10 @@ TEST(MapdConfig, ReadsTheTrustRules) {
   auto negative = ParseWithEnvironment({"--max-new-landmark-ray-sigma-m", "-1"}, {});
   ASSERT_FALSE(negative.ok());
   EXPECT_NE(negative.status().message().find("max_new_landmark_ray_sigma_m"), std::string::npos) << negative.status();
+  auto negative_bias = ParseWithEnvironment({"--max-new-landmark-bias-sigmas", "-1"}, {});
+  ASSERT_FALSE(negative_bias.ok());
+  EXPECT_NE(negative_bias.status().message().find("max_new_landmark_bias_sigmas"), std::string::npos)
+      << negative_bias.status();
 }
 
 TEST(MapdConfig, CreateMetricsAndLogFormatAreOffOrTextByDefaultAndSettable) {

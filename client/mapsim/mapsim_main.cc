@@ -112,7 +112,8 @@ void ScaleNoise(const NoiseScales& scales, ScenarioOptions* scenario) {
 // --warmup-passages, --relinearize-until-passages, --window-hops, --retain-passages,
 // --relinearize-sigmas and --relinearizations-per-passage, --max-subgraph-dim, --estimate-camera-yaw,
 // --fleet-yaw-prior-vehicles,
-// --max-landmark-shift-sigmas, --max-chi2-per-dof and --max-update-shift-sigmas (experiment and
+// --max-landmark-shift-sigmas, --max-chi2-per-dof, --max-update-shift-sigmas and
+// --max-new-landmark-bias-sigmas (experiment and
 // city).
 void AddMapUpdateFlags(CLI::App* command, MapUpdateOptions* update) {
   command->add_option("--window-hops", update->window_hops,
@@ -190,6 +191,11 @@ void AddMapUpdateFlags(CLI::App* command, MapUpdateOptions* update) {
   command->add_option("--max-chi2-per-dof", update->max_chi2_per_dof,
                       "refuse a passage when a solve leaves chi2 above X per degree of freedom before any\n"
                       "inflation, 0 = never")
+      ->type_name("X");
+  command->add_option("--max-new-landmark-bias-sigmas", update->max_new_landmark_bias_sigmas,
+                      "a new landmark whose second-order bias correction moves it by more than X of its sigmas\n"
+                      "is held back, as mapd's flag of that name (0 = no such test)")
+      ->check(NonNegative())
       ->type_name("X");
 }
 

@@ -70,6 +70,12 @@ struct MapUpdateOptions {
   // deviation (m) in every direction. Otherwise its detections are set aside for the passage and
   // the subgraph is solved again without them; a later passage with better geometry creates it.
   double max_new_landmark_ray_sigma_m = 3.0;
+  // ...and if the solution's second-order bias correction (bias_correction) moves it by at most
+  // this many of its sigmas: a larger correction shows a landmark the update's Gaussian does not
+  // describe (a city passage's new landmark 12.8 m off with a 22.8 m sigma, corrected by 28.5 m,
+  // then held 43 m off with a 2.4 m sigma; docs/results.md, "A fleet of several car models").
+  // 0 = no such test.
+  double max_new_landmark_bias_sigmas = 1.0;
   // MapUpdater keeps the factors of the map's last this-many passages apart (they can be
   // excluded: ComputePassageExclusion) and folds those of older passages into the map's base with
   // the next update (MapDelta::folded_factors), so that the map's size grows with the road, not

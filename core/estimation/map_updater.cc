@@ -104,6 +104,28 @@ std::vector<LandmarkId> LandmarksToSetAside(const LandmarkUpdate& update, const 
   return unfit;
 }
 
+// The new landmarks whose second-order bias correction moved them further from the solution
+// (`solved`, in update order) than options.max_new_landmark_bias_sigmas of their sigmas: where the
+// correction is larger than the uncertainty, the Gaussian the update would take in is not the
+// landmark's (rays that barely cross, linearised at a point metres off along them), and the map
+// would hold it with a covariance that does not show it. Held back as WellDeterminedNewLandmark's
+// are; a later passage creates them.
+std::vector<LandmarkId> NewLandmarksBentByTheirBias(const LandmarkUpdate& update,
+                                                    const std::vector<Eigen::Vector2d>& solved,
+                                                    const GraphLinearization& linearization,
+                                                    const MapUpdateOptions& options) {
+  std::vector<LandmarkId> unfit;
+  if (!options.bias_correction || options.max_new_landmark_bias_sigmas <= 0.0) return unfit;
+  const double limit2 = options.max_new_landmark_bias_sigmas * options.max_new_landmark_bias_sigmas;
+  for (int i = 0; i < update.size(); ++i) {
+    if (update.in_map(i)) continue;
+    const Eigen::Vector2d shift = update.position(i) - solved[i];
+    const Eigen::Matrix2d cov = linearization.landmark_covariance().block<2, 2>(2 * i, 2 * i);
+    if (shift.dot(cov.ldlt().solve(shift)) > limit2) unfit.push_back(update.id(i));
+  }
+  return unfit;
+}
+
 // Builds, solves and commits one subgraph. No map change if it sees no landmark. When the solve
 // shows outlier detections or landmarks unfit for the map, commits nothing and returns them (the
 // caller sets them aside and calls again).
@@ -223,9 +245,16 @@ absl::StatusOr<SetAsideRequest> UpdateFromSubgraph(const Passage& passage, const
   // record's update keep it (GraphLinearization's factor_covariance and factor_gradient).
   std::vector<ceres::ResidualBlockId> factor_leaves_out;
   if (yaw_prior != nullptr) factor_leaves_out.push_back(yaw_prior);
+  std::vector<Eigen::Vector2d> solved(update.size());
+  for (int i = 0; i < update.size(); ++i) solved[i] = update.position(i);
   absl::StatusOr<GraphLinearization> linearization =
       LinearizeSolution(&problem, landmark_blocks, options, summary, factor_leaves_out);
   if (!linearization.ok()) return linearization.status();
+  if (std::vector<LandmarkId> unfit = NewLandmarksBentByTheirBias(update, solved, *linearization, options);
+      !unfit.empty()) {
+    summary->landmarks_held_back += static_cast<int>(unfit.size());
+    return SetAsideRequest{std::move(unfit), {}};
+  }
   // The yaw state is eliminated with the poses in the landmarks' covariance; its own marginal, at
   // the bias-corrected solution, updates the vehicle's record.
   if (options.estimate_camera_yaw) {
@@ -336,6 +365,10 @@ absl::Status MapUpdateOptions::Validate() const {
   if (!(max_new_landmark_ray_sigma_m > 0.0)) {
     return absl::InvalidArgumentError(
         absl::StrCat("max_new_landmark_ray_sigma_m: must be > 0, got ", max_new_landmark_ray_sigma_m));
+  }
+  if (!(max_new_landmark_bias_sigmas >= 0.0)) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("max_new_landmark_bias_sigmas: must be >= 0 (0 = no test), got ", max_new_landmark_bias_sigmas));
   }
   const int joint = JointSolvePassages(*this) + 1;
   if (retain_passages < 0 || (retain_passages > 0 && retain_passages < joint)) {

@@ -48,6 +48,9 @@ TEST(MapUpdateOptions, RejectsOutOfRangeValuesNamingTheField) {
   options.min_new_landmark_detections = 2;
   EXPECT_TRUE(options.Validate().ok()) << options.Validate();
   options = MapUpdateOptions();
+  options.max_new_landmark_bias_sigmas = -1.0;
+  EXPECT_NE(options.Validate().message().find("max_new_landmark_bias_sigmas"), std::string::npos);
+  options = MapUpdateOptions();
   options.edge_margin_sigmas = -1.0;
   EXPECT_NE(options.Validate().message().find("edge_margin_sigmas"), std::string::npos);
   options = MapUpdateOptions();
@@ -183,6 +186,36 @@ TEST(ComputePassageUpdate, BoundedWindowStaysConservative) {
     }
     EXPECT_GT(less_confident, 0) << "the windows lost some information";
   }
+}
+
+// The second-order bias correction of a well-conditioned passage moves its new landmarks by a
+// small part of their sigmas: the default bound (1 sigma) holds none back, and the map is the one
+// without the test. A bound below every correction holds them all back: the first passage of a
+// map then has nothing it could estimate, and is refused as one whose rays pin nothing down.
+TEST(ComputePassageUpdate, NewLandmarksTheBiasCorrectionMovesBeyondTheirSigmaAreHeldBack) {
+  const Scenario scenario = MakeScenario(10);
+  const Passage passage = scenario.MakePassage(0);
+  const MapState empty;
+  MapUpdateOptions options;
+  options.max_new_landmark_bias_sigmas = 0.0;
+  absl::StatusOr<PassageUpdate> untested = ComputePassageUpdate(passage, options, empty);
+  ASSERT_TRUE(untested.ok()) << untested.status();
+  ASSERT_GT(untested->summary.landmarks_created, 0);
+  ASSERT_GT(untested->summary.max_bias_correction_m, 0.0);
+  absl::StatusOr<PassageUpdate> by_default = ComputePassageUpdate(passage, MapUpdateOptions(), empty);
+  ASSERT_TRUE(by_default.ok()) << by_default.status();
+  EXPECT_EQ(by_default->summary.landmarks_created, untested->summary.landmarks_created);
+  EXPECT_EQ(by_default->summary.landmarks_held_back, untested->summary.landmarks_held_back);
+  for (const auto& [id, record] : untested->delta.landmarks) {
+    ASSERT_EQ(by_default->delta.landmarks.count(id), 1u) << id;
+    EXPECT_EQ(by_default->delta.landmarks.at(id).position.lat_deg, record.position.lat_deg) << id;
+  }
+  options.max_new_landmark_bias_sigmas = 1e-9;
+  absl::StatusOr<PassageUpdate> strict = ComputePassageUpdate(passage, options, empty);
+  ASSERT_FALSE(strict.ok());
+  EXPECT_EQ(strict.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_NE(strict.status().message().find("no landmark of the passage could be estimated"), std::string::npos)
+      << strict.status();
 }
 
 TEST(ComputePassageUpdate, NewLandmarksNeedRaysSpanningTheMinimumParallax) {
