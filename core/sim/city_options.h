@@ -85,10 +85,11 @@ struct CityScenarioOptions {
 };
 
 // The spread of vary_calibration, each figure drawn uniformly per vehicle (in place of
-// `calibration`'s): a 1280-2560 px wide image with a 50-110 degree horizontal field of view, its principal point off
-// centre by up to 3% of the width; the camera 0.5-2.5 m ahead of the rear axle and up to 0.5 m to
-// either side, its axis up to 5 degrees off the vehicle's; the GNSS antenna 0.5 m behind to 2 m
-// ahead of the rear axle and up to 0.5 m to either side; a wheelbase of 2.4-3.2 m.
+// `calibration`'s): a 1280-2560 px wide image with a 50-110 degree horizontal field of view, its
+// principal point off centre by up to 3% of the width; the camera 0.5-2.5 m ahead of the rear axle
+// and up to 0.5 m to either side, its axis up to 5 degrees off the vehicle's; the GNSS antenna
+// 0.5 m behind to 2 m ahead of the rear axle and up to 0.5 m to either side; a wheelbase of
+// 2.4-3.2 m.
 struct CalibrationSpread {
   static constexpr double kRadPerDegree = 3.14159265358979323846 / 180.0;
   double image_width_min_px = 1280.0, image_width_max_px = 2560.0;
