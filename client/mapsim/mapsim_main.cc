@@ -736,15 +736,19 @@ absl::Status RunFleetCommand(FleetCommand& c) {
   options.sample_interval = std::chrono::milliseconds(c.sample_ms);
   options.replay = !c.no_replay && !options.city;
   if (absl::Status s = options.Validate(); !s.ok()) return AsUsageError(s);
+  std::string shown;  // the progress line on screen: written again only when it changes
   auto progress = [&](const FleetProgress& p) {
     if (c.quiet) return;
     // A joint solve holds the count for seconds: say so, so that the pause does not look like a hang.
     const std::string joint =
         p.joint_solve_of > 0 ? absl::StrFormat("  (server: joint solve of %d passages)", p.joint_solve_of) : "";
-    std::cerr << absl::StrFormat("\ruploaded %d/%d  applied %d/%d  error %s%s   ", p.uploaded, p.total, p.applied,
-                                 p.total, p.mean_dist_err_m < 0 ? std::string("-") : absl::StrFormat("%.3f m", p.mean_dist_err_m),
-                                 joint)
-              << std::flush;
+    std::string line = absl::StrFormat("\ruploaded %d/%d  applied %d/%d  error %s%s   ", p.uploaded, p.total, p.applied,
+                                       p.total,
+                                       p.mean_dist_err_m < 0 ? std::string("-") : absl::StrFormat("%.3f m", p.mean_dist_err_m),
+                                       joint);
+    if (line == shown) return;
+    std::cerr << line << std::flush;
+    shown = std::move(line);
   };
   absl::StatusOr<FleetResult> result = RunFleet(options, progress);
   if (!c.quiet) std::cerr << "\n";
