@@ -1,6 +1,5 @@
 #include "client/api/map_client.h"
 
-
 #include <Eigen/Cholesky>
 
 #include <algorithm>

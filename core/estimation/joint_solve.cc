@@ -214,7 +214,10 @@ absl::StatusOr<PassageUpdate> SolveJointly(const std::vector<Passage>& passages,
   }
   // With the camera yaw estimated: one offset per passage, each with the prior of a new vehicle
   // (the vehicles' stored estimates already hold these passages, so taking them as priors here
-  // would count the passages twice). Per passage, the passages' factors stay independent.
+  // would count the passages twice). Per passage, the passages' factors stay independent. Unlike a
+  // sequential update's, each factor keeps its prior: a young map has nothing else that fixes the
+  // passages' yaws, and factors without it were taken at points their own information did not
+  // support (docs/results.md, "The vehicle's record left out of the map's factors").
   std::vector<double> yaw_offset_rad(count, 0.0);
   // With the wheel-speed scale estimated: one scale per passage, each with the fixed prior.
   std::vector<double> speed_scale(count, 1.0);

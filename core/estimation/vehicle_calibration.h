@@ -35,7 +35,8 @@ VehicleCalibration NewVehicleCalibration(const std::string& vehicle_id, double p
 // in every new record, and narrow itself further with each generation (measured: over-confident
 // maps under AR(1) GNSS noise). When every vehicle's camera has the same error (a fleet of one
 // model and mount), a new vehicle then starts from that error instead of 0, and its record comes
-// closer to it. (The map's factors leave a passage's yaw prior out, so no prior steers the map.)
+// closer to it. (A sequential update's factor leaves the passage's yaw prior out, so this prior
+// does not steer the map; the young map's joint solves keep the fixed prior, see joint_solve.cc.)
 std::optional<VehicleCalibration> FleetCameraYawPrior(const std::vector<VehicleCalibration>& fleet,
                                                       const std::string& vehicle_id, int min_vehicles,
                                                       double min_sigma_rad);

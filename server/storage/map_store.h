@@ -96,8 +96,6 @@ struct PassageQuery {
   std::string vehicle_id;  // empty = any
 };
 
-// Ordered key of a landmark pair (first < second).
-
 struct LandmarkPage {
   std::vector<Landmark> landmarks;            // increasing id
   // On request, the joint covariance of `landmarks`, recovered from the map's information:
