@@ -37,11 +37,11 @@ PACKAGES=(
   libopenblas0-pthread
 )
 # Only for the tests: GoogleTest, Google Benchmark, the map viewer's browser test (headless
-# chromium through chromedriver and selenium) and the Python client example's gRPC runtime.
+# chromium through chromedriver and selenium) and the Python client examples' gRPC runtime and numpy.
 TEST_PACKAGES=(
   libgtest-dev libgmock-dev libbenchmark-dev
   chromium chromium-driver python3-selenium
-  python3-grpcio python3-protobuf
+  python3-grpcio python3-protobuf python3-numpy
 )
 if ((TESTS)); then PACKAGES+=("${TEST_PACKAGES[@]}"); fi
 

@@ -7,6 +7,7 @@ Usage: packaging_test.py --build BUILD_DIR --source SOURCE_DIR"""
 import argparse
 import glob
 import json
+import math
 import os
 import re
 import shutil
@@ -78,6 +79,11 @@ def main():
         env = dict(os.environ, PYTHONPATH=stubs)
         got_py = run(["/usr/bin/python3", os.path.join(args.source, "examples/python/map_info.py"), server],
                      env=env).strip()
+        # The packed covariance example, on a box holding every landmark: its sigmas are the
+        # marginals mapctl reads (printed to the millimetre).
+        first = region["landmarks"][0]
+        covariance_lines = run(["/usr/bin/python3", os.path.join(args.source, "examples/python/region_covariance.py"),
+                                server, str(first["lat_deg"]), str(first["lon_deg"]), "20000"], env=env).splitlines()
     finally:
         mapd.send_signal(signal.SIGTERM)
         mapd.wait(timeout=30)
@@ -87,6 +93,14 @@ def main():
         ok = got == expected and int(info["landmark_count"]) > 0
         failures += not ok
         print(("ok   " if ok else "FAIL ") + f"{name}: '{got}', mapctl: '{expected}'")
+    sigma_east = {int(l["id"]): math.sqrt(l["cov_en_m2"]["ee"]) for l in region["landmarks"]}
+    printed = {int(line.split()[0]): float(re.search(r"sigma_east_m=([0-9.]+)", line).group(1))
+               for line in covariance_lines[1:]}
+    ok = (covariance_lines[0].endswith(f"landmarks={len(sigma_east)}") and printed.keys() == sigma_east.keys()
+          and all(abs(printed[i] - sigma_east[i]) <= 0.0015 for i in printed))
+    failures += not ok
+    print(("ok   " if ok else "FAIL ") + f"Python packed covariance: '{covariance_lines[0]}', "
+          f"{len(printed)} landmarks' sigmas against mapctl's")
     if failures:
         print(f"work folder kept: {work}")
         return 1
