@@ -25,9 +25,13 @@ namespace {
 // The joint solve of `passages`. The map without their factors is its prior: nothing in a young
 // map whose every factor is theirs (ComputeBatchUpdate, which gives `single`, the sequential update
 // of the last passage on `map`, a map that holds the others), the rest of the map around them when
-// they were all applied before (`single` null: ComputeAreaRelinearization).
+// they were all applied before (`single` null: ComputeAreaRelinearization). The landmarks of
+// `held_back` are left out, their detections set aside. A young map's landmark that the
+// passages' rays do not pin down at the joint solution fails the solve and is added to
+// `*unpinned` (ComputeBatchUpdate solves again without it).
 absl::StatusOr<PassageUpdate> SolveJointly(const std::vector<Passage>& passages, const MapUpdateOptions& options,
-                                           const MapReaderInterface& map, const PassageUpdate* single) {
+                                           const MapReaderInterface& map, const PassageUpdate* single,
+                                           const std::set<LandmarkId>& held_back, std::vector<LandmarkId>* unpinned) {
   const bool area = single == nullptr;
   const auto start = std::chrono::steady_clock::now();
   const int count = static_cast<int>(passages.size());
@@ -65,7 +69,7 @@ absl::StatusOr<PassageUpdate> SolveJointly(const std::vector<Passage>& passages,
   std::map<LandmarkId, Eigen::Vector2d> initial;
   for (int p = 0; p < count; ++p) {
     for (const CameraObservation& d : graphs[p].detections) {
-      if (initial.count(d.landmark_id)) continue;
+      if (initial.count(d.landmark_id) || held_back.count(d.landmark_id)) continue;
       if (const Landmark* known = guess.FindLandmark(d.landmark_id)) initial[d.landmark_id] = frame.ToLocal(known->position);
     }
   }
@@ -152,7 +156,7 @@ absl::StatusOr<PassageUpdate> SolveJointly(const std::vector<Passage>& passages,
   for (const auto& [id, n] : seen_by) ids.push_back(id);
 
   for (const auto& [id, passage_id] : touched) {
-    if (!seen_by.count(id)) {
+    if (!seen_by.count(id) && !(held_back.count(id) && !informed(id))) {
       return absl::FailedPreconditionError(absl::StrCat("landmark ", id, ": passage ", passage_id,
                                                         " informs it, but the joint solve could not use its "
                                                         "detections of it"));
@@ -322,24 +326,28 @@ absl::StatusOr<PassageUpdate> SolveJointly(const std::vector<Passage>& passages,
   summary.final_cost = solver_summary.final_cost;
   // A landmark only these passages informed re-enters the map as a new one would: the rays of one
   // of them must pin it down at the joint solution (WellDeterminedNewLandmark). Rays that barely
-  // cross let the solve slide it far along them, and the map would hold it there.
-  if (area) {
-    for (LandmarkId id : removed) {
-      bool pinned = false;
-      for (int p = 0; p < count && !pinned; ++p) {
-        const auto it = std::find(seen[p].ids.begin(), seen[p].ids.end(), id);
-        if (it == seen[p].ids.end()) continue;
-        const RayGeometry geometry = NewLandmarkGeometry(
-            poses[p], 0, seen[p].detections[it - seen[p].ids.begin()], landmarks.position(index_of.at(id)),
-            passages[p].calibration, passages[p].noise.pixel_sigma_px);
-        pinned = WellDeterminedNewLandmark(geometry, options);
-      }
-      if (!pinned) {
-        return absl::FailedPreconditionError(absl::StrFormat(
-            "landmark %d: only the %d passages inform it, and none of their rays pins it down as a new landmark's must",
-            id, count));
-      }
+  // cross let the solve slide it far along them, and the map would hold it there. In a young map
+  // that is every landmark: a joint solve of its first 4 passages, each of which fitted its
+  // measurements, moved one 611 m along its rays from where the sequential updates had it (a
+  // fleet of varied lenses, docs/results.md, "Joint solves held to the creation rules").
+  for (int i = 0; i < landmarks.size(); ++i) {
+    if (landmarks.in_map(i)) continue;  // the rest of the map holds it
+    const LandmarkId id = landmarks.id(i);
+    bool pinned = false;
+    for (int p = 0; p < count && !pinned; ++p) {
+      const auto it = std::find(seen[p].ids.begin(), seen[p].ids.end(), id);
+      if (it == seen[p].ids.end()) continue;
+      const RayGeometry geometry = NewLandmarkGeometry(
+          poses[p], 0, seen[p].detections[it - seen[p].ids.begin()], landmarks.position(index_of.at(id)),
+          passages[p].calibration, passages[p].noise.pixel_sigma_px);
+      pinned = WellDeterminedNewLandmark(geometry, options);
     }
+    if (!pinned) unpinned->push_back(id);
+  }
+  if (!unpinned->empty()) {
+    return absl::FailedPreconditionError(absl::StrFormat(
+        "landmark %d: only the %d passages inform it, and none of their rays pins it down as a new landmark's must",
+        unpinned->front(), count));
   }
   const int dof = problem.NumResiduals() - problem.NumParameters();
   if (options.max_chi2_per_dof > 0.0 && dof > 0 && 2.0 * solver_summary.final_cost > options.max_chi2_per_dof * dof) {
@@ -507,7 +515,22 @@ absl::StatusOr<PassageUpdate> ComputeBatchUpdate(const std::vector<Passage>& pas
   if (passages.front().gnss.empty()) return absl::InvalidArgumentError("gnss: passage needs at least 2 GNSS fixes");
   absl::StatusOr<PassageUpdate> single = ComputePassageUpdate(passages.back(), options, map);
   if (!single.ok()) return single.status();
-  absl::StatusOr<PassageUpdate> joint = SolveJointly(passages, options, map, &*single);
+  // Landmarks the joint solution leaves unpinned are held back and the passages solved again
+  // without them, as a sequential update holds back its new landmarks (a few rounds: each can
+  // leave others unpinned).
+  constexpr int kHoldBackRounds = 3;
+  std::set<LandmarkId> held_back;
+  std::vector<LandmarkId> unpinned;
+  absl::StatusOr<PassageUpdate> joint = SolveJointly(passages, options, map, &*single, held_back, &unpinned);
+  for (int round = 1; !joint.ok() && !unpinned.empty() && round < kHoldBackRounds; ++round) {
+    spdlog::info("joint solve of {} passages: {} landmark(s) the passages' rays do not pin down (first {}) held back, "
+                 "solved again",
+                 passages.size(), unpinned.size(), unpinned.front());
+    held_back.insert(unpinned.begin(), unpinned.end());
+    unpinned.clear();
+    joint = SolveJointly(passages, options, map, &*single, held_back, &unpinned);
+  }
+  if (joint.ok()) joint->summary.landmarks_held_back = static_cast<int>(held_back.size());
   std::string rejected = joint.ok() ? JointSolutionRejected(map, single->delta, *joint, options.max_joint_mahalanobis2)
                                     : std::string(joint.status().message());
   if (joint.ok() && !rejected.empty() && FitsEveryPassage(*joint, options)) {
@@ -538,7 +561,8 @@ absl::StatusOr<PassageUpdate> ComputeAreaRelinearization(const std::vector<Passa
   for (const Passage& passage : passages) {
     if (passage.gnss.empty()) return absl::InvalidArgumentError("gnss: passage needs at least 2 GNSS fixes");
   }
-  absl::StatusOr<PassageUpdate> joint = SolveJointly(passages, options, map, nullptr);
+  std::vector<LandmarkId> unpinned;
+  absl::StatusOr<PassageUpdate> joint = SolveJointly(passages, options, map, nullptr, {}, &unpinned);
   if (!joint.ok()) return joint.status();
   if (const std::string rejected = JointSolutionRejected(map, MapDelta(), *joint, options.max_joint_mahalanobis2);
       !rejected.empty()) {

@@ -713,16 +713,22 @@ TEST(MapUpdater, JointSolvesOfAYoungCityMapPlaceNoLandmarkFarOff) {
   EXPECT_LT(worst, 30.0);
 }
 
+// The default city driven on routes of 1 km, its layout and fleet drawn from `seed`.
+CityScenarioOptions OneKilometreRoutes(uint64_t seed, NoiseConfig noise) {
+  CityScenarioOptions city;
+  city.route_length_m = 1000.0;
+  city.seed = seed;
+  city.layout_seed = seed;
+  city.noise = noise;
+  return city;
+}
+
 // Two nearly parallel rays fit a landmark anywhere along them. The joint solve of this young map's
 // first two passages (AR(1) GNSS) moved one 98 km along its rays, fitting every passage's
 // measurements, and the guard took it on that ground: after 60 passages the map's mean error was
 // 98.9 m. A joint solution that leaves a landmark undetermined is not taken.
 TEST(MapUpdater, AJointSolveThatLeavesALandmarkUndeterminedIsNotTaken) {
-  CityScenarioOptions city;
-  city.route_length_m = 1000.0;
-  city.seed = 2;
-  city.layout_seed = 2;
-  city.noise = NoiseConfig::kGnssAr1;
+  const CityScenarioOptions city = OneKilometreRoutes(2, NoiseConfig::kGnssAr1);
   absl::StatusOr<CityScenario> scenario = CityScenario::Create(city);
   ASSERT_TRUE(scenario.ok()) << scenario.status();
   const MapState map = ApplyCityPassagesThroughUpdater(city, 2, MapUpdateOptions{});
@@ -732,6 +738,27 @@ TEST(MapUpdater, AJointSolveThatLeavesALandmarkUndeterminedIsNotTaken) {
   map.ForEachLandmark([](const Landmark& l) {
     EXPECT_LT(std::sqrt(l.cov_en_m2.trace()), 150.0) << l.id;
   });
+}
+
+// A fleet of several car models, AR(1) GNSS: the joint solve of the young map's first 8 passages
+// fitted every passage's measurements but slid landmark 687 264 m along its rays from the
+// sequential estimate, where no passage's rays pin it down, and the guard took it on that ground
+// (after 60 passages it was still 18 m off; here worst 252.7 m after 8). Such a landmark is held
+// back and the passages solved again without it; here each of three rounds leaves another one
+// unpinned and the sequential update is kept (worst 20.4 m).
+TEST(MapUpdater, AJointSolveHoldsBackLandmarksItsRaysDoNotPinDown) {
+  CityScenarioOptions city = OneKilometreRoutes(8, NoiseConfig::kGnssAr1);
+  city.vary_calibration = true;
+  city.vehicle_yaw_bias_sigma_rad = 0.0087;
+  city.rate_variation = 0.2;
+  absl::StatusOr<CityScenario> scenario = CityScenario::Create(city);
+  ASSERT_TRUE(scenario.ok()) << scenario.status();
+  MapUpdateOptions options;
+  options.estimate_camera_yaw = true;
+  const MapState map = ApplyCityPassagesThroughUpdater(city, 8, options);
+  const auto [mean, worst] = MeanAndWorstError(*scenario, map);
+  std::printf("varied fleet, AR(1) city, 8 passages: mean error %.3f m, worst %.2f m\n", mean, worst);
+  EXPECT_LT(worst, 50.0);
 }
 
 // Every passage loses its GNSS for 20 to 60 s. A subgraph cut inside the outage was tied by
