@@ -142,6 +142,10 @@ TEST(MapdConfig, ReadsUpdateOptions) {
   auto too_few = ParseWithEnvironment({}, {{"MAPD_DETECTIONS_PER_LANDMARK", "2"}});
   ASSERT_FALSE(too_few.ok());
   EXPECT_NE(too_few.status().message().find("detections_per_landmark"), std::string::npos) << too_few.status();
+  EXPECT_FALSE(c->server.worker.update.spread_detections);
+  auto spread = ParseWithEnvironment({}, {{"MAPD_SPREAD_DETECTIONS", "true"}});
+  ASSERT_TRUE(spread.ok()) << spread.status();
+  EXPECT_TRUE(spread->server.worker.update.spread_detections);
   EXPECT_EQ(c->server.worker.nice, 10);
   auto n = ParseWithEnvironment({}, {{"MAPD_WORKER_NICE", "0"}});
   ASSERT_TRUE(n.ok()) << n.status();

@@ -305,6 +305,8 @@ absl::Status WriteCityOutputs(const CityExperimentOptions& options, const CityEx
         {"gnss_outage_probability", c.gnss_outage_probability},
         {"gnss_outage_s", {c.gnss_outage_min_s, c.gnss_outage_max_s}}}},
       {"strategy", UpdateStrategyName(options.update.strategy)},
+      {"detections_per_landmark", options.update.detections_per_landmark},
+      {"spread_detections", options.update.spread_detections},
       {"passages", result.passages},
       {"passages_failed", result.failed_passages},
       {"passages_relinearized", result.relinearized_passages},

@@ -305,6 +305,7 @@ absl::Status WriteExperimentOutputs(const ExperimentOptions& options, const Expe
       {"inflated_passages", result.inflated_passages},
       {"max_subgraph_dim", options.update.max_subgraph_dim},
       {"detections_per_landmark", options.update.detections_per_landmark},
+      {"spread_detections", options.update.spread_detections},
       {"warmup_passages", options.update.warmup_passages},
       {"relinearize_until_passages", options.update.relinearize_until_passages},
       {"edge_margin_sigmas", options.update.edge_margin_sigmas},

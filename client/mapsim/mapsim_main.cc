@@ -134,6 +134,9 @@ void AddMapUpdateFlags(CLI::App* command, MapUpdateOptions* update) {
   command->add_option("--detections-per-landmark", update->detections_per_landmark,
                       "last K >= 3 detections per landmark and passage (a new landmark needs 3), 0 = all")
       ->type_name("K");
+  command->add_flag("--spread-detections", update->spread_detections,
+                    "the K detections spread evenly over each landmark's track (its first and last among\n"
+                    "them) instead of the last K, as mapd's flag of that name");
   command->add_option("--detection-spacing-s", update->detection_spacing_s,
                       "the K detections kept at least S seconds apart (0: the last K frames)")
       ->check(NonNegative())

@@ -35,7 +35,8 @@ std::vector<double> PathPositionAt(const std::vector<OdometrySample>& odometry, 
   return position;
 }
 
-// The last K detections of every landmark (all with K = 0), in time order. With a spacing in time
+// The last K detections of every landmark (all with K = 0), in time order; with `spread`, K spread
+// evenly over its track instead, its first and last among them. With a spacing in time
 // or distance, only detections of "grid frames" count: the first camera frame (distinct detection
 // time, within `tolerance_s`) in each interval [n spacing_s, (n + 1) spacing_s) of the passage's
 // time that is taken once the vehicle is spacing_m along its path from the grid frame before. Every
@@ -45,7 +46,7 @@ std::vector<double> PathPositionAt(const std::vector<OdometrySample>& odometry, 
 // the same detector error, which counted again and again would make the passage sure of it.
 std::vector<const Detection*> SelectDetections(const std::vector<Detection>& detections,
                                                const std::vector<OdometrySample>& odometry, int per_landmark,
-                                               double spacing_s, double spacing_m, double tolerance_s) {
+                                               bool spread, double spacing_s, double spacing_m, double tolerance_s) {
   std::vector<double> grid_frames;  // sorted
   const bool grid = spacing_s > 0.0 || spacing_m > 0.0;
   if (grid) {
@@ -74,16 +75,28 @@ std::vector<const Detection*> SelectDetections(const std::vector<Detection>& det
     const auto it = std::lower_bound(grid_frames.begin(), grid_frames.end(), t - tolerance_s);
     return it != grid_frames.end() && *it <= t + tolerance_s;
   };
-  std::map<LandmarkId, int> remaining;
-  std::vector<const Detection*> kept;
-  for (auto it = detections.rbegin(); it != detections.rend(); ++it) {
-    if (!on_grid(it->t_s)) continue;
-    int& left = remaining.try_emplace(it->landmark_id, per_landmark).first->second;
-    if (per_landmark > 0 && left == 0) continue;
-    --left;
-    kept.push_back(&*it);
+  std::map<LandmarkId, std::vector<int>> track;  // each landmark's detections on the grid, in order
+  for (size_t i = 0; i < detections.size(); ++i) {
+    if (on_grid(detections[i].t_s)) track[detections[i].landmark_id].push_back(static_cast<int>(i));
   }
-  std::reverse(kept.begin(), kept.end());
+  std::vector<char> keep(detections.size(), 0);
+  for (const auto& [id, frames] : track) {
+    const int n = static_cast<int>(frames.size());
+    if (per_landmark == 0 || n <= per_landmark) {
+      for (int i : frames) keep[i] = 1;
+      continue;
+    }
+    for (int k = 0; k < per_landmark; ++k) {
+      // (n > K: the spread indices rise by more than 1 per step, so none repeats)
+      const int i = spread && per_landmark > 1 ? static_cast<int>(std::lround(k * (n - 1.0) / (per_landmark - 1)))
+                                               : n - per_landmark + k;
+      keep[frames[i]] = 1;
+    }
+  }
+  std::vector<const Detection*> kept;
+  for (size_t i = 0; i < detections.size(); ++i) {
+    if (keep[i]) kept.push_back(&detections[i]);
+  }
   return kept;
 }
 
@@ -217,7 +230,8 @@ absl::StatusOr<PassageGraph> BuildPassageGraph(const Passage& passage, const Gra
 
   const std::vector<const Detection*> used =
       SelectDetections(passage.detections, passage.odometry, options.detections_per_landmark,
-                       options.detection_spacing_s, options.detection_spacing_m, options.node_merge_tolerance_s);
+                       options.spread_detections, options.detection_spacing_s, options.detection_spacing_m,
+                       options.node_merge_tolerance_s);
   g.detections_dropped = static_cast<int>(passage.detections.size() - used.size());
 
   std::vector<double> times;

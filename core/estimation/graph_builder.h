@@ -19,6 +19,9 @@ struct GraphOptions {
   // `detection_spacing_m` along its path from the frame before (every landmark keeps the same
   // frames, whatever the camera's rate; none are added while the vehicle stands still).
   int detections_per_landmark = 5;
+  // The K spread evenly over each landmark's track (its first and last frames among them) instead
+  // of its last K.
+  bool spread_detections = false;
   double detection_spacing_s = 0.0;
   double detection_spacing_m = 0.0;
   // Measurement times closer than this share one pose node.

@@ -88,6 +88,36 @@ TEST_F(GraphBuilderTest, KeepsAllDetectionsWithZeroAndTheLastTwoWithTwo) {
   EXPECT_EQ(GraphDetections(*BuildPassageGraph(passage_, two)), LastDetections(passage_, 2));
 }
 
+// Spread over the track: each landmark keeps min(n, 5) of its n detections, its first and its last
+// among them, the kept ones evenly apart (their gaps in the landmark's detections differ by at most
+// one).
+TEST_F(GraphBuilderTest, SpreadsTheFiveDetectionsOverEachLandmarksTrack) {
+  GraphOptions spread = LastFive();
+  spread.spread_detections = true;
+  const std::multiset<DetectionKey> kept = GraphDetections(*BuildPassageGraph(passage_, spread));
+  std::map<LandmarkId, std::vector<DetectionKey>> track;
+  for (const Detection& d : passage_.detections) track[d.landmark_id].push_back({d.t_s, d.landmark_id, d.u_px});
+  int longer = 0;
+  for (const auto& [id, detections] : track) {
+    std::vector<int> positions;
+    for (size_t i = 0; i < detections.size(); ++i) {
+      if (kept.count(detections[i])) positions.push_back(static_cast<int>(i));
+    }
+    ASSERT_EQ(positions.size(), std::min<size_t>(5, detections.size())) << "landmark " << id;
+    EXPECT_EQ(positions.front(), 0) << "landmark " << id;
+    EXPECT_EQ(positions.back(), static_cast<int>(detections.size()) - 1) << "landmark " << id;
+    int min_gap = 1 << 30, max_gap = 0;
+    for (size_t k = 1; k < positions.size(); ++k) {
+      min_gap = std::min(min_gap, positions[k] - positions[k - 1]);
+      max_gap = std::max(max_gap, positions[k] - positions[k - 1]);
+    }
+    EXPECT_LE(max_gap - min_gap, 1) << "landmark " << id;
+    longer += detections.size() > 5;
+  }
+  EXPECT_GT(longer, 0) << "the scenario sees landmarks more than 5 times";
+  EXPECT_NE(kept, LastDetections(passage_, 5));
+}
+
 // From a 25 Hz camera the last five frames of a landmark are 0.16 s apart. With a spacing of
 // 0.5 s only "grid frames" count, the first frame in each half second, so that the five kept span
 // two seconds, as the thesis's 2 Hz frames did, and every landmark keeps the same frames: the

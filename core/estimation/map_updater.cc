@@ -586,6 +586,7 @@ absl::StatusOr<PassageUpdate> ComputePassageUpdate(const Passage& passage, const
 GraphOptions UpdateGraphOptions(const MapUpdateOptions& options) {
   GraphOptions graph;
   graph.detections_per_landmark = options.detections_per_landmark;
+  graph.spread_detections = options.spread_detections;
   graph.detection_spacing_s = options.detection_spacing_s;
   graph.detection_spacing_m = options.detection_spacing_m;
   return graph;
