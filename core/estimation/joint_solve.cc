@@ -26,9 +26,9 @@ namespace {
 // map whose every factor is theirs (ComputeBatchUpdate, which gives `single`, the sequential update
 // of the last passage on `map`, a map that holds the others), the rest of the map around them when
 // they were all applied before (`single` null: ComputeAreaRelinearization). The landmarks of
-// `held_back` are left out, their detections set aside. A young map's landmark that the
-// passages' rays do not pin down at the joint solution fails the solve and is added to
-// `*unpinned` (ComputeBatchUpdate solves again without it).
+// `held_back` are left out, their detections set aside. A landmark only the passages inform that
+// their rays do not pin down at the joint solution fails the solve and is added to `*unpinned`
+// (ComputeBatchUpdate solves again without it; an area's solve is refused).
 absl::StatusOr<PassageUpdate> SolveJointly(const std::vector<Passage>& passages, const MapUpdateOptions& options,
                                            const MapReaderInterface& map, const PassageUpdate* single,
                                            const std::set<LandmarkId>& held_back, std::vector<LandmarkId>* unpinned) {
