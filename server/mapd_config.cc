@@ -123,8 +123,8 @@ std::unique_ptr<CLI::App> NewMapdCommandLine(MapdConfig* config) {
                  "take the N detections spread evenly over each landmark's track (its first and last frames\n"
                  "among them) instead of the last N: more parallax where a narrow lens loses landmarks far\n"
                  "down the street (the simulator's city: 17% less error with 50-110 degree lenses, 13% with\n"
-                 "the thesis camera; the thesis loop 6-15%, one seed's joint NEES/dof 1.16 -> 1.44; 25% more\n"
-                 "with a camera yaw error left unestimated; docs/results.md)")
+                 "the thesis camera, no gain with AR(1) GNSS; the thesis loop 6-15%, one seed's joint\n"
+                 "NEES/dof 1.16 -> 1.44; 25% more with a camera yaw error left unestimated; docs/results.md)")
       ->type_name("BOOL");
   AddMapdSetting(app, "warmup-passages", &u.warmup_passages,
                  "a new map's first N passages are solved jointly, re-solved with each one, so their arrival\n"

@@ -45,10 +45,11 @@ struct MapUpdateOptions {
   // grid frames among them) instead of the last K. A narrow lens loses a landmark far down the
   // street, where its last frames see it with little parallax: on the simulator's city, 60
   // passages of 1 km, 10 seeds, 17% less error with lenses of 50-110 degrees (outliers 38 -> 7)
-  // and 13% less with the thesis camera; on the thesis loop (N = 50, 1000 passages, 3 seeds) 6-15%
-  // less, but one seed's joint NEES/dof 1.16 -> 1.44, and 25% more with a camera yaw error left
-  // unestimated (the far views count more). Off by default: the thesis's figures are the last K's
-  // (docs/results.md, "Detections spread over the track").
+  // and 13% less with the thesis camera, but +3% +- 5% for a varied fleet with AR(1) GNSS; on the
+  // thesis loop (N = 50, 1000 passages, 3 seeds) 6-15% less, but one seed's joint NEES/dof 1.16 ->
+  // 1.44, and 25% more with a camera yaw error left unestimated (the far views count more). Off by
+  // default: the thesis's figures are the last K's (docs/results.md, "Detections spread over the
+  // track").
   bool spread_detections = false;
   double detection_spacing_s = 0.5;
   // ...and of those only frames taken once the vehicle is this far (m) along its path from the grid
