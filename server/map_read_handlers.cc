@@ -42,6 +42,8 @@ absl::Status ReadMapInfo(MapStoreInterface& store, const MapUpdateOptions& updat
   info->set_max_subgraph_dim(update.max_subgraph_dim);
   info->set_window_hops(update.window_hops);
   info->set_relinearize_sigmas(update.relinearize_sigmas);
+  info->set_detections_per_landmark(update.detections_per_landmark);
+  info->set_spread_detections(update.spread_detections);
   return absl::OkStatus();
 }
 

@@ -377,13 +377,18 @@ absl::Status Info(const Arguments& args, Context& ctx) {
   *ctx.out << absl::StrFormat(
       "map version:       %d\nlandmarks:         %d\nfactors:           %d\nstrategy:          %s "
       "(warm-up %d passages, re-solved at each doubling up to %d, subgraph dim %d, "
-      "window %d links%s)\n"
+      "window %d links%s, detections: %s)\n"
       "queue depth:       %d\npassages:          queued=%d processing=%d applied=%d rejected=%d failed=%d "
       "quarantined=%d discarded=%d\n"
       "re-linearisation:  %s\n",
       info->map_version(), info->landmark_count(), info->factor_count(), info->strategy(),
       info->warmup_passages(), info->relinearize_until_passages(), info->max_subgraph_dim(),
-      info->window_hops(), info->window_hops() == 0 ? ": whole map" : "", info->queue_depth(), info->passages_queued(), info->passages_processing(),
+      info->window_hops(), info->window_hops() == 0 ? ": whole map" : "",
+      !info->has_detections_per_landmark()    ? std::string("not reported by this server")
+      : info->detections_per_landmark() == 0 ? std::string("all")
+      : info->spread_detections()           ? absl::StrFormat("%d spread over each track", info->detections_per_landmark())
+                                            : absl::StrFormat("the last %d", info->detections_per_landmark()),
+      info->queue_depth(), info->passages_queued(), info->passages_processing(),
       info->passages_applied(), info->passages_rejected(), info->passages_failed(), info->passages_quarantined(),
       info->passages_discarded(),
       info->relinearize_sigmas() > 0.0

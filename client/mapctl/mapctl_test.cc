@@ -95,6 +95,7 @@ TEST_F(MapctlTest, InfoShowsTheEmptyMapAndItsStrategy) {
   ASSERT_EQ(r.code, 0) << r.err;
   EXPECT_TRUE(absl::StrContains(r.out, "landmarks:         0")) << r.out;
   EXPECT_TRUE(absl::StrContains(r.out, "cc-gsd (warm-up 8 passages, re-solved at each doubling up to 128, subgraph dim 500")) << r.out;
+  EXPECT_TRUE(absl::StrContains(r.out, "detections: the last 5)")) << r.out;
   EXPECT_TRUE(absl::StrContains(r.out, "re-linearisation:  off")) << r.out;  // the test server's setting
   CliRun j = Mapctl({"info", "--json"}, address_);
   ASSERT_EQ(j.code, 0) << j.err;

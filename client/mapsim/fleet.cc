@@ -236,6 +236,10 @@ absl::StatusOr<FleetResult> RunFleet(const FleetOptions& options,
   result.server_update.relinearize_until_passages = start_info->relinearize_until_passages();
   result.server_update.max_subgraph_dim = start_info->max_subgraph_dim();
   result.server_update.window_hops = start_info->window_hops();
+  if (start_info->has_detections_per_landmark()) {
+    result.server_update.detections_per_landmark = start_info->detections_per_landmark();
+    result.server_update.spread_detections = start_info->spread_detections();
+  }
   if (!options.strategy.empty() && options.strategy != result.server_strategy) {
     return absl::FailedPreconditionError(absl::StrCat("the server runs strategy '", result.server_strategy,
                                                       "', not '", options.strategy, "' (mapd --strategy)"));
@@ -326,6 +330,7 @@ absl::Status WriteFleetOutputs(const FleetOptions& options, const FleetResult& r
   experiment.scenario = options.scenario;
   experiment.passages = options.passages;
   experiment.strategy = result.server_strategy;
+  experiment.update = result.server_update;  // the summary gives the server's settings
   std::vector<std::pair<std::string, double>> extra = {{"vehicles", options.vehicles}};
   if (options.city) {  // the summary's scenario fields are the loop's: say which passages these were
     extra.push_back({"city_blocks_x", options.city_scenario.blocks_x});

@@ -49,6 +49,8 @@ TEST(Fleet, TheReplayUsesTheServersEstimatorSettings) {
   server_options.worker.update.warmup_passages = 2;
   server_options.worker.update.relinearize_until_passages = 4;
   server_options.worker.update.max_subgraph_dim = 300;
+  server_options.worker.update.detections_per_landmark = 4;
+  server_options.worker.update.spread_detections = true;
   auto server = StartTestServer(server_options);
   ASSERT_NE(server, nullptr);
   auto fleet = RunFleet(SmallFleet(server->address(), 2));
@@ -56,6 +58,8 @@ TEST(Fleet, TheReplayUsesTheServersEstimatorSettings) {
   EXPECT_EQ(fleet->server_update.warmup_passages, 2);
   EXPECT_EQ(fleet->server_update.relinearize_until_passages, 4);
   EXPECT_EQ(fleet->server_update.max_subgraph_dim, 300);
+  EXPECT_EQ(fleet->server_update.detections_per_landmark, 4);
+  EXPECT_TRUE(fleet->server_update.spread_detections);
   ASSERT_TRUE(fleet->replay.has_value());
   EXPECT_LT(fleet->replay->max_position_diff_m, 1e-6);
 }
