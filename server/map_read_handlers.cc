@@ -44,6 +44,8 @@ absl::Status ReadMapInfo(MapStoreInterface& store, const MapUpdateOptions& updat
   info->set_relinearize_sigmas(update.relinearize_sigmas);
   info->set_detections_per_landmark(update.detections_per_landmark);
   info->set_spread_detections(update.spread_detections);
+  info->set_estimate_camera_yaw(update.estimate_camera_yaw);
+  info->set_fleet_camera_yaw_prior_vehicles(update.fleet_camera_yaw_prior_vehicles);
   return absl::OkStatus();
 }
 

@@ -240,6 +240,10 @@ absl::StatusOr<FleetResult> RunFleet(const FleetOptions& options,
     result.server_update.detections_per_landmark = start_info->detections_per_landmark();
     result.server_update.spread_detections = start_info->spread_detections();
   }
+  if (start_info->has_estimate_camera_yaw()) {
+    result.server_update.estimate_camera_yaw = start_info->estimate_camera_yaw();
+    result.server_update.fleet_camera_yaw_prior_vehicles = start_info->fleet_camera_yaw_prior_vehicles();
+  }
   if (!options.strategy.empty() && options.strategy != result.server_strategy) {
     return absl::FailedPreconditionError(absl::StrCat("the server runs strategy '", result.server_strategy,
                                                       "', not '", options.strategy, "' (mapd --strategy)"));

@@ -51,6 +51,8 @@ TEST(Fleet, TheReplayUsesTheServersEstimatorSettings) {
   server_options.worker.update.max_subgraph_dim = 300;
   server_options.worker.update.detections_per_landmark = 4;
   server_options.worker.update.spread_detections = true;
+  server_options.worker.update.estimate_camera_yaw = true;
+  server_options.worker.update.fleet_camera_yaw_prior_vehicles = 2;
   auto server = StartTestServer(server_options);
   ASSERT_NE(server, nullptr);
   auto fleet = RunFleet(SmallFleet(server->address(), 2));
@@ -60,6 +62,8 @@ TEST(Fleet, TheReplayUsesTheServersEstimatorSettings) {
   EXPECT_EQ(fleet->server_update.max_subgraph_dim, 300);
   EXPECT_EQ(fleet->server_update.detections_per_landmark, 4);
   EXPECT_TRUE(fleet->server_update.spread_detections);
+  EXPECT_TRUE(fleet->server_update.estimate_camera_yaw);
+  EXPECT_EQ(fleet->server_update.fleet_camera_yaw_prior_vehicles, 2);
   ASSERT_TRUE(fleet->replay.has_value());
   EXPECT_LT(fleet->replay->max_position_diff_m, 1e-6);
 }
