@@ -3,7 +3,13 @@
 #include <dlfcn.h>
 #include <omp.h>
 
+#include <cstdlib>
+#include <cstring>
 #include <string>
+
+#if defined(__GLIBC__)
+#include <malloc.h>
+#endif
 
 namespace crowdmap {
 namespace {
@@ -16,9 +22,28 @@ Fn OpenBlasFunction(const char* name) {
 
 }  // namespace
 
+bool KeepLargeBuffersInTheHeap() {
+  static const bool kept = [] {
+#if defined(__GLIBC__)
+    for (const char* name : {"MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_", "MALLOC_TOP_PAD_"}) {
+      if (std::getenv(name) != nullptr) return false;
+    }
+    const char* tunables = std::getenv("GLIBC_TUNABLES");
+    if (tunables != nullptr && std::strstr(tunables, "glibc.malloc.") != nullptr) return false;
+    constexpr int kMiB = 1 << 20;
+    return mallopt(M_MMAP_THRESHOLD, 32 * kMiB) == 1 && mallopt(M_TRIM_THRESHOLD, 256 * kMiB) == 1 &&
+           mallopt(M_TOP_PAD, 64 * kMiB) == 1;
+#else
+    return false;
+#endif
+  }();
+  return kept;
+}
+
 void KeepBlasOnTheCallingThread() {
   static const bool confined = [] {
     if (auto set_threads = OpenBlasFunction<void (*)(int)>("openblas_set_num_threads")) set_threads(1);
+    KeepLargeBuffersInTheHeap();
     return true;
   }();
   (void)confined;

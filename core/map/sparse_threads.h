@@ -25,8 +25,25 @@ void FactorizeOnThisThreadOnly();
 // (DenseKernels.ThreadsCallingAtOnceGetTheirOwnResults) took 23 s with the pool and 0.17 s with
 // one thread. The first call in the process sets the pool to one thread, so that every BLAS call
 // runs on the thread that makes it; later calls cost a read. MapWindow's and Ceres's
-// factorisations (through FactorizeOnThisThreadOnly) and each dense kernel call it.
+// factorisations (through FactorizeOnThisThreadOnly) and each dense kernel call it. Its first call
+// also calls KeepLargeBuffersInTheHeap.
 void KeepBlasOnTheCallingThread();
+
+// Each passage's factorisations allocate and free buffers of megabytes (a window's information and
+// its factor, CHOLMOD's workspace, dense covariances). glibc's malloc serves a block over its
+// mmap threshold (128 KiB, raised as such blocks are freed, up to 32 MiB) with a fresh mapping and
+// returns the top of its heap to the system beyond 128 KiB free, so these buffers were mapped and
+// faulted in again on every passage: on a virtual machine whose page faults are costly, a 1k city
+// passage took 285-369 ms, of which about a third in page faults, and 129-170 ms with the buffers
+// kept (map_updater_benchmark; docs/results.md, "Large buffers kept in the heap").
+//
+// With glibc, sets the mmap threshold to 32 MiB, the trim threshold to 256 MiB and the heap's top
+// pad to 64 MiB, once per process: the freed buffers stay in the heap for the next passage, at
+// the cost of at most 256 MiB of free memory held per malloc arena. Does nothing when the
+// environment sets any of these (MALLOC_MMAP_THRESHOLD_, MALLOC_TRIM_THRESHOLD_, MALLOC_TOP_PAD_,
+// or glibc.malloc tunables in GLIBC_TUNABLES), so an operator can choose otherwise. Returns whether
+// it set them.
+bool KeepLargeBuffersInTheHeap();
 
 // The map's threads (the workers beside the readers) call the BLAS at the same time. Debian's
 // single-threaded OpenBLAS (libopenblas0-serial) has no locking: concurrent callers share its

@@ -1,6 +1,7 @@
 #include "core/map/sparse_threads.h"
 
 #include <dlfcn.h>
+#include <malloc.h>
 #include <omp.h>
 
 #include <algorithm>
@@ -9,6 +10,7 @@
 #include <filesystem>
 #include <string>
 #include <thread>
+#include <vector>
 
 #include <gtest/gtest.h>
 
@@ -40,6 +42,22 @@ int TeamOfFour() {
     ++threads;
   }
   return threads;
+}
+
+// A 16 MiB buffer, as a window's factorisation allocates, comes from the heap instead of a mapping
+// of its own, and stays there once freed (glibc's defaults would map it, then unmap it on free).
+TEST(KeepLargeBuffersInTheHeap, ServesAndKeepsMegabyteBuffersInTheHeap) {
+  for (const char* name : {"MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_", "MALLOC_TOP_PAD_", "GLIBC_TUNABLES"}) {
+    if (std::getenv(name) != nullptr) GTEST_SKIP() << name << " is set: the allocator is the environment's choice";
+  }
+  ASSERT_TRUE(KeepLargeBuffersInTheHeap());
+  constexpr size_t kBytes = size_t{16} << 20;
+  const size_t mappings_before = mallinfo2().hblks;
+  {
+    std::vector<char> buffer(kBytes, 1);
+    EXPECT_EQ(mallinfo2().hblks, mappings_before);
+  }
+  EXPECT_GE(mallinfo2().fordblks, kBytes);  // freed, and still in the heap
 }
 
 // CHOLMOD's regions ask for a fixed team size, as this one does; after the call they run on the
