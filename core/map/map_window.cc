@@ -358,6 +358,13 @@ class UpperBlocks {
   std::vector<std::vector<Above>> above_;
 };
 
+// `m`'s contents, taken without a copy (SparseMatrix has no move constructor), `m` left empty.
+std::shared_ptr<const Eigen::SparseMatrix<double>> Held(Eigen::SparseMatrix<double>* m) {
+  auto held = std::make_shared<Eigen::SparseMatrix<double>>();
+  held->swap(*m);
+  return held;
+}
+
 // Information of a positive semi-definite `info` on the entries `keep` once the others are
 // eliminated: keep-keep - keep-other other-other^+ other-keep (the pseudo-inverse: a factor may
 // carry no information in some directions of the landmarks it eliminates).
@@ -470,7 +477,7 @@ absl::StatusOr<MapWindow> MapWindow::Build(const MapReaderInterface& map, const 
     for (int i = 0; i < n; ++i) w.offsets_.segment<2>(2 * i) = map.FindLandmark(w.ids_[i])->Offset();
   }
   if (w.closed_) {
-    w.covariance_information_ = std::move(information);
+    w.covariance_information_ = Held(&information);
     return w;
   }
 
@@ -518,7 +525,7 @@ absl::StatusOr<MapWindow> MapWindow::Build(const MapReaderInterface& map, const 
   } else {
     w.covariance_factor_ = std::make_shared<const Factor>(information);
   }
-  w.covariance_information_ = std::move(information);
+  w.covariance_information_ = Held(&information);
   if (w.covariance_factor_->info() != Eigen::Success) {
     return absl::FailedPreconditionError(
         absl::StrCat("map marginal information over ", n, " landmarks is not positive definite"));
@@ -579,7 +586,8 @@ absl::StatusOr<Eigen::MatrixXd> MapWindow::Covariance(const std::vector<Landmark
 }
 
 absl::StatusOr<Eigen::MatrixXd> MapWindow::FullCovariance() const {
-  Eigen::MatrixXd cov(covariance_information_.transpose());
+  if (covariance_information_ == nullptr) return Eigen::MatrixXd(0, 0);  // an empty window
+  Eigen::MatrixXd cov(covariance_information_->transpose());
   if (!CholeskyInPlace(cov)) return absl::FailedPreconditionError("map information is not positive definite");
   InverseFromCholeskyInPlace(cov);
   if (!cov.allFinite()) return absl::InternalError("map covariance is not finite");

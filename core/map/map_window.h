@@ -71,7 +71,9 @@ class MapWindow {
   std::unordered_map<LandmarkId, int> index_;
   bool closed_ = true;
   Eigen::VectorXd offsets_;
-  Eigen::SparseMatrix<double> covariance_information_;  // the (conservative) window information, upper triangle
+  // The (conservative) window information, upper triangle. Held by pointer: Eigen 3.4's SparseMatrix
+  // has no move constructor, so a member would be copied each time the window is moved.
+  std::shared_ptr<const Eigen::SparseMatrix<double>> covariance_information_;
   std::shared_ptr<const Factor> covariance_factor_;
 };
 
