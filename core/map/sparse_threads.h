@@ -34,7 +34,7 @@ void KeepBlasOnTheCallingThread();
 // mmap threshold (128 KiB, raised as such blocks are freed, up to 32 MiB) with a fresh mapping and
 // returns the top of its heap to the system beyond 128 KiB free, so these buffers were mapped and
 // faulted in again on every passage: on a virtual machine whose page faults are costly, a 1k city
-// passage took 285-369 ms, of which about a third in page faults, and 129-170 ms with the buffers
+// passage took 271-386 ms, of which about a third in page faults, and 124-141 ms with the buffers
 // kept (map_updater_benchmark; docs/results.md, "Large buffers kept in the heap").
 //
 // With glibc, sets the mmap threshold to 32 MiB, the trim threshold to 256 MiB and the heap's top
