@@ -34,8 +34,9 @@ void KeepBlasOnTheCallingThread();
 // mmap threshold (128 KiB, raised as such blocks are freed, up to 32 MiB) with a fresh mapping and
 // returns the top of its heap to the system beyond 128 KiB free, so these buffers were mapped and
 // faulted in again on every passage: on a virtual machine whose page faults are costly, a 1k city
-// passage took 271-386 ms, of which about a third in page faults, and 124-141 ms with the buffers
-// kept (map_updater_benchmark; docs/results.md, "Large buffers kept in the heap").
+// passage took 271-386 ms, of which about a third in page faults, and 123-141 ms with the buffers
+// kept (map_updater_benchmark; docs/results.md, "Large buffers kept in the heap"). Whether glibc
+// maps them depends on what the process freed before (its threshold rises); these settings do not.
 //
 // With glibc, sets the mmap threshold to 32 MiB, the trim threshold to 256 MiB and the heap's top
 // pad to 64 MiB, once per process: the freed buffers stay in the heap for the next passage, at
