@@ -313,6 +313,9 @@ class LandmarkPriorFactor : public ceres::CostFunction {
 
   bool Evaluate(double const* const* parameters, double* residuals, double** jacobians) const override;
 
+  const Eigen::VectorXd& mean() const { return mean_; }
+  const Eigen::MatrixXd& sqrt_info() const { return sqrt_info_; }
+
  private:
   Eigen::VectorXd mean_;
   Eigen::MatrixXd sqrt_info_;

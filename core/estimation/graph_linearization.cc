@@ -5,6 +5,7 @@
 #include <unordered_set>
 
 #include "core/estimation/factors.h"
+#include "core/map/dense_kernels.h"
 
 namespace crowdmap {
 
@@ -116,17 +117,47 @@ std::optional<GraphLinearization::LandmarkMarginal> GraphLinearization::WithoutS
   return out;
 }
 
+namespace {
+
+// `id`'s cost when it is a LandmarkPriorFactor on landmarks of `landmarks` alone, else nullptr.
+const LandmarkPriorFactor* LandmarkPriorOn(ceres::Problem* problem, ceres::ResidualBlockId id,
+                                           const std::unordered_set<const double*>& landmarks,
+                                           std::vector<double*>* blocks) {
+  const auto* prior = dynamic_cast<const LandmarkPriorFactor*>(problem->GetCostFunctionForResidualBlock(id));
+  if (prior == nullptr) return nullptr;
+  problem->GetParameterBlocksForResidualBlock(id, blocks);
+  for (const double* block : *blocks) {
+    if (landmarks.count(block) == 0) return nullptr;
+  }
+  return prior;
+}
+
+}  // namespace
+
 absl::StatusOr<GraphLinearization> GraphLinearization::ComputeOver(ceres::Problem* problem,
                                                                     const std::vector<double*>& landmarks,
                                                                     std::vector<ceres::ResidualBlockId> residual_blocks) {
   GraphLinearization g;
-  g.residuals_ = std::move(residual_blocks);
+  // Priors on the landmarks alone (the map's CC prior: one block, dense over every map landmark
+  // of the graph) are linear and add to the landmarks' dense block only, so they are added there
+  // directly: as rows of the sparse Jacobian, their share of J^T J cost more than all the other
+  // residuals' (Eigen's sparse product). The Jacobian's rows are the other residuals'.
+  const std::unordered_set<const double*> landmark_set(landmarks.begin(), landmarks.end());
+  std::vector<std::pair<const LandmarkPriorFactor*, std::vector<double*>>> dense_priors;
+  std::vector<double*> prior_blocks;
+  for (ceres::ResidualBlockId id : residual_blocks) {
+    if (const LandmarkPriorFactor* prior = LandmarkPriorOn(problem, id, landmark_set, &prior_blocks)) {
+      dense_priors.emplace_back(prior, prior_blocks);
+    } else {
+      g.residuals_.push_back(id);
+    }
+  }
   // The other blocks in the order the residuals first use them (the order they were added in),
   // then any no residual uses. Not GetParameterBlocks' order: that is by address, which differs
   // from run to run (a pose vector on the heap, a yaw state on the stack), and with it the
   // rounding of the sparse factorisation below.
   std::vector<double*> all, blocks;
-  for (ceres::ResidualBlockId id : g.residuals_) {
+  for (ceres::ResidualBlockId id : residual_blocks) {
     problem->GetParameterBlocksForResidualBlock(id, &blocks);
     all.insert(all.end(), blocks.begin(), blocks.end());
   }
@@ -165,6 +196,26 @@ absl::StatusOr<GraphLinearization> GraphLinearization::ComputeOver(ceres::Proble
   const int nx = g.other_dim_, nl = g.landmark_dim_;
   g.b_ = h.topRightCorner(nx, nl);
   Eigen::MatrixXd schur = Eigen::MatrixXd(h.bottomRightCorner(nl, nl));
+  // The gradient J^T r; with the other blocks eliminated below, zero at an exact optimum.
+  Eigen::VectorXd gradient =
+      g.jt_ * Eigen::Map<const Eigen::VectorXd>(residuals.data(), static_cast<int>(residuals.size()));
+  for (const auto& [prior, prior_blocks] : dense_priors) {
+    // Residual S (x - mean): information S^T S, gradient S^T r, at the landmarks' columns.
+    std::vector<int> columns;
+    Eigen::VectorXd x(prior->mean().size());
+    for (size_t k = 0; k < prior_blocks.size(); ++k) {
+      const int at = g.offset_.at(prior_blocks[k]) - nx;
+      columns.push_back(at);
+      columns.push_back(at + 1);
+      x.segment<2>(2 * static_cast<int>(k)) = Eigen::Map<const Eigen::Vector2d>(prior_blocks[k]);
+    }
+    const Eigen::MatrixXd& s = prior->sqrt_info();
+    Eigen::MatrixXd lower = Eigen::MatrixXd::Zero(s.cols(), s.cols());
+    AddGramLower(s, lower);
+    const Eigen::MatrixXd information = lower.selfadjointView<Eigen::Lower>();
+    schur(columns, columns) += information;
+    gradient.tail(nl)(columns) += s.transpose() * (s * (x - prior->mean()));
+  }
   if (nx > 0) {
     g.a_llt_ = std::make_unique<Eigen::SimplicialLLT<Eigen::SparseMatrix<double>>>(h.topLeftCorner(nx, nx));
     if (g.a_llt_->info() != Eigen::Success) {
@@ -175,9 +226,6 @@ absl::StatusOr<GraphLinearization> GraphLinearization::ComputeOver(ceres::Proble
   } else {
     g.w_ = Eigen::MatrixXd::Zero(0, nl);
   }
-  // The gradient J^T r with the other blocks eliminated: zero at an exact optimum.
-  const Eigen::VectorXd gradient =
-      g.jt_ * Eigen::Map<const Eigen::VectorXd>(residuals.data(), static_cast<int>(residuals.size()));
   g.other_gradient_ = gradient.head(nx);
   g.landmark_gradient_ = gradient.tail(nl) - g.w_.transpose() * g.other_gradient_;
   g.s_llt_.compute(schur);
