@@ -116,11 +116,16 @@ void MapReadRecorder::ForEachLink(LandmarkId id,
                                   const std::function<void(LandmarkId, const InformationBlock&)>& fn) const {
   // A block (id, b) changes only with a factor on both: one on id, which records id's row.
   read_.landmarks.insert(id);
-  std::vector<std::pair<LandmarkId, InformationBlock>> row;
-  access_([&](const MapReaderInterface& map) {
-    map.ForEachLink(id, [&](LandmarkId b, const InformationBlock& block) { row.emplace_back(b, block); });
-  });
-  for (const auto& [b, block] : row) fn(b, block);  // outside the access: fn may read again
+  auto it = rows_.find(id);
+  if (it == rows_.end()) {
+    // Gathered in a buffer that keeps its capacity, then copied at its size: one allocation.
+    row_buffer_.clear();
+    access_([&](const MapReaderInterface& map) {
+      map.ForEachLink(id, [&](LandmarkId b, const InformationBlock& block) { row_buffer_.push_back({b, block}); });
+    });
+    it = rows_.emplace(id, row_buffer_).first;
+  }
+  for (const LinkedBlock& e : it->second) fn(e.id, e.block);  // outside the access: fn may read again
 }
 
 const MapFactor* MapReadRecorder::FindFactor(int64_t id) const {

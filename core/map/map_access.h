@@ -66,8 +66,8 @@ using MapAccess = std::function<void(const std::function<void(const MapReaderInt
 
 // A MapReaderInterface over a map that may change between its calls (other workers' commits), that
 // records what was read. Each call reads through `access` (one short lock per call) and copies
-// what it returns, so that the pointers it hands out stay valid; a record read once is read again
-// from that copy. Reads of one computation can thus come from several versions of the map, but
+// what it returns, so that the pointers it hands out stay valid; a record or a row of links read
+// once is read again from that copy. Reads of one computation can thus come from several versions of the map, but
 // only where a commit changed what it read, which Overlaps tells: such a computation is discarded.
 // Not thread-safe: one per computation.
 class MapReadRecorder : public MapReaderInterface {
@@ -107,6 +107,10 @@ class MapReadRecorder : public MapReaderInterface {
   mutable std::unordered_map<LandmarkId, std::optional<Landmark>> landmarks_;
   mutable std::unordered_map<int64_t, std::optional<MapFactor>> factors_;
   mutable std::unordered_map<std::string, std::optional<VehicleCalibration>> vehicles_;
+  // The rows ForEachLink read (a window reads most of them twice: to find its landmarks, then to
+  // assemble their information), and the buffer one is gathered in.
+  mutable std::unordered_map<LandmarkId, InformationRow> rows_;
+  mutable InformationRow row_buffer_;
 };
 
 }  // namespace crowdmap

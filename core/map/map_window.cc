@@ -408,6 +408,7 @@ absl::StatusOr<MapWindow> MapWindow::Build(const MapReaderInterface& map, const 
   MapWindow w;
   // Breadth-first over the links, level by level.
   std::vector<LandmarkId> frontier;
+  w.index_.reserve(seeds.size());
   for (LandmarkId id : seeds) {
     if (map.FindLandmark(id) == nullptr) return absl::NotFoundError(absl::StrCat("landmark ", id, ": not in the map"));
     if (w.index_.emplace(id, static_cast<int>(w.ids_.size())).second) {
@@ -438,20 +439,28 @@ absl::StatusOr<MapWindow> MapWindow::Build(const MapReaderInterface& map, const 
   // covariance read visits every link that leaves the window.
   UpperBlocks blocks(n);
   Eigen::VectorXd rhs = Eigen::VectorXd::Zero(options.estimate ? 2 * n : 0);
-  std::unordered_set<LandmarkId> edge;  // window landmarks linked to the outside
+  std::vector<LandmarkId> edge;  // window landmarks linked to the outside
+  // The estimates of the landmarks outside that the window's links reach, each computed once (a
+  // geodesic computation; a landmark outside is linked to many inside).
+  absl::flat_hash_map<LandmarkId, Eigen::Vector2d> outside_offsets;
   for (int i = 0; i < n; ++i) {
     const LandmarkId a = w.ids_[i];
     if (options.estimate) rhs.segment<2>(2 * i) = map.InformationVector(a);
     blocks.AddDiagonal(i, map.Information(a, a).value);
+    bool on_edge = false;
     map.ForEachLink(a, [&](LandmarkId b, const InformationBlock& block) {
       const int j = w.index(b);
       if (j > i) {
         blocks.AddAbove(i, j, block.value);  // the block (a, b)
       } else if (j < 0) {
-        if (options.estimate) rhs.segment<2>(2 * i) -= block.value * map.FindLandmark(b)->Offset();
-        edge.insert(a);
+        on_edge = true;
+        if (!options.estimate) return;
+        auto [it, inserted] = outside_offsets.try_emplace(b);
+        if (inserted) it->second = map.FindLandmark(b)->Offset();
+        rhs.segment<2>(2 * i) -= block.value * it->second;
       }
     });
+    if (on_edge) edge.push_back(a);
   }
   blocks.SortRows();
   Eigen::SparseMatrix<double> information;

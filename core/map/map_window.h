@@ -2,13 +2,13 @@
 #define CROWDMAP_CORE_MAP_MAP_WINDOW_H_
 
 #include <memory>
-#include <unordered_map>
 #include <vector>
 
 #include <Eigen/Core>
 #include <Eigen/SparseCholesky>
 #include <Eigen/SparseCore>
 
+#include "absl/container/flat_hash_map.h"
 #include "absl/status/statusor.h"
 #include "core/map/map_state.h"
 
@@ -68,7 +68,7 @@ class MapWindow {
   MapWindow() = default;
 
   std::vector<LandmarkId> ids_;
-  std::unordered_map<LandmarkId, int> index_;
+  absl::flat_hash_map<LandmarkId, int> index_;
   bool closed_ = true;
   Eigen::VectorXd offsets_;
   // The (conservative) window information, upper triangle. Held by pointer: Eigen 3.4's SparseMatrix
