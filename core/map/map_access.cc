@@ -135,6 +135,29 @@ const MapFactor* MapReadRecorder::FindFactor(int64_t id) const {
   return f;
 }
 
+bool MapReadRecorder::AppendFactorLandmarks(int64_t id, std::vector<LandmarkId>* out) const {
+  // Read like FindFactor (the same record in the read set), but its information is not copied.
+  const std::vector<LandmarkId>* landmarks = nullptr;
+  if (auto f = factors_.find(id); f != factors_.end()) {
+    if (f->second) landmarks = &f->second->landmarks;
+  } else {
+    auto it = factor_landmarks_.find(id);
+    if (it == factor_landmarks_.end()) {
+      std::optional<std::vector<LandmarkId>> copy;
+      access_([&](const MapReaderInterface& map) {
+        std::vector<LandmarkId> read;
+        if (map.AppendFactorLandmarks(id, &read)) copy = std::move(read);
+      });
+      it = factor_landmarks_.emplace(id, std::move(copy)).first;
+    }
+    if (it->second) landmarks = &*it->second;
+  }
+  if (landmarks == nullptr) return false;
+  read_.factor_lists.insert(landmarks->begin(), landmarks->end());
+  out->insert(out->end(), landmarks->begin(), landmarks->end());
+  return true;
+}
+
 void MapReadRecorder::AppendFactorIds(LandmarkId id, std::vector<int64_t>* out) const {
   read_.factor_lists.insert(id);
   access_([&](const MapReaderInterface& map) { map.AppendFactorIds(id, out); });

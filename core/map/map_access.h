@@ -86,6 +86,7 @@ class MapReadRecorder : public MapReaderInterface {
   Eigen::Vector2d InformationVector(LandmarkId id) const override;
   void ForEachLink(LandmarkId id, const std::function<void(LandmarkId, const InformationBlock&)>& fn) const override;
   const MapFactor* FindFactor(int64_t id) const override;
+  bool AppendFactorLandmarks(int64_t id, std::vector<LandmarkId>* out) const override;
   void AppendFactorIds(LandmarkId id, std::vector<int64_t>* out) const override;
   void AppendPassageFactorIds(const std::string& vehicle_id, const std::string& passage_id,
                               std::vector<int64_t>* out) const override;
@@ -106,6 +107,8 @@ class MapReadRecorder : public MapReaderInterface {
   // Copies of what was read (nullopt: absent), node-based so that pointers into them stay valid.
   mutable std::unordered_map<LandmarkId, std::optional<Landmark>> landmarks_;
   mutable std::unordered_map<int64_t, std::optional<MapFactor>> factors_;
+  // The landmarks of factors whose landmarks alone were read (AppendFactorLandmarks).
+  mutable std::unordered_map<int64_t, std::optional<std::vector<LandmarkId>>> factor_landmarks_;
   mutable std::unordered_map<std::string, std::optional<VehicleCalibration>> vehicles_;
   // The rows ForEachLink read (a window reads most of them twice: to find its landmarks, then to
   // assemble their information), and the buffer one is gathered in.

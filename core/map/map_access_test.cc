@@ -49,6 +49,48 @@ TEST_F(MapAccessTest, TheRecorderRecordsEveryKindOfRead) {
   EXPECT_FALSE(read.all_vehicles);
 }
 
+// A factor's landmarks are read as the factor is (the same entries in the read set), through an
+// overlay too, which shows the factors it adds and hides those it removes.
+TEST_F(MapAccessTest, AFactorsLandmarksAreReadLikeTheFactor) {
+  MapReadRecorder recorder(map_);
+  std::vector<LandmarkId> landmarks;
+  EXPECT_TRUE(recorder.AppendFactorLandmarks(2, &landmarks));
+  EXPECT_EQ(landmarks, (std::vector<LandmarkId>{3, 4}));
+  EXPECT_FALSE(recorder.AppendFactorLandmarks(99, &landmarks));
+  EXPECT_EQ(landmarks.size(), 2u);
+  EXPECT_EQ(recorder.read().factor_lists, (std::unordered_set<LandmarkId>{3, 4}));
+
+  MapOverlay overlay(recorder);
+  overlay.RemoveFactor(1);
+  const int64_t added = overlay.AddFactor(MakeFactor(0, {2, 5}, "d"));
+  landmarks.clear();
+  EXPECT_FALSE(overlay.AppendFactorLandmarks(1, &landmarks));
+  EXPECT_TRUE(overlay.AppendFactorLandmarks(added, &landmarks));
+  EXPECT_TRUE(overlay.AppendFactorLandmarks(3, &landmarks));
+  EXPECT_EQ(landmarks, (std::vector<LandmarkId>{2, 5, 5, 6}));
+}
+
+// A row of links read twice is the first read, also when a commit changed it in between; the
+// commit's write set overlaps the read, so the computation is discarded.
+TEST_F(MapAccessTest, ARowReadTwiceIsReadOnce) {
+  MapReadRecorder recorder([this](const std::function<void(const MapReaderInterface&)>& read) { read(map_); });
+  const auto links_of_1 = [&] {
+    std::vector<LandmarkId> linked;
+    recorder.ForEachLink(1, [&](LandmarkId b, const InformationBlock&) { linked.push_back(b); });
+    return linked;
+  };
+  EXPECT_EQ(links_of_1(), (std::vector<LandmarkId>{2}));
+  MapDelta delta;
+  delta.base_version = 2;
+  delta.version = 3;
+  MapFactor f = MakeFactor(4, {1, 3}, "d");
+  delta.added_factors.emplace(4, f);
+  const MapWriteSet written = WriteSetOf(delta, map_);
+  map_.Apply(delta);
+  EXPECT_EQ(links_of_1(), (std::vector<LandmarkId>{2}));
+  EXPECT_TRUE(Overlaps(recorder.read(), written));
+}
+
 // A computation that read the whole fleet (a new vehicle's fleet prior) could have read
 // differently after any vehicle's record changed.
 TEST_F(MapAccessTest, ReadingEveryVehicleOverlapsAnyVehiclesChange) {

@@ -272,6 +272,15 @@ const MapFactor* MapOverlay::FindFactor(int64_t id) const {
   return Hidden(id) ? nullptr : base_.FindFactor(id);
 }
 
+bool MapOverlay::AppendFactorLandmarks(int64_t id, std::vector<LandmarkId>* out) const {
+  auto it = delta_.added_factors.find(id);
+  if (it != delta_.added_factors.end()) {
+    out->insert(out->end(), it->second.landmarks.begin(), it->second.landmarks.end());
+    return true;
+  }
+  return !Hidden(id) && base_.AppendFactorLandmarks(id, out);
+}
+
 bool MapOverlay::Hidden(int64_t id) const { return removed_.count(id) > 0 || folded_.count(id) > 0; }
 
 void MapOverlay::FoldFactor(int64_t id) {

@@ -96,6 +96,14 @@ class MapReaderInterface {
     ForEachLink(id, [out](LandmarkId b, const InformationBlock&) { out->push_back(b); });
   }
   virtual const MapFactor* FindFactor(int64_t id) const = 0;
+  // Appends the landmarks of factor `id`, FindFactor(id)->landmarks, without reading its
+  // information; false (nothing appended) when there is no such factor.
+  virtual bool AppendFactorLandmarks(int64_t id, std::vector<LandmarkId>* out) const {
+    const MapFactor* f = FindFactor(id);
+    if (f == nullptr) return false;
+    out->insert(out->end(), f->landmarks.begin(), f->landmarks.end());
+    return true;
+  }
   // Appends the ids of the factors on landmark `id`.
   virtual void AppendFactorIds(LandmarkId id, std::vector<int64_t>* out) const = 0;
   // Appends the ids of the factors that came from one passage.
@@ -246,6 +254,7 @@ class MapOverlay : public MapReaderInterface {
   void ForEachLink(LandmarkId id,
                    const std::function<void(LandmarkId, const InformationBlock&)>& fn) const override;
   const MapFactor* FindFactor(int64_t id) const override;
+  bool AppendFactorLandmarks(int64_t id, std::vector<LandmarkId>* out) const override;
   void AppendFactorIds(LandmarkId id, std::vector<int64_t>* out) const override;
   void AppendPassageFactorIds(const std::string& vehicle_id, const std::string& passage_id,
                               std::vector<int64_t>* out) const override;

@@ -491,20 +491,21 @@ absl::StatusOr<MapWindow> MapWindow::Build(const MapReaderInterface& map, const 
   }
 
   // Conservative covariance: every factor that reaches outside enters through its marginal on the
-  // window instead of its conditional.
-  std::unordered_set<int64_t> crossing;
+  // window instead of its conditional. They are found by their landmarks alone: the information of
+  // the others is not needed (and a MapReadRecorder copies what it hands out).
+  std::unordered_set<int64_t> crossing, inside;
   std::vector<int64_t> factor_ids;
+  std::vector<LandmarkId> factor_landmarks;
   for (LandmarkId a : edge) {
     factor_ids.clear();
     map.AppendFactorIds(a, &factor_ids);
     for (int64_t id : factor_ids) {
-      const MapFactor* f = map.FindFactor(id);
-      for (LandmarkId l : f->landmarks) {
-        if (w.index(l) < 0) {
-          crossing.insert(id);
-          break;
-        }
-      }
+      if (crossing.count(id) > 0 || inside.count(id) > 0) continue;
+      factor_landmarks.clear();
+      map.AppendFactorLandmarks(id, &factor_landmarks);
+      const bool crosses = std::any_of(factor_landmarks.begin(), factor_landmarks.end(),
+                                       [&](LandmarkId l) { return w.index(l) < 0; });
+      (crosses ? crossing : inside).insert(id);
     }
   }
   bool pattern_grew = false;
