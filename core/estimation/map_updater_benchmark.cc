@@ -18,7 +18,7 @@ constexpr int kTimedPassages = 20;
 
 // Applies passages 0..mature-1 of `make` to an empty map, then times applying each of the next
 // kTimedPassages in turn to that same map (it is never changed), with where the time goes per
-// passage: the solve, the covariance recovery and the bias correction.
+// passage: the solve, the covariance recovery and the bias correction; and the solver's iterations.
 void TimeApplyingPassages(const std::function<Passage(int)>& make, int mature, const MapUpdateOptions& options,
                           benchmark::State& state) {
   MapState map;
@@ -33,7 +33,7 @@ void TimeApplyingPassages(const std::function<Passage(int)>& make, int mature, c
   std::vector<Passage> passages;
   for (int i = 0; i < kTimedPassages; ++i) passages.push_back(make(mature + i));
   size_t next = 0;
-  double solve_ms = 0.0, covariance_ms = 0.0, bias_ms = 0.0, subgraphs = 0.0;
+  double solve_ms = 0.0, covariance_ms = 0.0, bias_ms = 0.0, subgraphs = 0.0, iterations = 0.0;
   for (auto _ : state) {
     absl::StatusOr<PassageUpdate> u = updater.Compute(passages[next++ % passages.size()], map);
     if (!u.ok()) {
@@ -44,12 +44,14 @@ void TimeApplyingPassages(const std::function<Passage(int)>& make, int mature, c
     covariance_ms += u->summary.covariance_ms;
     bias_ms += u->summary.bias_correction_ms;
     subgraphs += u->summary.subgraphs;
+    iterations += u->summary.solver_iterations;
     benchmark::DoNotOptimize(u);
   }
   state.counters["solve_ms"] = benchmark::Counter(solve_ms, benchmark::Counter::kAvgIterations);
   state.counters["covariance_ms"] = benchmark::Counter(covariance_ms, benchmark::Counter::kAvgIterations);
   state.counters["bias_correction_ms"] = benchmark::Counter(bias_ms, benchmark::Counter::kAvgIterations);
   state.counters["subgraphs"] = benchmark::Counter(subgraphs, benchmark::Counter::kAvgIterations);
+  state.counters["solver_iterations"] = benchmark::Counter(iterations, benchmark::Counter::kAvgIterations);
   state.counters["landmarks"] = static_cast<double>(map.landmark_count());
 }
 
