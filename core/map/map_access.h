@@ -67,9 +67,9 @@ using MapAccess = std::function<void(const std::function<void(const MapReaderInt
 // A MapReaderInterface over a map that may change between its calls (other workers' commits), that
 // records what was read. Each call reads through `access` (one short lock per call) and copies
 // what it returns, so that the pointers it hands out stay valid; a record or a row of links read
-// once is read again from that copy. Reads of one computation can thus come from several versions of the map, but
-// only where a commit changed what it read, which Overlaps tells: such a computation is discarded.
-// Not thread-safe: one per computation.
+// once is read again from that copy. Reads of one computation can thus come from several versions
+// of the map, but only where a commit changed what it read, which Overlaps tells: such a
+// computation is discarded. Not thread-safe: one per computation.
 class MapReadRecorder : public MapReaderInterface {
  public:
   explicit MapReadRecorder(MapAccess access);
