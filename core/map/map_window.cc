@@ -1,6 +1,7 @@
 #include "core/map/map_window.h"
 
 #include <algorithm>
+#include <optional>
 #include <unordered_set>
 
 #include <Eigen/Cholesky>
@@ -406,6 +407,13 @@ absl::StatusOr<MapWindow> MapWindow::Build(const MapReaderInterface& map, const 
                                            const MapWindowOptions& options) {
   if (absl::Status s = options.Validate(); !s.ok()) return s;
   MapWindow w;
+  // A worker reads a map that other workers' commits change between its reads: a landmark or a
+  // factor that a link or a list named may be gone (folded, removed) by the time it is read. Such a
+  // computation is discarded (Overlaps), so the window fails instead of reading what is not there.
+  const auto gone = [](const char* what, int64_t id) {
+    return absl::AbortedError(
+        absl::StrCat(what, " ", id, ": removed while the window was read (a change committed meanwhile)"));
+  };
   // Breadth-first over the links, level by level.
   std::vector<LandmarkId> frontier;
   w.index_.reserve(seeds.size());
@@ -443,6 +451,7 @@ absl::StatusOr<MapWindow> MapWindow::Build(const MapReaderInterface& map, const 
   // The estimates of the landmarks outside that the window's links reach, each computed once (a
   // geodesic computation; a landmark outside is linked to many inside).
   absl::flat_hash_map<LandmarkId, Eigen::Vector2d> outside_offsets;
+  std::optional<LandmarkId> missing;  // an outside landmark linked but not found
   for (int i = 0; i < n; ++i) {
     const LandmarkId a = w.ids_[i];
     if (options.estimate) rhs.segment<2>(2 * i) = map.InformationVector(a);
@@ -456,10 +465,18 @@ absl::StatusOr<MapWindow> MapWindow::Build(const MapReaderInterface& map, const 
         on_edge = true;
         if (!options.estimate) return;
         auto [it, inserted] = outside_offsets.try_emplace(b);
-        if (inserted) it->second = map.FindLandmark(b)->Offset();
+        if (inserted) {
+          const Landmark* outside = map.FindLandmark(b);
+          if (outside == nullptr) {
+            missing = b;
+            return;
+          }
+          it->second = outside->Offset();
+        }
         rhs.segment<2>(2 * i) -= block.value * it->second;
       }
     });
+    if (missing) return gone("landmark", *missing);
     if (on_edge) edge.push_back(a);
   }
   blocks.SortRows();
@@ -483,7 +500,11 @@ absl::StatusOr<MapWindow> MapWindow::Build(const MapReaderInterface& map, const 
   }
   if (!options.estimate) {
     w.offsets_.resize(2 * n);
-    for (int i = 0; i < n; ++i) w.offsets_.segment<2>(2 * i) = map.FindLandmark(w.ids_[i])->Offset();
+    for (int i = 0; i < n; ++i) {
+      const Landmark* l = map.FindLandmark(w.ids_[i]);
+      if (l == nullptr) return gone("landmark", w.ids_[i]);
+      w.offsets_.segment<2>(2 * i) = l->Offset();
+    }
   }
   if (w.closed_) {
     w.covariance_information_ = Held(&information);
@@ -502,7 +523,7 @@ absl::StatusOr<MapWindow> MapWindow::Build(const MapReaderInterface& map, const 
     for (int64_t id : factor_ids) {
       if (crossing.count(id) > 0 || inside.count(id) > 0) continue;
       factor_landmarks.clear();
-      map.AppendFactorLandmarks(id, &factor_landmarks);
+      if (!map.AppendFactorLandmarks(id, &factor_landmarks)) return gone("map factor", id);
       const bool crosses = std::any_of(factor_landmarks.begin(), factor_landmarks.end(),
                                        [&](LandmarkId l) { return w.index(l) < 0; });
       (crosses ? crossing : inside).insert(id);
@@ -510,7 +531,9 @@ absl::StatusOr<MapWindow> MapWindow::Build(const MapReaderInterface& map, const 
   }
   bool pattern_grew = false;
   for (int64_t id : crossing) {
-    const MapFactor& f = *map.FindFactor(id);
+    const MapFactor* found = map.FindFactor(id);
+    if (found == nullptr) return gone("map factor", id);
+    const MapFactor& f = *found;
     std::vector<int> keep, other, keep_index;
     for (size_t k = 0; k < f.landmarks.size(); ++k) {
       const int j = w.index(f.landmarks[k]);

@@ -253,6 +253,50 @@ TEST(MapWindow, CovarianceOfAnySubsetIsTheInverseBlock) {
   }
 }
 
+// A map whose factor `factor` (or landmark `landmark`) is still named by a landmark's list (or
+// link) but absent when read: what a worker reads when another worker's commit removes it between
+// its reads. With `listed_whole`, the factor's landmarks can still be read and only the whole
+// factor is gone.
+class GoneMeanwhile : public MapState {
+ public:
+  GoneMeanwhile(const MapState& map, int64_t factor, LandmarkId landmark, bool listed_whole)
+      : MapState(map), factor_(factor), landmark_(landmark), listed_whole_(listed_whole) {}
+  const Landmark* FindLandmark(LandmarkId id) const override {
+    return id == landmark_ ? nullptr : MapState::FindLandmark(id);
+  }
+  const MapFactor* FindFactor(int64_t id) const override { return id == factor_ ? nullptr : MapState::FindFactor(id); }
+  bool AppendFactorLandmarks(int64_t id, std::vector<LandmarkId>* out) const override {
+    const MapFactor* f = id == factor_ && !listed_whole_ ? nullptr : MapState::FindFactor(id);
+    if (f == nullptr) return false;
+    out->insert(out->end(), f->landmarks.begin(), f->landmarks.end());
+    return true;
+  }
+
+ private:
+  int64_t factor_;
+  LandmarkId landmark_;
+  bool listed_whole_;
+};
+
+// Landmark 5 with 1 link: the window {5, 4, 6}, whose factors 3 = {3, 4} and 6 = {6, 7} cross its
+// edge. A crossing factor, or a landmark outside, gone meanwhile fails the window (the worker
+// computes it again), whichever read finds it gone.
+TEST(MapWindow, AFactorOrLandmarkGoneWhileTheWindowIsReadFailsIt) {
+  const MapState chain = Chain(12, 3);
+  MapWindowOptions options;
+  options.hops = 1;
+  const auto expect_gone = [&](const MapState& map, const std::string& what) {
+    absl::StatusOr<MapWindow> w = MapWindow::Build(map, {5}, options);
+    ASSERT_FALSE(w.ok()) << what;
+    EXPECT_EQ(w.status().code(), absl::StatusCode::kAborted) << w.status();
+    EXPECT_NE(w.status().message().find(what), std::string::npos) << w.status();
+  };
+  expect_gone(GoneMeanwhile(chain, 3, 0, /*listed_whole=*/true), "map factor 3");
+  expect_gone(GoneMeanwhile(chain, 3, 0, /*listed_whole=*/false), "map factor 3");
+  expect_gone(GoneMeanwhile(chain, 0, 7, false), "landmark 7");
+  EXPECT_TRUE(MapWindow::Build(chain, {5}, options).ok());
+}
+
 TEST(MapWindow, UnknownSeedAndSingularInformationFailCleanly) {
   MapState map = Chain(3, 3);
   EXPECT_EQ(MapWindow::Build(map, {99}, {}).status().code(), absl::StatusCode::kNotFound);
