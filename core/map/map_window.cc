@@ -514,19 +514,19 @@ absl::StatusOr<MapWindow> MapWindow::Build(const MapReaderInterface& map, const 
   // Conservative covariance: every factor that reaches outside enters through its marginal on the
   // window instead of its conditional. They are found by their landmarks alone: the information of
   // the others is not needed (and a MapReadRecorder copies what it hands out).
-  std::unordered_set<int64_t> crossing, inside;
+  std::unordered_set<int64_t> crossing, checked;
   std::vector<int64_t> factor_ids;
   std::vector<LandmarkId> factor_landmarks;
   for (LandmarkId a : edge) {
     factor_ids.clear();
     map.AppendFactorIds(a, &factor_ids);
     for (int64_t id : factor_ids) {
-      if (crossing.count(id) > 0 || inside.count(id) > 0) continue;
+      if (!checked.insert(id).second) continue;
       factor_landmarks.clear();
       if (!map.AppendFactorLandmarks(id, &factor_landmarks)) return gone("map factor", id);
-      const bool crosses = std::any_of(factor_landmarks.begin(), factor_landmarks.end(),
-                                       [&](LandmarkId l) { return w.index(l) < 0; });
-      (crosses ? crossing : inside).insert(id);
+      if (std::any_of(factor_landmarks.begin(), factor_landmarks.end(), [&](LandmarkId l) { return w.index(l) < 0; })) {
+        crossing.insert(id);
+      }
     }
   }
   bool pattern_grew = false;
