@@ -1,12 +1,14 @@
 #ifndef CROWDMAP_SERVER_STORAGE_SQLITE_DB_H_
 #define CROWDMAP_SERVER_STORAGE_SQLITE_DB_H_
 
+#include <condition_variable>
 #include <cstdint>
 #include <functional>
 #include <memory>
 #include <mutex>
 #include <string>
 #include <string_view>
+#include <thread>
 #include <unordered_map>
 #include <vector>
 
@@ -76,11 +78,20 @@ class SqliteConnection {
   // callback removes it.
   void OnProgress(int vm_steps, std::function<void()> callback);
 
+  // Calls `callback` with the number of pages in the write-ahead log after each of this
+  // connection's commits (sqlite3_wal_hook). It replaces SQLite's automatic checkpoint, which ran
+  // inside the committing call: the callback's owner checkpoints instead.
+  void OnWalCommit(std::function<void(int pages)> callback);
+  // Copies into the database what the write-ahead log holds and no reader still needs
+  // (SQLITE_CHECKPOINT_PASSIVE: it waits for no reader and no writer).
+  absl::Status CheckpointPassive();
+
  private:
   explicit SqliteConnection(sqlite3* db) : db_(db) {}
   sqlite3* db_;
   std::unordered_map<std::string, sqlite3_stmt*> cache_;
   std::function<void()> on_progress_;
+  std::function<void(int)> on_wal_commit_;
 };
 
 // BEGIN IMMEDIATE ... COMMIT; rolls back when destroyed uncommitted.
@@ -113,12 +124,20 @@ class SqliteReadTransaction {
 
 // One database file: a writer connection behind a mutex (every write is one BEGIN IMMEDIATE
 // transaction) and a pool of reader connections (WAL lets them read a consistent snapshot while
-// the writer commits).
+// the writer commits). The write-ahead log is checkpointed on a thread of the file's own, so that
+// no commit waits for one.
 class SqliteFile {
  public:
   // Opens (creating when missing) `path` for writing; readers are opened on demand.
   static absl::StatusOr<std::unique_ptr<SqliteFile>> Open(const std::string& path, int busy_timeout_ms,
                                                           int max_idle_readers);
+  ~SqliteFile();
+  SqliteFile(const SqliteFile&) = delete;
+  SqliteFile& operator=(const SqliteFile&) = delete;
+
+  // Checkpoints run once a commit leaves the log at this many pages or more (SQLite's own
+  // automatic checkpoint used the same threshold).
+  static constexpr int kCheckpointPages = 1000;
 
   // A pooled reader connection, returned to the pool when the lease ends.
   class ReaderLease {
@@ -145,12 +164,11 @@ class SqliteFile {
   const std::string& path() const { return path_; }
 
  private:
-  SqliteFile(std::string path, int busy_timeout_ms, int max_idle_readers, std::unique_ptr<SqliteConnection> writer)
-      : path_(std::move(path)),
-        busy_timeout_ms_(busy_timeout_ms),
-        max_idle_readers_(max_idle_readers),
-        writer_(std::move(writer)) {}
+  SqliteFile(std::string path, int busy_timeout_ms, int max_idle_readers, std::unique_ptr<SqliteConnection> writer,
+             std::unique_ptr<SqliteConnection> checkpointer);
   void ReleaseReader(std::unique_ptr<SqliteConnection> db);
+  // The checkpoint thread: one passive checkpoint each time a commit asks for one.
+  void CheckpointLoop();
 
   const std::string path_;
   const int busy_timeout_ms_;
@@ -159,6 +177,13 @@ class SqliteFile {
   std::unique_ptr<SqliteConnection> writer_;
   std::mutex readers_mu_;
   std::vector<std::unique_ptr<SqliteConnection>> idle_readers_;
+  // The checkpoint thread's connection, and what it is told.
+  std::unique_ptr<SqliteConnection> checkpointer_;
+  std::mutex checkpoint_mu_;
+  std::condition_variable checkpoint_cv_;
+  bool checkpoint_due_ = false;  // guarded by checkpoint_mu_
+  bool closing_ = false;         // guarded by checkpoint_mu_
+  std::thread checkpoint_thread_;
 };
 
 }  // namespace crowdmap

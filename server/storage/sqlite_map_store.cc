@@ -131,7 +131,24 @@ absl::StatusOr<int64_t> SqliteMapStore::ReadMapVersion(SqliteConnection* db) {
   return stmt->Int(0);
 }
 
-absl::Status SqliteMapStore::WriteLandmark(SqliteConnection* db, const Landmark& l) {
+absl::StatusOr<SqliteMapStore::Placements> SqliteMapStore::ReadPlacements(SqliteConnection* db) {
+  auto stmt = db->Prepare(
+      "SELECT b.id, b.min_lat, b.max_lat, b.min_lon, b.max_lon, l.tile_x, l.tile_y "
+      "FROM landmark_boxes b JOIN landmarks l ON l.id = b.id");
+  if (!stmt.ok()) return stmt.status();
+  Placements placements;
+  while (true) {
+    auto row = stmt->Step();
+    if (!row.ok()) return row.status();
+    if (!*row) return placements;
+    placements[stmt->Int(0)] = StoredPlacement{stmt->Double(1), stmt->Double(2), stmt->Double(3), stmt->Double(4),
+                                               TileId{kStorageZoom, static_cast<int>(stmt->Int(5)),
+                                                      static_cast<int>(stmt->Int(6))}};
+  }
+}
+
+absl::Status SqliteMapStore::WriteLandmark(SqliteConnection* db, const Landmark& l, const StoredPlacement* stored,
+                                           StoredPlacement* written) {
   if (!std::isfinite(l.position.lat_deg) || !std::isfinite(l.position.lon_deg) || !l.cov_en_m2.allFinite()) {
     return absl::InternalError(absl::StrCat("landmark ", l.id, " has a non-finite position or covariance"));
   }
@@ -140,15 +157,23 @@ absl::Status SqliteMapStore::WriteLandmark(SqliteConnection* db, const Landmark&
     return absl::InternalError(absl::StrCat("landmark ", l.id, " covariance is not positive definite"));
   }
   const TileId tile = TileContaining(l.position);
-  auto stmt = db->Prepare(
-      "INSERT INTO landmarks (id, lat_deg, lon_deg, cov_ee, cov_en, cov_ne, cov_nn, version, "
-      "passages_seen, last_seen_unix_ms, state, tile_x, tile_y, anchor_lat_deg, anchor_lon_deg) "
-      "VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13, ?14, ?15) ON CONFLICT (id) DO UPDATE SET "
-      "lat_deg = excluded.lat_deg, lon_deg = excluded.lon_deg, cov_ee = excluded.cov_ee, cov_en = excluded.cov_en, "
-      "cov_ne = excluded.cov_ne, cov_nn = excluded.cov_nn, version = excluded.version, "
-      "passages_seen = excluded.passages_seen, last_seen_unix_ms = excluded.last_seen_unix_ms, "
-      "state = excluded.state, tile_x = excluded.tile_x, tile_y = excluded.tile_y, "
-      "anchor_lat_deg = excluded.anchor_lat_deg, anchor_lon_deg = excluded.anchor_lon_deg");
+  const bool same_tile = stored != nullptr && stored->tile == tile;
+  // Rows whose tile stays are updated without the tile's columns, so that SQLite leaves the tile
+  // index alone (it rewrites an index whose columns are set, whatever their values).
+  auto stmt = same_tile ? db->Prepare(
+                              "UPDATE landmarks SET lat_deg = ?2, lon_deg = ?3, cov_ee = ?4, cov_en = ?5, "
+                              "cov_ne = ?6, cov_nn = ?7, version = ?8, passages_seen = ?9, last_seen_unix_ms = ?10, "
+                              "state = ?11, anchor_lat_deg = ?14, anchor_lon_deg = ?15 WHERE id = ?1")
+                        : db->Prepare(
+                              "INSERT INTO landmarks (id, lat_deg, lon_deg, cov_ee, cov_en, cov_ne, cov_nn, version, "
+                              "passages_seen, last_seen_unix_ms, state, tile_x, tile_y, anchor_lat_deg, "
+                              "anchor_lon_deg) VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8, ?9, ?10, ?11, ?12, ?13, ?14, "
+                              "?15) ON CONFLICT (id) DO UPDATE SET lat_deg = excluded.lat_deg, "
+                              "lon_deg = excluded.lon_deg, cov_ee = excluded.cov_ee, cov_en = excluded.cov_en, "
+                              "cov_ne = excluded.cov_ne, cov_nn = excluded.cov_nn, version = excluded.version, "
+                              "passages_seen = excluded.passages_seen, last_seen_unix_ms = excluded.last_seen_unix_ms, "
+                              "state = excluded.state, tile_x = excluded.tile_x, tile_y = excluded.tile_y, "
+                              "anchor_lat_deg = excluded.anchor_lat_deg, anchor_lon_deg = excluded.anchor_lon_deg");
   if (!stmt.ok()) return stmt.status();
   stmt->Bind(1, static_cast<int64_t>(l.id))
       .Bind(2, l.position.lat_deg)
@@ -160,33 +185,34 @@ absl::Status SqliteMapStore::WriteLandmark(SqliteConnection* db, const Landmark&
       .Bind(8, l.version)
       .Bind(9, l.passages_seen)
       .Bind(10, l.last_seen_unix_ms)
-      .Bind(11, static_cast<int64_t>(l.state))
-      .Bind(12, static_cast<int64_t>(tile.x))
-      .Bind(13, static_cast<int64_t>(tile.y))
-      .Bind(14, l.anchor.lat_deg)
-      .Bind(15, l.anchor.lon_deg);
+      .Bind(11, static_cast<int64_t>(l.state));
+  if (!same_tile) stmt->Bind(12, static_cast<int64_t>(tile.x)).Bind(13, static_cast<int64_t>(tile.y));
+  stmt->Bind(14, l.anchor.lat_deg).Bind(15, l.anchor.lon_deg);
   if (auto s = stmt->Run(); !s.ok()) return s;
+  if (same_tile && db->Changes() != 1) {
+    return absl::InternalError(absl::StrCat("landmark ", l.id, ": its row is missing from the map file"));
+  }
   // The R*Tree's box is rewritten only when the landmark has left it. A passage on a city map
   // moves some 3,000 landmarks by millimetres (its window's solve), and rewriting each one's
   // R*Tree entry took 23 of a commit's 53 ms (docs/results.md, "Two workers once updates got
   // faster"). Boxes reach kBoxMarginDeg beyond the position they were written for, so that such
   // moves stay inside; region reads test the exact position on the row (kInBox), and the margin
   // only adds candidates to that test.
-  {  // the read ends before the write: the R*Tree cannot change under an open cursor
-    auto current = db->Prepare("SELECT min_lat, max_lat, min_lon, max_lon FROM landmark_boxes WHERE id = ?1");
-    if (!current.ok()) return current.status();
-    current->Bind(1, static_cast<int64_t>(l.id));
-    auto found = current->Step();
-    if (!found.ok()) return found.status();
-    if (*found && current->Double(0) <= l.position.lat_deg && l.position.lat_deg <= current->Double(1) &&
-        current->Double(2) <= l.position.lon_deg && l.position.lon_deg <= current->Double(3)) {
-      return absl::OkStatus();
-    }
+  *written = stored != nullptr ? *stored : StoredPlacement{};
+  written->tile = tile;
+  if (stored != nullptr && stored->min_lat <= l.position.lat_deg && l.position.lat_deg <= stored->max_lat &&
+      stored->min_lon <= l.position.lon_deg && l.position.lon_deg <= stored->max_lon) {
+    return absl::OkStatus();
   }
   auto box = db->Prepare("INSERT OR REPLACE INTO landmark_boxes (id, min_lat, max_lat, min_lon, max_lon) "
                          "VALUES (?1, ?2 - ?4, ?2 + ?4, ?3 - ?4, ?3 + ?4)");
   if (!box.ok()) return box.status();
   box->Bind(1, static_cast<int64_t>(l.id)).Bind(2, l.position.lat_deg).Bind(3, l.position.lon_deg).Bind(4, kBoxMarginDeg);
+  // The R*Tree rounds its bounds outwards to floats: the box kept here lies inside the stored one.
+  written->min_lat = l.position.lat_deg - kBoxMarginDeg;
+  written->max_lat = l.position.lat_deg + kBoxMarginDeg;
+  written->min_lon = l.position.lon_deg - kBoxMarginDeg;
+  written->max_lon = l.position.lon_deg + kBoxMarginDeg;
   return box->Run();
 }
 
@@ -211,9 +237,14 @@ absl::Status SqliteMapStore::CheckPassageState(SqliteConnection* db, int64_t id,
   return absl::OkStatus();
 }
 
-absl::Status SqliteMapStore::WriteMapDelta(SqliteConnection* db, const MapDelta& delta) {
+absl::Status SqliteMapStore::WriteMapDelta(SqliteConnection* db, const MapDelta& delta, const Placements& stored,
+                                           Placements* written) {
+  written->reserve(delta.landmarks.size());
   for (const auto& [lid, landmark] : delta.landmarks) {
-    if (auto s = WriteLandmark(db, landmark); !s.ok()) return s;
+    const auto it = stored.find(lid);
+    if (auto s = WriteLandmark(db, landmark, it == stored.end() ? nullptr : &it->second, &(*written)[lid]); !s.ok()) {
+      return s;
+    }
   }
   for (LandmarkId lid : delta.removed_landmarks) {
     for (const char* sql : {"DELETE FROM landmarks WHERE id = ?1", "DELETE FROM landmark_boxes WHERE id = ?1"}) {
@@ -386,7 +417,17 @@ absl::Status SqliteMapStore::CommitMapChange(int64_t id, const MapDelta& delta, 
     auto txn = SqliteWriteTransaction::Begin(db);
     if (!txn.ok()) return txn.status();
     if (auto s = CheckBaseVersion(db, delta); !s.ok()) return s;
-    if (auto s = WriteMapDelta(db, delta); !s.ok()) return s;
+    if (!placements_) {
+      auto read = ReadPlacements(db);
+      if (!read.ok()) return read.status();
+      placements_ = std::move(*read);
+    }
+    Placements written;
+    if (auto s = WriteMapDelta(db, delta, *placements_, &written); !s.ok()) {
+      // Nothing of it stays, but the error may come from placements that disagree with the file.
+      placements_.reset();
+      return s;
+    }
     if (result) {
       if (auto s = WriteResult(db, "map_passages", id, *result); !s.ok()) return s;
     }
@@ -394,7 +435,12 @@ absl::Status SqliteMapStore::CommitMapChange(int64_t id, const MapDelta& delta, 
     if (!mark.ok()) return mark.status();
     mark->Bind(1, id).Bind(2, static_cast<int64_t>(to)).Bind(3, change.finished_unix_ms);
     if (auto s = mark->Run(); !s.ok()) return s;
-    if (auto s = txn->Commit(); !s.ok()) return s;
+    if (auto s = txn->Commit(); !s.ok()) {
+      placements_.reset();  // read again, whether or not a failed COMMIT left anything written
+      return s;
+    }
+    for (auto& [lid, placement] : written) (*placements_)[lid] = placement;
+    for (LandmarkId lid : delta.removed_landmarks) placements_->erase(lid);
   }
   SqliteFile::Writer writer = queue_->LockWriter();
   pending_.push_back(std::move(change));

@@ -8,6 +8,7 @@
 #include <string>
 #include <vector>
 
+#include "absl/container/flat_hash_map.h"
 #include "server/storage/map_store.h"
 #include "server/storage/sqlite_db.h"
 
@@ -66,7 +67,20 @@ class SqliteMapStore : public MapStoreInterface {
   static absl::StatusOr<std::optional<StoredPassage>> ReadPassageByContent(SqliteConnection* db,
                                                                            const std::string& digest);
   static absl::StatusOr<int64_t> ReadMapVersion(SqliteConnection* db);
-  static absl::Status WriteLandmark(SqliteConnection* db, const Landmark& landmark);
+  // Where the map file has a landmark: its R*Tree box and the tile on its row. The writer looks
+  // them up here rather than in the file, and rewrites neither while the landmark stays inside
+  // both (a passage moves some 2,500 landmarks of a city map by millimetres).
+  struct StoredPlacement {
+    double min_lat = 0.0, max_lat = 0.0, min_lon = 0.0, max_lon = 0.0;
+    TileId tile;
+  };
+  using Placements = absl::flat_hash_map<LandmarkId, StoredPlacement>;
+  // Every stored landmark's placement (in the caller's transaction).
+  static absl::StatusOr<Placements> ReadPlacements(SqliteConnection* db);
+  // Writes the landmark; `stored` is its placement in the file before (null for a landmark the
+  // file does not hold), `written` receives its placement after.
+  static absl::Status WriteLandmark(SqliteConnection* db, const Landmark& landmark, const StoredPlacement* stored,
+                                    StoredPlacement* written);
   static absl::Status WriteVehicle(SqliteConnection* db, const VehicleCalibration& vehicle);
   // The vehicles selected by `where` (after the column list), bound by `bind`.
   static absl::StatusOr<std::vector<VehicleCalibration>> ReadVehicles(SqliteConnection* db, const std::string& where,
@@ -100,8 +114,10 @@ class SqliteMapStore : public MapStoreInterface {
                                   const PassageResult& result);
   // Moves a stored factor into the base tables (in the writer's transaction).
   static absl::Status FoldFactor(SqliteConnection* db, int64_t id);
-  // Writes the delta's landmarks, removals and factors and its version (in the writer's transaction).
-  static absl::Status WriteMapDelta(SqliteConnection* db, const MapDelta& delta);
+  // Writes the delta's landmarks, removals and factors and its version (in the writer's transaction),
+  // the landmarks against their `stored` placements; the placements written go to `written`.
+  static absl::Status WriteMapDelta(SqliteConnection* db, const MapDelta& delta, const Placements& stored,
+                                    Placements* written);
   // Reads landmarks, factors and version (in the caller's transaction).
   static absl::Status ReadMap(SqliteConnection* db, MapState* map);
   // Landmarks selected by `where` (after the common column list), bound by `bind`, read in one
@@ -115,6 +131,9 @@ class SqliteMapStore : public MapStoreInterface {
   const std::unique_ptr<SqliteFile> map_;
   const std::unique_ptr<SqliteFile> queue_;
   std::vector<PendingConfirmation> pending_;  // guarded by the queue's writer lock
+  // The map file's placements as of its last commit, read at the first commit and dropped when a
+  // commit fails (read again at the next); guarded by the map's writer lock.
+  std::optional<Placements> placements_;
 };
 
 }  // namespace crowdmap

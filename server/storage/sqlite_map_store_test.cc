@@ -2,9 +2,13 @@
 
 #include <sqlite3.h>
 
+#include <chrono>
+#include <cmath>
 #include <cstdio>
+#include <filesystem>
 #include <memory>
 #include <string>
+#include <thread>
 
 #include "gtest/gtest.h"
 #include "server/storage/cached_map_store.h"
@@ -123,6 +127,35 @@ TEST(SqliteConnection, OnProgressIsCalledDuringALongStatementUntilRemoved) {
   ASSERT_TRUE((*db)->Exec(insert).ok());
   EXPECT_EQ(calls, before);
   EXPECT_EQ(SqlInt(dir.File("progress.db"), "SELECT COUNT(*) FROM t"), 20000);
+}
+
+// Commits leave checkpoints to the file's own thread (SqliteFile::kCheckpointPages): a commit's
+// pages reach the database file with no further write of the writer's.
+TEST(SqliteFile, ALongWriteAheadLogIsCheckpointedAfterItsCommit) {
+  TempDir dir;
+  const std::string path = dir.File("log.db");
+  auto file = SqliteFile::Open(path, 1000, 1);
+  ASSERT_TRUE(file.ok()) << file.status();
+  {
+    SqliteFile::Writer writer = (*file)->LockWriter();
+    ASSERT_TRUE(writer.db->Exec("CREATE TABLE t (b BLOB NOT NULL)").ok());
+    auto txn = SqliteWriteTransaction::Begin(writer.db);
+    ASSERT_TRUE(txn.ok());
+    auto insert = writer.db->Prepare("INSERT INTO t (b) VALUES (zeroblob(4000))");
+    ASSERT_TRUE(insert.ok());
+    for (int i = 0; i < 2 * SqliteFile::kCheckpointPages; ++i) ASSERT_TRUE(insert->Run().ok());
+    ASSERT_TRUE(txn->Commit().ok());
+  }
+  const auto file_size = [&] {
+    std::error_code ec;
+    const auto size = std::filesystem::file_size(path, ec);
+    return ec ? 0 : size;
+  };
+  const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(30);
+  while (file_size() < 8'000'000 && std::chrono::steady_clock::now() < deadline) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(10));
+  }
+  EXPECT_GE(file_size(), 8'000'000u) << "the log was not copied into the database";
 }
 
 TEST(SqliteConnection, AFullDatabaseAnswersResourceExhaustedWithAMessage) {
@@ -448,6 +481,80 @@ TEST(SqliteMapStore, ALandmarkKeepsItsRtreeBoxUntilItLeavesIt) {
   EXPECT_GT(SqlInt(path, box_sql), written);
   EXPECT_EQ(ids_in(far - 1e-6, far + 1e-6), found);
   EXPECT_EQ(ids_in(lat - 1e-6, lat + 1e-6), none);
+}
+
+// The writer keeps each landmark's R*Tree box and tile in memory instead of reading them for every
+// landmark it writes. A commit that fails must leave them as the file has them, and a reopened
+// store reads them from the file: a landmark moved out of its box and tile then gets new ones, and
+// one moved inside its box keeps it.
+TEST(SqliteMapStore, AFailedCommitOrAReopenLeavesTheWriterWithTheFilesBoxesAndTiles) {
+  TempDir dir;
+  const std::string path = dir.File("map.db");
+  auto store = OpenStore(path);
+  const std::string box_sql = "SELECT min_lat * 1e9 FROM landmark_boxes WHERE id = 7";
+  const std::string tile_sql = "SELECT tile_y FROM landmarks WHERE id = 7";
+  const double lat = 48.7, lon = 2.17;
+  const double far = lat + 0.01;  // 1.1 km north: another z16 tile
+  ASSERT_NE(TileContaining({lat, lon}).y, TileContaining({far, lon}).y);
+  auto commit = [&](int64_t version, double at_lat, bool bad_factor) {
+    MapDelta delta;
+    delta.base_version = version - 1;
+    delta.version = version;
+    delta.landmarks[7] = MakeLandmark(7, at_lat, lon, version);
+    if (bad_factor) {  // refused after the landmarks are written: the transaction rolls back
+      MapFactor factor = MakeFactor(1, {7}, Eigen::Matrix2d::Identity());
+      factor.information(0, 0) = std::nan("");
+      delta.added_factors[1] = factor;
+    }
+    return store->CommitPassageApplied(EnqueueAndClaim(store.get(), std::to_string(version) + (bad_factor ? "x" : "")),
+                                       delta, PassageResult());
+  };
+  auto ids_near = [&](double at_lat) {
+    std::vector<LandmarkId> ids;
+    auto page = store->QueryRegion(BoundingBox{at_lat - 1e-6, lon - 1e-6, at_lat + 1e-6, lon + 1e-6}, 0, 10, false);
+    EXPECT_TRUE(page.ok());
+    if (page.ok()) {
+      for (const Landmark& l : page->landmarks) ids.push_back(l.id);
+    }
+    return ids;
+  };
+  auto tile_ids = [&](double at_lat) {
+    std::vector<LandmarkId> ids;
+    auto page = store->GetTile(TileContaining({at_lat, lon}), false);
+    EXPECT_TRUE(page.ok());
+    if (page.ok()) {
+      for (const Landmark& l : page->landmarks) ids.push_back(l.id);
+    }
+    return ids;
+  };
+  const std::vector<LandmarkId> found{7}, none;
+  ASSERT_TRUE(commit(1, lat, false).ok());
+  const int64_t box_at_lat = SqlInt(path, box_sql);
+
+  EXPECT_EQ(commit(2, far, true).code(), absl::StatusCode::kInternal);
+  EXPECT_EQ(SqlInt(path, box_sql), box_at_lat);
+  EXPECT_EQ(SqlInt(path, tile_sql), TileContaining({lat, lon}).y);
+  // The same move committed: a writer that had kept the failed commit's box and tile would write
+  // neither.
+  ASSERT_TRUE(commit(2, far, false).ok());
+  const int64_t box_at_far = SqlInt(path, box_sql);
+  EXPECT_GT(box_at_far, box_at_lat);
+  EXPECT_EQ(SqlInt(path, tile_sql), TileContaining({far, lon}).y);
+  EXPECT_EQ(ids_near(far), found);
+  EXPECT_EQ(tile_ids(far), found);
+  EXPECT_EQ(tile_ids(lat), none);
+
+  store.reset();
+  store = OpenStore(path);
+  ASSERT_TRUE(commit(3, far + 5e-6, false).ok());  // 55 cm: inside its box
+  EXPECT_EQ(SqlInt(path, box_sql), box_at_far);
+  ASSERT_TRUE(commit(4, lat, false).ok());  // back south: a new box and tile
+  EXPECT_EQ(SqlInt(path, box_sql), box_at_lat);
+  EXPECT_EQ(SqlInt(path, tile_sql), TileContaining({lat, lon}).y);
+  EXPECT_EQ(ids_near(lat), found);
+  EXPECT_EQ(ids_near(far), none);
+  EXPECT_EQ(tile_ids(lat), found);
+  EXPECT_EQ(tile_ids(far), none);
 }
 
 TEST(SqliteMapStore, StatsFollowEveryWriteWithoutScanningTheTables) {
