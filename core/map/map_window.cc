@@ -17,12 +17,26 @@ namespace crowdmap {
 // more than the factorisation.
 constexpr int kDenseWindowDims = 600;
 
-// CHOLMOD's supernodal factor, which Eigen's wrapper keeps to itself.
-class SupernodalLLT : public Eigen::CholmodSupernodalLLT<Eigen::SparseMatrix<double>, Eigen::Upper> {
+// CHOLMOD's supernodal factor (which Eigen's wrapper keeps to itself) of a matrix given by its
+// lower triangle, already in a fill-reducing order: analysed in that order, as it is.
+class SupernodalLLT : public Eigen::CholmodSupernodalLLT<Eigen::SparseMatrix<double>, Eigen::Lower> {
  public:
-  explicit SupernodalLLT(const Eigen::SparseMatrix<double>& a) {
+  // The symbolic analysis of `a`'s pattern without a permutation of CHOLMOD's own (nor its
+  // postorder, a permutation too): CHOLMOD then reads `a` as it is, where a permutation costs it
+  // two transposes of the matrix in the analysis and two in each factorisation.
+  bool AnalyzeInGivenOrder(const Eigen::SparseMatrix<double>& a) {
     FactorizeOnThisThreadOnly();
-    compute(a);
+    if (m_cholmodFactor != nullptr) cholmod_free_factor(&m_cholmodFactor, &cholmod());
+    cholmod_sparse view = Eigen::viewAsCholmod(a.selfadjointView<Eigen::Lower>());
+    cholmod().nmethods = 1;
+    cholmod().method[0].ordering = CHOLMOD_NATURAL;
+    cholmod().postorder = 0;
+    m_cholmodFactor = cholmod_analyze(&view, &cholmod());
+    m_isInitialized = true;
+    m_analysisIsOk = m_cholmodFactor != nullptr;
+    m_factorizationIsOk = false;
+    m_info = m_analysisIsOk ? Eigen::Success : Eigen::NumericalIssue;
+    return m_analysisIsOk;
   }
   const cholmod_factor& factor() const { return *m_cholmodFactor; }
 };
@@ -43,39 +57,222 @@ SupernodalArrays ArraysOf(const cholmod_factor& l) {
           static_cast<const int*>(l.s), static_cast<const double*>(l.x)};
 }
 
+// A window's information by 2 x 2 blocks: its diagonal blocks and, for each landmark j, the blocks
+// of the window landmarks linked to it that come before it (i < j): the upper triangle, each link
+// once. The factorisation takes it in the order of a fill-reducing permutation of the landmarks
+// (ToSparseLower), written straight into compressed columns (sorting and summing triplets cost as
+// much as the rest of the assembly).
+class UpperBlocks {
+ public:
+  explicit UpperBlocks(int n) : diagonal_(n, Eigen::Matrix2d::Zero()), above_(n) {}
+
+  int size() const { return static_cast<int>(diagonal_.size()); }
+  void AddDiagonal(int j, const Eigen::Matrix2d& block) { diagonal_[j] += block; }
+  // The block of a link between i < j at (2i, 2j): each link once.
+  void AddAbove(int i, int j, const Eigen::Matrix2d& block) { above_[j].push_back({i, block}); }
+  // Sorts each column's rows; call once all links are in, before Add and the conversions.
+  void SortRows() {
+    for (auto& column : above_) {
+      std::sort(column.begin(), column.end(), [](const Above& x, const Above& y) { return x.row < y.row; });
+    }
+  }
+  // Adds `block` at (2i, 2j), i <= j (after SortRows). True when no block was there: the pattern
+  // grew.
+  bool Add(int i, int j, const Eigen::Matrix2d& block) {
+    if (i == j) {
+      diagonal_[j] += block;
+      return false;
+    }
+    auto& column = above_[j];
+    auto it = std::lower_bound(column.begin(), column.end(), i, [](const Above& x, int row) { return x.row < row; });
+    if (it == column.end() || it->row != i) {
+      column.insert(it, Above{i, block});
+      return true;
+    }
+    it->value += block;
+    return false;
+  }
+
+  // The landmarks in a fill-reducing order (AMD on the graph of the links, a quarter of the
+  // scalar matrix's entries): order[k] is the landmark put k-th. Empty when AMD fails.
+  std::vector<int> FillReducingOrder(cholmod_common* common) const {
+    const int n = size();
+    size_t links = 0;
+    for (const auto& column : above_) links += column.size();
+    cholmod_sparse* pattern = cholmod_allocate_sparse(n, n, links, /*sorted=*/1, /*packed=*/1, /*stype=*/1,
+                                                      CHOLMOD_PATTERN, common);
+    if (pattern == nullptr) return {};
+    int* p = static_cast<int*>(pattern->p);
+    int* i = static_cast<int*>(pattern->i);
+    int at = 0;
+    for (int j = 0; j < n; ++j) {
+      p[j] = at;
+      for (const Above& a : above_[j]) i[at++] = a.row;
+    }
+    p[n] = at;
+    std::vector<int> order(n);
+    const bool ok = cholmod_amd(pattern, nullptr, 0, order.data(), common);
+    cholmod_free_sparse(&pattern, common);
+    if (!ok) return {};
+    return order;
+  }
+
+  // The lower triangle of the information with landmark i at block position `position[i]`: P A P^T,
+  // each column's rows sorted (the form CHOLMOD's supernodal factorisation reads without a copy,
+  // where a permutation of its own costs it two transposes of the matrix).
+  Eigen::SparseMatrix<double> ToSparseLower(const std::vector<int>& position) const {
+    const int n = size();
+    // Each link as (row position hi, column position lo), its block oriented rows of hi, columns of
+    // lo; bucketed by hi, so that the columns fill in increasing row order.
+    struct Below {
+      int lo;
+      const Eigen::Matrix2d* block;
+      bool transposed;
+    };
+    std::vector<int> start(n + 1, 0), per_column(n, 0);
+    for (int j = 0; j < n; ++j) {
+      for (const Above& a : above_[j]) {
+        const int pi = position[a.row], pj = position[j];
+        ++start[std::max(pi, pj) + 1];
+        ++per_column[std::min(pi, pj)];
+      }
+    }
+    for (int k = 0; k < n; ++k) start[k + 1] += start[k];
+    std::vector<Below> below(start[n]);
+    {
+      std::vector<int> next(start.begin(), start.end() - 1);
+      for (int j = 0; j < n; ++j) {
+        for (const Above& a : above_[j]) {
+          const int pi = position[a.row], pj = position[j];
+          // a.value holds rows of landmark a.row, columns of landmark j.
+          below[next[std::max(pi, pj)]++] = Below{std::min(pi, pj), &a.value, pj > pi};
+        }
+      }
+    }
+    std::vector<int> landmark_at(n);
+    for (int i = 0; i < n; ++i) landmark_at[position[i]] = i;
+    Eigen::SparseMatrix<double> out(2 * n, 2 * n);
+    out.resizeNonZeros(static_cast<Eigen::Index>(3 * n + 4 * start[n]));
+    int* outer = out.outerIndexPtr();
+    int* inner = out.innerIndexPtr();
+    double* value = out.valuePtr();
+    std::vector<int> fill(2 * n);
+    int at = 0;
+    for (int k = 0; k < n; ++k) {
+      const Eigen::Matrix2d& d = diagonal_[landmark_at[k]];
+      outer[2 * k] = at;
+      inner[at] = 2 * k, value[at++] = d(0, 0);
+      inner[at] = 2 * k + 1, value[at++] = d(1, 0);
+      fill[2 * k] = at;
+      at += 2 * per_column[k];
+      outer[2 * k + 1] = at;
+      inner[at] = 2 * k + 1, value[at++] = d(1, 1);
+      fill[2 * k + 1] = at;
+      at += 2 * per_column[k];
+    }
+    outer[2 * n] = at;
+    for (int hi = 0; hi < n; ++hi) {
+      for (int e = start[hi]; e < start[hi + 1]; ++e) {
+        const Below& b = below[e];
+        for (int c = 0; c < 2; ++c) {
+          int& f = fill[2 * b.lo + c];
+          for (int r = 0; r < 2; ++r) {
+            inner[f] = 2 * hi + r;
+            value[f++] = b.transposed ? (*b.block)(c, r) : (*b.block)(r, c);
+          }
+        }
+      }
+    }
+    return out;
+  }
+
+  // The lower triangle, dense, in the landmarks' order (zeros above the diagonal).
+  Eigen::MatrixXd ToDenseLower() const {
+    const int n = size();
+    Eigen::MatrixXd out = Eigen::MatrixXd::Zero(2 * n, 2 * n);
+    for (int j = 0; j < n; ++j) {
+      out.block<2, 2>(2 * j, 2 * j) = diagonal_[j];
+      out(2 * j, 2 * j + 1) = 0.0;
+      for (const Above& a : above_[j]) out.block<2, 2>(2 * j, 2 * a.row) = a.value.transpose();
+    }
+    return out;
+  }
+
+ private:
+  struct Above {
+    int row;  // the landmark above the diagonal
+    Eigen::Matrix2d value;
+  };
+  std::vector<Eigen::Matrix2d> diagonal_;
+  std::vector<std::vector<Above>> above_;
+};
+
 }  // namespace
 
-// Factorisation of a window's information `a`, given by its upper triangle (UpperBlocks).
+// Factorisation of a window's information, given by its blocks. A small window is factorised
+// densely in the landmarks' order; a larger one sparsely, in a fill-reducing order of its
+// landmarks (position_), which the methods below translate from and to the landmarks' order.
 class MapWindow::Factor {
  public:
-  explicit Factor(const Eigen::SparseMatrix<double>& a) {
-    if (a.rows() <= kDenseWindowDims) {
-      dense_ = Eigen::MatrixXd(a.transpose());
+  explicit Factor(const UpperBlocks& blocks) {
+    if (2 * blocks.size() <= kDenseWindowDims) {
+      dense_ = blocks.ToDenseLower();
       ok_ = CholeskyInPlace(dense_);
       return;
     }
-    sparse_ = std::make_unique<SupernodalLLT>(a);
-    ok_ = sparse_->info() == Eigen::Success;
-    if (ok_) IndexSupernodes();
+    sparse_ = std::make_unique<SupernodalLLT>();
+    order_ = blocks.FillReducingOrder(&sparse_->cholmod());
+    if (order_.empty()) {  // AMD failed (out of memory): the landmarks' own order
+      order_.resize(blocks.size());
+      for (int i = 0; i < blocks.size(); ++i) order_[i] = i;
+    }
+    position_.resize(order_.size());
+    for (size_t k = 0; k < order_.size(); ++k) position_[order_[k]] = static_cast<int>(k);
+    matrix_ = blocks.ToSparseLower(position_);
+    ok_ = sparse_->AnalyzeInGivenOrder(matrix_) && Numeric();
   }
   Eigen::ComputationInfo info() const { return ok_ ? Eigen::Success : Eigen::NumericalIssue; }
-  // Factorises `a` in place of the matrix the factor was made with, whose pattern it must have
-  // (or a part of it): CHOLMOD's symbolic analysis (the fill-reducing ordering) is reused.
-  bool Refactorize(const Eigen::SparseMatrix<double>& a) {
+  // Factorises `blocks` in place of the ones the factor was made with, whose pattern they must have
+  // (or a part of it): the order and CHOLMOD's symbolic analysis are reused.
+  bool Refactorize(const UpperBlocks& blocks) {
     if (!sparse_) {
-      dense_ = Eigen::MatrixXd(a.transpose());
+      dense_ = blocks.ToDenseLower();
       ok_ = CholeskyInPlace(dense_);
       return ok_;
     }
-    FactorizeOnThisThreadOnly();
-    sparse_->factorize(a);
-    ok_ = sparse_->info() == Eigen::Success;
-    if (ok_) IndexSupernodes();
+    matrix_ = blocks.ToSparseLower(position_);
+    ok_ = Numeric();
     return ok_;
+  }
+  // The inverse of the information, dense, in the landmarks' order.
+  absl::StatusOr<Eigen::MatrixXd> DenseInverse() const {
+    Eigen::MatrixXd inverse;
+    if (sparse_) {
+      const int dims = static_cast<int>(matrix_.rows());
+      inverse = Eigen::MatrixXd::Zero(dims, dims);
+      for (int c = 0; c < dims; ++c) {
+        for (Eigen::SparseMatrix<double>::InnerIterator it(matrix_, c); it; ++it) {
+          const int a = Original(static_cast<int>(it.row())), b = Original(c);
+          inverse(std::max(a, b), std::min(a, b)) = it.value();
+        }
+      }
+      if (!CholeskyInPlace(inverse)) return absl::FailedPreconditionError("map information is not positive definite");
+    } else {
+      inverse = dense_;
+    }
+    InverseFromCholeskyInPlace(inverse);
+    return inverse;
   }
   template <typename Rhs>
   Eigen::MatrixXd solve(const Rhs& b) const {
-    if (sparse_) return sparse_->solve(b);
+    if (sparse_) {
+      Eigen::MatrixXd in_order(b.rows(), b.cols());
+      for (int r = 0; r < static_cast<int>(b.rows()); ++r) in_order.row(Ordered(r)) = b.row(r);
+      const Eigen::MatrixXd solved = sparse_->solve(in_order);
+      Eigen::MatrixXd x(b.rows(), b.cols());
+      for (int r = 0; r < static_cast<int>(b.rows()); ++r) x.row(r) = solved.row(Ordered(r));
+      return x;
+    }
     Eigen::MatrixXd x = b;
     SolveLowerInPlace(dense_, x);
     dense_.triangularView<Eigen::Lower>().transpose().solveInPlace(x);
@@ -91,7 +288,7 @@ class MapWindow::Factor {
     if (sparse_ && column_super_.empty()) {  // not a supernodal factor CHOLMOD could be read from
       Eigen::MatrixXd unit = Eigen::MatrixXd::Zero(sparse_->rows(), m);
       for (int c = 0; c < m; ++c) unit(rows[c], c) = 1.0;
-      const Eigen::MatrixXd columns = sparse_->solve(unit);
+      const Eigen::MatrixXd columns = solve(unit);
       const Eigen::MatrixXd cov = columns(rows, Eigen::all);
       return 0.5 * (cov + cov.transpose());
     }
@@ -261,8 +458,10 @@ class MapWindow::Factor {
       const int ncols = super[s + 1] - super[s];
       if (pi[s + 1] - pi[s] > ncols) parent_[s] = column_super_[ls[pi[s] + ncols]];
     }
+    std::vector<int> column_of(n);  // CHOLMOD's own permutation (the identity, as analysed), inverted
+    for (int k = 0; k < n; ++k) column_of[perm[k]] = k;
     permuted_.resize(n);
-    for (int k = 0; k < n; ++k) permuted_[perm[k]] = k;
+    for (int r = 0; r < n; ++r) permuted_[r] = column_of[Ordered(r)];
     // The first supernode of each subtree; the tree is postordered (CHOLMOD's default) when every
     // subtree is the range first..itself.
     first_descendant_.resize(nsuper);
@@ -277,94 +476,29 @@ class MapWindow::Factor {
     for (int s = 0; s < nsuper; ++s) postordered_ = postordered_ && size[s] == s - first_descendant_[s] + 1;
   }
 
+  // The numeric factorisation of matrix_, with the analysis made.
+  bool Numeric() {
+    FactorizeOnThisThreadOnly();
+    sparse_->factorize(matrix_);
+    if (sparse_->info() != Eigen::Success) return false;
+    IndexSupernodes();
+    return true;
+  }
+  // The row of the ordered matrix that holds row `r` of the information in the landmarks' order,
+  // and back.
+  int Ordered(int r) const { return 2 * position_[r / 2] + r % 2; }
+  int Original(int r) const { return 2 * order_[r / 2] + r % 2; }
+
   Eigen::MatrixXd dense_;  // L of a small window (lower triangle)
   std::unique_ptr<SupernodalLLT> sparse_;
+  std::vector<int> order_, position_;  // of the landmarks, in a sparse factor
+  Eigen::SparseMatrix<double> matrix_;  // the information factorised (sparse), ordered lower triangle
   bool ok_ = false;
   std::vector<int> column_super_, parent_, permuted_, first_descendant_;
   bool postordered_ = false;
 };
 
 namespace {
-
-// A window's information by 2 x 2 blocks, upper triangle, the form CHOLMOD's supernodal
-// factorisation takes with a single transpose (it permutes and transposes the upper triangle once,
-// the lower one twice). Landmark j's columns hold the blocks of the window landmarks linked to it
-// that come before it (rows 2i and 2i + 1, i < j), then its own block, written straight into
-// compressed columns (sorting and summing triplets cost as much as the rest of the assembly).
-// Its transpose is the lower triangle, which the dense Cholesky of a small window reads.
-class UpperBlocks {
- public:
-  explicit UpperBlocks(int n) : diagonal_(n, Eigen::Matrix2d::Zero()), above_(n) {}
-
-  void AddDiagonal(int j, const Eigen::Matrix2d& block) { diagonal_[j] += block; }
-  // The block of a link between i < j at (2i, 2j): each link once.
-  void AddAbove(int i, int j, const Eigen::Matrix2d& block) { above_[j].push_back({i, block}); }
-  // Sorts each column's rows; call once all links are in, before Add and ToSparse.
-  void SortRows() {
-    for (auto& column : above_) {
-      std::sort(column.begin(), column.end(), [](const Above& x, const Above& y) { return x.row < y.row; });
-    }
-  }
-  // Adds `block` at (2i, 2j), i <= j (after SortRows). True when no block was there: the pattern
-  // grew.
-  bool Add(int i, int j, const Eigen::Matrix2d& block) {
-    if (i == j) {
-      diagonal_[j] += block;
-      return false;
-    }
-    auto& column = above_[j];
-    auto it = std::lower_bound(column.begin(), column.end(), i, [](const Above& x, int row) { return x.row < row; });
-    if (it == column.end() || it->row != i) {
-      column.insert(it, Above{i, block});
-      return true;
-    }
-    it->value += block;
-    return false;
-  }
-  Eigen::SparseMatrix<double> ToSparse() const {
-    const int n = static_cast<int>(diagonal_.size());
-    size_t nnz = 0;
-    for (const auto& column : above_) nnz += 3 + 8 * column.size();
-    Eigen::SparseMatrix<double> out(2 * n, 2 * n);
-    out.resizeNonZeros(static_cast<Eigen::Index>(nnz));
-    int* outer = out.outerIndexPtr();
-    int* inner = out.innerIndexPtr();
-    double* value = out.valuePtr();
-    int at = 0;
-    for (int j = 0; j < n; ++j) {
-      for (int c = 0; c < 2; ++c) {
-        outer[2 * j + c] = at;
-        for (const Above& a : above_[j]) {
-          for (int r = 0; r < 2; ++r) {
-            inner[at] = 2 * a.row + r;
-            value[at++] = a.value(r, c);
-          }
-        }
-        for (int r = 0; r <= c; ++r) {
-          inner[at] = 2 * j + r;
-          value[at++] = diagonal_[j](r, c);
-        }
-      }
-    }
-    outer[2 * n] = at;
-    return out;
-  }
-
- private:
-  struct Above {
-    int row;  // the landmark above the diagonal
-    Eigen::Matrix2d value;
-  };
-  std::vector<Eigen::Matrix2d> diagonal_;
-  std::vector<std::vector<Above>> above_;
-};
-
-// `m`'s contents, taken without a copy (SparseMatrix has no move constructor), `m` left empty.
-std::shared_ptr<const Eigen::SparseMatrix<double>> Held(Eigen::SparseMatrix<double>* m) {
-  auto held = std::make_shared<Eigen::SparseMatrix<double>>();
-  held->swap(*m);
-  return held;
-}
 
 // Information of a positive semi-definite `info` on the entries `keep` once the others are
 // eliminated: keep-keep - keep-other other-other^+ other-keep (the pseudo-inverse: a factor may
@@ -480,14 +614,12 @@ absl::StatusOr<MapWindow> MapWindow::Build(const MapReaderInterface& map, const 
     if (on_edge) edge.push_back(a);
   }
   blocks.SortRows();
-  Eigen::SparseMatrix<double> information;
   w.closed_ = edge.empty();
   std::shared_ptr<Factor> mean_llt;
   if (options.estimate || w.closed_) {
     // The information with the landmarks outside held (a covariance read of an open window needs
     // only the conservative one below).
-    information = blocks.ToSparse();
-    mean_llt = std::make_shared<Factor>(information);
+    mean_llt = std::make_shared<Factor>(blocks);
     if (mean_llt->info() != Eigen::Success) {
       return absl::FailedPreconditionError(
           absl::StrCat("map information over ", n, " landmarks is not positive definite"));
@@ -506,10 +638,7 @@ absl::StatusOr<MapWindow> MapWindow::Build(const MapReaderInterface& map, const 
       w.offsets_.segment<2>(2 * i) = l->Offset();
     }
   }
-  if (w.closed_) {
-    w.covariance_information_ = Held(&information);
-    return w;
-  }
+  if (w.closed_) return w;
 
   // Conservative covariance: every factor that reaches outside enters through its marginal on the
   // window instead of its conditional. They are found by their landmarks alone: the information of
@@ -551,14 +680,12 @@ absl::StatusOr<MapWindow> MapWindow::Build(const MapReaderInterface& map, const 
   }
   // The Schur complements change blocks between landmarks of one factor, which the map links: the
   // pattern is the held information's, whose analysis a window with an estimate reuses.
-  information = blocks.ToSparse();
   if (mean_llt && !pattern_grew) {
-    mean_llt->Refactorize(information);
+    mean_llt->Refactorize(blocks);
     w.covariance_factor_ = std::move(mean_llt);
   } else {
-    w.covariance_factor_ = std::make_shared<const Factor>(information);
+    w.covariance_factor_ = std::make_shared<const Factor>(blocks);
   }
-  w.covariance_information_ = Held(&information);
   if (w.covariance_factor_->info() != Eigen::Success) {
     return absl::FailedPreconditionError(
         absl::StrCat("map marginal information over ", n, " landmarks is not positive definite"));
@@ -619,11 +746,9 @@ absl::StatusOr<Eigen::MatrixXd> MapWindow::Covariance(const std::vector<Landmark
 }
 
 absl::StatusOr<Eigen::MatrixXd> MapWindow::FullCovariance() const {
-  if (covariance_information_ == nullptr) return Eigen::MatrixXd(0, 0);  // an empty window
-  Eigen::MatrixXd cov(covariance_information_->transpose());
-  if (!CholeskyInPlace(cov)) return absl::FailedPreconditionError("map information is not positive definite");
-  InverseFromCholeskyInPlace(cov);
-  if (!cov.allFinite()) return absl::InternalError("map covariance is not finite");
+  if (covariance_factor_ == nullptr) return Eigen::MatrixXd(0, 0);  // an empty window
+  absl::StatusOr<Eigen::MatrixXd> cov = covariance_factor_->DenseInverse();
+  if (cov.ok() && !cov->allFinite()) return absl::InternalError("map covariance is not finite");
   return cov;
 }
 

@@ -71,9 +71,7 @@ class MapWindow {
   absl::flat_hash_map<LandmarkId, int> index_;
   bool closed_ = true;
   Eigen::VectorXd offsets_;
-  // The (conservative) window information, upper triangle. Held by pointer: Eigen 3.4's SparseMatrix
-  // has no move constructor, so a member would be copied each time the window is moved.
-  std::shared_ptr<const Eigen::SparseMatrix<double>> covariance_information_;
+  // The factorisation of the (conservative) window information.
   std::shared_ptr<const Factor> covariance_factor_;
 };
 

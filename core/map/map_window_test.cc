@@ -253,6 +253,59 @@ TEST(MapWindow, CovarianceOfAnySubsetIsTheInverseBlock) {
   }
 }
 
+// An open window large enough for the supernodal factor, which works in a fill-reducing order of
+// the landmarks of its own: with the rest of the map held at the exact mean its estimate is the
+// exact mean (the solve, translated out of that order), its covariance is conservative, and a
+// covariance-only read (a factorisation of its own) gives the covariance of the estimating window
+// (its mean factor refactorised in the same order).
+TEST(MapWindow, AnOpenSupernodalWindowIsTheConditionalMeanAndConservative) {
+  const int side = 30, n = side * side;
+  const MapState map = Grid(side, n, 11);
+  Eigen::VectorXd eta;
+  const Eigen::MatrixXd h = DenseInformation(map, n, &eta);
+  const Eigen::LLT<Eigen::MatrixXd> llt(h);
+  ASSERT_EQ(llt.info(), Eigen::Success);
+  const Eigen::VectorXd mean = llt.solve(eta);
+  MapState at_mean = map;
+  for (int i = 0; i < n; ++i) {
+    Landmark l = *map.FindLandmark(i + 1);
+    l.position = LocalFrame(l.anchor).ToGeo(mean.segment<2>(2 * i));
+    at_mean.PutLandmark(l);
+  }
+  MapWindowOptions options;
+  options.hops = 5;
+  const LandmarkId centre = (side / 2) * side + side / 2 + 1;
+  absl::StatusOr<MapWindow> w = MapWindow::Build(at_mean, {centre}, options);
+  ASSERT_TRUE(w.ok()) << w.status();
+  EXPECT_FALSE(w->closed());
+  const int m = static_cast<int>(w->landmarks().size());
+  ASSERT_GT(2 * m, 600) << "the supernodal factor";
+  ASSERT_LT(m, n);
+  for (int k = 0; k < m; ++k) {
+    const int i = static_cast<int>(w->landmarks()[k]) - 1;
+    ASSERT_LT((w->offsets().segment<2>(2 * k) - mean.segment<2>(2 * i)).cwiseAbs().maxCoeff(), 1e-6)
+        << "landmark " << i + 1;
+  }
+  // The seed and landmarks across the window, against the exact marginal (columns of h^-1).
+  std::vector<LandmarkId> ids;
+  for (int k = 0; k < m; k += m / 12) ids.push_back(w->landmarks()[k]);
+  Eigen::MatrixXd unit = Eigen::MatrixXd::Zero(2 * n, 2 * static_cast<int>(ids.size()));
+  for (size_t k = 0; k < ids.size(); ++k) unit.block<2, 2>(2 * (ids[k] - 1), 2 * k).setIdentity();
+  const Eigen::MatrixXd exact = unit.transpose() * llt.solve(unit);
+  absl::StatusOr<Eigen::MatrixXd> cov = w->Covariance(ids);
+  ASSERT_TRUE(cov.ok()) << cov.status();
+  Eigen::SelfAdjointEigenSolver<Eigen::MatrixXd> diff(*cov - exact);
+  EXPECT_GT(diff.eigenvalues().minCoeff(), -1e-9 * exact.diagonal().maxCoeff());
+  EXPECT_GT(diff.eigenvalues().maxCoeff(), 1e-6 * exact.diagonal().maxCoeff()) << "the window lost information";
+  MapWindowOptions covariance_only = options;
+  covariance_only.estimate = false;
+  absl::StatusOr<MapWindow> read = MapWindow::Build(at_mean, {centre}, covariance_only);
+  ASSERT_TRUE(read.ok()) << read.status();
+  absl::StatusOr<Eigen::MatrixXd> read_cov = read->Covariance(ids);
+  ASSERT_TRUE(read_cov.ok()) << read_cov.status();
+  EXPECT_LT((*read_cov - *cov).cwiseAbs().maxCoeff(), 1e-10 * exact.diagonal().maxCoeff());
+}
+
 // A map whose factor `factor` (or landmark `landmark`) is still named by a landmark's list (or
 // link) but absent when read: what a worker reads when another worker's commit removes it between
 // its reads. With `listed_whole`, the factor's landmarks can still be read and only the whole
