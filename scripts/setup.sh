@@ -30,6 +30,8 @@ PACKAGES=(
   python3 python3-yaml
   libssl-dev openssl
   libcli11-dev nlohmann-json3-dev
+  # tcmalloc, the allocator of mapd, mapsim and the benchmarks (CMakeLists.txt: crowdmap_use_tcmalloc).
+  libgoogle-perftools-dev
   # The BLAS and LAPACK behind CHOLMOD and the dense kernels: OpenBLAS's pthread build, selected
   # below. The service calls them from several threads at once (the worker beside the readers);
   # Debian's single-threaded OpenBLAS then returns wrong results (mapd refuses to start on it), and

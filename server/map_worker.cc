@@ -431,6 +431,9 @@ void MapWorker::Apply(const StoredPassage& record, const Passage& passage) {
           // inside its heaps: at 100k landmarks mapd grew by 2.5 MB per passage (1.45 -> 1.94 GB
           // over 200 passages, 1.61 GB after a trim). Returning them every kTrimEveryCommits
           // commits keeps the resident memory near the map's size; a trim takes 14 to 26 ms there.
+          // With tcmalloc as mapd's allocator (CMakeLists.txt, crowdmap_use_tcmalloc) glibc's heap
+          // holds next to nothing and the trim takes no time: tcmalloc returns free memory itself
+          // (peak 1.37 GB over those passages).
           double trim_ms = 0.0;
           if (trim) {
             const auto trim_start = std::chrono::steady_clock::now();
