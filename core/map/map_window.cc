@@ -64,16 +64,31 @@ SupernodalArrays ArraysOf(const cholmod_factor& l) {
 // much as the rest of the assembly).
 class UpperBlocks {
  public:
-  explicit UpperBlocks(int n) : diagonal_(n, Eigen::Matrix2d::Zero()), above_(n) {}
+  explicit UpperBlocks(int n) : diagonal_(n, Eigen::Matrix2d::Zero()), rows_(n), values_(n) {}
 
   int size() const { return static_cast<int>(diagonal_.size()); }
   void AddDiagonal(int j, const Eigen::Matrix2d& block) { diagonal_[j] += block; }
   // The block of a link between i < j at (2i, 2j): each link once.
-  void AddAbove(int i, int j, const Eigen::Matrix2d& block) { above_[j].push_back({i, block}); }
-  // Sorts each column's rows; call once all links are in, before Add and the conversions.
+  void AddAbove(int i, int j, const Eigen::Matrix2d& block) {
+    rows_[j].push_back(i);
+    values_[j].push_back(block);
+  }
+  // Sorts each column's rows; call once all links are in, before Add and the conversions. (A window
+  // adds them in increasing order: the check is then all there is to it.)
   void SortRows() {
-    for (auto& column : above_) {
-      std::sort(column.begin(), column.end(), [](const Above& x, const Above& y) { return x.row < y.row; });
+    std::vector<int> by_row;
+    std::vector<Eigen::Matrix2d> sorted;
+    for (size_t j = 0; j < rows_.size(); ++j) {
+      std::vector<int>& rows = rows_[j];
+      if (std::is_sorted(rows.begin(), rows.end())) continue;
+      by_row.resize(rows.size());
+      for (size_t k = 0; k < rows.size(); ++k) by_row[k] = static_cast<int>(k);
+      std::sort(by_row.begin(), by_row.end(), [&](int a, int b) { return rows[a] < rows[b]; });
+      sorted.clear();
+      for (int k : by_row) sorted.push_back(values_[j][k]);
+      values_[j] = sorted;
+      for (size_t k = 0; k < rows.size(); ++k) by_row[k] = rows[by_row[k]];
+      rows.assign(by_row.begin(), by_row.end());
     }
   }
   // Adds `block` at (2i, 2j), i <= j (after SortRows). True when no block was there: the pattern
@@ -83,13 +98,15 @@ class UpperBlocks {
       diagonal_[j] += block;
       return false;
     }
-    auto& column = above_[j];
-    auto it = std::lower_bound(column.begin(), column.end(), i, [](const Above& x, int row) { return x.row < row; });
-    if (it == column.end() || it->row != i) {
-      column.insert(it, Above{i, block});
+    std::vector<int>& rows = rows_[j];
+    const auto it = std::lower_bound(rows.begin(), rows.end(), i);
+    const auto at = it - rows.begin();
+    if (it == rows.end() || *it != i) {
+      rows.insert(it, i);
+      values_[j].insert(values_[j].begin() + at, block);
       return true;
     }
-    it->value += block;
+    values_[j][at] += block;
     return false;
   }
 
@@ -98,7 +115,7 @@ class UpperBlocks {
   std::vector<int> FillReducingOrder(cholmod_common* common) const {
     const int n = size();
     size_t links = 0;
-    for (const auto& column : above_) links += column.size();
+    for (const auto& rows : rows_) links += rows.size();
     cholmod_sparse* pattern = cholmod_allocate_sparse(n, n, links, /*sorted=*/1, /*packed=*/1, /*stype=*/1,
                                                       CHOLMOD_PATTERN, common);
     if (pattern == nullptr) return {};
@@ -107,7 +124,7 @@ class UpperBlocks {
     int at = 0;
     for (int j = 0; j < n; ++j) {
       p[j] = at;
-      for (const Above& a : above_[j]) i[at++] = a.row;
+      for (int row : rows_[j]) i[at++] = row;
     }
     p[n] = at;
     std::vector<int> order(n);
@@ -122,17 +139,19 @@ class UpperBlocks {
   // where a permutation of its own costs it two transposes of the matrix).
   Eigen::SparseMatrix<double> ToSparseLower(const std::vector<int>& position) const {
     const int n = size();
-    // Each link as (row position hi, column position lo), its block oriented rows of hi, columns of
-    // lo; bucketed by hi, so that the columns fill in increasing row order.
+    // Each link as (row position hi, column position lo) with its block oriented rows of hi, columns
+    // of lo, bucketed by hi so that the columns fill in increasing row order. The links are read in
+    // order (the rows alone to count them); the buckets hold the blocks themselves, so that the
+    // last pass reads them in order too and only its writes scatter.
     struct Below {
       int lo;
-      const Eigen::Matrix2d* block;
-      bool transposed;
+      Eigen::Matrix2d block;
     };
     std::vector<int> start(n + 1, 0), per_column(n, 0);
     for (int j = 0; j < n; ++j) {
-      for (const Above& a : above_[j]) {
-        const int pi = position[a.row], pj = position[j];
+      const int pj = position[j];
+      for (int row : rows_[j]) {
+        const int pi = position[row];
         ++start[std::max(pi, pj) + 1];
         ++per_column[std::min(pi, pj)];
       }
@@ -142,10 +161,14 @@ class UpperBlocks {
     {
       std::vector<int> next(start.begin(), start.end() - 1);
       for (int j = 0; j < n; ++j) {
-        for (const Above& a : above_[j]) {
-          const int pi = position[a.row], pj = position[j];
-          // a.value holds rows of landmark a.row, columns of landmark j.
-          below[next[std::max(pi, pj)]++] = Below{std::min(pi, pj), &a.value, pj > pi};
+        const int pj = position[j];
+        const std::vector<int>& rows = rows_[j];
+        for (size_t k = 0; k < rows.size(); ++k) {
+          const int pi = position[rows[k]];
+          // The block holds rows of landmark rows[k], columns of landmark j.
+          Below& b = below[next[std::max(pi, pj)]++];
+          b.lo = std::min(pi, pj);
+          b.block = pj > pi ? values_[j][k].transpose() : values_[j][k];
         }
       }
     }
@@ -178,7 +201,7 @@ class UpperBlocks {
           int& f = fill[2 * b.lo + c];
           for (int r = 0; r < 2; ++r) {
             inner[f] = 2 * hi + r;
-            value[f++] = b.transposed ? (*b.block)(c, r) : (*b.block)(r, c);
+            value[f++] = b.block(r, c);
           }
         }
       }
@@ -193,18 +216,19 @@ class UpperBlocks {
     for (int j = 0; j < n; ++j) {
       out.block<2, 2>(2 * j, 2 * j) = diagonal_[j];
       out(2 * j, 2 * j + 1) = 0.0;
-      for (const Above& a : above_[j]) out.block<2, 2>(2 * j, 2 * a.row) = a.value.transpose();
+      for (size_t k = 0; k < rows_[j].size(); ++k) {
+        out.block<2, 2>(2 * j, 2 * rows_[j][k]) = values_[j][k].transpose();
+      }
     }
     return out;
   }
 
  private:
-  struct Above {
-    int row;  // the landmark above the diagonal
-    Eigen::Matrix2d value;
-  };
   std::vector<Eigen::Matrix2d> diagonal_;
-  std::vector<std::vector<Above>> above_;
+  // Column j's links: the landmarks above the diagonal (i < j) and their blocks, apart, so that
+  // the passes that need only the rows read only them.
+  std::vector<std::vector<int>> rows_;
+  std::vector<std::vector<Eigen::Matrix2d>> values_;
 };
 
 }  // namespace
