@@ -5,8 +5,6 @@
 #include <vector>
 
 #include <Eigen/Core>
-#include <Eigen/SparseCholesky>
-#include <Eigen/SparseCore>
 
 #include "absl/container/flat_hash_map.h"
 #include "absl/status/statusor.h"
