@@ -9,6 +9,7 @@
 
 #include "absl/strings/str_cat.h"
 #include "core/map/dense_kernels.h"
+#include "core/map/sparse_ordering.h"
 #include "core/map/sparse_threads.h"
 
 namespace crowdmap {
@@ -110,29 +111,8 @@ class UpperBlocks {
     return false;
   }
 
-  // The landmarks in a fill-reducing order (AMD on the graph of the links, a quarter of the
-  // scalar matrix's entries): order[k] is the landmark put k-th. Empty when AMD fails.
-  std::vector<int> FillReducingOrder(cholmod_common* common) const {
-    const int n = size();
-    size_t links = 0;
-    for (const auto& rows : rows_) links += rows.size();
-    cholmod_sparse* pattern = cholmod_allocate_sparse(n, n, links, /*sorted=*/1, /*packed=*/1, /*stype=*/1,
-                                                      CHOLMOD_PATTERN, common);
-    if (pattern == nullptr) return {};
-    int* p = static_cast<int*>(pattern->p);
-    int* i = static_cast<int*>(pattern->i);
-    int at = 0;
-    for (int j = 0; j < n; ++j) {
-      p[j] = at;
-      for (int row : rows_[j]) i[at++] = row;
-    }
-    p[n] = at;
-    std::vector<int> order(n);
-    const bool ok = cholmod_amd(pattern, nullptr, 0, order.data(), common);
-    cholmod_free_sparse(&pattern, common);
-    if (!ok) return {};
-    return order;
-  }
+  // Column j's rows (the landmarks i < j linked to it).
+  const std::vector<std::vector<int>>& rows() const { return rows_; }
 
   // The lower triangle of the information with landmark i at block position `position[i]`: P A P^T,
   // each column's rows sorted (the form CHOLMOD's supernodal factorisation reads without a copy,
@@ -245,7 +225,7 @@ class MapWindow::Factor {
       return;
     }
     sparse_ = std::make_unique<SupernodalLLT>();
-    order_ = blocks.FillReducingOrder(&sparse_->cholmod());
+    order_ = PostorderedFillReducingOrder(blocks.rows(), &sparse_->cholmod());
     if (order_.empty()) {  // AMD failed (out of memory): the landmarks' own order
       order_.resize(blocks.size());
       for (int i = 0; i < blocks.size(); ++i) order_[i] = i;
