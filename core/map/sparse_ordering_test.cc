@@ -83,23 +83,23 @@ class SparseOrderingTest : public ::testing::Test {
   SparseOrderingTest() { cholmod_start(&common_); }
   ~SparseOrderingTest() override { cholmod_finish(&common_); }
 
-  // CHOLMOD's AMD order of the graph, as it is.
+  // CHOLMOD's AMD order of the graph, as it is (its upper triangle from triplets).
   std::vector<int> AmdOrder(const std::vector<std::vector<int>>& above) {
     const int n = static_cast<int>(above.size());
     size_t links = 0;
     for (const auto& rows : above) links += rows.size();
-    cholmod_sparse* a = cholmod_allocate_sparse(n, n, links, 1, 1, 1, CHOLMOD_PATTERN, &common_);
-    int* p = static_cast<int*>(a->p);
-    int* i = static_cast<int*>(a->i);
-    int at = 0;
+    cholmod_triplet* t = cholmod_allocate_triplet(n, n, links, /*stype=*/1, CHOLMOD_PATTERN, &common_);
     for (int j = 0; j < n; ++j) {
-      p[j] = at;
-      for (int row : above[j]) i[at++] = row;
+      for (int i : above[j]) {
+        static_cast<int*>(t->i)[t->nnz] = i;
+        static_cast<int*>(t->j)[t->nnz++] = j;
+      }
     }
-    p[n] = at;
+    cholmod_sparse* a = cholmod_triplet_to_sparse(t, links, &common_);
     std::vector<int> order(n);
     EXPECT_TRUE(cholmod_amd(a, nullptr, 0, order.data(), &common_));
     cholmod_free_sparse(&a, &common_);
+    cholmod_free_triplet(&t, &common_);
     return order;
   }
 
