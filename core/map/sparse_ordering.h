@@ -3,7 +3,7 @@
 
 #include <vector>
 
-#include <cholmod.h>
+struct cholmod_common_struct;  // CHOLMOD's cholmod_common
 
 namespace crowdmap {
 
@@ -14,8 +14,10 @@ namespace crowdmap {
 // postordered, and about 1 in 25 read windows of a 100k city were not.
 //
 // `above[j]` lists the vertices i < j linked to vertex j, each link once. order[k] is the vertex
-// put k-th. Empty when AMD fails (out of memory); AMD's order as it is when the postorder fails.
-std::vector<int> PostorderedFillReducingOrder(const std::vector<std::vector<int>>& above, cholmod_common* common);
+// put k-th. Empty for an empty graph or when AMD fails (out of memory); AMD's order as it is when
+// the postorder fails.
+std::vector<int> PostorderedFillReducingOrder(const std::vector<std::vector<int>>& above,
+                                              cholmod_common_struct* common);
 
 }  // namespace crowdmap
 

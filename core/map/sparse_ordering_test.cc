@@ -4,6 +4,7 @@
 #include <random>
 #include <set>
 
+#include <cholmod.h>
 #include <gtest/gtest.h>
 
 namespace crowdmap {
@@ -125,6 +126,12 @@ TEST_F(SparseOrderingTest, TheOrderIsAmdsFillPostordered) {
   }
   // The graphs exercise the postorder: AMD alone leaves some of them unordered.
   EXPECT_GT(amd_not_postordered, 0);
+}
+
+TEST_F(SparseOrderingTest, AnEmptyGraphHasAnEmptyOrderAndOneVertexItself) {
+  EXPECT_TRUE(PostorderedFillReducingOrder({}, &common_).empty());
+  EXPECT_EQ(common_.status, CHOLMOD_OK);
+  EXPECT_EQ(PostorderedFillReducingOrder(std::vector<std::vector<int>>(1), &common_), std::vector<int>{0});
 }
 
 TEST_F(SparseOrderingTest, AGraphWithoutLinksIsOrdered) {
