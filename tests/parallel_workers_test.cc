@@ -122,7 +122,9 @@ void RunWithWorkers(int workers, const std::vector<Passage>& passages, const Map
   for (const Passage& p : passages) {
     auto r = vehicle.Upload(p);
     ASSERT_TRUE(r.ok()) << r.status();
-    if (one_at_a_time) ASSERT_TRUE(vehicle.WaitUntilIdle().ok());
+    if (one_at_a_time) {
+      ASSERT_TRUE(vehicle.WaitUntilIdle().ok());
+    }
   }
   auto info = vehicle.WaitUntilIdle();
   ASSERT_TRUE(info.ok()) << info.status();
