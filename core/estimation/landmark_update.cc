@@ -4,11 +4,11 @@
 #include <chrono>
 
 #include <Eigen/Cholesky>
-#include <Eigen/Eigenvalues>
 
 #include "absl/strings/str_cat.h"
 #include "core/estimation/factors.h"
 #include "core/estimation/passage_prior.h"
+#include "core/map/dense_kernels.h"
 
 namespace crowdmap {
 namespace {
@@ -26,11 +26,9 @@ Eigen::MatrixXd Symmetrized(const Eigen::MatrixXd& m) { return 0.5 * (m + m.tran
 // of `posterior` are set to zero; a larger negative one is left for the map invariants to refuse.
 Eigen::MatrixXd WithoutRoundingNegatives(const Eigen::MatrixXd& information, const Eigen::MatrixXd& posterior) {
   if (information.rows() == 0 || Eigen::LDLT<Eigen::MatrixXd>(information).isPositive()) return information;
-  const Eigen::SelfAdjointEigenSolver<Eigen::MatrixXd> eigen(information);
   const double rounding = 1e-10 * posterior.cwiseAbs().maxCoeff() * static_cast<double>(information.rows());
-  if (eigen.info() != Eigen::Success || eigen.eigenvalues()(0) < -rounding) return information;
-  const Eigen::VectorXd clipped = eigen.eigenvalues().cwiseMax(0.0);
-  return Symmetrized(eigen.eigenvectors() * clipped.asDiagonal() * eigen.eigenvectors().transpose());
+  Eigen::MatrixXd clipped = information;
+  return ClipSmallNegativeEigenvalues(&clipped, rounding) ? clipped : information;
 }
 
 // Derivative of the graph's local coordinates with respect to a landmark's offset from its anchor

@@ -1,5 +1,7 @@
 #include "core/map/dense_kernels.h"
 
+#include <algorithm>
+
 #include "core/map/sparse_threads.h"
 
 extern "C" {
@@ -15,6 +17,8 @@ void dgemm_(const char* transa, const char* transb, const int* m, const int* n, 
             const int* ldc);
 void dsyrk_(const char* uplo, const char* trans, const int* n, const int* k, const double* alpha, const double* a,
             const int* lda, const double* beta, double* c, const int* ldc);
+void dsyevd_(const char* jobz, const char* uplo, const int* n, double* a, const int* lda, double* w, double* work,
+             const int* lwork, int* iwork, const int* liwork, int* info);
 }
 
 namespace crowdmap {
@@ -94,6 +98,37 @@ void Multiply(ConstMatrixRef a, ConstMatrixRef b, Eigen::MatrixXd* c) {
   const int lda = Leading(a.outerStride()), ldb = Leading(b.outerStride()), ldc = Leading(c->outerStride());
   const double one = 1.0, zero = 0.0;
   dgemm_("N", "N", &m, &n, &k, &one, a.data(), &lda, b.data(), &ldb, &zero, c->data(), &ldc);
+}
+
+bool SymmetricEigenInPlace(MatrixRef a, Eigen::VectorXd* values) {
+  KeepBlasOnTheCallingThread();
+  const int n = static_cast<int>(a.rows()), lda = Leading(a.outerStride());
+  values->resize(n);
+  if (n == 0) return true;
+  // The workspace sizes LAPACK asks for, then the decomposition.
+  double work_size = 0.0;
+  int iwork_size = 0, query = -1, info = 0;
+  dsyevd_("V", "L", &n, a.data(), &lda, values->data(), &work_size, &query, &iwork_size, &query, &info);
+  if (info != 0) return false;
+  const int lwork = static_cast<int>(work_size), liwork = iwork_size;
+  std::vector<double> work(std::max(1, lwork));
+  std::vector<int> iwork(std::max(1, liwork));
+  dsyevd_("V", "L", &n, a.data(), &lda, values->data(), work.data(), &lwork, iwork.data(), &liwork, &info);
+  return info == 0;
+}
+
+bool ClipSmallNegativeEigenvalues(Eigen::MatrixXd* a, double tolerance) {
+  Eigen::MatrixXd vectors = *a;
+  Eigen::VectorXd values;
+  if (!SymmetricEigenInPlace(vectors, &values)) return false;
+  if (values.size() == 0) return true;
+  if (values(0) < -tolerance) return false;
+  // V max(L, 0) V^T = W^T W with W = sqrt(max(L, 0)) V^T.
+  const Eigen::MatrixXd w = values.cwiseMax(0.0).cwiseSqrt().asDiagonal() * vectors.transpose();
+  a->setZero();
+  AddGramLower(w, *a);
+  *a = a->selfadjointView<Eigen::Lower>();
+  return true;
 }
 
 }  // namespace crowdmap

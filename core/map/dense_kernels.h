@@ -42,6 +42,16 @@ void AddGramLower(ConstMatrixRef x, MatrixRef c, double scale = 1.0);
 // C := A B (C sized to fit).
 void Multiply(ConstMatrixRef a, ConstMatrixRef b, Eigen::MatrixXd* c);
 
+// The eigenvalues of a symmetric A given by its lower triangle, in increasing order, and its
+// eigenvectors in their place in A, column k for eigenvalue k (LAPACK's dsyevd). False when the
+// iteration did not converge (A is then undefined).
+bool SymmetricEigenInPlace(MatrixRef a, Eigen::VectorXd* values);
+
+// A symmetric A (its lower triangle read) whose negative eigenvalues all lie within `tolerance` of
+// zero, replaced by its positive semi-definite part: V max(L, 0) V^T, whole. False, with A left as
+// it was, when an eigenvalue lies below -tolerance or the decomposition fails.
+bool ClipSmallNegativeEigenvalues(Eigen::MatrixXd* a, double tolerance);
+
 }  // namespace crowdmap
 
 #endif  // CROWDMAP_CORE_MAP_DENSE_KERNELS_H_

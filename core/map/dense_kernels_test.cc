@@ -5,6 +5,7 @@
 #include <vector>
 
 #include <Eigen/Cholesky>
+#include <Eigen/Eigenvalues>
 #include <Eigen/LU>
 #include <gtest/gtest.h>
 
@@ -61,6 +62,49 @@ TEST(DenseKernels, MatchEigenOnBlocksOfLargerMatrices) {
   Eigen::MatrixXd product;
   Multiply(a.topRows(30), wide.block(5, 3, n, m), &product);
   EXPECT_LT(RelativeError(product, a.topRows(30) * solved), 1e-13);
+}
+
+// The eigen-decomposition of an indefinite matrix in a block of a larger one: increasing
+// eigenvalues as Eigen's, orthonormal eigenvectors that rebuild the matrix from its lower triangle
+// alone.
+TEST(DenseKernels, SymmetricEigenRebuildsTheMatrixFromItsLowerTriangle) {
+  const int n = 60;
+  const Eigen::MatrixXd spd = SpdMatrix(n, 3);
+  const Eigen::MatrixXd a = spd - Eigen::MatrixXd::Identity(n, n) * spd.trace() / n;  // indefinite
+  Eigen::MatrixXd big = Eigen::MatrixXd::Constant(n + 4, n + 6, 7.0);
+  big.block(4, 6, n, n) = a.triangularView<Eigen::Lower>();  // the upper triangle zero: not read
+  Eigen::VectorXd values;
+  ASSERT_TRUE(SymmetricEigenInPlace(big.block(4, 6, n, n), &values));
+  EXPECT_EQ(big(3, 6), 7.0);
+  const Eigen::SelfAdjointEigenSolver<Eigen::MatrixXd> expected(a);
+  EXPECT_LT(RelativeError(values, expected.eigenvalues()), 1e-13);
+  EXPECT_LT(values(0), 0.0);
+  EXPECT_GT(values(n - 1), 0.0);
+  const Eigen::MatrixXd v = big.block(4, 6, n, n);
+  EXPECT_LT(RelativeError(v.transpose() * v, Eigen::MatrixXd::Identity(n, n)), 1e-13);
+  EXPECT_LT(RelativeError(v * values.asDiagonal() * v.transpose(), a), 1e-13);
+}
+
+// A rank-deficient positive semi-definite matrix off by rounding: its negative eigenvalues are
+// cleared and the rest kept; a matrix with one negative eigenvalue beyond the tolerance is kept as
+// it was.
+TEST(DenseKernels, OnlyNegativeEigenvaluesWithinTheToleranceAreCleared) {
+  const int n = 40, rank = 30;
+  std::srand(5);
+  const Eigen::MatrixXd r = Eigen::MatrixXd::Random(n, rank);
+  const Eigen::MatrixXd psd = r * r.transpose();
+  const Eigen::MatrixXd e = 1e-12 * Eigen::MatrixXd::Random(n, n);
+  Eigen::MatrixXd a = psd + e + e.transpose();
+  ASSERT_LT(Eigen::SelfAdjointEigenSolver<Eigen::MatrixXd>(a).eigenvalues()(0), -1e-13);
+  ASSERT_TRUE(ClipSmallNegativeEigenvalues(&a, 1e-9));
+  EXPECT_EQ(a, a.transpose());
+  EXPECT_GT(Eigen::SelfAdjointEigenSolver<Eigen::MatrixXd>(a).eigenvalues()(0), -1e-12);
+  EXPECT_LT(RelativeError(a, psd), 1e-12);
+
+  Eigen::MatrixXd indefinite = psd - 1e-3 * Eigen::MatrixXd::Identity(n, n);
+  const Eigen::MatrixXd before = indefinite;
+  EXPECT_FALSE(ClipSmallNegativeEigenvalues(&indefinite, 1e-9));
+  EXPECT_EQ(indefinite, before);
 }
 
 TEST(DenseKernels, CholeskyRefusesAMatrixThatIsNotPositiveDefinite) {
