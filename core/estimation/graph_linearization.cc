@@ -221,7 +221,7 @@ absl::StatusOr<GraphLinearization> GraphLinearization::ComputeOver(ceres::Proble
     if (g.a_llt_->info() != Eigen::Success) {
       return absl::InternalError("landmark covariance could not be computed (pose block rank deficient)");
     }
-    g.w_ = g.a_llt_->solve(Eigen::MatrixXd(g.b_));
+    g.w_ = SolveManyColumns(*g.a_llt_, Eigen::MatrixXd(g.b_));
     schur -= g.b_.transpose() * g.w_;
   } else {
     g.w_ = Eigen::MatrixXd::Zero(0, nl);

@@ -31,6 +31,11 @@ TEST(SelectedInverse, MatchesTheDenseInverseOnThePattern) {
   ASSERT_EQ(llt.info(), Eigen::Success);
   const SelectedInverse inverse(llt);
   const Eigen::MatrixXd dense = m.inverse();
+  // A^-1 B for many columns at once, as Eigen's solve gives it.
+  Eigen::MatrixXd b = Eigen::MatrixXd::Zero(n, 25);
+  for (int c = 0; c < b.cols(); ++c) b(static_cast<int>(rng() % n), c) = u(rng);
+  b.col(3).setConstant(1.0);
+  EXPECT_LT((SolveManyColumns(llt, b) - llt.solve(b)).cwiseAbs().maxCoeff(), 1e-13 * dense.cwiseAbs().maxCoeff());
   for (int i = 0; i < n; ++i) {
     for (int j = 0; j < n; ++j) {
       if (m(i, j) != 0.0) {

@@ -44,4 +44,33 @@ double SelectedInverse::operator()(int i, int j) const {
   return it != end && *it == a ? values_[it - l_.innerIndexPtr()] : 0.0;
 }
 
+Eigen::MatrixXd SolveManyColumns(const Eigen::SimplicialLLT<Eigen::SparseMatrix<double>>& factor,
+                                 const Eigen::MatrixXd& b) {
+  // P A P^T = L L^T, each column of L its diagonal first.
+  const Eigen::SparseMatrix<double>& l = factor.matrixL().nestedExpression();
+  const int n = static_cast<int>(l.cols());
+  if (!l.isCompressed() || b.rows() != n) return factor.solve(b);
+  const int* outer = l.outerIndexPtr();
+  const int* inner = l.innerIndexPtr();
+  const double* lv = l.valuePtr();
+  for (int j = 0; j < n; ++j) {
+    if (outer[j] == outer[j + 1] || inner[outer[j]] != j) return factor.solve(b);
+  }
+  const Eigen::VectorXi& perm = factor.permutationP().indices();
+  const auto at = [&](int i) { return perm.size() > 0 ? perm[i] : i; };
+  Eigen::Matrix<double, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor> x(n, b.cols());
+  for (int i = 0; i < n; ++i) x.row(at(i)) = b.row(i);
+  for (int j = 0; j < n; ++j) {  // L y = P b
+    x.row(j) /= lv[outer[j]];
+    for (int q = outer[j] + 1; q < outer[j + 1]; ++q) x.row(inner[q]) -= lv[q] * x.row(j);
+  }
+  for (int j = n - 1; j >= 0; --j) {  // L^T z = y
+    for (int q = outer[j] + 1; q < outer[j + 1]; ++q) x.row(j) -= lv[q] * x.row(inner[q]);
+    x.row(j) /= lv[outer[j]];
+  }
+  Eigen::MatrixXd out(n, b.cols());
+  for (int i = 0; i < n; ++i) out.row(i) = x.row(at(i));
+  return out;
+}
+
 }  // namespace crowdmap

@@ -22,6 +22,12 @@ class SelectedInverse {
   std::vector<double> values_;     // inverse entries on l_'s pattern
 };
 
+// A^-1 B for A factorised by `factor` and a dense B of many columns. Eigen's solve sweeps the
+// factor once for each column of B; this sweeps it once, each entry of the factor updating a whole
+// row of the right-hand sides at once (rows stored contiguously).
+Eigen::MatrixXd SolveManyColumns(const Eigen::SimplicialLLT<Eigen::SparseMatrix<double>>& factor,
+                                 const Eigen::MatrixXd& b);
+
 }  // namespace crowdmap
 
 #endif  // CROWDMAP_CORE_MAP_SELECTED_INVERSE_H_
