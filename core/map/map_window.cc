@@ -69,31 +69,13 @@ class UpperBlocks {
 
   int size() const { return static_cast<int>(diagonal_.size()); }
   void AddDiagonal(int j, const Eigen::Matrix2d& block) { diagonal_[j] += block; }
-  // The block of a link between i < j at (2i, 2j): each link once.
+  // The block of a link between i < j at (2i, 2j): each link once, and a column's links in
+  // increasing i (the order a window visits its landmarks in), which keeps each column's rows sorted.
   void AddAbove(int i, int j, const Eigen::Matrix2d& block) {
     rows_[j].push_back(i);
     values_[j].push_back(block);
   }
-  // Sorts each column's rows; call once all links are in, before Add and the conversions. (A window
-  // adds them in increasing order: the check is then all there is to it.)
-  void SortRows() {
-    std::vector<int> by_row;
-    std::vector<Eigen::Matrix2d> sorted;
-    for (size_t j = 0; j < rows_.size(); ++j) {
-      std::vector<int>& rows = rows_[j];
-      if (std::is_sorted(rows.begin(), rows.end())) continue;
-      by_row.resize(rows.size());
-      for (size_t k = 0; k < rows.size(); ++k) by_row[k] = static_cast<int>(k);
-      std::sort(by_row.begin(), by_row.end(), [&](int a, int b) { return rows[a] < rows[b]; });
-      sorted.clear();
-      for (int k : by_row) sorted.push_back(values_[j][k]);
-      values_[j] = sorted;
-      for (size_t k = 0; k < rows.size(); ++k) by_row[k] = rows[by_row[k]];
-      rows.assign(by_row.begin(), by_row.end());
-    }
-  }
-  // Adds `block` at (2i, 2j), i <= j (after SortRows). True when no block was there: the pattern
-  // grew.
+  // Adds `block` at (2i, 2j), i <= j. True when no block was there: the pattern grew.
   bool Add(int i, int j, const Eigen::Matrix2d& block) {
     if (i == j) {
       diagonal_[j] += block;
@@ -617,7 +599,6 @@ absl::StatusOr<MapWindow> MapWindow::Build(const MapReaderInterface& map, const 
     if (missing) return gone("landmark", *missing);
     if (on_edge) edge.push_back(a);
   }
-  blocks.SortRows();
   w.closed_ = edge.empty();
   std::shared_ptr<Factor> mean_llt;
   if (options.estimate || w.closed_) {
