@@ -17,28 +17,31 @@ bool Intersect(const Set& a, const Set& b) {
 
 bool Overlaps(const MapReadSet& read, const MapWriteSet& written) {
   return Intersect(read.landmarks, written.landmarks) || Intersect(read.factor_lists, written.factor_lists) ||
-         Intersect(read.passage_factor_lists, written.passages) || Intersect(read.vehicles, written.vehicles) ||
+         Intersect(read.factors, written.factors) || Intersect(read.passage_factor_lists, written.passages) || Intersect(read.vehicles, written.vehicles) ||
          (read.all_vehicles && !written.vehicles.empty());
 }
 
 MapWriteSet WriteSetOf(const MapDelta& delta, const MapReaderInterface& map) {
   MapWriteSet out;
-  auto factor_changes = [&](const MapFactor& f, bool information) {
+  // A factor added or removed changes its landmarks' information and factor lists.
+  auto factor_changes = [&](const MapFactor& f) {
     for (LandmarkId l : f.landmarks) {
       out.factor_lists.insert(l);
-      if (information) out.landmarks.insert(l);
+      out.landmarks.insert(l);
     }
     out.passages.insert({f.vehicle_id, f.passage_id});
   };
   for (const auto& [id, landmark] : delta.landmarks) out.landmarks.insert(id);
   out.landmarks.insert(delta.removed_landmarks.begin(), delta.removed_landmarks.end());
-  for (const auto& [id, factor] : delta.added_factors) factor_changes(factor, true);
+  for (const auto& [id, factor] : delta.added_factors) factor_changes(factor);
   for (int64_t id : delta.removed_factors) {
-    if (const MapFactor* f = map.FindFactor(id); f != nullptr) factor_changes(*f, true);
+    out.factors.insert(id);
+    if (const MapFactor* f = map.FindFactor(id); f != nullptr) factor_changes(*f);
   }
-  // A folded factor's information stays in the map: only the factor lists change.
+  // A folded factor's information stays in the map: only the factor itself goes.
   for (int64_t id : delta.folded_factors) {
-    if (const MapFactor* f = map.FindFactor(id); f != nullptr) factor_changes(*f, false);
+    out.factors.insert(id);
+    if (const MapFactor* f = map.FindFactor(id); f != nullptr) out.passages.insert({f->vehicle_id, f->passage_id});
   }
   for (const auto& [id, vehicle] : delta.vehicles) out.vehicles.insert(id);
   return out;
@@ -129,14 +132,13 @@ void MapReadRecorder::ForEachLink(LandmarkId id,
 }
 
 const MapFactor* MapReadRecorder::FindFactor(int64_t id) const {
-  const MapFactor* f =
-      Cached(access_, id, &factors_, [id](const MapReaderInterface& map) { return map.FindFactor(id); });
-  if (f != nullptr) read_.factor_lists.insert(f->landmarks.begin(), f->landmarks.end());
-  return f;
+  read_.factors.insert(id);
+  return Cached(access_, id, &factors_, [id](const MapReaderInterface& map) { return map.FindFactor(id); });
 }
 
 bool MapReadRecorder::AppendFactorLandmarks(int64_t id, std::vector<LandmarkId>* out) const {
-  // Read like FindFactor (the same record in the read set), but its information is not copied.
+  // Read like FindFactor (the same entry in the read set), but its information is not copied.
+  read_.factors.insert(id);
   const std::vector<LandmarkId>* landmarks = nullptr;
   if (auto f = factors_.find(id); f != factors_.end()) {
     if (f->second) landmarks = &f->second->landmarks;
@@ -153,14 +155,15 @@ bool MapReadRecorder::AppendFactorLandmarks(int64_t id, std::vector<LandmarkId>*
     if (it->second) landmarks = &*it->second;
   }
   if (landmarks == nullptr) return false;
-  read_.factor_lists.insert(landmarks->begin(), landmarks->end());
   out->insert(out->end(), landmarks->begin(), landmarks->end());
   return true;
 }
 
 void MapReadRecorder::AppendFactorIds(LandmarkId id, std::vector<int64_t>* out) const {
   read_.factor_lists.insert(id);
+  const size_t from = out->size();
   access_([&](const MapReaderInterface& map) { map.AppendFactorIds(id, out); });
+  read_.factors.insert(out->begin() + static_cast<std::ptrdiff_t>(from), out->end());
 }
 
 void MapReadRecorder::AppendPassageFactorIds(const std::string& vehicle_id, const std::string& passage_id,

@@ -29,8 +29,11 @@ struct MapReadSet {
   // Landmarks whose record, information blocks or information vector were read (a block (a, b)
   // counts for both a and b, a row of ForEachLink for its landmark).
   std::unordered_set<LandmarkId> landmarks;
-  // Landmarks whose list of factors was read, and the landmarks of every factor read by id.
+  // Landmarks whose list of factors was read (AppendFactorIds).
   std::unordered_set<LandmarkId> factor_lists;
+  // Factors read by id (FindFactor, AppendFactorLandmarks; a miss counts) and those a list of
+  // factors handed out: their removal or folding changes what was read.
+  std::unordered_set<int64_t> factors;
   std::set<FactorSource> passage_factor_lists;  // AppendPassageFactorIds
   std::set<std::string> vehicles;             // FindVehicle
   bool all_vehicles = false;                  // ForEachVehicle
@@ -41,10 +44,14 @@ struct MapWriteSet {
   // Landmarks whose record, information blocks or information vector change: the landmark
   // records written or removed, and the landmarks of every factor added or removed.
   std::unordered_set<LandmarkId> landmarks;
-  // Landmarks whose list of factors changes (factors added, removed or folded), and the
-  // passages whose factors do.
+  // Landmarks whose list of factors gains or loses a factor by an addition or a removal, and the
+  // passages whose factors change (added, removed or folded).
   std::unordered_set<LandmarkId> factor_lists;
   std::set<FactorSource> passages;
+  // Factors removed or folded. A fold changes no information and no list but those that held the
+  // factor, which a computation that read one of them recorded in MapReadSet::factors: it needs no
+  // landmarks here, and a computation that read other factors of its landmarks stays valid.
+  std::unordered_set<int64_t> factors;
   std::set<std::string> vehicles;
 };
 

@@ -43,7 +43,8 @@ TEST_F(MapAccessTest, TheRecorderRecordsEveryKindOfRead) {
 
   const MapReadSet read = recorder.TakeRead();
   EXPECT_EQ(read.landmarks, (std::unordered_set<LandmarkId>{1, 99, 2, 3, 4, 5}));
-  EXPECT_EQ(read.factor_lists, (std::unordered_set<LandmarkId>{6, 1, 2}));
+  EXPECT_EQ(read.factor_lists, (std::unordered_set<LandmarkId>{6}));
+  EXPECT_EQ(read.factors, (std::unordered_set<int64_t>{3, 1})) << "6's list handed out factor 3";
   EXPECT_EQ(read.passage_factor_lists, (std::set<FactorSource>{{"v", "b"}}));
   EXPECT_EQ(read.vehicles, (std::set<std::string>{"car"}));
   EXPECT_FALSE(read.all_vehicles);
@@ -58,7 +59,8 @@ TEST_F(MapAccessTest, AFactorsLandmarksAreReadLikeTheFactor) {
   EXPECT_EQ(landmarks, (std::vector<LandmarkId>{3, 4}));
   EXPECT_FALSE(recorder.AppendFactorLandmarks(99, &landmarks));
   EXPECT_EQ(landmarks.size(), 2u);
-  EXPECT_EQ(recorder.read().factor_lists, (std::unordered_set<LandmarkId>{3, 4}));
+  EXPECT_EQ(recorder.read().factors, (std::unordered_set<int64_t>{2, 99})) << "a miss counts";
+  EXPECT_TRUE(recorder.read().factor_lists.empty());
 
   MapOverlay overlay(recorder);
   overlay.RemoveFactor(1);
@@ -124,7 +126,8 @@ TEST_F(MapAccessTest, WriteSetsSeparateInformationFromFactorLists) {
   overlay.PutVehicle(car);
   const MapWriteSet written = WriteSetOf(overlay.delta(), map_);
   EXPECT_EQ(written.landmarks, (std::unordered_set<LandmarkId>{7, 6, 3, 4})) << "folding keeps the information";
-  EXPECT_EQ(written.factor_lists, (std::unordered_set<LandmarkId>{6, 7, 3, 4, 1, 2}));
+  EXPECT_EQ(written.factor_lists, (std::unordered_set<LandmarkId>{6, 7, 3, 4}));
+  EXPECT_EQ(written.factors, (std::unordered_set<int64_t>{2, 1}));
   EXPECT_EQ(written.passages, (std::set<FactorSource>{{"v", "a"}, {"v", "b"}, {"v", "d"}}));
   EXPECT_EQ(written.vehicles, (std::set<std::string>{"car"}));
 
@@ -134,8 +137,15 @@ TEST_F(MapAccessTest, WriteSetsSeparateInformationFromFactorLists) {
   read.landmarks = {1, 2, 5};
   EXPECT_FALSE(Overlaps(read, written)) << "1 and 2 were folded: their information is unchanged";
   read.factor_lists = {1};
+  EXPECT_FALSE(Overlaps(read, written)) << "1's list lost factor 1, which the read would have seen";
+  read.factors = {1};
   EXPECT_TRUE(Overlaps(read, written));
+  read.factors = {3};
+  EXPECT_FALSE(Overlaps(read, written));
+  read.factor_lists = {6};
+  EXPECT_TRUE(Overlaps(read, written)) << "6's list gained a factor";
   read.factor_lists.clear();
+  read.factors.clear();
   read.landmarks.insert(3);
   EXPECT_TRUE(Overlaps(read, written));
   read.landmarks.clear();
@@ -146,6 +156,34 @@ TEST_F(MapAccessTest, WriteSetsSeparateInformationFromFactorLists) {
   read.passage_factor_lists.clear();
   read.vehicles = {"car"};
   EXPECT_TRUE(Overlaps(read, written));
+}
+
+// Folding a factor (the oldest retained passage's, at a worker's commit) discards only the
+// computations that saw it: one that read another factor of the same landmark stays valid, one
+// that listed that landmark's factors (and so was handed the folded one) does not.
+TEST_F(MapAccessTest, AFoldOverlapsOnlyTheReadsThatSawTheFolded) {
+  map_.PutFactor(MakeFactor(4, {2, 5}, "d"));
+  MapDelta fold;
+  fold.base_version = 2;
+  fold.version = 3;
+  fold.folded_factors = {4};
+  const MapWriteSet written = WriteSetOf(fold, map_);
+
+  MapReadRecorder by_id(map_);
+  ASSERT_NE(by_id.FindFactor(3), nullptr);  // {5, 6}: landmark 5 is the folded one's too
+  std::vector<LandmarkId> landmarks;
+  ASSERT_TRUE(by_id.AppendFactorLandmarks(1, &landmarks));  // {1, 2}: so is landmark 2
+  EXPECT_FALSE(Overlaps(by_id.read(), written));
+
+  MapReadRecorder listed(map_);
+  std::vector<int64_t> ids;
+  listed.AppendFactorIds(5, &ids);
+  EXPECT_EQ(ids, (std::vector<int64_t>{3, 4}));
+  EXPECT_TRUE(Overlaps(listed.read(), written));
+  map_.Apply(fold);
+  ids.clear();
+  map_.AppendFactorIds(5, &ids);
+  EXPECT_EQ(ids, (std::vector<int64_t>{3})) << "the list it read changed";
 }
 
 // A change computed against version 2, moved past another committed meanwhile, equals the same
