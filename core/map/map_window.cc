@@ -492,24 +492,28 @@ namespace {
 Eigen::MatrixXd SchurComplement(const Eigen::MatrixXd& info, const std::vector<int>& keep,
                                 const std::vector<int>& other) {
   const int k = static_cast<int>(keep.size()), o = static_cast<int>(other.size());
-  Eigen::MatrixXd kk(k, k), ko(k, o), oo(o, o);
-  for (int a = 0; a < k; ++a) {
-    for (int b = 0; b < k; ++b) kk(a, b) = info(keep[a], keep[b]);
-    for (int b = 0; b < o; ++b) ko(a, b) = info(keep[a], other[b]);
+  // Gathered column by column, as `info` is stored (a crossing factor spans up to a few hundred
+  // unknowns).
+  Eigen::MatrixXd kk(k, k), ok(o, k), oo(o, o);
+  for (int b = 0; b < k; ++b) {
+    const double* column = info.col(keep[b]).data();
+    for (int a = 0; a < k; ++a) kk(a, b) = column[keep[a]];
+    for (int a = 0; a < o; ++a) ok(a, b) = column[other[a]];
   }
-  for (int a = 0; a < o; ++a) {
-    for (int b = 0; b < o; ++b) oo(a, b) = info(other[a], other[b]);
+  for (int b = 0; b < o; ++b) {
+    const double* column = info.col(other[b]).data();
+    for (int a = 0; a < o; ++a) oo(a, b) = column[other[a]];
   }
   // oo = P L L^T P^T, pivots largest first (LAPACK's pivoted Cholesky). Half of the factors leaving
   // a city window carry no information in some directions of the landmarks they eliminate: the
-  // pivots left at or below the floor are those directions, along which ko has no component (info
+  // pivots left at or below the floor are those directions, along which ok has no component (info
   // is positive semi-definite), so stopping there gives the pseudo-inverse's Schur complement,
-  // kk - Y^T Y with Y = L^-1 P^T ko^T over the pivots taken.
+  // kk - Y^T Y with Y = L^-1 P^T ok over the pivots taken.
   const double floor = 1e-12 * std::max(1.0, o > 0 ? oo.diagonal().maxCoeff() : 0.0);
   std::vector<int> pivot;
   const int rank = PivotedCholeskyInPlace(oo, floor, &pivot);
   Eigen::MatrixXd y(rank, k);
-  for (int i = 0; i < rank; ++i) y.row(i) = ko.col(pivot[i]).transpose();
+  for (int i = 0; i < rank; ++i) y.row(i) = ok.row(pivot[i]);
   SolveLowerInPlace(oo.topLeftCorner(rank, rank), y);
   Eigen::MatrixXd schur = kk;
   AddGramLower(y, schur, -1.0);
