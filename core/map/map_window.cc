@@ -619,14 +619,6 @@ absl::StatusOr<MapWindow> MapWindow::Build(const MapReaderInterface& map, const 
       if (!w.offsets_.allFinite()) return absl::InternalError("map estimate is not finite");
     }
   }
-  if (!options.estimate) {
-    w.offsets_.resize(2 * n);
-    for (int i = 0; i < n; ++i) {
-      const Landmark* l = map.FindLandmark(w.ids_[i]);
-      if (l == nullptr) return gone("landmark", w.ids_[i]);
-      w.offsets_.segment<2>(2 * i) = l->Offset();
-    }
-  }
   if (w.closed_) return w;
 
   // Conservative covariance: every factor that reaches outside enters through its marginal on the

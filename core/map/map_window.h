@@ -17,8 +17,8 @@ struct MapWindowOptions {
   // estimated; the rest of the map is held at its estimate. 0 = no limit: the seeds' whole
   // connected part of the map, where estimates and covariances are exact.
   int hops = 0;
-  // Solve the window for its estimate (offsets()). Off, offsets() are the stored estimates and a
-  // window that is not closed is factorised once instead of twice (reads of covariances).
+  // Solve the window for its estimate (offsets()). Off (reads of covariances), offsets() is empty
+  // and a window that is not closed is factorised once instead of twice.
   bool estimate = true;
 
   absl::Status Validate() const;
@@ -42,7 +42,8 @@ class MapWindow {
   // Position of `id` in landmarks(), -1 when outside the window.
   int index(LandmarkId id) const;
   bool closed() const { return closed_; }
-  // Offsets from the anchors (East, North, metres), 2 per landmark in landmarks() order.
+  // Offsets from the anchors (East, North, metres), 2 per landmark in landmarks() order; empty
+  // without MapWindowOptions::estimate.
   const Eigen::VectorXd& offsets() const { return offsets_; }
   // Joint covariance of `ids` (all in the window), East/North at their anchors.
   absl::StatusOr<Eigen::MatrixXd> Covariance(const std::vector<LandmarkId>& ids) const;
