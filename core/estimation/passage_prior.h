@@ -34,8 +34,9 @@ constexpr double kMinWrittenChangeM = 1e-6;
 // the end (Finish), by Sigma_WP Sigma_PP^-1 (mu'_P - mu_P) with the covariance from before the
 // passage: a single solve with the factorisation Build made. Exact on a linear problem with the
 // whole connected map as the window (tested against the batch solve). A bounded window (hops > 0)
-// gives a conservative Sigma_PP (MapWindow), and the window's other landmarks move with their
-// conditional under it; the map beyond the window stays.
+// gives a conservative Sigma_PP (MapWindow; not where folded passages' information reaches outside
+// it), and the window's other landmarks move with their conditional under it; the map beyond the
+// window stays.
 class PassagePrior {
  public:
   // Over the landmarks of `ids` found in `map` (the others are left to the subgraphs to create),

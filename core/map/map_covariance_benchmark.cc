@@ -1,8 +1,10 @@
 // Covariance reads of a city map: the joint covariance (cross-covariances included) of the
 // landmarks in a 500 m box, as QueryRegion serves it, from the whole map's factorisation.
-//   build/core/map_covariance_benchmark [--blocks N] [--passages P] [benchmark flags]
+//   build/core/map_covariance_benchmark [--blocks N] [--passages P] [--retain-passages R]
+//                                       [benchmark flags]
 // builds an N x N block city map (mapsim city's layout, default 10 x 10, about 2,500 landmarks)
-// from P passages (default 100) in process first (printing its size), then times:
+// from P passages (default 100) in process first (printing its size), the factors of all but the
+// last R passages folded into the map's base (default 256, as mapd), then times:
 //   BM_Factorise              the whole map's factorisation (once per map version)
 //   BM_BoxCovariance/forward  the box's block of the inverse by forward solves from the box
 //                             (MapWindow::Covariance)
@@ -33,6 +35,7 @@ namespace {
 
 int g_blocks = 10;
 int g_passages = 100;
+int g_retain_passages = MapUpdateOptions().retain_passages;
 constexpr double kBoxHalfWidthM = 250.0;
 constexpr int kBoxes = 40;
 
@@ -51,6 +54,7 @@ const CityMap& TheMap() {
     update.warmup_passages = 0;
     update.relinearize_until_passages = 0;
     update.window_hops = 2;  // building the map is not what is measured
+    update.retain_passages = g_retain_passages;
     MapUpdater updater(update);
     for (int i = 0; i < g_passages; ++i) {
       const Passage passage = city.MakePassage(i);
@@ -76,9 +80,11 @@ const CityMap& TheMap() {
       total += ids.size();
       out->boxes.push_back(std::move(ids));
     }
-    std::fprintf(stderr, "map: %zu landmarks, %zu factors, version %lld; %d boxes of 500 m, %.1f landmarks each\n",
-                 out->map.landmark_count(), out->map.factor_count(), static_cast<long long>(out->map.version()),
-                 kBoxes, static_cast<double>(total) / kBoxes);
+    std::fprintf(stderr,
+                 "map: %zu landmarks, %zu factors kept (the last %d passages' at most), version %lld; %d boxes of "
+                 "500 m, %.1f landmarks each\n",
+                 out->map.landmark_count(), out->map.factor_count(), g_retain_passages,
+                 static_cast<long long>(out->map.version()), kBoxes, static_cast<double>(total) / kBoxes);
     return out;
   }();
   return *city_map;
@@ -198,12 +204,18 @@ int main(int argc, char** argv) {
       crowdmap::g_blocks = std::atoi(argv[++i]);
     } else if (std::strcmp(argv[i], "--passages") == 0 && has_value) {
       crowdmap::g_passages = std::atoi(argv[++i]);
+    } else if (std::strcmp(argv[i], "--retain-passages") == 0 && has_value) {
+      crowdmap::g_retain_passages = std::atoi(argv[++i]);
     } else {
       rest.push_back(argv[i]);
     }
   }
   if (crowdmap::g_blocks < 1 || crowdmap::g_passages < 1) {
     std::fprintf(stderr, "--blocks and --passages must be positive\n");
+    return 2;
+  }
+  if (crowdmap::g_retain_passages < 0) {
+    std::fprintf(stderr, "--retain-passages must be >= 0 (0 = keep every passage's factors)\n");
     return 2;
   }
   int rest_argc = static_cast<int>(rest.size());

@@ -31,7 +31,13 @@ struct MapWindowOptions {
 //   - Covariance: exact when the window is closed (no factor reaches outside it). Otherwise each
 //     factor that reaches outside enters through its own marginal on the window's landmarks (its
 //     Schur complement), which is no more informative than the map's: the covariance is then
-//     conservative, never smaller than the exact marginal.
+//     conservative, never smaller than the exact marginal, as long as the information that
+//     reaches outside is in the factors the map keeps (MapFactor records). The information of
+//     folded factors (the map's base, MapDelta::folded_factors) has no factors left to
+//     marginalise: where it links the window to landmarks outside, it enters held, as the
+//     estimate's does, which is more informative than the exact marginal. Over a map with folded
+//     passages a window that is not closed can be over-confident (map_covariance_benchmark
+//     --retain-passages; docs/results.md, "Bounded windows over folded passages").
 class MapWindow {
  public:
   static absl::StatusOr<MapWindow> Build(const MapReaderInterface& map, const std::vector<LandmarkId>& seeds,
