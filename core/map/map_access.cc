@@ -17,8 +17,8 @@ bool Intersect(const Set& a, const Set& b) {
 
 bool Overlaps(const MapReadSet& read, const MapWriteSet& written) {
   return Intersect(read.landmarks, written.landmarks) || Intersect(read.factor_lists, written.factor_lists) ||
-         Intersect(read.factors, written.factors) || Intersect(read.passage_factor_lists, written.passages) || Intersect(read.vehicles, written.vehicles) ||
-         (read.all_vehicles && !written.vehicles.empty());
+         Intersect(read.factors, written.factors) || Intersect(read.passage_factor_lists, written.passages) ||
+         Intersect(read.vehicles, written.vehicles) || (read.all_vehicles && !written.vehicles.empty());
 }
 
 MapWriteSet WriteSetOf(const MapDelta& delta, const MapReaderInterface& map) {
