@@ -33,6 +33,11 @@ MapUpdateOptions MapdDefaultUpdateOptions();
 // Every effective setting as key=value pairs, for the log line at start.
 std::string DescribeMapdConfig(const MapdConfig& config);
 
+// What the settings trade away that an operator should know at start, one sentence each (logged
+// as warnings): bounded windows (window-hops, read-window-hops) over a map that folds passages
+// (retain-passages) can give covariances narrower than exact.
+std::vector<std::string> MapdConfigCaveats(const MapdConfig& config);
+
 // The --help text.
 std::string MapdUsage();
 

@@ -158,6 +158,27 @@ TEST(MapdConfig, ReadsUpdateOptions) {
 namespace crowdmap {
 namespace {
 
+// Bounded windows over a map that folds passages: a warning at start, which names the settings.
+TEST(MapdConfig, BoundedWindowsOverFoldedPassagesComeWithACaveat) {
+  auto exact = ParseWithEnvironment({}, {});
+  ASSERT_TRUE(exact.ok()) << exact.status();
+  EXPECT_TRUE(MapdConfigCaveats(*exact).empty()) << "the whole map: exact";
+  auto city = ParseWithEnvironment({"--window-hops", "2"}, {});
+  ASSERT_TRUE(city.ok()) << city.status();
+  const std::vector<std::string> caveats = MapdConfigCaveats(*city);
+  ASSERT_EQ(caveats.size(), 1u);
+  EXPECT_NE(caveats[0].find("window-hops=2 read-window-hops=2 with retain-passages=256"), std::string::npos)
+      << caveats[0];
+  EXPECT_EQ(caveats[0].find('"'), std::string::npos) << "logged inside a quoted value";
+  auto reads = ParseWithEnvironment({"--read-window-hops", "1"}, {});
+  ASSERT_TRUE(reads.ok()) << reads.status();
+  ASSERT_EQ(MapdConfigCaveats(*reads).size(), 1u) << "bounded reads alone";
+  EXPECT_NE(MapdConfigCaveats(*reads)[0].find("read-window-hops=1"), std::string::npos);
+  auto kept = ParseWithEnvironment({"--window-hops", "2", "--retain-passages", "0"}, {});
+  ASSERT_TRUE(kept.ok()) << kept.status();
+  EXPECT_TRUE(MapdConfigCaveats(*kept).empty()) << "nothing is ever folded";
+}
+
 TEST(MapdConfig, VersionFlagIsRecognised) {
   auto c = ParseWithEnvironment({"--version"}, {});
   ASSERT_TRUE(c.ok()) << c.status();

@@ -52,6 +52,9 @@ int main(int argc, char** argv) {
   spdlog::set_level(level);
   spdlog::flush_on(spdlog::level::info);
   spdlog::info("event=settings version={} {}", CROWDMAP_VERSION, crowdmap::DescribeMapdConfig(*config));
+  for (const std::string& caveat : crowdmap::MapdConfigCaveats(*config)) {
+    spdlog::warn("event=settings_caveat caveat=\"{}\"", caveat);  // no double quotes inside
+  }
 
   auto server = crowdmap::MapServer::Start(config->server);
   if (!server.ok()) {
