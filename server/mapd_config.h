@@ -35,7 +35,8 @@ std::string DescribeMapdConfig(const MapdConfig& config);
 
 // What the settings trade away that an operator should know at start, one sentence each (logged
 // as warnings): bounded windows (window-hops, read-window-hops) over a map that folds passages
-// (retain-passages) can give covariances narrower than exact.
+// (retain-passages) can give covariances narrower than exact. From the settings alone: a map that
+// an earlier run with other settings folded stays so, unwarned.
 std::vector<std::string> MapdConfigCaveats(const MapdConfig& config);
 
 // The --help text.

@@ -33,7 +33,10 @@ MapWriteSet WriteSetOf(const MapDelta& delta, const MapReaderInterface& map) {
   };
   for (const auto& [id, landmark] : delta.landmarks) out.landmarks.insert(id);
   out.landmarks.insert(delta.removed_landmarks.begin(), delta.removed_landmarks.end());
-  for (const auto& [id, factor] : delta.added_factors) factor_changes(factor);
+  for (const auto& [id, factor] : delta.added_factors) {
+    out.factors.insert(id);  // a computation that looked the id up found nothing there
+    factor_changes(factor);
+  }
   for (int64_t id : delta.removed_factors) {
     out.factors.insert(id);
     if (const MapFactor* f = map.FindFactor(id); f != nullptr) factor_changes(*f);

@@ -48,9 +48,9 @@ struct MapWriteSet {
   // passages whose factors change (added, removed or folded).
   std::unordered_set<LandmarkId> factor_lists;
   std::set<FactorSource> passages;
-  // Factors removed or folded. A fold changes no information and no list but those that held the
-  // factor, which a computation that read one of them recorded in MapReadSet::factors: it needs no
-  // landmarks here, and a computation that read other factors of its landmarks stays valid.
+  // Factors added, removed or folded. A fold changes no information and no list but those that held
+  // the factor, which a computation that read one of them recorded in MapReadSet::factors: it needs
+  // no landmarks here, and a computation that read other factors of its landmarks stays valid.
   std::unordered_set<int64_t> factors;
   std::set<std::string> vehicles;
 };

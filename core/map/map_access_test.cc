@@ -127,7 +127,7 @@ TEST_F(MapAccessTest, WriteSetsSeparateInformationFromFactorLists) {
   const MapWriteSet written = WriteSetOf(overlay.delta(), map_);
   EXPECT_EQ(written.landmarks, (std::unordered_set<LandmarkId>{7, 6, 3, 4})) << "folding keeps the information";
   EXPECT_EQ(written.factor_lists, (std::unordered_set<LandmarkId>{6, 7, 3, 4}));
-  EXPECT_EQ(written.factors, (std::unordered_set<int64_t>{2, 1}));
+  EXPECT_EQ(written.factors, (std::unordered_set<int64_t>{4, 2, 1}));
   EXPECT_EQ(written.passages, (std::set<FactorSource>{{"v", "a"}, {"v", "b"}, {"v", "d"}}));
   EXPECT_EQ(written.vehicles, (std::set<std::string>{"car"}));
 
@@ -184,6 +184,40 @@ TEST_F(MapAccessTest, AFoldOverlapsOnlyTheReadsThatSawTheFolded) {
   ids.clear();
   map_.AppendFactorIds(5, &ids);
   EXPECT_EQ(ids, (std::vector<int64_t>{3})) << "the list it read changed";
+}
+
+// A factor id looked up and not found is found once a commit adds it: the miss overlaps that
+// addition.
+TEST_F(MapAccessTest, AMissOverlapsTheAdditionOfThatFactor) {
+  MapReadRecorder recorder(map_);  // counts as version 2, last factor id 3
+  EXPECT_EQ(recorder.FindFactor(4), nullptr);
+  MapDelta add;
+  add.base_version = 2;
+  add.version = 3;
+  add.added_factors.emplace(4, MakeFactor(4, {5, 6}, "d"));
+  EXPECT_TRUE(Overlaps(recorder.read(), WriteSetOf(add, map_)));
+}
+
+// A computation that removes a factor it added and looks its id up again reads, through its
+// overlay, the factor another worker's commit added under that id meanwhile: the computation
+// overlaps that commit.
+TEST_F(MapAccessTest, AFactorReadThroughAnOwnRemovedIdOverlapsTheCommitThatAddedIt) {
+  MapReadRecorder recorder(map_);  // counts as version 2, last factor id 3
+  MapDelta other;                  // another worker's commit, from version 2: factor 4 on {5, 6}
+  other.base_version = 2;
+  other.version = 3;
+  other.added_factors.emplace(4, MakeFactor(4, {5, 6}, "d"));
+  const MapWriteSet written = WriteSetOf(other, map_);  // against the map before it, as the worker does
+  map_.Apply(other);
+
+  MapOverlay overlay(recorder);
+  const int64_t own = overlay.AddFactor(MakeFactor(0, {1, 2}, "e"));
+  ASSERT_EQ(own, 4) << "counted from the recorder's last factor id";
+  overlay.RemoveFactor(own);
+  const MapFactor* seen = overlay.FindFactor(own);
+  ASSERT_NE(seen, nullptr);
+  EXPECT_EQ(seen->passage_id, "d") << "the other commit's factor";
+  EXPECT_TRUE(Overlaps(recorder.read(), written));
 }
 
 // A change computed against version 2, moved past another committed meanwhile, equals the same
