@@ -201,6 +201,18 @@ absl::StatusOr<pb::CovarianceFormat> CovarianceFormatFromProto(int format, bool 
   return format == pb::COVARIANCE_FORMAT_PACKED ? pb::COVARIANCE_FORMAT_PACKED : pb::COVARIANCE_FORMAT_BLOCKS;
 }
 
+pb::CovarianceBound CovarianceBoundToProto(CovarianceBound bound) {
+  switch (bound) {
+    case CovarianceBound::kExact:
+      return pb::COVARIANCE_BOUND_EXACT;
+    case CovarianceBound::kConservative:
+      return pb::COVARIANCE_BOUND_CONSERVATIVE;
+    case CovarianceBound::kMayBeNarrower:
+      return pb::COVARIANCE_BOUND_MAY_BE_NARROWER;
+  }
+  return pb::COVARIANCE_BOUND_UNSPECIFIED;
+}
+
 void CovarianceToBlocks(const LandmarkPage& page, google::protobuf::RepeatedPtrField<pb::CrossCovariance>* wire) {
   const Eigen::MatrixXd& cov = page.covariance;
   const int n = static_cast<int>(page.landmarks.size());

@@ -65,13 +65,15 @@ absl::StatusOr<Eigen::MatrixXd> CovarianceFromProto(const Response& response) {
              ? CovarianceFromPacked(response.packed_covariance(), response.landmarks_size(), "packed_covariance")
              : CovarianceFromBlocks(response.landmarks(), response.cross_covariances(), "cross_covariances");
 }
+pb::CovarianceBound CovarianceBoundToProto(CovarianceBound bound);
 // A page of landmarks into a GetTileResponse or QueryRegionResponse, with its covariance (if read)
-// in `format`.
+// in `format` and how it relates to the exact one.
 template <typename Response>
 void LandmarkPageToProto(const LandmarkPage& page, pb::CovarianceFormat format, Response* response) {
   response->mutable_landmarks()->Reserve(static_cast<int>(page.landmarks.size()));
   for (const Landmark& l : page.landmarks) LandmarkToProto(l, response->add_landmarks());
   if (page.covariance.size() == 0) return;
+  response->set_covariance_bound(CovarianceBoundToProto(page.covariance_bound));
   if (format == pb::COVARIANCE_FORMAT_PACKED) {
     CovarianceToPacked(page.covariance, response->mutable_packed_covariance());
   } else {

@@ -289,6 +289,12 @@ TEST(ServiceReads, TheReadWindowSetsTheLinksOfARegionsCovariance) {
     EXPECT_NEAR(c.cov_m2().en(), (*one_link)(2 * at[c.first_id()], 2 * at[c.second_id()] + 1), 1e-9);
   }
   EXPECT_GT(wider, 1.001) << "1 link must read wider covariances than 2 on this map";
+  // With 18 of the 24 passages folded into the base (retention 6), the base reaches outside the
+  // 1-link window, which the response says.
+  CovarianceBound bound = CovarianceBound::kExact;
+  ASSERT_TRUE(JointCovariance(map, ids, MapWindowOptions{1}, &bound).ok());
+  EXPECT_EQ(bound, CovarianceBound::kMayBeNarrower);
+  EXPECT_EQ(response.covariance_bound(), pb::COVARIANCE_BOUND_MAY_BE_NARROWER);
   server->Shutdown(std::chrono::milliseconds(0));
 }
 

@@ -313,6 +313,8 @@ TEST_F(ServiceRpc, PackedCovarianceIsTheMatrixOfTheBlocks) {
       CovarianceFromBlocks(blocks.landmarks(), blocks.cross_covariances(), "cross_covariances");
   ASSERT_TRUE(expected.ok()) << expected.status();
   EXPECT_LT((*matrix - *expected).cwiseAbs().maxCoeff(), 1e-15);
+  EXPECT_EQ(blocks.covariance_bound(), pb::COVARIANCE_BOUND_EXACT) << "the whole map's window";
+  EXPECT_EQ(packed.covariance_bound(), pb::COVARIANCE_BOUND_EXACT);
 
   const TileId tile = TileContaining(scenario_.landmarks()[0].position);
   pb::GetTileRequest tile_request;
@@ -336,6 +338,15 @@ TEST_F(ServiceRpc, PackedCovarianceIsTheMatrixOfTheBlocks) {
   expected = CovarianceFromBlocks(tile_blocks.landmarks(), tile_blocks.cross_covariances(), "cross_covariances");
   ASSERT_TRUE(expected.ok()) << expected.status();
   EXPECT_LT((*matrix - *expected).cwiseAbs().maxCoeff(), 1e-15);
+  EXPECT_EQ(tile_packed.covariance_bound(), pb::COVARIANCE_BOUND_EXACT);
+  {
+    pb::QueryRegionRequest plain;
+    *plain.mutable_box() = MockVehicle::World();
+    pb::QueryRegionResponse without;
+    grpc::ClientContext ctx;
+    ASSERT_TRUE(client_->stub()->QueryRegion(&ctx, plain, &without).ok());
+    EXPECT_EQ(without.covariance_bound(), pb::COVARIANCE_BOUND_UNSPECIFIED) << "no covariance read";
+  }
 
   region.set_include_cross_covariance(false);
   grpc::ClientContext no_cov_ctx;

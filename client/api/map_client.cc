@@ -333,6 +333,7 @@ absl::StatusOr<RegionMap> MapClient::QueryRegion(const pb::BoundingBox& box, boo
       absl::StatusOr<Eigen::MatrixXd> cov = CovarianceFromProto(response);
       if (!cov.ok()) return absl::DataLossError(absl::StrCat("QueryRegion response: ", cov.status().message()));
       region.page_covariances.push_back(*std::move(cov));
+      region.page_covariance_bounds.push_back(response.covariance_bound());
     }
     token = response.next_page_token();
   } while (!token.empty());

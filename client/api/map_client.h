@@ -49,6 +49,9 @@ struct RegionMap {
   // each landmark in the order of `landmarks`); empty without covariances. Landmarks of two pages
   // are read apart: their cross blocks are not known.
   std::vector<Eigen::MatrixXd> page_covariances;
+  // For each of page_covariances, how it relates to the map's exact covariance (UNSPECIFIED from
+  // a server that predates the field).
+  std::vector<pb::CovarianceBound> page_covariance_bounds;
   int64_t map_version = 0;  // highest version seen over the pages
 };
 

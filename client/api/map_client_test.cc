@@ -218,6 +218,7 @@ class BlocksOnlyRegions final : public pb::MapService::Service {
       c->set_first_id(4);
       c->set_second_id(9);
       c->mutable_cov_m2()->set_en(0.5);
+      response->set_covariance_bound(pb::COVARIANCE_BOUND_MAY_BE_NARROWER);
     }
     return grpc::Status::OK;
   }
@@ -235,6 +236,7 @@ TEST(MapClient, ReadsTheCovarianceOfAServerWithoutThePackedLayout) {
   expected.diagonal() << 4, 5, 9, 10;
   expected(0, 3) = expected(3, 0) = 0.5;  // landmark 4's East with landmark 9's North
   EXPECT_EQ(region->page_covariances[0], expected);
+  EXPECT_EQ(region->page_covariance_bounds, std::vector<pb::CovarianceBound>{pb::COVARIANCE_BOUND_MAY_BE_NARROWER});
 }
 
 TEST(MapClientRetries, ServiceConfigCarriesThePolicyAndOptionsAreChecked) {

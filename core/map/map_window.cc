@@ -522,6 +522,18 @@ Eigen::MatrixXd SchurComplement(const Eigen::MatrixXd& info, const std::vector<i
 
 }  // namespace
 
+const char* CovarianceBoundName(CovarianceBound bound) {
+  switch (bound) {
+    case CovarianceBound::kExact:
+      return "exact";
+    case CovarianceBound::kConservative:
+      return "conservative";
+    case CovarianceBound::kMayBeNarrower:
+      return "may_be_narrower";
+  }
+  return "unknown";
+}
+
 absl::Status MapWindowOptions::Validate() const {
   if (hops < 0) return absl::InvalidArgumentError(absl::StrCat("window hops: must be >= 0, got ", hops));
   return absl::OkStatus();
@@ -576,6 +588,10 @@ absl::StatusOr<MapWindow> MapWindow::Build(const MapReaderInterface& map, const 
   // geodesic computation; a landmark outside is linked to many inside).
   absl::flat_hash_map<LandmarkId, Eigen::Vector2d> outside_offsets;
   std::optional<LandmarkId> missing;  // an outside landmark linked but not found
+  // The factors behind the links that leave the window, counted over those links (each link's
+  // block counts the factors on both its landmarks, folded ones included; a block of the stored
+  // base counts at least 1): compared below with what the kept factors account for.
+  int64_t leaving_link_factors = 0;
   for (int i = 0; i < n; ++i) {
     const LandmarkId a = w.ids_[i];
     if (options.estimate) rhs.segment<2>(2 * i) = map.InformationVector(a);
@@ -587,6 +603,7 @@ absl::StatusOr<MapWindow> MapWindow::Build(const MapReaderInterface& map, const 
         blocks.AddAbove(i, j, block.value);  // the block (a, b)
       } else if (j < 0) {
         on_edge = true;
+        leaving_link_factors += block.factors;
         if (!options.estimate) return;
         auto [it, inserted] = outside_offsets.try_emplace(b);
         if (inserted) {
@@ -627,6 +644,7 @@ absl::StatusOr<MapWindow> MapWindow::Build(const MapReaderInterface& map, const 
   std::unordered_set<int64_t> crossing, checked;
   std::vector<int64_t> factor_ids;
   std::vector<LandmarkId> factor_landmarks;
+  int64_t kept_leaving_links = 0;  // the links leaving the window that the kept factors make
   for (LandmarkId a : edge) {
     factor_ids.clear();
     map.AppendFactorIds(a, &factor_ids);
@@ -634,11 +652,18 @@ absl::StatusOr<MapWindow> MapWindow::Build(const MapReaderInterface& map, const 
       if (!checked.insert(id).second) continue;
       factor_landmarks.clear();
       if (!map.AppendFactorLandmarks(id, &factor_landmarks)) return gone("map factor", id);
-      if (std::any_of(factor_landmarks.begin(), factor_landmarks.end(), [&](LandmarkId l) { return w.index(l) < 0; })) {
+      const int64_t outside = std::count_if(factor_landmarks.begin(), factor_landmarks.end(),
+                                            [&](LandmarkId l) { return w.index(l) < 0; });
+      if (outside > 0) {
         crossing.insert(id);
+        kept_leaving_links += outside * (static_cast<int64_t>(factor_landmarks.size()) - outside);
       }
     }
   }
+  // Every factor on a leaving link is a kept one unless the map's base (folded factors, which the
+  // window holds) has a share in one of them.
+  w.bound_ = kept_leaving_links == leaving_link_factors ? CovarianceBound::kConservative
+                                                        : CovarianceBound::kMayBeNarrower;
   bool pattern_grew = false;
   for (int64_t id : crossing) {
     const MapFactor* found = map.FindFactor(id);
@@ -739,11 +764,12 @@ std::vector<Eigen::Matrix2d> MapWindow::Marginals() const {
 }
 
 absl::StatusOr<Eigen::MatrixXd> JointCovariance(const MapReaderInterface& map, const std::vector<LandmarkId>& ids,
-                                                const MapWindowOptions& options) {
+                                                const MapWindowOptions& options, CovarianceBound* bound) {
   MapWindowOptions covariance_only = options;
   covariance_only.estimate = false;
   absl::StatusOr<MapWindow> window = MapWindow::Build(map, ids, covariance_only);
   if (!window.ok()) return window.status();
+  if (bound != nullptr) *bound = window->covariance_bound();
   return window->Covariance(ids);
 }
 

@@ -12,6 +12,14 @@
 
 namespace crowdmap {
 
+// How a window's covariance relates to the map's exact marginal.
+enum class CovarianceBound {
+  kExact,         // the window is closed: no information reaches outside it
+  kConservative,  // never smaller than the exact marginal: all that reaches outside is in kept factors
+  kMayBeNarrower  // information folded into the map's base reaches outside and is held there
+};
+const char* CovarianceBoundName(CovarianceBound bound);
+
 struct MapWindowOptions {
   // Landmarks within this many links (a link: a factor shared by two landmarks) of the seeds are
   // estimated; the rest of the map is held at its estimate. 0 = no limit: the seeds' whole
@@ -48,6 +56,7 @@ class MapWindow {
   // Position of `id` in landmarks(), -1 when outside the window.
   int index(LandmarkId id) const;
   bool closed() const { return closed_; }
+  CovarianceBound covariance_bound() const { return bound_; }
   // Offsets from the anchors (East, North, metres), 2 per landmark in landmarks() order; empty
   // without MapWindowOptions::estimate.
   const Eigen::VectorXd& offsets() const { return offsets_; }
@@ -75,14 +84,17 @@ class MapWindow {
   std::vector<LandmarkId> ids_;
   absl::flat_hash_map<LandmarkId, int> index_;
   bool closed_ = true;
+  CovarianceBound bound_ = CovarianceBound::kExact;
   Eigen::VectorXd offsets_;
   // The factorisation of the (conservative) window information.
   std::shared_ptr<const Factor> covariance_factor_;
 };
 
-// Joint covariance of `ids` in `map` (East/North at the anchors), through a MapWindow around them.
+// Joint covariance of `ids` in `map` (East/North at the anchors), through a MapWindow around them;
+// how it relates to the exact one in `bound` when given.
 absl::StatusOr<Eigen::MatrixXd> JointCovariance(const MapReaderInterface& map, const std::vector<LandmarkId>& ids,
-                                                const MapWindowOptions& options = {});
+                                                const MapWindowOptions& options = {},
+                                                CovarianceBound* bound = nullptr);
 
 }  // namespace crowdmap
 

@@ -69,6 +69,59 @@ TEST(MapWindow, WholeMapGivesTheExactEstimateAndCovariance) {
   EXPECT_LT((joint->block<2, 2>(0, 2) - cov.block<2, 2>(2, 20)).cwiseAbs().maxCoeff(), 1e-9) << "far apart, exact";
 }
 
+// The smallest eigenvalue of a - b (symmetric).
+double SmallestEigenvalueOfDifference(const Eigen::MatrixXd& a, const Eigen::MatrixXd& b) {
+  return Eigen::SelfAdjointEigenSolver<Eigen::MatrixXd>(a - b, Eigen::EigenvaluesOnly).eigenvalues()(0);
+}
+
+// A window tells how its covariance relates to the exact one: exact when closed, conservative
+// while only kept factors reach outside it, and possibly narrower once a factor that reaches
+// outside is folded into the map's base (which the window then holds, as it is).
+TEST(MapWindow, AWindowSaysWhetherItsCovarianceIsExactConservativeOrMayBeNarrower) {
+  const int n = 12;
+  MapState map = Chain(n, 4);
+  Eigen::VectorXd eta;
+  const Eigen::MatrixXd exact = DenseInformation(map, n, &eta).inverse();  // folding keeps it
+  const std::vector<LandmarkId> ids = {4, 5, 6, 7, 8};
+  const Eigen::MatrixXd exact_ids = exact.block(6, 6, 10, 10);
+  MapWindowOptions two_links;
+  two_links.hops = 2;
+  const auto read = [&](CovarianceBound* bound) {  // landmarks 4..8, two links around 6
+    absl::StatusOr<MapWindow> w = MapWindow::Build(map, {6}, two_links);
+    EXPECT_TRUE(w.ok()) << w.status();
+    if (!w.ok()) return Eigen::MatrixXd();
+    EXPECT_EQ(w->landmarks().size(), ids.size());
+    *bound = w->covariance_bound();
+    absl::StatusOr<Eigen::MatrixXd> cov = w->Covariance(ids);
+    EXPECT_TRUE(cov.ok()) << cov.status();
+    return cov.ok() ? *cov : Eigen::MatrixXd();
+  };
+
+  absl::StatusOr<MapWindow> whole = MapWindow::Build(map, {6}, MapWindowOptions{});
+  ASSERT_TRUE(whole.ok()) << whole.status();
+  EXPECT_EQ(whole->covariance_bound(), CovarianceBound::kExact);
+
+  CovarianceBound bound = CovarianceBound::kExact;
+  Eigen::MatrixXd cov = read(&bound);
+  EXPECT_EQ(bound, CovarianceBound::kConservative) << "factors {3, 4} and {8, 9} reach outside, kept";
+  EXPECT_GT(SmallestEigenvalueOfDifference(cov, exact_ids), -1e-9);
+
+  map.FoldFactor(5);  // {5, 6}, inside the window
+  cov = read(&bound);
+  EXPECT_EQ(bound, CovarianceBound::kConservative) << "the base reaches no landmark outside";
+  EXPECT_GT(SmallestEigenvalueOfDifference(cov, exact_ids), -1e-9);
+
+  map.FoldFactor(8);  // {8, 9}: landmark 9 is outside
+  cov = read(&bound);
+  EXPECT_EQ(bound, CovarianceBound::kMayBeNarrower);
+  EXPECT_LT(SmallestEigenvalueOfDifference(cov, exact_ids), -1e-6) << "held, 9 makes 8 look surer than it is";
+
+  // JointCovariance's window around all of 4..8 reaches 2..10, whose leaving factors are kept.
+  CovarianceBound joint = CovarianceBound::kExact;
+  ASSERT_TRUE(JointCovariance(map, ids, two_links, &joint).ok());
+  EXPECT_EQ(joint, CovarianceBound::kConservative);
+}
+
 TEST(MapWindow, BoundedWindowIsConservativeAndConditionsOnTheRest) {
   const int n = 12;
   MapState map = Chain(n, 2);

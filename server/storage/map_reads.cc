@@ -18,9 +18,10 @@ std::vector<LandmarkId> IdsOf(const LandmarkPage& page) {
 
 // Puts the joint covariance `cov` of the page's landmarks (in page order) into the page, its
 // diagonal blocks as the landmarks' own.
-void PutCovariance(const Eigen::MatrixXd& cov, LandmarkPage* page) {
+void PutCovariance(const Eigen::MatrixXd& cov, CovarianceBound bound, LandmarkPage* page) {
   for (size_t i = 0; i < page->landmarks.size(); ++i) page->landmarks[i].cov_en_m2 = cov.block<2, 2>(2 * i, 2 * i);
   page->covariance = cov;
+  page->covariance_bound = bound;
 }
 
 }  // namespace
@@ -30,9 +31,10 @@ absl::Status AppendCrossCovariances(const MapReaderInterface& map, int window_ho
   const std::vector<LandmarkId> ids = IdsOf(*page);
   MapWindowOptions options;
   options.hops = window_hops;
-  absl::StatusOr<Eigen::MatrixXd> cov = JointCovariance(map, ids, options);
+  CovarianceBound bound = CovarianceBound::kExact;
+  absl::StatusOr<Eigen::MatrixXd> cov = JointCovariance(map, ids, options, &bound);
   if (!cov.ok()) return cov.status();
-  PutCovariance(*cov, page);
+  PutCovariance(*cov, bound, page);
   return absl::OkStatus();
 }
 
@@ -41,7 +43,7 @@ absl::Status AppendCrossCovariances(const MapWindow& window, LandmarkPage* page)
   const std::vector<LandmarkId> ids = IdsOf(*page);
   absl::StatusOr<Eigen::MatrixXd> cov = window.Covariance(ids);
   if (!cov.ok()) return cov.status();
-  PutCovariance(*cov, page);
+  PutCovariance(*cov, window.covariance_bound(), page);
   return absl::OkStatus();
 }
 
@@ -57,7 +59,7 @@ absl::Status AppendCrossCovariances(const MapWindow& window, const Eigen::Matrix
     rows.push_back(2 * k);
     rows.push_back(2 * k + 1);
   }
-  PutCovariance(window_covariance(rows, rows), page);
+  PutCovariance(window_covariance(rows, rows), window.covariance_bound(), page);
   return absl::OkStatus();
 }
 

@@ -10,6 +10,7 @@
 #include "absl/status/statusor.h"
 #include "core/geo/tiles.h"
 #include "core/map/map_state.h"
+#include "core/map/map_window.h"
 
 namespace crowdmap {
 
@@ -101,6 +102,8 @@ struct LandmarkPage {
   // On request, the joint covariance of `landmarks`, recovered from the map's information:
   // metres^2, rows 2i and 2i + 1 the East and North axes at landmarks[i]. Empty otherwise.
   Eigen::MatrixXd covariance;
+  // How `covariance` relates to the exact one (meaningful only with a covariance).
+  CovarianceBound covariance_bound = CovarianceBound::kExact;
   int64_t map_version = 0;
   bool more = false;  // further landmarks match after the last one returned
 };

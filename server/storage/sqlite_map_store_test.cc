@@ -1166,6 +1166,13 @@ TEST(SqliteMapStore, FoldedFactorsMoveIntoTheBaseAndTheMapStaysTheSame) {
   absl::StatusOr<Eigen::MatrixXd> cov_after = JointCovariance(after, {1, 2, 3});
   ASSERT_TRUE(cov_before.ok() && cov_after.ok());
   EXPECT_LT((*cov_after - *cov_before).cwiseAbs().maxCoeff(), 1e-12);
+  // A window of one link around landmark 1 holds {1, 2}, and landmark 2's link to 3 leaves it: a
+  // kept factor before the fold, the base loaded from the file after it.
+  CovarianceBound bound = CovarianceBound::kExact;
+  ASSERT_TRUE(JointCovariance(before, {1}, MapWindowOptions{1}, &bound).ok());
+  EXPECT_EQ(bound, CovarianceBound::kConservative);
+  ASSERT_TRUE(JointCovariance(after, {1}, MapWindowOptions{1}, &bound).ok());
+  EXPECT_EQ(bound, CovarianceBound::kMayBeNarrower);
 }
 
 TEST(SqliteMapStore, CommitAgainstStaleVersionChangesNothing) {
