@@ -14,6 +14,12 @@ constexpr int kDefaultRegionPage = 1000;
 constexpr int kMaxRegionPage = 10000;
 constexpr std::chrono::milliseconds kWatchPoll{500};
 
+// " covariance_bound=..." for the request log of a read with covariances, "" otherwise.
+std::string CovarianceBoundField(const LandmarkPage& page) {
+  if (page.covariance.size() == 0) return "";
+  return absl::StrCat(" covariance_bound=", CovarianceBoundName(page.covariance_bound));
+}
+
 }  // namespace
 
 absl::Status ReadMapInfo(MapStoreInterface& store, const MapUpdateOptions& update, const MapWorker* worker,
@@ -85,7 +91,7 @@ grpc::Status MapService::ServeTile(grpc::ServerContextBase* ctx, const pb::GetTi
   response->set_tile_version(tile_version);
   response->set_map_version(page->map_version);
   LandmarkPageToProto(*page, *format, response);
-  log.Add(absl::StrCat("landmarks=", page->landmarks.size()));
+  log.Add(absl::StrCat("landmarks=", page->landmarks.size(), CovarianceBoundField(*page)));
   return log.Done(absl::OkStatus());
 }
 
@@ -114,7 +120,8 @@ grpc::Status MapService::ServeRegion(grpc::ServerContextBase* ctx, const pb::Que
   response->set_map_version(page->map_version);
   LandmarkPageToProto(*page, *format, response);
   if (page->more) response->set_next_page_token(MakePageToken(page->landmarks.back().id, query));
-  log.Add(absl::StrCat("landmarks=", page->landmarks.size(), " covariance_dim=", page->covariance.rows()));
+  log.Add(absl::StrCat("landmarks=", page->landmarks.size(), " covariance_dim=", page->covariance.rows(),
+                       CovarianceBoundField(*page)));
   return log.Done(absl::OkStatus());
 }
 

@@ -116,6 +116,10 @@ TEST(MapWindow, AWindowSaysWhetherItsCovarianceIsExactConservativeOrMayBeNarrowe
   EXPECT_EQ(bound, CovarianceBound::kMayBeNarrower);
   EXPECT_LT(SmallestEigenvalueOfDifference(cov, exact_ids), -1e-6) << "held, 9 makes 8 look surer than it is";
 
+  EXPECT_STREQ(CovarianceBoundName(bound), "may_be_narrower") << "as the read logs name it";
+  EXPECT_STREQ(CovarianceBoundName(CovarianceBound::kConservative), "conservative");
+  EXPECT_STREQ(CovarianceBoundName(CovarianceBound::kExact), "exact");
+
   // JointCovariance's window around all of 4..8 reaches 2..10, whose leaving factors are kept.
   CovarianceBound joint = CovarianceBound::kExact;
   ASSERT_TRUE(JointCovariance(map, ids, two_links, &joint).ok());
