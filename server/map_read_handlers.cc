@@ -5,6 +5,7 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
 #include "server/map_service.h"
+#include "server/metrics.h"
 #include "server/request_log.h"
 
 namespace crowdmap {
@@ -13,6 +14,10 @@ namespace {
 constexpr int kDefaultRegionPage = 1000;
 constexpr int kMaxRegionPage = 10000;
 constexpr std::chrono::milliseconds kWatchPoll{500};
+
+void CountCovarianceRead(ServerMetrics* metrics, const LandmarkPage& page) {
+  if (metrics != nullptr && page.covariance.size() > 0) metrics->ObserveCovarianceRead(page.covariance_bound);
+}
 
 // " covariance_bound=..." for the request log of a read with covariances, "" otherwise.
 std::string CovarianceBoundField(const LandmarkPage& page) {
@@ -91,6 +96,7 @@ grpc::Status MapService::ServeTile(grpc::ServerContextBase* ctx, const pb::GetTi
   response->set_tile_version(tile_version);
   response->set_map_version(page->map_version);
   LandmarkPageToProto(*page, *format, response);
+  CountCovarianceRead(context_->metrics, *page);
   log.Add(absl::StrCat("landmarks=", page->landmarks.size(), CovarianceBoundField(*page)));
   return log.Done(absl::OkStatus());
 }
@@ -119,6 +125,7 @@ grpc::Status MapService::ServeRegion(grpc::ServerContextBase* ctx, const pb::Que
   if (!page.ok()) return log.Done(page.status());
   response->set_map_version(page->map_version);
   LandmarkPageToProto(*page, *format, response);
+  CountCovarianceRead(context_->metrics, *page);
   if (page->more) response->set_next_page_token(MakePageToken(page->landmarks.back().id, query));
   log.Add(absl::StrCat("landmarks=", page->landmarks.size(), " covariance_dim=", page->covariance.rows(),
                        CovarianceBoundField(*page)));

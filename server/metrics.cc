@@ -188,6 +188,15 @@ absl::StatusOr<std::unique_ptr<ServerMetrics>> ServerMetrics::Start(const std::s
   auto& uploads = prometheus::BuildCounter().Name("mapd_uploads_total").Help("acknowledged uploads").Register(r);
   m->uploads_new_ = &uploads.Add({{"outcome", "queued"}});
   m->uploads_duplicate_ = &uploads.Add({{"outcome", "duplicate"}});
+  auto& covariance_reads =
+      prometheus::BuildCounter()
+          .Name("mapd_covariance_reads_total")
+          .Help("reads with covariances (GetTile, QueryRegion) by how their covariance relates to the exact one")
+          .Register(r);
+  for (CovarianceBound bound :
+       {CovarianceBound::kExact, CovarianceBound::kConservative, CovarianceBound::kMayBeNarrower}) {
+    m->covariance_reads_[static_cast<int>(bound)] = &covariance_reads.Add({{"bound", CovarianceBoundName(bound)}});
+  }
   prometheus::BuildGauge()
       .Name("mapd_build_info")
       .Help("1, labelled with the build's version")
@@ -226,6 +235,10 @@ void ServerMetrics::ObserveRpc(std::string_view full_method, grpc::StatusCode co
              {"code", absl::StatusCodeToString(static_cast<absl::StatusCode>(code))}},
             RpcBuckets())
       .Observe(seconds);
+}
+
+void ServerMetrics::ObserveCovarianceRead(CovarianceBound bound) {
+  covariance_reads_[static_cast<int>(bound)]->Increment();
 }
 
 void ServerMetrics::ObserveUpload(size_t bytes, bool duplicate) {

@@ -30,6 +30,8 @@ namespace crowdmap {
 // - mapd_rpc_duration_seconds{service,method,code}: every RPC (a gRPC server interceptor);
 // - mapd_passage_{apply,solve,covariance,commit}_seconds: the worker's steps per applied passage;
 // - mapd_upload_bytes_total, mapd_uploads_total{outcome}: accepted uploads (serialized passage bytes);
+// - mapd_covariance_reads_total{bound}: reads with covariances (GetTile, QueryRegion) by how their
+//   covariance relates to the exact one (exact, conservative, may_be_narrower);
 // - mapd_queue_depth, mapd_passages{state}, mapd_map_landmarks, mapd_map_factors, mapd_map_version:
 //   read from the store's row counts at each scrape;
 // - mapd_relinearizations_due: re-linearisations the worker owes (WatchWorker), at each scrape;
@@ -56,6 +58,7 @@ class ServerMetrics {
   void ObserveUpload(size_t bytes, bool duplicate);
   void ObserveApplied(const AppliedPassageTimings& timings);
   void ObserveRelinearized(bool committed);
+  void ObserveCovarianceRead(CovarianceBound bound);
   // The worker whose owed re-linearisations each scrape reports (mapd_relinearizations_due); null:
   // none from then on. Once this returns, no scrape reads the previous one.
   void WatchWorker(const MapWorker* worker);
@@ -81,6 +84,7 @@ class ServerMetrics {
   prometheus::Counter* upload_bytes_ = nullptr;
   prometheus::Counter* uploads_new_ = nullptr;
   prometheus::Counter* uploads_duplicate_ = nullptr;
+  prometheus::Counter* covariance_reads_[3] = {};  // by CovarianceBound
 };
 
 }  // namespace crowdmap

@@ -93,6 +93,15 @@ TEST(Metrics, ScrapedValuesMatchTheRpcsUploadsAndAppliedPassages) {
   ASSERT_EQ(idle->passages_applied(), 3);
   auto info = vehicle.GetMapInfo();
   ASSERT_TRUE(info.ok());
+  {
+    pb::QueryRegionRequest region;  // the whole map's window: exact
+    *region.mutable_box() = MockVehicle::World();
+    region.set_include_cross_covariance(true);
+    pb::QueryRegionResponse response;
+    grpc::ClientContext ctx;
+    ASSERT_TRUE(vehicle.stub()->QueryRegion(&ctx, region, &response).ok());
+    ASSERT_EQ(response.covariance_bound(), pb::COVARIANCE_BOUND_EXACT);
+  }
 
   // The worker records a passage's timings once its commit is durable, so a scrape right after
   // the store shows it applied can miss the last one: scrape until all three are there.
@@ -114,6 +123,10 @@ TEST(Metrics, ScrapedValuesMatchTheRpcsUploadsAndAppliedPassages) {
   EXPECT_EQ(m["mapd_upload_bytes_total"], uploaded_bytes);
   EXPECT_EQ(m["mapd_uploads_total{outcome=\"queued\"}"], 3);
   EXPECT_EQ(m["mapd_uploads_total{outcome=\"duplicate\"}"], 1);
+  EXPECT_EQ(m["mapd_covariance_reads_total{bound=\"exact\"}"], 1);
+  EXPECT_EQ(m["mapd_covariance_reads_total{bound=\"may_be_narrower\"}"], 0);
+  EXPECT_NE(text.find("mapd_covariance_reads_total{bound=\"conservative\"} 0"), std::string::npos)
+      << "every bound is exported from the start";
   EXPECT_EQ(m["mapd_passages{state=\"applied\"}"], 3);
   EXPECT_EQ(m["mapd_passages{state=\"queued\"}"], 0);
   EXPECT_EQ(m["mapd_queue_depth"], 0);
