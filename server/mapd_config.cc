@@ -279,10 +279,8 @@ std::vector<std::string> MapdConfigCaveats(const MapdConfig& config) {
   return {absl::StrCat(
       "window-hops=", u.window_hops, " read-window-hops=", read_hops, " with retain-passages=", u.retain_passages,
       ": a bounded window's covariances are conservative only while the passages around it are retained; once "
-      "passages are folded into the map's base, they can be narrower than exact (on a simulated 10k map with 260 "
-      "of 300 passages folded, reads from 1 link had sigmas 0.91 of exact on average, from 2 links 0.98; "
-      "docs/results.md, 'Bounded windows over folded passages'). Reads say so in covariance_bound. 0 for both = "
-      "the whole map, exact")};
+      "passages are folded into the map's base, they can be narrower than exact, which reads say in "
+      "covariance_bound (docs/results.md, 'Bounded windows over folded passages'). 0 for both = the whole map, exact")};
 }
 
 MapUpdateOptions MapdDefaultUpdateOptions() {

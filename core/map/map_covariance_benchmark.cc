@@ -83,9 +83,11 @@ const CityMap& TheMap() {
       total += ids.size();
       out->boxes.push_back(std::move(ids));
     }
-    const std::string kept = g_retain_passages == 0 ? std::string("every passage's")
-                                                    : "the last " + std::to_string(g_retain_passages) + " passages' at most";
-    std::fprintf(stderr, "map: %zu landmarks, %zu factors kept (%s), version %lld; %d boxes of 500 m, %.1f landmarks each\n",
+    const std::string kept = g_retain_passages == 0
+                                 ? std::string("every passage's")
+                                 : "the last " + std::to_string(g_retain_passages) + " passages' at most";
+    std::fprintf(stderr,
+                 "map: %zu landmarks, %zu factors kept (%s), version %lld; %d boxes of 500 m, %.1f landmarks each\n",
                  out->map.landmark_count(), out->map.factor_count(), kept.c_str(),
                  static_cast<long long>(out->map.version()), kBoxes, static_cast<double>(total) / kBoxes);
     return out;
