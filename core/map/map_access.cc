@@ -118,8 +118,7 @@ Eigen::Vector2d MapReadRecorder::InformationVector(LandmarkId id) const {
   return out;
 }
 
-void MapReadRecorder::ForEachLink(LandmarkId id,
-                                  const std::function<void(LandmarkId, const InformationBlock&)>& fn) const {
+const InformationRow& MapReadRecorder::CachedRow(LandmarkId id) const {
   // A block (id, b) changes only with a factor on both: one on id, which records id's row.
   read_.landmarks.insert(id);
   auto it = rows_.find(id);
@@ -127,12 +126,34 @@ void MapReadRecorder::ForEachLink(LandmarkId id,
     // Gathered in a buffer that keeps its capacity, then copied at its size: one allocation.
     row_buffer_.clear();
     access_([&](const MapReaderInterface& map) {
-      map.ForEachLink(id, [&](LandmarkId b, const InformationBlock& block) { row_buffer_.push_back({b, block}); });
+      if (const InformationRow* row = map.InformationRowOf(id); row != nullptr) {
+        row_buffer_.assign(row->begin(), row->end());
+        return;
+      }
+      const InformationBlock diagonal = map.Information(id, id);
+      bool placed = false;
+      map.ForEachLink(id, [&](LandmarkId b, const InformationBlock& block) {
+        if (!placed && b > id) {
+          row_buffer_.push_back({id, diagonal});
+          placed = true;
+        }
+        row_buffer_.push_back({b, block});
+      });
+      if (!placed) row_buffer_.push_back({id, diagonal});
     });
     it = rows_.emplace(id, row_buffer_).first;
   }
-  for (const LinkedBlock& e : it->second) fn(e.id, e.block);  // outside the access: fn may read again
+  return it->second;
 }
+
+void MapReadRecorder::ForEachLink(LandmarkId id,
+                                  const std::function<void(LandmarkId, const InformationBlock&)>& fn) const {
+  for (const LinkedBlock& e : CachedRow(id)) {  // outside the access: fn may read again
+    if (e.id != id) fn(e.id, e.block);
+  }
+}
+
+const InformationRow* MapReadRecorder::InformationRowOf(LandmarkId id) const { return &CachedRow(id); }
 
 const MapFactor* MapReadRecorder::FindFactor(int64_t id) const {
   read_.factors.insert(id);

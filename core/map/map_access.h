@@ -92,6 +92,7 @@ class MapReadRecorder : public MapReaderInterface {
   InformationBlock Information(LandmarkId a, LandmarkId b) const override;
   Eigen::Vector2d InformationVector(LandmarkId id) const override;
   void ForEachLink(LandmarkId id, const std::function<void(LandmarkId, const InformationBlock&)>& fn) const override;
+  const InformationRow* InformationRowOf(LandmarkId id) const override;
   const MapFactor* FindFactor(int64_t id) const override;
   bool AppendFactorLandmarks(int64_t id, std::vector<LandmarkId>* out) const override;
   void AppendFactorIds(LandmarkId id, std::vector<int64_t>* out) const override;
@@ -117,10 +118,12 @@ class MapReadRecorder : public MapReaderInterface {
   // The landmarks of factors whose landmarks alone were read (AppendFactorLandmarks).
   mutable std::unordered_map<int64_t, std::optional<std::vector<LandmarkId>>> factor_landmarks_;
   mutable std::unordered_map<std::string, std::optional<VehicleCalibration>> vehicles_;
-  // The rows ForEachLink read (a window reads most of them twice: to find its landmarks, then to
-  // assemble their information), and the buffer one is gathered in.
+  // The rows read, the diagonal included (a window reads most of them twice: to find its
+  // landmarks, then to assemble their information), and the buffer one is gathered in.
   mutable std::unordered_map<LandmarkId, InformationRow> rows_;
   mutable InformationRow row_buffer_;
+  // Row `id`, read once (recorded as a read of the landmark).
+  const InformationRow& CachedRow(LandmarkId id) const;
 };
 
 }  // namespace crowdmap

@@ -50,6 +50,40 @@ TEST_F(MapAccessTest, TheRecorderRecordsEveryKindOfRead) {
   EXPECT_FALSE(read.all_vehicles);
 }
 
+// Every reader gives the same row, whole (InformationRowOf) or link by link (ForEachLink and
+// Information), through VisitRow: the map, an overlay (the base's row where its changes leave
+// the landmark alone) and a recorder (which records the landmark as read).
+TEST_F(MapAccessTest, ARowVisitedWholeIsTheRowReadLinkByLink) {
+  MapOverlay overlay(map_);
+  overlay.BumpVersion();
+  overlay.AddFactor(MakeFactor(0, {2, 3}, "d"));
+  MapReadRecorder recorder(map_);
+  const auto by_links = [](const MapReaderInterface& map, LandmarkId id) {
+    std::vector<std::pair<LandmarkId, Eigen::Matrix2d>> out;
+    map.ForEachLink(id, [&](LandmarkId b, const InformationBlock& block) { out.emplace_back(b, block.value); });
+    out.emplace_back(id, map.Information(id, id).value);
+    return out;
+  };
+  const auto visited = [](const MapReaderInterface& map, LandmarkId id) {
+    std::vector<std::pair<LandmarkId, Eigen::Matrix2d>> out;
+    const InformationBlock diagonal =
+        map.VisitRow(id, [&](LandmarkId b, const InformationBlock& block) { out.emplace_back(b, block.value); });
+    out.emplace_back(id, diagonal.value);
+    return out;
+  };
+  for (LandmarkId id = 1; id <= 7; ++id) {
+    for (const MapReaderInterface* map : std::vector<const MapReaderInterface*>{&map_, &overlay, &recorder}) {
+      EXPECT_EQ(visited(*map, id), by_links(*map, id)) << "landmark " << id;
+    }
+  }
+  ASSERT_NE(map_.InformationRowOf(1), nullptr);
+  EXPECT_EQ(map_.InformationRowOf(1)->size(), 2u) << "the diagonal and landmark 2";
+  EXPECT_TRUE(map_.InformationRowOf(7)->empty()) << "no information";
+  EXPECT_EQ(overlay.InformationRowOf(1), map_.InformationRowOf(1)) << "untouched: the base's";
+  EXPECT_EQ(overlay.InformationRowOf(2), nullptr) << "changed by the added factor";
+  EXPECT_EQ(recorder.read().landmarks.count(6), 1u);
+}
+
 // A factor's landmarks are read as the factor is (the same entries in the read set), through an
 // overlay too, which shows the factors it adds and hides those it removes.
 TEST_F(MapAccessTest, AFactorsLandmarksAreReadLikeTheFactor) {

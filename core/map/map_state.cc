@@ -100,6 +100,12 @@ void AssembledInformation::ForEachLinked(LandmarkId a,
   }
 }
 
+const InformationRow* MapState::InformationRowOf(LandmarkId id) const {
+  static const InformationRow kEmpty;
+  const InformationRow* row = information_.Row(id);
+  return row == nullptr ? &kEmpty : row;
+}
+
 const Landmark* MapState::FindLandmark(LandmarkId id) const {
   auto it = landmarks_.find(id);
   return it == landmarks_.end() ? nullptr : &it->second;
@@ -264,6 +270,10 @@ void MapOverlay::ForEachLink(LandmarkId id,
     if (block.factors > 0) fn(b, block);
   });
   for (; c < changes; ++c) change_only((*change)[c]);
+}
+
+const InformationRow* MapOverlay::InformationRowOf(LandmarkId id) const {
+  return change_.Row(id) == nullptr ? base_.InformationRowOf(id) : nullptr;
 }
 
 const MapFactor* MapOverlay::FindFactor(int64_t id) const {

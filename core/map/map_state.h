@@ -78,6 +78,15 @@ struct InformationBlock {
   int factors = 0;  // factors contributing to it; 0 = the block is structurally zero
 };
 
+// One stored block of a row of the information: (row landmark, `id`).
+struct LinkedBlock {
+  LandmarkId id = 0;
+  InformationBlock block;
+};
+// A row of the information: its blocks in increasing id order (the diagonal included), contiguous
+// so that a window's assembly reads it without chasing pointers.
+using InformationRow = std::vector<LinkedBlock>;
+
 // Read access to a map: landmarks, the factors that define its information, the information
 // matrix and vector they sum to (kept assembled, sparse), and its version.
 class MapReaderInterface {
@@ -91,9 +100,34 @@ class MapReaderInterface {
   // increasing order of b.
   virtual void ForEachLink(LandmarkId id,
                            const std::function<void(LandmarkId, const InformationBlock&)>& fn) const = 0;
+  // Row `id` of the information, the diagonal block included, where the map keeps it assembled
+  // (an empty row for a landmark without information); nullptr where it does not, which
+  // ForEachLink and Information then read. The whole row at once, for the loops over a window's
+  // links, where a call per link costs as much as the rest of the visit.
+  virtual const InformationRow* InformationRowOf(LandmarkId /*id*/) const { return nullptr; }
+  // Calls fn(b, block (id, b)) for every other landmark b that shares information with `id`, in
+  // increasing order of b, and returns the diagonal block (id, id): InformationRowOf's row, or
+  // ForEachLink and Information.
+  template <typename Fn>
+  InformationBlock VisitRow(LandmarkId id, Fn&& fn) const {
+    const InformationRow* row = InformationRowOf(id);
+    if (row == nullptr) {
+      ForEachLink(id, fn);
+      return Information(id, id);
+    }
+    InformationBlock diagonal;
+    for (const LinkedBlock& e : *row) {
+      if (e.id == id) {
+        diagonal = e.block;
+      } else {
+        fn(e.id, e.block);
+      }
+    }
+    return diagonal;
+  }
   // Appends the other landmarks that share information with `id` (each once).
   void AppendLinked(LandmarkId id, std::vector<LandmarkId>* out) const {
-    ForEachLink(id, [out](LandmarkId b, const InformationBlock&) { out->push_back(b); });
+    VisitRow(id, [out](LandmarkId b, const InformationBlock&) { out->push_back(b); });
   }
   virtual const MapFactor* FindFactor(int64_t id) const = 0;
   // Appends the landmarks of factor `id`, FindFactor(id)->landmarks, without reading its
@@ -117,15 +151,6 @@ class MapReaderInterface {
   // Calls fn for every vehicle's calibration, in increasing vehicle_id.
   virtual void ForEachVehicle(const std::function<void(const VehicleCalibration&)>& fn) const = 0;
 };
-
-// One stored block of a row of the information: (row landmark, `id`).
-struct LinkedBlock {
-  LandmarkId id = 0;
-  InformationBlock block;
-};
-// A row of the information: its blocks in increasing id order (the diagonal included), contiguous
-// so that a window's assembly reads it without chasing pointers.
-using InformationRow = std::vector<LinkedBlock>;
 
 // The information matrix and vector that a set of factors sums to, as sparse 2x2 blocks.
 class AssembledInformation {
@@ -196,6 +221,7 @@ class MapState : public MapReaderInterface {
                    const std::function<void(LandmarkId, const InformationBlock&)>& fn) const override {
     information_.ForEachLinked(id, fn);
   }
+  const InformationRow* InformationRowOf(LandmarkId id) const override;
   const MapFactor* FindFactor(int64_t id) const override;
   void AppendFactorIds(LandmarkId id, std::vector<int64_t>* out) const override;
   void AppendPassageFactorIds(const std::string& vehicle_id, const std::string& passage_id,
@@ -253,6 +279,8 @@ class MapOverlay : public MapReaderInterface {
   Eigen::Vector2d InformationVector(LandmarkId id) const override;
   void ForEachLink(LandmarkId id,
                    const std::function<void(LandmarkId, const InformationBlock&)>& fn) const override;
+  // The base's row where the pending changes leave it as it is; nullptr otherwise.
+  const InformationRow* InformationRowOf(LandmarkId id) const override;
   const MapFactor* FindFactor(int64_t id) const override;
   bool AppendFactorLandmarks(int64_t id, std::vector<LandmarkId>* out) const override;
   void AppendFactorIds(LandmarkId id, std::vector<int64_t>* out) const override;

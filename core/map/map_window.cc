@@ -595,9 +595,8 @@ absl::StatusOr<MapWindow> MapWindow::Build(const MapReaderInterface& map, const 
   for (int i = 0; i < n; ++i) {
     const LandmarkId a = w.ids_[i];
     if (options.estimate) rhs.segment<2>(2 * i) = map.InformationVector(a);
-    blocks.AddDiagonal(i, map.Information(a, a).value);
     bool on_edge = false;
-    map.ForEachLink(a, [&](LandmarkId b, const InformationBlock& block) {
+    const InformationBlock diagonal = map.VisitRow(a, [&](LandmarkId b, const InformationBlock& block) {
       const int j = w.index(b);
       if (j > i) {
         blocks.AddAbove(i, j, block.value);  // the block (a, b)
@@ -617,6 +616,7 @@ absl::StatusOr<MapWindow> MapWindow::Build(const MapReaderInterface& map, const 
         rhs.segment<2>(2 * i) -= block.value * it->second;
       }
     });
+    blocks.AddDiagonal(i, diagonal.value);
     if (missing) return gone("landmark", *missing);
     if (on_edge) edge.push_back(a);
   }
