@@ -946,6 +946,57 @@ TEST(SqliteMapStore, APrunedPassageAMapRestoredFromAnOlderBackupLacksFailsWithTh
   EXPECT_NE(record.error.find("upload it again"), std::string::npos) << record.error;
   EXPECT_FALSE(store->ClaimNextPassage()->has_value());
   ExpectStatsEqualTableCounts(store.get(), path);
+
+  // An operator's requeue is refused: the queue would stop at a passage it cannot read.
+  const absl::StatusOr<StoredPassage> requeued =
+      store->MovePassage(applied, {PassageState::kFailed}, PassageState::kQueued, false);
+  EXPECT_EQ(requeued.status().code(), absl::StatusCode::kFailedPrecondition) << requeued.status();
+  EXPECT_NE(requeued.status().message().find("upload the drive again"), std::string::npos) << requeued.status();
+  EXPECT_EQ(store->GetPassage(applied)->state, PassageState::kFailed);
+
+  // Uploaded again under the same ids, the drive is taken again under its record.
+  auto again = store->EnqueuePassages({MakeUpload("v", "applied")}, 0);
+  ASSERT_TRUE(again.ok()) << again.status();
+  ASSERT_TRUE((*again)[0].ok()) << (*again)[0].status();
+  EXPECT_FALSE((*again)[0]->duplicate);
+  EXPECT_EQ((*again)[0]->record.id, applied);
+  const StoredPassage revived = *store->GetPassage(applied);
+  EXPECT_EQ(revived.state, PassageState::kQueued);
+  EXPECT_EQ(revived.payload_pruned_unix_ms, 0);
+  EXPECT_EQ(revived.error, "");
+  auto claimed = store->ClaimNextPassage();
+  ASSERT_TRUE(claimed.ok() && claimed->has_value()) << claimed.status();
+  EXPECT_EQ((*claimed)->record.id, applied);
+  EXPECT_EQ((*claimed)->payload, "bytes");
+  ExpectStatsEqualTableCounts(store.get(), path);
+  auto once_more = store->EnqueuePassages({MakeUpload("v", "applied")}, 0);
+  ASSERT_TRUE(once_more.ok() && (*once_more)[0].ok());
+  EXPECT_TRUE((*once_more)[0]->duplicate) << "taken again once";
+}
+
+// A queued passage whose upload is missing (a damaged queue file) is failed when it is claimed,
+// and the claims go on with the next: it must not stop the queue.
+TEST(SqliteMapStore, AQueuedPassageWithoutItsUploadIsFailedAndTheQueueGoesOn) {
+  TempDir dir;
+  const std::string path = dir.File("map.db");
+  auto store = OpenStore(path);
+  ASSERT_TRUE(store->EnqueuePassages({MakeUpload("v", "damaged"), MakeUpload("v", "next", "other")}, 0).ok());
+  const int64_t damaged = store->FindPassage("v", "damaged")->id;
+  sqlite3* db = nullptr;
+  sqlite3_open(SqliteQueuePath(path).c_str(), &db);
+  ASSERT_EQ(sqlite3_exec(db, ("DELETE FROM passage_payloads WHERE id = " + std::to_string(damaged)).c_str(), nullptr,
+                         nullptr, nullptr),
+            SQLITE_OK);
+  sqlite3_close(db);
+  const auto first = store->ClaimNextPassage();
+  EXPECT_EQ(first.status().code(), absl::StatusCode::kDataLoss) << first.status();
+  const StoredPassage record = *store->GetPassage(damaged);
+  EXPECT_EQ(record.state, PassageState::kFailed);
+  EXPECT_NE(record.error.find("upload it again"), std::string::npos) << record.error;
+  const auto next = store->ClaimNextPassage();
+  ASSERT_TRUE(next.ok() && next->has_value()) << next.status();
+  EXPECT_EQ((*next)->record.passage_id, "next");
+  ExpectStatsEqualTableCounts(store.get(), path);
 }
 
 TEST(SqliteMapStore, AMapWithoutItsQueueFileIsRefused) {

@@ -121,14 +121,18 @@ absl::StatusOr<std::vector<absl::StatusOr<EnqueueOutcome>>> SqliteMapStore::Enqu
   for (const NewPassage& p : passages) {
     auto existing = ReadPassageByKey(db, p.vehicle_id, p.passage_id);
     if (!existing.ok()) return existing.status();
-    if (existing->has_value()) {
+    // A failed passage whose upload was deleted (a map restored from a backup older than the fold
+    // of its factors) is taken again under its record: its drive is in neither the map nor the queue.
+    const bool revive = existing->has_value() && (*existing)->state == PassageState::kFailed &&
+                        (*existing)->payload_pruned_unix_ms > 0;
+    if (existing->has_value() && !revive) {
       outcomes.push_back(EnqueueOutcome{**existing, true});
       continue;
     }
     if (!p.content_digest.empty()) {
       auto same = ReadPassageByContent(db, p.content_digest);
       if (!same.ok()) return same.status();
-      if (same->has_value()) {
+      if (same->has_value() && !(revive && (*same)->id == (*existing)->id)) {
         // Another vehicle's ids are not told (its queue id is: operators can look it up, and a
         // vehicle may read only its own passages).
         const StoredPassage& original = **same;
@@ -147,8 +151,11 @@ absl::StatusOr<std::vector<absl::StatusOr<EnqueueOutcome>>> SqliteMapStore::Enqu
       continue;
     }
     auto insert = db->Prepare(
-        "INSERT INTO passages (vehicle_id, passage_id, state, received_unix_ms, size_bytes, content_digest) "
-        "VALUES (?1, ?2, 1, ?3, ?4, ?5)");
+        revive ? "UPDATE passages SET state = 1, received_unix_ms = ?3, size_bytes = ?4, content_digest = ?5, "
+                 "attempts = 0, interruptions = 0, released = 0, error = '', finished_unix_ms = 0, "
+                 "payload_pruned_unix_ms = 0 WHERE vehicle_id = ?1 AND passage_id = ?2"
+               : "INSERT INTO passages (vehicle_id, passage_id, state, received_unix_ms, size_bytes, content_digest) "
+                 "VALUES (?1, ?2, 1, ?3, ?4, ?5)");
     if (!insert.ok()) return insert.status();
     insert->Bind(1, std::string_view(p.vehicle_id))
         .Bind(2, std::string_view(p.passage_id))
@@ -160,7 +167,13 @@ absl::StatusOr<std::vector<absl::StatusOr<EnqueueOutcome>>> SqliteMapStore::Enqu
       insert->BindBlob(5, p.content_digest);
     }
     if (auto s = insert->Run(); !s.ok()) return s;
-    const int64_t id = db->LastInsertRowId();
+    const int64_t id = revive ? (*existing)->id : db->LastInsertRowId();
+    if (revive) {  // the result of its first application is not this one's
+      auto result = db->Prepare("DELETE FROM passage_results WHERE id = ?1");
+      if (!result.ok()) return result.status();
+      result->Bind(1, id);
+      if (auto s = result->Run(); !s.ok()) return s;
+    }
     auto payload = db->Prepare("INSERT INTO passage_payloads (id, payload) VALUES (?1, ?2)");
     if (!payload.ok()) return payload.status();
     payload->Bind(1, id).BindBlob(2, p.payload);
@@ -300,7 +313,16 @@ absl::StatusOr<std::optional<ClaimedPassage>> SqliteMapStore::ClaimNextPassage()
   payload->Bind(1, id);
   auto payload_row = payload->Step();
   if (!payload_row.ok()) return payload_row.status();
-  if (!*payload_row) return absl::DataLossError(absl::StrCat("payload of passage id ", id, " is missing"));
+  if (!*payload_row) {
+    // Failed rather than left first in line, where every later claim would stop at it.
+    const std::string error = absl::StrCat("passage id ", id, ": its upload is missing from the queue file");
+    auto fail = db->Prepare("UPDATE passages SET state = 5, error = ?2, finished_unix_ms = ?3 WHERE id = ?1");
+    if (!fail.ok()) return fail.status();
+    fail->Bind(1, id).Bind(2, absl::StrCat(error, ": upload it again")).Bind(3, NowUnixMs());
+    if (auto s = fail->Run(); !s.ok()) return s;
+    if (auto s = txn->Commit(); !s.ok()) return s;
+    return absl::DataLossError(absl::StrCat(error, "; marked failed"));
+  }
   claimed.payload = payload->Blob(0);
   if (auto s = txn->Commit(); !s.ok()) return s;
   return std::optional<ClaimedPassage>(std::move(claimed));
@@ -367,6 +389,19 @@ absl::StatusOr<StoredPassage> SqliteMapStore::MovePassage(int64_t id, const std:
         absl::StrCat("passage ", id, " is ", PassageStateName((*record)->state), ": not in a state this applies to"));
   }
   const bool queued = to == PassageState::kQueued;
+  if (queued) {
+    auto payload = db->Prepare("SELECT 1 FROM passage_payloads WHERE id = ?1");
+    if (!payload.ok()) return payload.status();
+    payload->Bind(1, id);
+    auto found = payload->Step();
+    if (!found.ok()) return found.status();
+    if (!*found) {
+      return absl::FailedPreconditionError(absl::StrCat(
+          "passage ", id, ": its upload is no longer stored",
+          (*record)->payload_pruned_unix_ms > 0 ? " (deleted once its factors were folded into the map's base)" : "",
+          ", so it cannot be queued again: upload the drive again, under the same vehicle_id and passage_id"));
+    }
+  }
   auto update = db->Prepare(
       "UPDATE passages SET state = ?2, attempts = CASE WHEN ?3 THEN 0 ELSE attempts END, "
       "error = CASE WHEN ?3 THEN '' ELSE error END, finished_unix_ms = CASE WHEN ?3 THEN 0 ELSE ?4 END, "
