@@ -142,7 +142,7 @@ void MapWorker::Stop() {
   for (std::thread& t : threads_) t.join();
   threads_.clear();
   std::lock_guard<std::mutex> lock(claim_mu_);
-  for (const Claimed& c : lookahead_) Release(c.record);
+  for (const Claimed& c : lookahead_) Release(c.record, "not started");
   lookahead_.clear();
 }
 
@@ -208,7 +208,7 @@ void MapWorker::Process(Claimed claimed) {
   const absl::StatusOr<Passage>& passage = claimed.passage;
   const StoredPassage& record = claimed.record;
   if (stopping_) {
-    Release(record);
+    Release(record, "not started");
   } else if (!passage.ok()) {
     Finish(record, PassageState::kRejected, std::string(passage.status().message()));
   } else if (record.interruptions >= options_.max_interruptions) {
@@ -356,7 +356,7 @@ void MapWorker::Apply(const StoredPassage& record, const Passage& passage) {
         computed.reset();
         ++recomputed;
         if (stopping_) {
-          Finish(record, PassageState::kQueued, "");
+          Release(record, "stopping: its update was to be computed again");
           return;
         }
         continue;
@@ -460,7 +460,7 @@ void MapWorker::Apply(const StoredPassage& record, const Passage& passage) {
               std::max(relinearizations_due_.load() - owed, static_cast<int64_t>(relinearizing_.size()));
         }
         error = absl::StrCat("commit: ", committed.ToString());
-        transient = IsTransientStorageError(committed) && !stopping_;
+        transient = IsTransientStorageError(committed);
         // The store's map is not at the version the worker counted on: read it again.
         reload = committed.code() == absl::StatusCode::kFailedPrecondition;
         if (!transient) computed.reset();
@@ -468,6 +468,10 @@ void MapWorker::Apply(const StoredPassage& record, const Passage& passage) {
     }
     if (reload) {
       if (absl::Status s = LoadUpdater(); !s.ok()) spdlog::error("event=reload_failed error=\"{}\"", s.ToString());
+    }
+    if (transient && stopping_) {  // says nothing about the passage: back to the queue, uncounted
+      Release(record, "stopping: its commit was deferred by a storage error");
+      return;
     }
     if (transient) {  // the same passage again, no attempt counted
       spdlog::warn("event=commit_deferred passage={} vehicle={} id={} retry_in_ms={} error=\"{}\"", record.passage_id,
@@ -585,14 +589,14 @@ absl::Status MapWorker::Relinearize(const MapUpdater::PassageKey& key) {
   return absl::OkStatus();
 }
 
-void MapWorker::Release(const StoredPassage& record) {
+void MapWorker::Release(const StoredPassage& record, const char* reason) {
   if (absl::Status s = store_->ReleaseClaimedPassage(record.id); !s.ok()) {
     // It stays processing: the next start queues it again, as after a crash.
     spdlog::error("event=release_failed passage={} id={} error=\"{}\"", record.passage_id, record.id, s.ToString());
     return;
   }
-  spdlog::info("event=returned passage={} vehicle={} id={} reason=\"not started\"", record.passage_id, record.vehicle_id,
-               record.id);
+  spdlog::info("event=returned passage={} vehicle={} id={} reason=\"{}\"", record.passage_id, record.vehicle_id,
+               record.id, reason);
 }
 
 void MapWorker::Finish(const StoredPassage& record, PassageState state, const std::string& reason) {

@@ -177,8 +177,10 @@ class MapWorker {
   // failure is logged, never fatal.
   void PrunePayloads(const std::vector<MapUpdater::PassageKey>& folded);
   void Finish(const StoredPassage& record, PassageState state, const std::string& reason);
-  // A claimed passage not started, back to the queue (MapStoreInterface::ReleaseClaimedPassage).
-  void Release(const StoredPassage& record);
+  // A claimed passage back to the queue, its attempt not counted (MapStoreInterface::
+  // ReleaseClaimedPassage): not started, or stopped by a stop before anything about it was learnt
+  // (`reason`, logged).
+  void Release(const StoredPassage& record, const char* reason);
   // sched_yield() when options_.yield.
   void Yield() const;
   // Loads updater_ (with the passages its joint solves still need) from the store.
