@@ -180,7 +180,9 @@ void MapWorker::Run() {
 std::optional<MapWorker::Claimed> MapWorker::TakeNext() {
   const size_t lookahead = options_.workers > 1 ? static_cast<size_t>(kLookaheadPerWorker * options_.workers) : 1;
   while (lookahead_.size() < lookahead) {
-    auto next = store_->ClaimNextPassage();
+    // One worker applies what it claims; several choose among the passages claimed ahead, and
+    // mark the one taken as started below.
+    auto next = lookahead == 1 ? store_->ClaimNextPassage() : store_->ClaimNextPassageAhead();
     if (!next.ok()) {
       spdlog::error("event=claim_failed error=\"{}\"", next.status().ToString());
       break;
@@ -197,6 +199,13 @@ std::optional<MapWorker::Claimed> MapWorker::TakeNext() {
   std::vector<const RouteFootprint*> in_flight;
   for (const auto& [id, route] : in_flight_) in_flight.push_back(&route);
   const size_t pick = PickNextPassage(candidates, in_flight, kMaxPassedOver);
+  if (lookahead > 1) {
+    // Before it is applied: a crash while it is counts as its interruption.
+    if (absl::Status s = store_->MarkPassageStarted(lookahead_[pick].record.id); !s.ok()) {
+      spdlog::error("event=mark_started_failed id={} error=\"{}\"", lookahead_[pick].record.id, s.ToString());
+      return std::nullopt;  // taken again at the next poll
+    }
+  }
   for (size_t i = 0; i < pick; ++i) ++lookahead_[i].schedule.passed_over;
   Claimed taken = std::move(lookahead_[pick]);
   lookahead_.erase(lookahead_.begin() + static_cast<std::ptrdiff_t>(pick));

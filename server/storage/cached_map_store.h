@@ -56,6 +56,10 @@ class CachedMapStore : public MapStoreInterface {
     return inner_->PrunePassagePayloads(passages);
   }
   absl::StatusOr<std::optional<ClaimedPassage>> ClaimNextPassage() override { return inner_->ClaimNextPassage(); }
+  absl::StatusOr<std::optional<ClaimedPassage>> ClaimNextPassageAhead() override {
+    return inner_->ClaimNextPassageAhead();
+  }
+  absl::Status MarkPassageStarted(int64_t id) override { return inner_->MarkPassageStarted(id); }
   absl::Status FinishPassageWithoutChange(int64_t id, PassageState state, const std::string& reason) override {
     return inner_->FinishPassageWithoutChange(id, state, reason);
   }

@@ -149,8 +149,15 @@ class MapStoreInterface {
   // how many were deleted.
   virtual absl::StatusOr<int> PrunePassagePayloads(const std::vector<std::pair<std::string, std::string>>& passages) = 0;
 
-  // Takes the oldest queued passage: state processing, attempts + 1. nullopt when none is queued.
+  // Takes the oldest queued passage to apply it: state processing, attempts + 1, started. nullopt
+  // when none is queued.
   virtual absl::StatusOr<std::optional<ClaimedPassage>> ClaimNextPassage() = 0;
+  // The same for a worker's look-ahead (several workers choose among a few claimed passages):
+  // claimed but not started, so that a crash does not count it as interrupted.
+  virtual absl::StatusOr<std::optional<ClaimedPassage>> ClaimNextPassageAhead() = 0;
+  // A passage claimed ahead is about to be applied (durably, before it is). FailedPrecondition
+  // when it is not processing.
+  virtual absl::Status MarkPassageStarted(int64_t id) = 0;
   // In one transaction: writes the map change, sets the map version to delta.version and marks
   // the passage applied with its result. FailedPrecondition when the stored map version is not
   // delta.base_version or the passage is not processing.
@@ -179,7 +186,7 @@ class MapStoreInterface {
   virtual absl::StatusOr<StoredPassage> MovePassage(int64_t id, const std::vector<PassageState>& from,
                                                     PassageState to, bool released) = 0;
   // Start-up recovery: every processing passage goes back to queued, its interrupted attempt
-  // uncounted and counted as an interruption instead. Returns how many.
+  // uncounted and, if it was started, counted as an interruption instead. Returns how many.
   virtual absl::StatusOr<int> RequeueProcessingPassages() = 0;
 
   // Loads the whole map (landmarks, factors, version) into `map`.

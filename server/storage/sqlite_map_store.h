@@ -30,7 +30,9 @@ class SqliteMapStore : public MapStoreInterface {
   absl::StatusOr<std::vector<StoredPassage>> ListPassages(const PassageQuery& query) override;
   absl::StatusOr<std::string> GetPassagePayload(int64_t id) override;
   absl::StatusOr<int> PrunePassagePayloads(const std::vector<std::pair<std::string, std::string>>& passages) override;
-  absl::StatusOr<std::optional<ClaimedPassage>> ClaimNextPassage() override;
+  absl::StatusOr<std::optional<ClaimedPassage>> ClaimNextPassage() override { return Claim(/*started=*/true); }
+  absl::StatusOr<std::optional<ClaimedPassage>> ClaimNextPassageAhead() override { return Claim(/*started=*/false); }
+  absl::Status MarkPassageStarted(int64_t id) override;
   absl::Status CommitPassageApplied(int64_t id, const MapDelta& delta, const PassageResult& result) override;
   absl::Status CommitPassageExcluded(int64_t id, const MapDelta& delta) override;
   absl::Status CommitPassageRelinearized(int64_t id, const MapDelta& delta) override;
@@ -60,6 +62,8 @@ class SqliteMapStore : public MapStoreInterface {
 
   // Helpers running on a connection the caller holds (inside its transaction when needed).
   static absl::StatusOr<std::optional<StoredPassage>> ReadPassage(SqliteConnection* db, int64_t id);
+  // ClaimNextPassage (started) and ClaimNextPassageAhead (not).
+  absl::StatusOr<std::optional<ClaimedPassage>> Claim(bool started);
   static absl::StatusOr<std::optional<StoredPassage>> ReadPassageByKey(SqliteConnection* db,
                                                                       const std::string& vehicle_id,
                                                                       const std::string& passage_id);

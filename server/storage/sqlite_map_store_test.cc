@@ -374,6 +374,37 @@ TEST(SqliteMapStore, ProcessingPassagesReturnToQueueOnRequeue) {
   EXPECT_EQ(after->interruptions, 1);
 }
 
+// A crash counts an interruption only for the passages being applied: a passage a worker had
+// claimed ahead, among which it chooses, was not (a passage that crashes the server must not take
+// the ones claimed after it down with it).
+TEST(SqliteMapStore, ACrashCountsAnInterruptionOnlyForThePassagesStarted) {
+  TempDir dir;
+  const std::string path = dir.File("map.db");
+  {
+    auto store = OpenStore(path);
+    ASSERT_TRUE(store->EnqueuePassages({MakeUpload("v", "1"), MakeUpload("v", "2", "b"), MakeUpload("v", "3", "c")}, 0)
+                    .ok());
+    for (int i = 0; i < 3; ++i) ASSERT_TRUE(store->ClaimNextPassageAhead().ok());
+    ASSERT_TRUE(store->MarkPassageStarted(store->FindPassage("v", "2")->id).ok());
+    EXPECT_EQ(store->MarkPassageStarted(999).code(), absl::StatusCode::kFailedPrecondition);
+  }
+  auto store = OpenStore(path);  // as after a crash
+  auto requeued = store->RequeueProcessingPassages();
+  ASSERT_TRUE(requeued.ok()) << requeued.status();
+  EXPECT_EQ(*requeued, 3);
+  for (const char* id : {"1", "2", "3"}) {
+    const StoredPassage record = *store->FindPassage("v", id);
+    EXPECT_EQ(record.state, PassageState::kQueued) << id;
+    EXPECT_EQ(record.attempts, 0) << id;
+    EXPECT_EQ(record.interruptions, std::string(id) == "2" ? 1 : 0) << id;
+  }
+  // Claimed again, ahead then started: the mark of the earlier run does not carry over.
+  ASSERT_TRUE(store->ClaimNextPassageAhead().ok());
+  ASSERT_TRUE(store->ClaimNextPassageAhead().ok());
+  ASSERT_TRUE(store->RequeueProcessingPassages().ok());
+  EXPECT_EQ(store->FindPassage("v", "2")->interruptions, 1);
+}
+
 TEST(SqliteMapStore, CommitWritesMapVersionAndResultTogether) {
   TempDir dir;
   const std::string path = dir.File("map.db");

@@ -286,7 +286,7 @@ absl::StatusOr<int> SqliteMapStore::PrunePassagePayloads(
   return pruned;
 }
 
-absl::StatusOr<std::optional<ClaimedPassage>> SqliteMapStore::ClaimNextPassage() {
+absl::StatusOr<std::optional<ClaimedPassage>> SqliteMapStore::Claim(bool started) {
   SqliteFile::Writer writer = queue_->LockWriter();
   SqliteConnection* db = writer.db;
   ConfirmPending(db);
@@ -299,9 +299,9 @@ absl::StatusOr<std::optional<ClaimedPassage>> SqliteMapStore::ClaimNextPassage()
   if (!*row) return std::optional<ClaimedPassage>();
   const int64_t id = next->Int(0);
 
-  auto update = db->Prepare("UPDATE passages SET state = 2, attempts = attempts + 1 WHERE id = ?1");
+  auto update = db->Prepare("UPDATE passages SET state = 2, attempts = attempts + 1, started = ?2 WHERE id = ?1");
   if (!update.ok()) return update.status();
-  update->Bind(1, id);
+  update->Bind(1, id).Bind(2, static_cast<int64_t>(started));
   if (auto s = update->Run(); !s.ok()) return s;
 
   ClaimedPassage claimed;
@@ -341,6 +341,19 @@ absl::Status SqliteMapStore::FinishPassageWithoutChange(int64_t id, PassageState
       "WHERE id = ?1 AND state = 2");
   if (!update.ok()) return update.status();
   update->Bind(1, id).Bind(2, static_cast<int64_t>(state)).Bind(3, std::string_view(reason)).Bind(4, NowUnixMs());
+  if (auto s = update->Run(); !s.ok()) return s;
+  if (db->Changes() != 1) return absl::FailedPreconditionError(absl::StrCat("passage id ", id, " is not processing"));
+  return txn->Commit();
+}
+
+absl::Status SqliteMapStore::MarkPassageStarted(int64_t id) {
+  SqliteFile::Writer writer = queue_->LockWriter();
+  SqliteConnection* db = writer.db;
+  auto txn = SqliteWriteTransaction::Begin(db);
+  if (!txn.ok()) return txn.status();
+  auto update = db->Prepare("UPDATE passages SET started = 1 WHERE id = ?1 AND state = 2");
+  if (!update.ok()) return update.status();
+  update->Bind(1, id);
   if (auto s = update->Run(); !s.ok()) return s;
   if (db->Changes() != 1) return absl::FailedPreconditionError(absl::StrCat("passage id ", id, " is not processing"));
   return txn->Commit();
@@ -430,9 +443,11 @@ absl::StatusOr<int> SqliteMapStore::RequeueProcessingPassages() {
   }
   auto txn = SqliteWriteTransaction::Begin(db);
   if (!txn.ok()) return txn.status();
-  // The interrupted attempt is not counted: it says nothing about the passage.
-  if (auto s = db->Exec("UPDATE passages SET state = 1, attempts = MAX(attempts - 1, 0), interruptions = interruptions + 1 "
-                        "WHERE state = 2");
+  // The interrupted attempt is not counted: it says nothing about the passage. An interruption is,
+  // where the passage was being applied (a passage that crashes the server is failed after
+  // MapWorkerOptions::max_interruptions); not where a worker had only claimed it ahead.
+  if (auto s = db->Exec("UPDATE passages SET state = 1, attempts = MAX(attempts - 1, 0), "
+                        "interruptions = interruptions + started, started = 0 WHERE state = 2");
       !s.ok()) {
     return s;
   }

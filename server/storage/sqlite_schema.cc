@@ -411,6 +411,14 @@ const std::vector<Migration>& QueueMigrations() {
       CREATE INDEX passages_by_content ON passages (content_digest) WHERE content_digest IS NOT NULL;
       )sql",
        nullptr},
+      // 4 -> 5: whether a processing passage was started or only claimed ahead by a worker, so
+      // that a crash counts an interruption only for the passages being applied. Those processing
+      // before the upgrade count as started, as they did.
+      {R"sql(
+      ALTER TABLE passages ADD COLUMN started INTEGER NOT NULL DEFAULT 0;
+      UPDATE passages SET started = 1 WHERE state = 2;
+      )sql",
+       nullptr},
   };
   return kMigrations;
 }
