@@ -80,6 +80,9 @@ absl::StatusOr<std::unique_ptr<MapWorker>> MapWorker::Create(MapStoreInterface* 
 }
 
 absl::Status MapWorker::LoadUpdater() {
+  // The counts, the passages and the map at one version: no commit in between (a reload while
+  // other workers run).
+  std::lock_guard<std::mutex> no_commit(commit_mu_);
   absl::StatusOr<MapStats> stats = store_->GetStats();
   if (!stats.ok()) return stats.status();
   const int64_t applied_count = stats->passages_by_state[static_cast<int>(PassageState::kApplied)];
@@ -103,7 +106,6 @@ absl::Status MapWorker::LoadUpdater() {
   }
   MapUpdateOptions update = options_.update;
   if (options_.yield) update.yield_point = [this] { Yield(); };
-  std::lock_guard<std::mutex> no_commit(commit_mu_);  // the map and the updater at one version
   std::lock_guard<std::mutex> lock(state_mu_);
   const bool kept_in_memory = store_->ReadCommittedMap([&](const MapState& map) {
     updater_ = std::make_unique<MapUpdater>(update, std::move(kept), applied_count, &map);
