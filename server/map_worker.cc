@@ -90,7 +90,10 @@ absl::Status MapWorker::LoadUpdater() {
   // workers the order of their commits may differ; a joint solve takes them all at once).
   std::vector<Passage> kept;
   const int needed = JointSolvePassages(options_.update);
-  if (applied_count <= needed) {
+  // A map that took more passages than that, exclusions included, has no joint solve left
+  // (MapUpdater::joint_next), and the uploads of its first passages may be gone.
+  const int64_t taken_count = applied_count + stats->passages_by_state[static_cast<int>(PassageState::kExcluded)];
+  if (taken_count <= needed) {
     PassageQuery query;
     query.state = PassageState::kApplied;
     query.limit = needed;

@@ -646,7 +646,10 @@ int JointSolvePassages(const MapUpdateOptions& options) {
 
 MapUpdater::MapUpdater(const MapUpdateOptions& options, std::vector<Passage> applied, int64_t applied_count,
                        const MapState* map)
-    : options_(options), kept_(std::move(applied)), applied_count_(std::max<int64_t>(applied_count, kept_.size())) {
+    : options_(options),
+      kept_(std::move(applied)),
+      applied_count_(std::max<int64_t>(applied_count, kept_.size())),
+      taken_count_(applied_count_) {
   const size_t needed = JointSolvePassages(options_);
   if (kept_.size() > needed) kept_.resize(needed);
   if (map == nullptr) return;
@@ -723,6 +726,7 @@ void MapUpdater::Applied(const Passage& passage, const MapDelta& delta) {
   const int64_t kept = static_cast<int64_t>(kept_.size());
   if (kept == applied_count_ && kept < JointSolvePassages(options_)) kept_.push_back(passage);
   ++applied_count_;
+  ++taken_count_;
 }
 
 void MapUpdater::RecordLinearization(const MapDelta& delta) {

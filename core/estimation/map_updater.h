@@ -153,9 +153,12 @@ class MapUpdater {
   const MapUpdateOptions& options() const { return options_; }
   bool warming_up() const { return applied_count_ < options_.warmup_passages; }
   // Whether the next passage will be applied by a joint solve (never without all the map's
-  // passages: a joint solve replaces what the passages it lacks brought).
+  // passages: a joint solve replaces what the passages it lacks brought). Never again once the map
+  // has taken more passages than its joint solves need, exclusions included: by then the oldest
+  // may be folded into its base, which a joint solve would count twice.
   bool joint_next() const {
-    return IsJointSolvePassage(applied_count_ + 1, options_) && static_cast<int64_t>(kept_.size()) == applied_count_;
+    return IsJointSolvePassage(applied_count_ + 1, options_) && static_cast<int64_t>(kept_.size()) == applied_count_ &&
+           taken_count_ <= JointSolvePassages(options_);
   }
 
   // The map change `passage` brings to `map` (see ComputePassageUpdate for the errors), with the
@@ -238,6 +241,7 @@ class MapUpdater {
   MapUpdateOptions options_;
   std::vector<Passage> kept_;  // the map's first passages, as many as its joint solves need
   int64_t applied_count_ = 0;
+  int64_t taken_count_ = 0;  // passages ever applied: applied_count_ and those excluded since
   std::deque<PassageKey> retained_;  // passages whose factors are kept, oldest first
   // For retained passages: their landmarks and where they were when the factors were taken.
   std::map<PassageKey, std::vector<std::pair<LandmarkId, LatLon>>> linearized_at_;

@@ -419,6 +419,36 @@ TEST(MapUpdater, ReSolvesAllPassagesJointlyAtEachDoublingOfTheirCount) {
   EXPECT_EQ(JointSolvePassages(options), 0);
 }
 
+// Exclusions that bring the count of a map's passages back to a joint solve's bring no joint
+// solve once the map has taken more passages than the joint solves need: the oldest may be folded
+// into the base by then (retain_passages), and a joint solve of them would count them twice. In
+// a young map they still do.
+TEST(MapUpdater, ExclusionsBringNoJointSolveBackOnceTheMapOutgrewThem) {
+  MapUpdateOptions options;
+  options.warmup_passages = 2;
+  options.relinearize_until_passages = 4;  // joint solves at passages 1, 2 and 4
+  ASSERT_EQ(JointSolvePassages(options), 3);
+  const auto passage = [](int i) {
+    Passage p;
+    p.vehicle_id = "v";
+    p.passage_id = std::to_string(i);
+    return p;
+  };
+  MapUpdater young(options);
+  young.Applied(passage(1), MapDelta());
+  young.Applied(passage(2), MapDelta());
+  EXPECT_FALSE(young.joint_next()) << "passage 3 is sequential";
+  young.Excluded("v", "2");
+  EXPECT_TRUE(young.joint_next()) << "passage 2 again, in a young map";
+
+  MapUpdater grown(options);
+  for (int i = 1; i <= 6; ++i) grown.Applied(passage(i), MapDelta());
+  EXPECT_FALSE(grown.joint_next());
+  for (int i = 4; i <= 6; ++i) grown.Excluded("v", std::to_string(i));
+  EXPECT_EQ(grown.applied_count(), 3);
+  EXPECT_FALSE(grown.joint_next()) << "passage 4 again, but the map took 6";
+}
+
 TEST(MapUpdater, ReSolvedMapDoesNotDependOnWhichPassagesCameFirst) {
   // After a two-passage warm-up the third passage is applied on its own; the fourth re-solves all
   // four. Which two passages formed the warm-up then no longer matters.
