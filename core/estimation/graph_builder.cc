@@ -132,6 +132,9 @@ std::vector<Pose2> AlignDeadReckoning(const PassageGraph& g, const Calibration& 
                                                s * calib.gnss_lever_arm_m.x() + c * calib.gnss_lever_arm_m.y());
   }
   std::vector<Pose2> poses(n);
+  // A window wider than this holds the whole passage (finite for any valid passage, whose times
+  // lie within a day: ValidatePassage; the loop below must end whatever the times).
+  const double whole_s = 2.0 * (g.node_times_s.back() - g.node_times_s.front());
   for (int k = 0; k < n; ++k) {
     // Widen the window until the dead-reckoned track spans enough to fix a rotation.
     for (double half = 0.5 * window_s;; half *= 2.0) {
@@ -154,7 +157,7 @@ std::vector<Pose2> AlignDeadReckoning(const PassageGraph& g, const Calibration& 
         cross += a.x() * b.y() - a.y() * b.x();
         spread += a.squaredNorm();
       }
-      const bool whole_passage = half > 2.0 * (g.node_times_s.back() - g.node_times_s.front());
+      const bool whole_passage = half > whole_s || !std::isfinite(half);
       if (spread < 50.0 * 50.0 * count && !whole_passage) continue;  // RMS spread under 50 m
       const double rotation = std::atan2(cross, dot);
       const double c = std::cos(rotation), s = std::sin(rotation);

@@ -29,11 +29,22 @@ absl::Status CheckPositive(const std::string& field, double v) {
   return absl::OkStatus();
 }
 
-// Times are seconds since the passage start: finite, non-negative, strictly increasing.
+// One drive, uploaded as a passage, lasts at most a day.
+constexpr double kMaxPassageDurationS = 86400.0;
+// Its start, when given: from 2000-01-01 to 2100-01-01 (a landmark's last_seen_unix_ms is the
+// latest of its passages', and a time far ahead would stay there).
+constexpr int64_t kMinStartUnixMs = 946684800000;
+constexpr int64_t kMaxStartUnixMs = 4102444800000;
+
+// Times are seconds since the passage start: finite, non-negative, at most a day, strictly
+// increasing.
 absl::Status CheckTime(const char* list, size_t i, double t, double previous, bool strict) {
   const std::string f = Field(list, i, "t_s");
   if (!std::isfinite(t)) return Invalid(f, "must be a finite number");
   if (t < 0.0) return Invalid(f, absl::StrCat("must be >= 0, got ", t));
+  if (t > kMaxPassageDurationS) {
+    return Invalid(f, absl::StrCat("must be at most ", kMaxPassageDurationS, " s (a day) after the passage start, got ", t));
+  }
   if (i > 0 && (strict ? t <= previous : t < previous)) {
     return Invalid(f, absl::StrCat("time goes backwards: ", t, " after ", previous));
   }
@@ -141,6 +152,12 @@ absl::Status ValidatePassage(const Passage& p) {
   if (p.detections.empty()) return Invalid("detections", "passage has no detections");
   if (auto s = ValidateCalibration(p.calibration); !s.ok()) return s;
   if (auto s = ValidateNoise(p.noise); !s.ok()) return s;
+  if (p.start_time_unix_ms != 0 &&
+      (p.start_time_unix_ms < kMinStartUnixMs || p.start_time_unix_ms > kMaxStartUnixMs)) {
+    return Invalid("start_time_unix_ms", absl::StrCat("must be 0 (not known) or between ", kMinStartUnixMs, " and ",
+                                                      kMaxStartUnixMs, " (years 2000 to 2100), got ",
+                                                      p.start_time_unix_ms));
+  }
 
   for (size_t i = 0; i < p.odometry.size(); ++i) {
     const OdometrySample& o = p.odometry[i];
