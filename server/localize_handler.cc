@@ -29,10 +29,16 @@ LocalizationMap LocalizationMapFromPage(const LandmarkPage& page) {
 grpc::Status MapService::LocalizePassage(grpc::ServerContext* ctx, const pb::LocalizePassageRequest* request,
                                          pb::LocalizePassageResponse* response) {
   RequestLog log("LocalizePassage", ctx);
-  if (auto who = CheckAccess(context_->auth, *ctx, Permission::kReadMap, &log); !who.ok()) return log.Done(who.status());
+  absl::StatusOr<Principal> who = CheckAccess(context_->auth, *ctx, Permission::kReadMap, &log);
+  if (!who.ok()) return log.Done(who.status());
   absl::StatusOr<Passage> passage = PassageFromProto(request->passage());
   if (!passage.ok()) return log.Done(passage.status());
   log.Add(absl::StrCat("vehicle=", passage->vehicle_id, " passage=", passage->passage_id));
+  // The vehicle's camera calibration is used and returned: a vehicle localises only its own
+  // passages (as GetVehicle reads only its own record).
+  if (who->role == Role::kVehicle) {
+    if (absl::Status s = who->MayActFor(passage->vehicle_id); !s.ok()) return log.Done(s);
+  }
   // The map landmarks the passage detects, with their joint covariance (the store takes each once).
   std::vector<LandmarkId> detected;
   detected.reserve(passage->detections.size());

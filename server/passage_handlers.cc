@@ -246,10 +246,17 @@ grpc::Status MapService::GetPassage(grpc::ServerContext* ctx, const pb::GetPassa
   RequestLog log("GetPassage", ctx);
   absl::StatusOr<Principal> who = CheckAccess(context_->auth, *ctx, Permission::kReadPassages, &log);
   if (!who.ok()) return log.Done(who.status());
+  // A vehicle reads its own passages. By ids it names its vehicle, checked first; by queue id
+  // another vehicle's passage answers as a missing one does, so that walking the ids tells
+  // neither which vehicles there are nor how many drives each uploaded.
+  const bool own_only = !who->MayReadAllPassages();
+  if (own_only && request->id() == 0) {
+    if (absl::Status s = who->MayActFor(request->vehicle_id()); !s.ok()) return log.Done(s);
+  }
   absl::StatusOr<StoredPassage> record = FindRecord(request->id(), request->vehicle_id(), request->passage_id(), &log);
   if (!record.ok()) return log.Done(record.status());
-  if (!who->MayReadAllPassages()) {
-    if (absl::Status s = who->MayActFor(record->vehicle_id); !s.ok()) return log.Done(s);
+  if (own_only && !who->MayActFor(record->vehicle_id).ok()) {
+    return log.Done(absl::NotFoundError(absl::StrCat("passage id ", request->id(), " not found")));
   }
   StoredPassageToProto(*record, response);
   return log.Done(absl::OkStatus());

@@ -17,6 +17,7 @@
 #include "absl/strings/match.h"
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
+#include "absl/strings/str_replace.h"
 #include "server/auth.h"
 #include "server/quotas.h"
 #include "server/testing/temp_dir.h"
@@ -185,7 +186,15 @@ TEST_F(Hostile, AVehicleReadsOnlyItsOwnCameraCalibrationAndOperatorsReadAll) {
   auto list = Client(kV1Token)->ListVehicles();
   EXPECT_EQ(list.status().code(), absl::StatusCode::kPermissionDenied);
   EXPECT_TRUE(absl::StrContains(list.status().message(), "GetVehicle")) << list.status();
+  // LocalizePassage uses and returns the vehicle's calibration: a vehicle localises only its own.
+  auto localized_other = Client(kV1Token)->LocalizePassage(Wire("v2", "p2", 1));
+  EXPECT_EQ(localized_other.status().code(), absl::StatusCode::kPermissionDenied) << localized_other.status();
+  EXPECT_TRUE(absl::StrContains(localized_other.status().message(), "vehicle_id")) << localized_other.status();
+  EXPECT_NE(Client(kV1Token)->LocalizePassage(Wire("v1", "p2", 0)).status().code(),
+            absl::StatusCode::kPermissionDenied);
   for (const char* token : {kOperatorToken, kAdminToken}) {
+    EXPECT_NE(Client(token)->LocalizePassage(Wire("v2", "p2", 1)).status().code(), absl::StatusCode::kPermissionDenied)
+        << token;
     EXPECT_TRUE(Client(token)->GetVehicle("v2").ok()) << token;
     auto all = Client(token)->ListVehicles();
     ASSERT_TRUE(all.ok()) << all.status();
@@ -235,8 +244,17 @@ TEST_F(Hostile, RolesLimitWhoReadsPassagesAndWhoAdministers) {
   const int64_t id = up->status().id();
   EXPECT_TRUE(v1->GetPassage(id).ok());
   EXPECT_TRUE(v1->GetPassage("v1", "p1").ok());
-  EXPECT_EQ(v2->GetPassage(id).status().code(), absl::StatusCode::kPermissionDenied);
+  // Another vehicle's passage by queue id answers as a missing one: neither its vehicle nor its
+  // existence is told.
+  const absl::Status others = v2->GetPassage(id).status();
+  const absl::Status missing = v2->GetPassage(id + 1000).status();
+  EXPECT_EQ(others.code(), absl::StatusCode::kNotFound) << others;
+  EXPECT_EQ(missing.code(), absl::StatusCode::kNotFound) << missing;
+  EXPECT_EQ(absl::StrReplaceAll(others.message(), {{std::to_string(id), "N"}}),
+            absl::StrReplaceAll(missing.message(), {{std::to_string(id + 1000), "N"}}));
+  EXPECT_FALSE(absl::StrContains(others.message(), "v1")) << others;
   EXPECT_EQ(v2->GetPassage("v1", "p1").status().code(), absl::StatusCode::kPermissionDenied);
+  EXPECT_EQ(v2->GetPassage("v1", "unknown").status().code(), absl::StatusCode::kPermissionDenied) << "the same";
   EXPECT_EQ(v2->ListPassages(std::nullopt).status().code(), absl::StatusCode::kPermissionDenied);
   auto listed = ops->ListPassages(std::nullopt);
   ASSERT_TRUE(listed.ok()) << listed.status();
