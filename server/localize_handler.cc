@@ -1,4 +1,5 @@
 // MapService::LocalizePassage: a passage localised against the map, read-only.
+#include <algorithm>
 #include <cmath>
 #include <optional>
 #include <vector>
@@ -26,6 +27,10 @@ LocalizationMap LocalizationMapFromPage(const LandmarkPage& page) {
 
 }  // namespace
 
+// Distinct landmarks one LocalizePassage may name (as many as a page of a region read with
+// covariances).
+constexpr size_t kMaxLocalizedLandmarks = 2000;
+
 grpc::Status MapService::LocalizePassage(grpc::ServerContext* ctx, const pb::LocalizePassageRequest* request,
                                          pb::LocalizePassageResponse* response) {
   RequestLog log("LocalizePassage", ctx);
@@ -43,6 +48,13 @@ grpc::Status MapService::LocalizePassage(grpc::ServerContext* ctx, const pb::Loc
   std::vector<LandmarkId> detected;
   detected.reserve(passage->detections.size());
   for (const Detection& d : passage->detections) detected.push_back(d.landmark_id);
+  std::sort(detected.begin(), detected.end());
+  detected.erase(std::unique(detected.begin(), detected.end()), detected.end());
+  if (detected.size() > kMaxLocalizedLandmarks) {
+    return log.Done(absl::InvalidArgumentError(
+        absl::StrCat("passage.detections: ", detected.size(), " distinct landmarks, at most ", kMaxLocalizedLandmarks,
+                     " (their joint covariance is read whole): localise the drive in parts")));
+  }
   absl::StatusOr<LandmarkPage> page = context_->store->GetLandmarks(detected, /*include_cross=*/true);
   if (!page.ok()) return log.Done(page.status());
   // The vehicle's camera yaw prior as the map update takes it (VehicleCameraYawPrior, over the

@@ -13,6 +13,9 @@ namespace {
 
 constexpr int kDefaultRegionPage = 1000;
 constexpr int kMaxRegionPage = 10000;
+// With covariances a page's joint covariance is (2n)^2 doubles, read whole: 128 MB at 2,000
+// landmarks, and 64 MB packed on the wire (MapClientOptions::max_message_mb).
+constexpr int kMaxCovariancePage = 2000;
 constexpr std::chrono::milliseconds kWatchPoll{500};
 
 void CountCovarianceRead(ServerMetrics* metrics, const LandmarkPage& page) {
@@ -120,6 +123,10 @@ grpc::Status MapService::ServeRegion(grpc::ServerContextBase* ctx, const pb::Que
   absl::StatusOr<int64_t> after = ParsePageToken(request->page_token(), query);
   if (!after.ok()) return log.Done(after.status());
   const int limit = request->page_size() == 0 ? kDefaultRegionPage : request->page_size();
+  if (request->include_cross_covariance() && limit > kMaxCovariancePage) {
+    return log.Done(absl::InvalidArgumentError(absl::StrCat("page_size: at most ", kMaxCovariancePage,
+                                                            " with include_cross_covariance, got ", limit)));
+  }
   absl::StatusOr<LandmarkPage> page =
       context_->store->QueryRegion(*box, *after, limit, request->include_cross_covariance());
   if (!page.ok()) return log.Done(page.status());

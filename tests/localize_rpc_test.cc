@@ -88,6 +88,31 @@ TEST_F(LocalizeRpc, RefusesAnInvalidPassage) {
   EXPECT_NE(response.status().message().find("gnss[3].lat_deg"), std::string::npos) << response.status();
 }
 
+// A passage naming more distinct landmarks than one joint covariance read may hold is refused by
+// name, before the map is read.
+TEST_F(LocalizeRpc, RefusesAPassageNamingMoreLandmarksThanOneReadHolds) {
+  Passage passage = scenario_.MakePassage(10);
+  const Detection first = passage.detections.front();
+  passage.detections.clear();
+  for (LandmarkId id = 1; id <= 2001; ++id) {
+    Detection d = first;
+    d.landmark_id = id;
+    passage.detections.push_back(d);
+  }
+  pb::Passage wire;
+  PassageToProto(passage, &wire);
+  absl::StatusOr<pb::LocalizePassageResponse> response = client_->client()->LocalizePassage(wire);
+  ASSERT_FALSE(response.ok());
+  EXPECT_EQ(response.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_NE(response.status().message().find("passage.detections: 2001 distinct landmarks"), std::string::npos)
+      << response.status();
+  passage.detections.resize(2000);  // repeated ids count once
+  passage.detections.push_back(passage.detections.back());
+  PassageToProto(passage, &wire);
+  response = client_->client()->LocalizePassage(wire);
+  EXPECT_NE(response.status().code(), absl::StatusCode::kInvalidArgument) << response.status();
+}
+
 // A vehicle never seen is localised with the fleet's mean camera yaw (FleetCameraYawPrior over the
 // records ListVehicles serves, as the map update would start it), once the map has enough vehicles.
 TEST(LocalizeRpcFleet, AVehicleNeverSeenTakesTheFleetsMeanCameraYaw) {

@@ -280,6 +280,23 @@ TEST_F(ServiceRpc, QueryRegionPagesCoverTheMapWithCovariances) {
   EXPECT_EQ(ids.size(), 6u);
   // The download is the region's joint Gaussian: one factor on all its landmarks.
   EXPECT_EQ(full->factor_count(), 1u);
+  // A page's joint covariance is read whole: pages with covariances hold at most 2,000 landmarks,
+  // and a larger one is refused by name whatever the map holds (without covariances, 10,000).
+  for (const auto& [size, cross, ok] : std::vector<std::tuple<int, bool, bool>>{
+           {2000, true, true}, {2001, true, false}, {10000, true, false}, {10000, false, true}}) {
+    grpc::ClientContext ctx;
+    pb::QueryRegionRequest request;
+    *request.mutable_box() = MockVehicle::World();
+    request.set_page_size(size);
+    request.set_include_cross_covariance(cross);
+    pb::QueryRegionResponse response;
+    const grpc::Status status = client_->stub()->QueryRegion(&ctx, request, &response);
+    EXPECT_EQ(status.ok(), ok) << size << " " << cross << ": " << status.error_message();
+    if (!ok) {
+      EXPECT_EQ(status.error_code(), grpc::StatusCode::INVALID_ARGUMENT);
+      EXPECT_EQ(status.error_message().rfind("page_size:", 0), 0u) << status.error_message();
+    }
+  }
 }
 
 // The packed layout carries the same matrix as the blocks, on both reads with covariances; a

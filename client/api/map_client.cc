@@ -318,7 +318,7 @@ absl::StatusOr<RegionMap> MapClient::QueryRegion(const pb::BoundingBox& box, boo
     SetDeadline(&ctx);
     pb::QueryRegionRequest request;
     *request.mutable_box() = box;
-    request.set_page_size(10000);
+    request.set_page_size(include_cross ? 2000 : 10000);  // the server's largest pages
     request.set_page_token(token);
     request.set_include_cross_covariance(include_cross);
     if (include_cross) request.set_covariance_format(pb::COVARIANCE_FORMAT_PACKED);
