@@ -194,11 +194,11 @@ grpc::Status MapService::UploadPassageChunkedRaw(grpc::ServerContext* ctx,
   pb::UploadPassageChunk chunk;
   int chunks = 0;
   while (reader->Read(&raw)) {
-    (*stream)->Touch();
     if (absl::Status s = ParseWireMessage(FlattenByteBuffer(raw), absl::StrCat("chunk[", chunks, "]"), &chunk);
         !s.ok()) {
       return log.Done(s);
     }
+    (*stream)->Touch(chunk.data().size());
     ++chunks;
     const size_t total = bytes.size() + chunk.data().size();
     if (absl::Status s = CheckPassageSize(total, context_->limits); !s.ok()) return log.Done(s);
@@ -210,7 +210,9 @@ grpc::Status MapService::UploadPassageChunkedRaw(grpc::ServerContext* ctx,
   }
   log.Add(absl::StrCat("chunks=", chunks, " bytes=", bytes.size()));
   if ((*stream)->timed_out()) {
-    return log.Done(absl::DeadlineExceededError("upload: no chunk within --upload-idle-timeout-s; call cancelled"));
+    return log.Done(absl::DeadlineExceededError(absl::StrCat(
+        "upload: no bytes within --upload-idle-timeout-s, or fewer than ", StreamLimiter::kMinUploadBytesPerS,
+        " bytes/s on average once open that long; call cancelled")));
   }
   if (bytes.empty()) return log.Done(absl::InvalidArgumentError("passage: no chunk carried any bytes"));
   pb::Passage wire;

@@ -156,7 +156,7 @@ StreamLimiter::~StreamLimiter() {
 }
 
 StreamLimiter::Lease::Lease(StreamLimiter* owner, grpc::ServerContext* ctx, bool upload)
-    : owner_(owner), ctx_(ctx), upload_(upload), last_ms_(NowMs()) {}
+    : owner_(owner), ctx_(ctx), upload_(upload), start_ms_(NowMs()), last_ms_(start_ms_) {}
 
 StreamLimiter::Lease::~Lease() {
   std::lock_guard<std::mutex> lock(owner_->mu_);
@@ -167,7 +167,11 @@ StreamLimiter::Lease::~Lease() {
   }
 }
 
-void StreamLimiter::Lease::Touch() { last_ms_.store(NowMs(), std::memory_order_relaxed); }
+void StreamLimiter::Lease::Touch(size_t bytes) {
+  if (bytes == 0) return;
+  bytes_.fetch_add(static_cast<int64_t>(bytes), std::memory_order_relaxed);
+  last_ms_.store(NowMs(), std::memory_order_relaxed);
+}
 
 absl::StatusOr<std::unique_ptr<StreamLimiter::Lease>> StreamLimiter::OpenUpload(grpc::ServerContext* ctx) {
   std::lock_guard<std::mutex> lock(mu_);
@@ -201,7 +205,11 @@ void StreamLimiter::Watchdog() {
   while (!stop_cv_.wait_for(lock, std::max(period, std::chrono::milliseconds(10)), [this] { return stop_; })) {
     const int64_t now = NowMs();
     for (Lease* lease : uploads_) {
-      if (!lease->timed_out_ && now - lease->last_ms_.load(std::memory_order_relaxed) > idle_timeout_.count()) {
+      const int64_t open_ms = now - lease->start_ms_;
+      const bool idle = now - lease->last_ms_.load(std::memory_order_relaxed) > idle_timeout_.count();
+      const bool trickle = open_ms > idle_timeout_.count() &&
+                           lease->bytes_.load(std::memory_order_relaxed) * 1000 < kMinUploadBytesPerS * open_ms;
+      if (!lease->timed_out_ && (idle || trickle)) {
         lease->timed_out_ = true;
         lease->ctx_->TryCancel();  // its Read() returns false; the lease is released under mu_
       }

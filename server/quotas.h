@@ -115,7 +115,8 @@ class StreamLimiter {
   class Lease {
    public:
     ~Lease();
-    void Touch();  // a chunk arrived
+    // A chunk of `bytes` arrived. An empty one is no progress: it keeps no stream open.
+    void Touch(size_t bytes);
     bool timed_out() const { return timed_out_.load(); }
 
    private:
@@ -124,10 +125,15 @@ class StreamLimiter {
     StreamLimiter* owner_;
     grpc::ServerContext* ctx_;
     bool upload_;
+    const int64_t start_ms_;
     std::atomic<int64_t> last_ms_;
+    std::atomic<int64_t> bytes_{0};
     std::atomic<bool> timed_out_{false};
   };
-  // A lease for one chunked upload (watched for idleness), or RESOURCE_EXHAUSTED.
+  // Once a chunked upload has been open longer than the idle timeout, it must have averaged this
+  // much: bytes dribbled in just inside the idle timeout would otherwise hold a stream for days.
+  static constexpr int64_t kMinUploadBytesPerS = 1024;
+  // A lease for one chunked upload (watched for idleness and a trickle), or RESOURCE_EXHAUSTED.
   absl::StatusOr<std::unique_ptr<Lease>> OpenUpload(grpc::ServerContext* ctx);
   absl::StatusOr<std::unique_ptr<Lease>> OpenWatch(grpc::ServerContext* ctx);
   int open_uploads() const;

@@ -55,8 +55,8 @@ void AddSecuritySettings(CLI::App* mapd, MapServerOptions* options) {
       ->type_name("N")
       ->group(quotas);
   AddMapdSetting(mapd, "upload-idle-timeout-s", &limits.upload_idle_timeout_s,
-                 "a chunked upload that sends no chunk for N s is cancelled; at least one chunk's time on\n"
-                 "the slowest link (0 = off)")
+                 "a chunked upload that sends no bytes for N s, or averages under 1 KiB/s once open N s, is\n"
+                 "cancelled; at least one chunk's time on the slowest link (0 = off)")
       ->type_name("N")
       ->group(quotas);
   AddMapdSetting(mapd, "max-inflight-mb", &limits.max_inflight_mb,

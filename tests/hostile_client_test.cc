@@ -614,6 +614,35 @@ TEST_F(Hostile, CallsBeyondTheThreadPoolGetResourceExhaustedNotAHang) {
   EXPECT_LT(run.seconds, 30.0);
 }
 
+// A chunked upload kept open with empty chunks, or with a byte now and then just inside the idle
+// timeout, is cancelled as an idle one is: neither holds one of the server's upload streams.
+TEST_F(Hostile, EmptyOrTricklingChunksDoNotKeepAnUploadOpen) {
+  MapServerOptions options = Options();
+  options.limits.upload_idle_timeout_s = 1;
+  Start(options);
+  auto attacker = Client(kFloodToken);
+  for (const size_t bytes : {size_t{0}, size_t{1}}) {
+    grpc::ClientContext ctx;
+    ctx.AddMetadata("authorization", std::string("Bearer ") + kFloodToken);
+    pb::UploadPassageResponse response;
+    auto writer = attacker->stub()->UploadPassageChunked(&ctx, &response);
+    pb::UploadPassageChunk chunk;
+    chunk.set_data(std::string(bytes, 'x'));
+    const auto start = std::chrono::steady_clock::now();
+    int written = 0;
+    // Every 0.4 s, under the 1 s idle timeout, for up to 10 s.
+    while (written < 25 && writer->Write(chunk)) {
+      ++written;
+      std::this_thread::sleep_for(std::chrono::milliseconds(400));
+    }
+    const grpc::Status s = writer->Finish();
+    const double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+    EXPECT_FALSE(s.ok()) << bytes << " bytes a chunk";
+    EXPECT_LT(written, 25) << bytes << " bytes a chunk: the stream stayed open";
+    EXPECT_LT(seconds, 8.0) << bytes << " bytes a chunk";
+  }
+}
+
 TEST_F(Hostile, AnOversizedStreamIsCutOffEarly) {
   MapServerOptions options = Options();
   options.max_passage_mb = 1;
