@@ -50,7 +50,7 @@ def main():
                                   max_lon_deg=lon + dlon)
         start = time.perf_counter()
         page = stub.QueryRegion(
-            map_service_pb2.QueryRegionRequest(box=box, page_size=10000, include_cross_covariance=True,
+            map_service_pb2.QueryRegionRequest(box=box, page_size=2000, include_cross_covariance=True,
                                                covariance_format=FORMATS[layout]), timeout=60)
         ms.append(1000.0 * (time.perf_counter() - start))
         sizes.append(len(page.landmarks))

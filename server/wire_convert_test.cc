@@ -107,6 +107,14 @@ TEST(WireConvert, GnssSigmaStandsInForAMissingCovariance) {
   ASSERT_TRUE(p.ok()) << p.status();
   EXPECT_EQ(p->gnss[1].cov_en_m2, Eigen::Matrix2d::Identity() * 9.0);
 
+  // Sigmas whose squares are not covariances (infinite, zero) are refused by their own name.
+  for (const double sigma : {1e200, 1e-170, 0.0, -1.0}) {
+    wire.mutable_gnss(1)->set_sigma_m(sigma);
+    p = PassageFromProto(wire);
+    EXPECT_EQ(p.status().code(), absl::StatusCode::kInvalidArgument) << sigma;
+    EXPECT_NE(p.status().message().find("gnss[1].sigma_m"), absl::string_view::npos) << p.status();
+  }
+
   wire.mutable_gnss(1)->clear_sigma_m();
   p = PassageFromProto(wire);
   EXPECT_EQ(p.status().code(), absl::StatusCode::kInvalidArgument);

@@ -109,12 +109,14 @@ absl::Status CheckGnssStep(const GnssFix& a, const GnssFix& b, size_t i) {
 absl::Status ValidateCalibration(const Calibration& c) {
   if (auto s = CheckRange("calibration.wheelbase_m", c.wheelbase_m, 0.5, 20.0, "m"); !s.ok()) return s;
   for (int k = 0; k < 2; ++k) {
-    if (auto s = CheckRange("calibration.gnss_lever_arm_m", c.gnss_lever_arm_m[k], -kMaxMountOffsetM, kMaxMountOffsetM, "m");
+    const char* axis = k == 0 ? ".x_m" : ".y_m";
+    if (auto s = CheckRange(absl::StrCat("calibration.gnss_lever_arm_m", axis), c.gnss_lever_arm_m[k], -kMaxMountOffsetM,
+                            kMaxMountOffsetM, "m");
         !s.ok()) {
       return s;
     }
-    if (auto s = CheckRange("calibration.camera_position_m", c.camera_position_m[k], -kMaxMountOffsetM,
-                            kMaxMountOffsetM, "m");
+    if (auto s = CheckRange(absl::StrCat("calibration.camera_position_m", axis), c.camera_position_m[k],
+                            -kMaxMountOffsetM, kMaxMountOffsetM, "m");
         !s.ok()) {
       return s;
     }
@@ -134,7 +136,8 @@ absl::Status ValidateCalibration(const Calibration& c) {
 absl::Status ValidateNoise(const NoiseModel& n) {
   if (auto s = CheckPositive("noise.speed_sigma_mps", n.speed_sigma_mps); !s.ok()) return s;
   if (auto s = CheckPositive("noise.steering_sigma_rad", n.steering_sigma_rad); !s.ok()) return s;
-  if (auto s = CheckPositive("noise.pixel_sigma_px", n.pixel_sigma_px); !s.ok()) return s;
+  // From a hundredth of a pixel (no detector of a pole or sign is surer) to a thousand.
+  if (auto s = CheckRange("noise.pixel_sigma_px", n.pixel_sigma_px, 0.01, 1000.0, "px"); !s.ok()) return s;
   // Up to a day: a longer correlation is a constant bias over any drive.
   if (auto s = CheckRange("noise.gnss_correlation_time_s", n.gnss_correlation_time_s, 0.0, 86400.0, "s"); !s.ok()) {
     return s;

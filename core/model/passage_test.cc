@@ -99,6 +99,8 @@ std::vector<BadInput> BadInputs() {
       {"noise.steering_sigma_rad", [](Passage* p) { p->noise.steering_sigma_rad = -0.044; }},
       {"noise.pixel_sigma_px", [](Passage* p) { p->noise.pixel_sigma_px = -5.0; }},
       {"noise.pixel_sigma_px", [](Passage* p) { p->noise.pixel_sigma_px = 0.0; }},
+      {"noise.pixel_sigma_px", [](Passage* p) { p->noise.pixel_sigma_px = 1e-300; }},  // its square is 0
+      {"noise.pixel_sigma_px", [](Passage* p) { p->noise.pixel_sigma_px = 1e-4; }},    // finite, absurdly sure
       {"noise.gnss_correlation_time_s", [](Passage* p) { p->noise.gnss_correlation_time_s = -1.0; }},
       {"noise.gnss_correlation_time_s", [](Passage* p) { p->noise.gnss_correlation_time_s = 1e6; }},
       {"noise.gnss_correlation_time_s", [](Passage* p) { p->noise.gnss_correlation_time_s = std::nan(""); }},
@@ -108,8 +110,8 @@ std::vector<BadInput> BadInputs() {
       {"gnss[1]", [](Passage* p) { p->gnss[1].lat_deg = p->gnss[0].lat_deg + 1.0; }},  // 111 km jump
       {"gnss[1]", [](Passage* p) { p->gnss[1].lon_deg += 180.0 - (p->gnss[1].lon_deg > 0 ? 360.0 : 0.0); }},
       {"gnss[1]", [](Passage* p) { p->gnss[1].lat_deg = 0.0; p->gnss[1].lon_deg = 0.0; }},
-      {"calibration.gnss_lever_arm_m", [](Passage* p) { p->calibration.gnss_lever_arm_m.x() = 1e11; }},
-      {"calibration.camera_position_m", [](Passage* p) { p->calibration.camera_position_m.y() = -50.0; }},
+      {"calibration.gnss_lever_arm_m.x_m", [](Passage* p) { p->calibration.gnss_lever_arm_m.x() = 1e11; }},
+      {"calibration.camera_position_m.y_m", [](Passage* p) { p->calibration.camera_position_m.y() = -50.0; }},
       {"calibration.wheelbase_m", [](Passage* p) { p->calibration.wheelbase_m = 1e15; }},
       {"calibration.fx_px", [](Passage* p) { p->calibration.fx_px = 1e9; }},
       {"calibration.camera_yaw_rad", [](Passage* p) { p->calibration.camera_yaw_rad = 7.0; }},

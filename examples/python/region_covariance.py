@@ -51,10 +51,10 @@ def main():
                               max_lon_deg=lon + dlon)
     # One page: the covariance is joint within a page only, so ask for all of the box at once.
     page = stub.QueryRegion(map_service_pb2.QueryRegionRequest(
-        box=box, page_size=10000, include_cross_covariance=True,
+        box=box, page_size=2000, include_cross_covariance=True,
         covariance_format=map_pb2.COVARIANCE_FORMAT_PACKED), timeout=60)
     if page.next_page_token:
-        sys.exit("more than 10000 landmarks in the box: take a smaller one")
+        sys.exit("more than 2000 landmarks in the box: take a smaller one")
     n = len(page.landmarks)
     print(f"map_version={page.map_version} landmarks={n}")
     if n == 0:
