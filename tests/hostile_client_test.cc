@@ -168,6 +168,16 @@ TEST(Auth, IsOnByDefaultOffLoopbackAndRefusesToStartWithoutIdentities) {
   ASSERT_FALSE(server.ok());
   EXPECT_EQ(server.status().code(), absl::StatusCode::kFailedPrecondition);
   EXPECT_TRUE(absl::StrContains(server.status().message(), "--auth-file")) << server.status();
+  // The map viewer beyond loopback needs identities too, whatever the gRPC port listens on.
+  options.listen = "127.0.0.1:0";
+  options.http_listen = "0.0.0.0:0";
+  server = MapServer::Start(options);
+  ASSERT_FALSE(server.ok());
+  EXPECT_EQ(server.status().code(), absl::StatusCode::kFailedPrecondition);
+  EXPECT_TRUE(absl::StrContains(server.status().message(), "0.0.0.0:0")) << server.status();
+  options.security.auth = "off";
+  server = MapServer::Start(options);
+  EXPECT_TRUE(server.ok()) << server.status() << ": --auth off serves without identities";
 }
 
 TEST_F(Hostile, AVehicleReadsOnlyItsOwnCameraCalibrationAndOperatorsReadAll) {
