@@ -64,6 +64,9 @@ class SqliteMapStore : public MapStoreInterface {
   static absl::StatusOr<std::optional<StoredPassage>> ReadPassage(SqliteConnection* db, int64_t id);
   // ClaimNextPassage (started) and ClaimNextPassageAhead (not).
   absl::StatusOr<std::optional<ClaimedPassage>> Claim(bool started);
+  // Sets `set` (an SQL SET list) on processing passage `id`, in a transaction of its own;
+  // FailedPrecondition when it is not processing.
+  absl::Status UpdateProcessingPassage(int64_t id, const char* set);
   static absl::StatusOr<std::optional<StoredPassage>> ReadPassageByKey(SqliteConnection* db,
                                                                       const std::string& vehicle_id,
                                                                       const std::string& passage_id);

@@ -346,12 +346,12 @@ absl::Status SqliteMapStore::FinishPassageWithoutChange(int64_t id, PassageState
   return txn->Commit();
 }
 
-absl::Status SqliteMapStore::MarkPassageStarted(int64_t id) {
+absl::Status SqliteMapStore::UpdateProcessingPassage(int64_t id, const char* set) {
   SqliteFile::Writer writer = queue_->LockWriter();
   SqliteConnection* db = writer.db;
   auto txn = SqliteWriteTransaction::Begin(db);
   if (!txn.ok()) return txn.status();
-  auto update = db->Prepare("UPDATE passages SET started = 1 WHERE id = ?1 AND state = 2");
+  auto update = db->Prepare(absl::StrCat("UPDATE passages SET ", set, " WHERE id = ?1 AND state = 2"));
   if (!update.ok()) return update.status();
   update->Bind(1, id);
   if (auto s = update->Run(); !s.ok()) return s;
@@ -359,17 +359,10 @@ absl::Status SqliteMapStore::MarkPassageStarted(int64_t id) {
   return txn->Commit();
 }
 
+absl::Status SqliteMapStore::MarkPassageStarted(int64_t id) { return UpdateProcessingPassage(id, "started = 1"); }
+
 absl::Status SqliteMapStore::ReleaseClaimedPassage(int64_t id) {
-  SqliteFile::Writer writer = queue_->LockWriter();
-  SqliteConnection* db = writer.db;
-  auto txn = SqliteWriteTransaction::Begin(db);
-  if (!txn.ok()) return txn.status();
-  auto update = db->Prepare("UPDATE passages SET state = 1, attempts = MAX(attempts - 1, 0) WHERE id = ?1 AND state = 2");
-  if (!update.ok()) return update.status();
-  update->Bind(1, id);
-  if (auto s = update->Run(); !s.ok()) return s;
-  if (db->Changes() != 1) return absl::FailedPreconditionError(absl::StrCat("passage id ", id, " is not processing"));
-  return txn->Commit();
+  return UpdateProcessingPassage(id, "state = 1, attempts = MAX(attempts - 1, 0)");
 }
 
 absl::StatusOr<int> SqliteMapStore::RecordFailedAttempt(int64_t id, const std::string& reason) {
