@@ -1,6 +1,7 @@
 #include "server/storage/cached_map_store.h"
 
 #include <algorithm>
+#include <cstdint>
 #include <set>
 
 #include "server/storage/map_reads.h"
@@ -141,11 +142,14 @@ std::shared_ptr<const CachedMapStore::View> CachedMapStore::ApplyToView(const Ma
 }
 
 template <typename Keep>
-std::vector<Landmark> CachedMapStore::Select(const View& view, const BoundingBox& box, const Keep& keep) {
-  std::vector<Landmark> out;
+std::vector<Landmark> CachedMapStore::Select(const View& view, const BoundingBox& box, const Keep& keep,
+                                             size_t limit) {
+  // The records stay in their tiles until the page is known: a page of a large box copies and
+  // orders only what it returns.
+  std::vector<const Landmark*> found;
   auto scan = [&](const Bucket& bucket) {
     for (const Landmark& l : bucket) {
-      if (Inside(box, l.position) && keep(l)) out.push_back(l);
+      if (Inside(box, l.position) && keep(l)) found.push_back(&l);
     }
   };
   // Tiles grow southwards: the north-west corner has the smallest x and y.
@@ -162,7 +166,12 @@ std::vector<Landmark> CachedMapStore::Select(const View& view, const BoundingBox
       }
     }
   }
-  std::sort(out.begin(), out.end(), ById);
+  const size_t n = std::min(limit, found.size());
+  const auto by_id = [](const Landmark* a, const Landmark* b) { return a->id < b->id; };
+  std::partial_sort(found.begin(), found.begin() + static_cast<std::ptrdiff_t>(n), found.end(), by_id);
+  std::vector<Landmark> out;
+  out.reserve(n);
+  for (size_t k = 0; k < n; ++k) out.push_back(*found[k]);
   return out;
 }
 
@@ -202,7 +211,9 @@ absl::StatusOr<LandmarkPage> CachedMapStore::QueryRegion(const BoundingBox& box,
   const std::shared_ptr<const View> view = CurrentView();
   LandmarkPage page;
   page.map_version = view->version;
-  page.landmarks = Select(*view, box, [&](const Landmark& l) { return l.id > after_id; });
+  // One beyond the page tells whether there are more.
+  const size_t wanted = limit > 0 ? static_cast<size_t>(limit) + 1 : SIZE_MAX;
+  page.landmarks = Select(*view, box, [&](const Landmark& l) { return l.id > after_id; }, wanted);
   if (limit > 0 && static_cast<int>(page.landmarks.size()) > limit) {
     page.landmarks.resize(limit);
     page.more = true;
@@ -248,7 +259,7 @@ absl::StatusOr<LandmarkPage> CachedMapStore::ChangedLandmarks(const BoundingBox&
   const std::shared_ptr<const View> view = CurrentView();
   LandmarkPage page;
   page.map_version = view->version;
-  page.landmarks = Select(*view, box, [&](const Landmark& l) { return l.version > since_version; });
+  page.landmarks = Select(*view, box, [&](const Landmark& l) { return l.version > since_version; }, SIZE_MAX);
   return page;
 }
 

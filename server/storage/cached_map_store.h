@@ -122,9 +122,9 @@ class CachedMapStore : public MapStoreInterface {
   absl::Status CommitAndPublish(const MapDelta& delta, const std::function<absl::Status()>& commit);
   // Builds the view that results from applying `delta` to the current one (writer only).
   std::shared_ptr<const View> ApplyToView(const MapDelta& delta);
-  // The landmarks of `view` inside `box` that pass `keep`, in increasing id order.
+  // The first `limit` landmarks of `view` inside `box` that pass `keep`, in increasing id order.
   template <typename Keep>
-  static std::vector<Landmark> Select(const View& view, const BoundingBox& box, const Keep& keep);
+  static std::vector<Landmark> Select(const View& view, const BoundingBox& box, const Keep& keep, size_t limit);
 
   const std::unique_ptr<MapStoreInterface> inner_;
   const int covariance_window_hops_;
