@@ -16,6 +16,9 @@ constexpr int kMaxRegionPage = 10000;
 // With covariances a page's joint covariance is (2n)^2 doubles, read whole: 128 MB at 2,000
 // landmarks, and 64 MB packed on the wire (MapClientOptions::max_message_mb).
 constexpr int kMaxCovariancePage = 2000;
+// Landmarks per WatchRegion message: a large change (the whole box, from since_version 0) comes in
+// parts that fit a client's default 4 MiB message limit.
+constexpr size_t kWatchMessageLandmarks = 1000;
 constexpr std::chrono::milliseconds kWatchPoll{500};
 
 void CountCovarianceRead(ServerMetrics* metrics, const LandmarkPage& page) {
@@ -159,11 +162,21 @@ grpc::Status MapService::WatchRegion(grpc::ServerContext* ctx, const pb::WatchRe
     absl::StatusOr<LandmarkPage> page = context_->store->ChangedLandmarks(*box, since);
     if (!page.ok()) return log.Done(page.status());
     if (messages == 0 || !page->landmarks.empty()) {
-      pb::WatchRegionResponse response;
-      response.set_map_version(page->map_version);
-      for (const Landmark& l : page->landmarks) LandmarkToProto(l, response.add_landmarks());
-      if (!writer->Write(response)) break;
-      ++messages;
+      // Only a change's last part carries its version: a client that resumes from the version of
+      // an earlier part is sent the whole change again.
+      const size_t n = page->landmarks.size();
+      bool written = true;
+      size_t at = 0;
+      do {
+        const size_t end = std::min(n, at + kWatchMessageLandmarks);
+        pb::WatchRegionResponse response;
+        response.set_map_version(end == n ? page->map_version : since);
+        for (size_t k = at; k < end; ++k) LandmarkToProto(page->landmarks[k], response.add_landmarks());
+        written = writer->Write(response);
+        ++messages;
+        at = end;
+      } while (written && at < n);
+      if (!written) break;
     }
     since = std::max(since, page->map_version);
     if (context_->notifier->closed()) {

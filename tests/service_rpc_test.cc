@@ -11,6 +11,7 @@
 #include "core/estimation/passage_exclusion.h"
 #include "core/map/map_window.h"
 #include "server/map_service.h"
+#include "server/storage/sqlite_map_store.h"
 #include "server/testing/temp_dir.h"
 #include "server/wire_convert.h"
 #include "tests/support/map_compare.h"
@@ -631,6 +632,54 @@ TEST_F(ServiceRpc, WatchRegionStreamsLandmarksChangedAfterTheVersion) {
   EXPECT_GT(change.map_version(), since);
   ASSERT_GT(change.landmarks_size(), 0);
   for (const pb::Landmark& l : change.landmarks()) EXPECT_GT(l.version(), since);
+  ctx.TryCancel();
+  reader->Finish();
+}
+
+// A change of more landmarks than one message holds comes in parts: only the last carries the new
+// version, so that a client resuming from the version it last saw gets the whole change again.
+TEST_F(ServiceRpc, WatchRegionSendsALargeChangeInPartsTheLastWithItsVersion) {
+  constexpr int kLandmarks = 2500;
+  {
+    auto store = CreateSqliteMapStore(dir_.File("map.db"));
+    ASSERT_TRUE(store.ok()) << store.status();
+    ASSERT_TRUE((*store)->EnqueuePassages({NewPassage{"v", "p", "bytes", 1000}}, 0).ok());
+    auto claimed = (*store)->ClaimNextPassage();
+    ASSERT_TRUE(claimed.ok() && claimed->has_value()) << claimed.status();
+    MapDelta delta;
+    delta.base_version = 0;
+    delta.version = 1;
+    for (LandmarkId id = 1; id <= kLandmarks; ++id) {
+      Landmark l;
+      l.id = id;
+      l.anchor = {48.0 + 1e-4 * static_cast<double>(id / 50), 2.0 + 1e-4 * static_cast<double>(id % 50)};
+      l.position = l.anchor;
+      l.version = 1;
+      delta.landmarks.emplace(id, l);
+    }
+    ASSERT_TRUE((*store)->CommitPassageApplied((*claimed)->record.id, delta, PassageResult()).ok());
+  }
+  MapServerOptions options = TestServerOptions(dir_.File("map.db"), /*start_worker=*/false);
+  options.worker.update.warmup_passages = 0;  // no joint solve reads the passage's (made-up) upload
+  options.worker.update.relinearize_until_passages = 0;
+  server_ = StartTestServer(options);
+  ASSERT_NE(server_, nullptr);
+  client_ = std::make_unique<MockVehicle>(server_->address());
+
+  grpc::ClientContext ctx;
+  ctx.set_deadline(std::chrono::system_clock::now() + std::chrono::seconds(30));
+  pb::WatchRegionRequest request;
+  *request.mutable_box() = MockVehicle::World();
+  auto reader = client_->stub()->WatchRegion(&ctx, request);
+  std::vector<std::pair<int, int64_t>> parts;  // landmarks, version
+  std::set<int64_t> ids;
+  pb::WatchRegionResponse part;
+  while (static_cast<int>(ids.size()) < kLandmarks && reader->Read(&part)) {
+    parts.emplace_back(part.landmarks_size(), part.map_version());
+    for (const pb::Landmark& l : part.landmarks()) ids.insert(l.id());
+  }
+  EXPECT_EQ(parts, (std::vector<std::pair<int, int64_t>>{{1000, 0}, {1000, 0}, {500, 1}}));
+  EXPECT_EQ(static_cast<int>(ids.size()), kLandmarks);
   ctx.TryCancel();
   reader->Finish();
 }
