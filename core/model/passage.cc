@@ -1,5 +1,6 @@
 #include "core/model/passage.h"
 
+#include <algorithm>
 #include <cmath>
 #include <string>
 
@@ -29,22 +30,21 @@ absl::Status CheckPositive(const std::string& field, double v) {
   return absl::OkStatus();
 }
 
-// One drive, uploaded as a passage, lasts at most a day.
+// One drive, uploaded as a passage, spans at most a day from its first time to its last.
 constexpr double kMaxPassageDurationS = 86400.0;
-// Its start, when given: from 2000-01-01 to 2100-01-01 (a landmark's last_seen_unix_ms is the
-// latest of its passages', and a time far ahead would stay there).
-constexpr int64_t kMinStartUnixMs = 946684800000;
+// No time of a passage lies further from its start (some 300 years: any clock's seconds pass, and
+// no difference of two times overflows).
+constexpr double kMaxTimeS = 1e10;
+// Its start: up to 2100-01-01 (a landmark's last_seen_unix_ms is the latest of its passages', and a
+// time far ahead would stay there).
 constexpr int64_t kMaxStartUnixMs = 4102444800000;
 
-// Times are seconds since the passage start: finite, non-negative, at most a day, strictly
-// increasing.
+// Times are seconds since the passage start: finite, non-negative, strictly increasing.
 absl::Status CheckTime(const char* list, size_t i, double t, double previous, bool strict) {
   const std::string f = Field(list, i, "t_s");
   if (!std::isfinite(t)) return Invalid(f, "must be a finite number");
   if (t < 0.0) return Invalid(f, absl::StrCat("must be >= 0, got ", t));
-  if (t > kMaxPassageDurationS) {
-    return Invalid(f, absl::StrCat("must be at most ", kMaxPassageDurationS, " s (a day) after the passage start, got ", t));
-  }
+  if (t > kMaxTimeS) return Invalid(f, absl::StrCat("must be at most ", kMaxTimeS, " s, got ", t));
   if (i > 0 && (strict ? t <= previous : t < previous)) {
     return Invalid(f, absl::StrCat("time goes backwards: ", t, " after ", previous));
   }
@@ -155,11 +155,9 @@ absl::Status ValidatePassage(const Passage& p) {
   if (p.detections.empty()) return Invalid("detections", "passage has no detections");
   if (auto s = ValidateCalibration(p.calibration); !s.ok()) return s;
   if (auto s = ValidateNoise(p.noise); !s.ok()) return s;
-  if (p.start_time_unix_ms != 0 &&
-      (p.start_time_unix_ms < kMinStartUnixMs || p.start_time_unix_ms > kMaxStartUnixMs)) {
-    return Invalid("start_time_unix_ms", absl::StrCat("must be 0 (not known) or between ", kMinStartUnixMs, " and ",
-                                                      kMaxStartUnixMs, " (years 2000 to 2100), got ",
-                                                      p.start_time_unix_ms));
+  if (p.start_time_unix_ms < 0 || p.start_time_unix_ms > kMaxStartUnixMs) {
+    return Invalid("start_time_unix_ms", absl::StrCat("must lie in [0, ", kMaxStartUnixMs,
+                                                      "] (up to the year 2100), got ", p.start_time_unix_ms));
   }
 
   for (size_t i = 0; i < p.odometry.size(); ++i) {
@@ -215,7 +213,19 @@ absl::Status ValidatePassage(const Passage& p) {
                      absl::StrCat("pixel ", d.u_px, " outside the image [0, ", p.calibration.image_width_px, "]"));
     }
   }
-  return absl::OkStatus();
+  // The span, from the first time of any list (each is in order): the first time beyond a day.
+  const double first_s = std::min({p.odometry.front().t_s, p.gnss.front().t_s, p.detections.front().t_s});
+  const auto beyond_a_day = [&](const char* list, const auto& samples) -> absl::Status {
+    const auto it = std::find_if(samples.begin(), samples.end(),
+                                 [&](const auto& x) { return x.t_s - first_s > kMaxPassageDurationS; });
+    if (it == samples.end()) return absl::OkStatus();
+    return Invalid(Field(list, static_cast<size_t>(it - samples.begin()), "t_s"),
+                   absl::StrCat(it->t_s, " s is more than ", kMaxPassageDurationS,
+                                " s (a day) after the passage's first time, ", first_s, " s: one drive per passage"));
+  };
+  if (auto s = beyond_a_day("odometry", p.odometry); !s.ok()) return s;
+  if (auto s = beyond_a_day("gnss", p.gnss); !s.ok()) return s;
+  return beyond_a_day("detections", p.detections);
 }
 
 namespace {

@@ -64,9 +64,13 @@ std::vector<BadInput> BadInputs() {
       {"odometry[5].t_s", [](Passage* p) { p->odometry[5].t_s = p->odometry[4].t_s - 0.01; }},
       {"odometry[5].t_s", [](Passage* p) { p->odometry[5].t_s = p->odometry[4].t_s; }},  // must increase
       {"odometry[0].t_s", [](Passage* p) { p->odometry[0].t_s = -1.0; }},
-      {"gnss[2].t_s", [](Passage* p) { p->gnss[2].t_s = 1e308; }},  // a day at most
+      {"gnss[2].t_s", [](Passage* p) { p->gnss[2].t_s = 1e308; }},
+      {"gnss[2].t_s", [](Passage* p) {  // a passage spans a day at most
+         for (size_t i = 2; i < p->gnss.size(); ++i) p->gnss[i].t_s += 2 * 86400.0;
+       }},
       {"start_time_unix_ms", [](Passage* p) { p->start_time_unix_ms = INT64_MAX; }},
       {"start_time_unix_ms", [](Passage* p) { p->start_time_unix_ms = -1; }},
+      {"odometry[0].t_s", [](Passage* p) { p->odometry[0].t_s = 2e10; }},
       {"gnss[2].t_s", [](Passage* p) { p->gnss[2].t_s = p->gnss[1].t_s - 0.5; }},
       {"detections[2].t_s", [](Passage* p) { p->detections[2].t_s = p->detections[1].t_s - 0.25; }},
       {"gnss[1].lat_deg", [](Passage* p) { p->gnss[1].lat_deg = 91.0; }},
