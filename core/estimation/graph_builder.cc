@@ -133,15 +133,29 @@ std::vector<Pose2> AlignDeadReckoning(const PassageGraph& g, const Calibration& 
   }
   std::vector<Pose2> poses(n);
   // A window wider than this holds the whole passage (finite for any valid passage, whose times
-  // lie within a day: ValidatePassage; the loop below must end whatever the times).
+  // span a day at most: ValidatePassage; the loop below must end whatever the times).
   const double whole_s = 2.0 * (g.node_times_s.back() - g.node_times_s.front());
+  // The fixes' times, in order as the fixes are: a window's fixes are then a range, found by
+  // bisection, so that a long passage costs its windows, not its fixes times its nodes.
+  std::vector<double> fix_s(g.gnss.size());
+  for (size_t j = 0; j < g.gnss.size(); ++j) fix_s[j] = g.node_times_s[g.gnss[j].node];
+  const bool fixes_in_order = std::is_sorted(fix_s.begin(), fix_s.end());
   for (int k = 0; k < n; ++k) {
+    const double t = g.node_times_s[k];
     // Widen the window until the dead-reckoned track spans enough to fix a rotation.
     for (double half = 0.5 * window_s;; half *= 2.0) {
+      // The fixes within `half` of t: [from, to) (all of them, tested one by one, out of order).
+      size_t from = 0, to = fix_s.size();
+      if (fixes_in_order) {
+        const auto first = std::partition_point(fix_s.begin(), fix_s.end(), [&](double f) { return t - f > half; });
+        from = static_cast<size_t>(first - fix_s.begin());
+        to = static_cast<size_t>(std::partition_point(first, fix_s.end(), [&](double f) { return !(f - t > half); }) -
+                                 fix_s.begin());
+      }
       Eigen::Vector2d mean_dr = Eigen::Vector2d::Zero(), mean_fix = Eigen::Vector2d::Zero();
       int count = 0;
-      for (size_t j = 0; j < g.gnss.size(); ++j) {
-        if (std::abs(g.node_times_s[g.gnss[j].node] - g.node_times_s[k]) > half) continue;
+      for (size_t j = from; j < to; ++j) {
+        if (std::abs(fix_s[j] - t) > half) continue;
         mean_dr += antenna[j];
         mean_fix += g.gnss[j].position_m;
         ++count;
@@ -150,8 +164,8 @@ std::vector<Pose2> AlignDeadReckoning(const PassageGraph& g, const Calibration& 
       mean_dr /= count;
       mean_fix /= count;
       double dot = 0.0, cross = 0.0, spread = 0.0;
-      for (size_t j = 0; j < g.gnss.size(); ++j) {
-        if (std::abs(g.node_times_s[g.gnss[j].node] - g.node_times_s[k]) > half) continue;
+      for (size_t j = from; j < to; ++j) {
+        if (std::abs(fix_s[j] - t) > half) continue;
         const Eigen::Vector2d a = antenna[j] - mean_dr, b = g.gnss[j].position_m - mean_fix;
         dot += a.dot(b);
         cross += a.x() * b.y() - a.y() * b.x();
