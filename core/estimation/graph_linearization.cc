@@ -230,7 +230,10 @@ absl::StatusOr<GraphLinearization> GraphLinearization::ComputeOver(ceres::Proble
   g.landmark_gradient_ = gradient.tail(nl) - g.w_.transpose() * g.other_gradient_;
   g.s_llt_.compute(schur);
   if (g.s_llt_.info() != Eigen::Success) {
-    return absl::InternalError("landmark covariance could not be computed (landmarks not observable)");
+    // A property of the passage's data (a subgraph whose fixes or rays do not pin its landmarks
+    // down), not a fault to retry: the service quarantines the passage.
+    return absl::FailedPreconditionError(
+        "landmark covariance could not be computed: the (sub)graph's measurements do not determine its landmarks");
   }
   const Eigen::MatrixXd cov = g.s_llt_.solve(Eigen::MatrixXd::Identity(nl, nl));
   if (!cov.allFinite()) return absl::InternalError("landmark covariance is not finite");

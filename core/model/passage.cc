@@ -136,6 +136,10 @@ absl::Status ValidateCalibration(const Calibration& c) {
 absl::Status ValidateNoise(const NoiseModel& n) {
   if (auto s = CheckPositive("noise.speed_sigma_mps", n.speed_sigma_mps); !s.ok()) return s;
   if (auto s = CheckPositive("noise.steering_sigma_rad", n.steering_sigma_rad); !s.ok()) return s;
+  // No wheel encoder is worse than this and still worth declaring (a steering sigma of a radian
+  // says the wheels point anywhere; tens of radians made the preintegration's covariance NaN).
+  if (auto s = CheckRange("noise.speed_sigma_mps", n.speed_sigma_mps, 0.0, 10.0, "m/s"); !s.ok()) return s;
+  if (auto s = CheckRange("noise.steering_sigma_rad", n.steering_sigma_rad, 0.0, 0.5, "rad"); !s.ok()) return s;
   // From a hundredth of a pixel (no detector of a pole or sign is surer) to a thousand.
   if (auto s = CheckRange("noise.pixel_sigma_px", n.pixel_sigma_px, 0.01, 1000.0, "px"); !s.ok()) return s;
   // Up to a day: a longer correlation is a constant bias over any drive.

@@ -101,6 +101,8 @@ std::vector<BadInput> BadInputs() {
       {"calibration.camera_yaw_rad", [](Passage* p) { p->calibration.camera_yaw_rad = kNan; }},
       {"noise.speed_sigma_mps", [](Passage* p) { p->noise.speed_sigma_mps = -0.56; }},
       {"noise.steering_sigma_rad", [](Passage* p) { p->noise.steering_sigma_rad = -0.044; }},
+      {"noise.steering_sigma_rad", [](Passage* p) { p->noise.steering_sigma_rad = 38.0; }},
+      {"noise.speed_sigma_mps", [](Passage* p) { p->noise.speed_sigma_mps = 50.0; }},
       {"noise.pixel_sigma_px", [](Passage* p) { p->noise.pixel_sigma_px = -5.0; }},
       {"noise.pixel_sigma_px", [](Passage* p) { p->noise.pixel_sigma_px = 0.0; }},
       {"noise.pixel_sigma_px", [](Passage* p) { p->noise.pixel_sigma_px = 1e-300; }},  // its square is 0
