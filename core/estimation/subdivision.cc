@@ -54,7 +54,10 @@ std::vector<NodeRange> JoinUnanchoredCuts(const PassageGraph& graph, const std::
     std::nth_element(intervals.begin(), intervals.begin() + intervals.size() / 2, intervals.end());
     median_interval_s = intervals[intervals.size() / 2];
   }
-  const double reach_s = kCutAnchorS + 2.0 * median_interval_s;
+  // A receiver's rate, not an outage: a passage with a fix only at each end has a median interval
+  // as long as itself, which would call every cut anchored and leave ranges with one fix, their
+  // heading free (the landmarks undetermined). Fixes come at 0.1 Hz at the slowest.
+  const double reach_s = kCutAnchorS + 2.0 * std::min(median_interval_s, kSlowestFixIntervalS);
   // A fix at a node of [first, last] within reach_s of node `at`.
   auto fix_near = [&](int first, int last, int at) {
     for (const GnssObservation& fix : graph.gnss) {

@@ -29,6 +29,8 @@ constexpr double kMinSubgraphCorrelationTimes = 3.0;
 // median fix intervals) on each side of it; otherwise the two ranges are one (a GNSS outage is not
 // cut, see JoinUnanchoredCuts in subdivision.cc).
 constexpr double kCutAnchorS = 5.0;
+// The longest interval between fixes taken for a receiver's rate (JoinUnanchoredCuts).
+constexpr double kSlowestFixIntervalS = 10.0;
 
 // Splits the graph along time into the fewest ranges whose dimension is at most max_dim, with the
 // sizes balanced (a small remainder at the end would be weakly anchored). A single node whose

@@ -183,6 +183,24 @@ TEST(SubdivideGraph, NoCutFallsInAGnssOutage) {
   EXPECT_TRUE(joined) << "one range bridges the outage";
 }
 
+// A passage with a fix only at its start and its end (a receiver that lost the sky between them)
+// is one range: a cut would leave ranges with one fix, or none, their heading free.
+TEST(SubdivideGraph, APassageFixedOnlyAtItsEndsIsNotCut) {
+  ScenarioOptions options;
+  options.landmarks = 100;
+  GraphOptions graph_options;
+  graph_options.refine_initial_poses = false;
+  Passage passage = Scenario::Create(options)->MakePassage(0);
+  ASSERT_GE(SubdivideGraph(*BuildPassageGraph(passage, graph_options), 500).size(), 2u);
+  passage.gnss = {passage.gnss.front(), passage.gnss.back()};
+  const PassageGraph graph = *BuildPassageGraph(passage, graph_options);
+  ASSERT_GT(graph.node_times_s.back() - graph.node_times_s.front(), 60.0);
+  const std::vector<NodeRange> ranges = SubdivideGraph(graph, 500);
+  ASSERT_EQ(ranges.size(), 1u);
+  EXPECT_EQ(ranges.front().first, 0);
+  EXPECT_EQ(ranges.front().last, graph.node_count() - 1);
+}
+
 TEST(SubdivideGraph, CorrelatedGnssKeepsEveryRangeThreeCorrelationTimesLong) {
   ScenarioOptions options;
   options.landmarks = 50;
