@@ -140,12 +140,22 @@ TEST(SubdivideGraph, TheThesisGraphSplitsIntoTwoOrThreeAtFiveHundred) {
   EXPECT_LE(ranges.size(), 3u);
 }
 
-TEST(SubdivideGraph, NoCutFallsInAGnssOutage) {
+// A passage of the thesis's loop with 100 landmarks, and graph options that keep the initial
+// poses as built (the tests below change the passage's fixes and build its graph again).
+Passage HundredLandmarkPassage() {
   ScenarioOptions options;
   options.landmarks = 100;
+  return Scenario::Create(options)->MakePassage(0);
+}
+GraphOptions UnrefinedGraph() {
   GraphOptions graph_options;
   graph_options.refine_initial_poses = false;
-  Passage passage = Scenario::Create(options)->MakePassage(0);
+  return graph_options;
+}
+
+TEST(SubdivideGraph, NoCutFallsInAGnssOutage) {
+  const GraphOptions graph_options = UnrefinedGraph();
+  Passage passage = HundredLandmarkPassage();
   const PassageGraph whole = *BuildPassageGraph(passage, graph_options);
   const std::vector<NodeRange> cuts = SubdivideGraph(whole, 500);
   ASSERT_GE(cuts.size(), 2u);
@@ -186,11 +196,8 @@ TEST(SubdivideGraph, NoCutFallsInAGnssOutage) {
 // A passage with a fix only at its start and its end (a receiver that lost the sky between them)
 // is one range: a cut would leave ranges with one fix, or none, their heading free.
 TEST(SubdivideGraph, APassageFixedOnlyAtItsEndsIsNotCut) {
-  ScenarioOptions options;
-  options.landmarks = 100;
-  GraphOptions graph_options;
-  graph_options.refine_initial_poses = false;
-  Passage passage = Scenario::Create(options)->MakePassage(0);
+  const GraphOptions graph_options = UnrefinedGraph();
+  Passage passage = HundredLandmarkPassage();
   ASSERT_GE(SubdivideGraph(*BuildPassageGraph(passage, graph_options), 500).size(), 2u);
   passage.gnss = {passage.gnss.front(), passage.gnss.back()};
   const PassageGraph graph = *BuildPassageGraph(passage, graph_options);
