@@ -41,7 +41,7 @@ grpc::Status MapService::LocalizePassage(grpc::ServerContext* ctx, const pb::Loc
   log.Add(absl::StrCat("vehicle=", passage->vehicle_id, " passage=", passage->passage_id));
   // The vehicle's camera calibration is used and returned: a vehicle localises only its own
   // passages (as GetVehicle reads only its own record).
-  if (who->role == Role::kVehicle) {
+  if (!who->MayReadAllPassages()) {
     if (absl::Status s = who->MayActFor(passage->vehicle_id); !s.ok()) return log.Done(s);
   }
   // The map landmarks the passage detects, with their joint covariance (the store takes each once).

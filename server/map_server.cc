@@ -157,11 +157,12 @@ absl::StatusOr<std::unique_ptr<MapServer>> MapServer::Start(const MapServerOptio
 
   // The viewer serves the map and the vehicles' routes: listening beyond loopback, it needs the
   // identities as the gRPC port does.
+  const bool grpc_open = AuthEnabled(options.security, options.listen);
   const bool http_open = !options.http_listen.empty() && AuthEnabled(options.security, options.http_listen);
-  const bool auth_on = AuthEnabled(options.security, options.listen) || http_open;
+  const bool auth_on = grpc_open || http_open;
   if (auth_on) {
     if (options.security.auth_file.empty() && options.security.tls_client_ca.empty()) {
-      const std::string open_on = AuthEnabled(options.security, options.listen) ? options.listen : options.http_listen;
+      const std::string open_on = grpc_open ? options.listen : options.http_listen;
       return absl::FailedPreconditionError(absl::StrCat(
           "--auth: on (", options.security.auth == "auto" ? "mapd listens on " + open_on + ", not loopback" : "asked for",
           ") but no client could authenticate: give --auth-file (tokens, certificate names) and/or --tls-client-ca, "

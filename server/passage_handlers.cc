@@ -258,7 +258,7 @@ grpc::Status MapService::GetPassage(grpc::ServerContext* ctx, const pb::GetPassa
   absl::StatusOr<StoredPassage> record = FindRecord(request->id(), request->vehicle_id(), request->passage_id(), &log);
   if (!record.ok()) return log.Done(record.status());
   if (own_only && !who->MayActFor(record->vehicle_id).ok()) {
-    return log.Done(absl::NotFoundError(absl::StrCat("passage id ", request->id(), " not found")));
+    return log.Done(PassageIdNotFoundError(request->id()));
   }
   StoredPassageToProto(*record, response);
   return log.Done(absl::OkStatus());

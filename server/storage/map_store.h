@@ -8,6 +8,7 @@
 
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"
+#include "absl/strings/str_cat.h"
 #include "core/geo/tiles.h"
 #include "core/map/map_state.h"
 #include "core/map/map_window.h"
@@ -127,6 +128,12 @@ struct MapStats {
 
 // Persistent map and passage queue. Thread-safe: reads may run concurrently with one another and
 // with writes; writes are serialized. Every write is one durable transaction.
+// GetPassage's answer for an id it does not hold (also the answer to a vehicle asking for another
+// vehicle's passage, which must not tell the two apart).
+inline absl::Status PassageIdNotFoundError(int64_t id) {
+  return absl::NotFoundError(absl::StrCat("passage id ", id, " not found"));
+}
+
 class MapStoreInterface {
  public:
   virtual ~MapStoreInterface() = default;

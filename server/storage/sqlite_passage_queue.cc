@@ -198,7 +198,7 @@ absl::StatusOr<StoredPassage> SqliteMapStore::GetPassage(int64_t id) {
   if (!db.ok()) return db.status();
   auto record = ReadPassage(db->get(), id);
   if (!record.ok()) return record.status();
-  if (!record->has_value()) return absl::NotFoundError(absl::StrCat("passage id ", id, " not found"));
+  if (!record->has_value()) return PassageIdNotFoundError(id);
   return **record;
 }
 
