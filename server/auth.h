@@ -62,6 +62,9 @@ struct Principal {
   // OK when this principal may act for (upload as, read the passages of) `vehicle_id`.
   absl::Status MayActFor(const std::string& vehicle_id) const;
   bool MayReadAllPassages() const { return role >= Role::kOperator; }
+  // The name its streams are counted under per identity: empty when authentication is off (every
+  // caller is then `anonymous`, and not told apart).
+  std::string stream_identity() const { return via == "none" ? std::string() : name; }
 };
 
 // Hex SHA-256 of `text` (OpenSSL libcrypto): how tokens are stored in the auth file.

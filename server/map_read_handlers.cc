@@ -145,8 +145,10 @@ grpc::Status MapService::ServeRegion(grpc::ServerContextBase* ctx, const pb::Que
 grpc::Status MapService::WatchRegion(grpc::ServerContext* ctx, const pb::WatchRegionRequest* request,
                                      grpc::ServerWriter<pb::WatchRegionResponse>* writer) {
   RequestLog log("WatchRegion", ctx);
-  if (auto who = CheckAccess(context_->auth, *ctx, Permission::kReadMap, &log); !who.ok()) return log.Done(who.status());
-  absl::StatusOr<std::unique_ptr<StreamLimiter::Lease>> stream = context_->streams->OpenWatch(ctx);
+  absl::StatusOr<Principal> who = CheckAccess(context_->auth, *ctx, Permission::kReadMap, &log);
+  if (!who.ok()) return log.Done(who.status());
+  absl::StatusOr<std::unique_ptr<StreamLimiter::Lease>> stream =
+      context_->streams->OpenWatch(ctx, who->stream_identity());
   if (!stream.ok()) {
     AddRetryTrailers(stream.status(), ctx);
     return log.Done(stream.status());

@@ -186,8 +186,7 @@ absl::StatusOr<std::unique_ptr<MapServer>> MapServer::Start(const MapServerOptio
   if (!credentials.ok()) return credentials.status();
   server->quotas_ = std::make_unique<VehicleQuotas>(options.limits);
   server->inflight_ = std::make_unique<InflightBytes>(static_cast<int64_t>(options.limits.max_inflight_mb) << 20);
-  server->streams_ = std::make_unique<StreamLimiter>(options.limits.max_upload_streams, options.limits.max_watch_streams,
-                                                     std::chrono::seconds(options.limits.upload_idle_timeout_s));
+  server->streams_ = std::make_unique<StreamLimiter>(options.limits);
 
   MapServiceContext& context = server->context_;
   context.auth = server->auth_.get();
@@ -231,10 +230,13 @@ absl::StatusOr<std::unique_ptr<MapServer>> MapServer::Start(const MapServerOptio
   spdlog::info("event=started version={} listen={} port={} db={} strategy={} workers={} max_queue={}",
                CROWDMAP_VERSION, options.listen, server->port_, options.db_path, UpdateStrategyName(context.update.strategy), options.worker.workers, options.max_queue);
   spdlog::info("event=security tls={} mtls={} auth={} identities={} reflection={} max_threads={} max_upload_streams={} "
+               "max_upload_streams_per_identity={} max_watch_streams={} max_watch_streams_per_identity={} "
                "upload_idle_timeout_s={} max_inflight_mb={} vehicle_uploads_per_s={} vehicle_upload_mb_per_s={}",
                options.security.tls(), !options.security.tls_client_ca.empty(), auth_on,
                auth_on ? server->auth_->identities() : 0, reflection, options.limits.max_threads,
-               options.limits.max_upload_streams, options.limits.upload_idle_timeout_s, options.limits.max_inflight_mb,
+               options.limits.max_upload_streams, options.limits.max_upload_streams_per_identity,
+               options.limits.max_watch_streams, options.limits.max_watch_streams_per_identity,
+               options.limits.upload_idle_timeout_s, options.limits.max_inflight_mb,
                options.limits.vehicle_uploads_per_s, options.limits.vehicle_upload_mb_per_s);
   if (auth_on && !options.security.tls() && !IsLoopbackListen(options.listen)) {
     spdlog::warn("event=plaintext_tokens listen={} (bearer tokens cross the network in clear: give --tls-cert and --tls-key)",

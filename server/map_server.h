@@ -76,6 +76,8 @@ class MapServer {
   // error the identities loaded before stay in force.
   absl::Status ReloadAuth();
   bool auth_enabled() const { return auth_ != nullptr; }
+  // Chunked uploads open now (admitted under the stream caps).
+  int open_uploads() const { return streams_->open_uploads(); }
 
   // Health NOT_SERVING, refuse uploads, finish the passage being applied, end streams, stop gRPC
   // (in-flight calls get `grace`; gRPC also waits that long for idle client connections to

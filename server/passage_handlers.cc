@@ -183,7 +183,7 @@ grpc::Status MapService::UploadPassageChunkedRaw(grpc::ServerContext* ctx,
   RequestLog log("UploadPassageChunked", ctx);
   absl::StatusOr<Principal> who = CheckAccess(context_->auth, *ctx, Permission::kUpload, &log);
   if (!who.ok()) return log.Done(who.status());
-  absl::StatusOr<std::unique_ptr<StreamLimiter::Lease>> stream = context_->streams->OpenUpload(ctx);
+  absl::StatusOr<std::unique_ptr<StreamLimiter::Lease>> stream = context_->streams->OpenUpload(ctx, who->stream_identity());
   if (!stream.ok()) {
     AddRetryTrailers(stream.status(), ctx);
     return log.Done(stream.status());

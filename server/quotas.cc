@@ -35,6 +35,14 @@ absl::Status LimitOptions::Validate(int max_passage_mb) const {
     return absl::InvalidArgumentError(
         "--max-upload-streams, --max-watch-streams, --upload-idle-timeout-s, --max-inflight-mb: must be >= 0 (0 = off)");
   }
+  if (max_upload_streams_per_identity < 0) {
+    return absl::InvalidArgumentError(absl::StrCat("--max-upload-streams-per-identity: must be >= 0 (0 = off), got ",
+                                                   max_upload_streams_per_identity));
+  }
+  if (max_watch_streams_per_identity < 0) {
+    return absl::InvalidArgumentError(absl::StrCat("--max-watch-streams-per-identity: must be >= 0 (0 = off), got ",
+                                                   max_watch_streams_per_identity));
+  }
   if (max_inflight_mb > 0 && max_inflight_mb < max_passage_mb) {
     return absl::InvalidArgumentError(absl::StrCat("--max-inflight-mb: must be 0 (off) or at least --max-passage-mb (",
                                                    max_passage_mb, "), got ", max_inflight_mb));
@@ -141,8 +149,12 @@ absl::Status InflightBytes::Lease::GrowTo(size_t total) {
   return absl::OkStatus();
 }
 
-StreamLimiter::StreamLimiter(int max_upload_streams, int max_watch_streams, std::chrono::milliseconds upload_idle_timeout)
-    : max_uploads_(max_upload_streams), max_watches_(max_watch_streams), idle_timeout_(upload_idle_timeout) {
+StreamLimiter::StreamLimiter(const LimitOptions& limits)
+    : idle_timeout_(std::chrono::seconds(limits.upload_idle_timeout_s)),
+      upload_counts_{limits.max_upload_streams, limits.max_upload_streams_per_identity, "chunked uploads",
+                     "--max-upload-streams", 0, {}},
+      watch_counts_{limits.max_watch_streams, limits.max_watch_streams_per_identity, "WatchRegion streams",
+                    "--max-watch-streams", 0, {}} {
   if (idle_timeout_.count() > 0) watchdog_ = std::thread([this] { Watchdog(); });
 }
 
@@ -155,15 +167,17 @@ StreamLimiter::~StreamLimiter() {
   if (watchdog_.joinable()) watchdog_.join();
 }
 
-StreamLimiter::Lease::Lease(StreamLimiter* owner, grpc::ServerContext* ctx, bool upload)
-    : owner_(owner), ctx_(ctx), upload_(upload), start_ms_(NowMs()), last_ms_(start_ms_) {}
+StreamLimiter::Lease::Lease(StreamLimiter* owner, grpc::ServerContext* ctx, bool upload, std::string identity)
+    : owner_(owner), ctx_(ctx), upload_(upload), identity_(std::move(identity)), start_ms_(NowMs()),
+      last_ms_(start_ms_) {}
 
 StreamLimiter::Lease::~Lease() {
   std::lock_guard<std::mutex> lock(owner_->mu_);
   if (upload_) {
     owner_->uploads_.erase(this);
+    Release(&owner_->upload_counts_, identity_);
   } else {
-    --owner_->watches_;
+    Release(&owner_->watch_counts_, identity_);
   }
 }
 
@@ -173,25 +187,45 @@ void StreamLimiter::Lease::Touch(size_t bytes) {
   last_ms_.store(NowMs(), std::memory_order_relaxed);
 }
 
-absl::StatusOr<std::unique_ptr<StreamLimiter::Lease>> StreamLimiter::OpenUpload(grpc::ServerContext* ctx) {
-  std::lock_guard<std::mutex> lock(mu_);
-  if (max_uploads_ > 0 && static_cast<int>(uploads_.size()) >= max_uploads_) {
-    return ExhaustedRetryAfter(absl::StrCat("server: ", max_uploads_, " chunked uploads open (--max-upload-streams)"),
-                               std::chrono::seconds(1));
+absl::Status StreamLimiter::Admit(Counts* counts, const std::string& identity, std::chrono::milliseconds retry_after) {
+  if (counts->max > 0 && counts->open >= counts->max) {
+    return ExhaustedRetryAfter(absl::StrCat("server: ", counts->max, " ", counts->what, " open (", counts->flag, ")"),
+                               retry_after);
   }
-  std::unique_ptr<Lease> lease(new Lease(this, ctx, /*upload=*/true));
+  if (!identity.empty() && counts->max_per_identity > 0) {
+    auto it = counts->per_identity.find(identity);
+    if (it != counts->per_identity.end() && it->second >= counts->max_per_identity) {
+      return ExhaustedRetryAfter(absl::StrCat("'", identity, "' has ", counts->max_per_identity, " ", counts->what,
+                                              " open (", counts->flag, "-per-identity)"),
+                                 retry_after);
+    }
+  }
+  ++counts->open;
+  if (!identity.empty()) ++counts->per_identity[identity];
+  return absl::OkStatus();
+}
+
+void StreamLimiter::Release(Counts* counts, const std::string& identity) {
+  --counts->open;
+  if (identity.empty()) return;
+  auto it = counts->per_identity.find(identity);
+  if (it != counts->per_identity.end() && --it->second <= 0) counts->per_identity.erase(it);
+}
+
+absl::StatusOr<std::unique_ptr<StreamLimiter::Lease>> StreamLimiter::OpenUpload(grpc::ServerContext* ctx,
+                                                                                const std::string& identity) {
+  std::lock_guard<std::mutex> lock(mu_);
+  if (absl::Status s = Admit(&upload_counts_, identity, std::chrono::seconds(1)); !s.ok()) return s;
+  std::unique_ptr<Lease> lease(new Lease(this, ctx, /*upload=*/true, identity));
   uploads_.insert(lease.get());
   return lease;
 }
 
-absl::StatusOr<std::unique_ptr<StreamLimiter::Lease>> StreamLimiter::OpenWatch(grpc::ServerContext* ctx) {
+absl::StatusOr<std::unique_ptr<StreamLimiter::Lease>> StreamLimiter::OpenWatch(grpc::ServerContext* ctx,
+                                                                               const std::string& identity) {
   std::lock_guard<std::mutex> lock(mu_);
-  if (max_watches_ > 0 && watches_ >= max_watches_) {
-    return ExhaustedRetryAfter(absl::StrCat("server: ", max_watches_, " WatchRegion streams open (--max-watch-streams)"),
-                               std::chrono::seconds(5));
-  }
-  ++watches_;
-  return std::unique_ptr<Lease>(new Lease(this, ctx, /*upload=*/false));
+  if (absl::Status s = Admit(&watch_counts_, identity, std::chrono::seconds(5)); !s.ok()) return s;
+  return std::unique_ptr<Lease>(new Lease(this, ctx, /*upload=*/false, identity));
 }
 
 int StreamLimiter::open_uploads() const {

@@ -27,6 +27,10 @@ struct LimitOptions {
   int vehicle_upload_burst_mb = 128;    // MiB at once; at least max_passage_mb
   int max_upload_streams = 64;          // concurrent UploadPassageChunked calls (0 = off)
   int max_watch_streams = 128;          // concurrent WatchRegion calls (0 = off)
+  // The same per authenticated identity (a token or certificate), so that one identity cannot
+  // hold the server's streams (0 = off; callers are not told apart with authentication off).
+  int max_upload_streams_per_identity = 4;
+  int max_watch_streams_per_identity = 16;
   // A chunked upload with no chunk for this long is cancelled (0 = off). At least the time one
   // chunk takes on the slowest link: MapClient's 1 MiB takes 33 s at 256 kbit/s.
   int upload_idle_timeout_s = 60;
@@ -103,11 +107,12 @@ class InflightBytes {
   std::atomic<int64_t> held_{0};
 };
 
-// Counts the streaming calls and cancels chunked uploads that stall. A watchdog thread checks the
-// open uploads every quarter of the idle timeout (at most every second).
+// Counts the streaming calls, in all and per identity, and cancels chunked uploads that stall. A
+// watchdog thread checks the open uploads every quarter of the idle timeout (at most every second).
 class StreamLimiter {
  public:
-  StreamLimiter(int max_upload_streams, int max_watch_streams, std::chrono::milliseconds upload_idle_timeout);
+  // Reads the stream caps and the idle timeout of `limits`.
+  explicit StreamLimiter(const LimitOptions& limits);
   ~StreamLimiter();
   StreamLimiter(const StreamLimiter&) = delete;
   StreamLimiter& operator=(const StreamLimiter&) = delete;
@@ -121,10 +126,11 @@ class StreamLimiter {
 
    private:
     friend class StreamLimiter;
-    Lease(StreamLimiter* owner, grpc::ServerContext* ctx, bool upload);
+    Lease(StreamLimiter* owner, grpc::ServerContext* ctx, bool upload, std::string identity);
     StreamLimiter* owner_;
     grpc::ServerContext* ctx_;
     bool upload_;
+    const std::string identity_;  // counted per identity when not empty
     const int64_t start_ms_;
     std::atomic<int64_t> last_ms_;
     std::atomic<int64_t> bytes_{0};
@@ -134,20 +140,32 @@ class StreamLimiter {
   // much: bytes dribbled in just inside the idle timeout would otherwise hold a stream for days.
   static constexpr int64_t kMinUploadBytesPerS = 1024;
   // A lease for one chunked upload (watched for idleness and a trickle), or RESOURCE_EXHAUSTED.
-  absl::StatusOr<std::unique_ptr<Lease>> OpenUpload(grpc::ServerContext* ctx);
-  absl::StatusOr<std::unique_ptr<Lease>> OpenWatch(grpc::ServerContext* ctx);
+  // `identity` is the authenticated caller's name, counted against the per-identity caps; empty
+  // when authentication is off.
+  absl::StatusOr<std::unique_ptr<Lease>> OpenUpload(grpc::ServerContext* ctx, const std::string& identity);
+  absl::StatusOr<std::unique_ptr<Lease>> OpenWatch(grpc::ServerContext* ctx, const std::string& identity);
   int open_uploads() const;
 
  private:
+  // Streams of one kind: open in all, and per identity.
+  struct Counts {
+    const int max, max_per_identity;
+    const char* what;  // for the refusal
+    const char* flag;
+    int open = 0;
+    std::map<std::string, int> per_identity;
+  };
+  // Counts a new stream in `counts`, or RESOURCE_EXHAUSTED naming the cap it would break. Under mu_.
+  static absl::Status Admit(Counts* counts, const std::string& identity, std::chrono::milliseconds retry_after);
+  static void Release(Counts* counts, const std::string& identity);  // under mu_
   void Watchdog();
 
-  const int max_uploads_, max_watches_;
   const std::chrono::milliseconds idle_timeout_;
   mutable std::mutex mu_;
   std::condition_variable stop_cv_;
   bool stop_ = false;
-  std::set<Lease*> uploads_;
-  int watches_ = 0;
+  Counts upload_counts_, watch_counts_;
+  std::set<Lease*> uploads_;  // for the watchdog
   std::thread watchdog_;
 };
 

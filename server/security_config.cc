@@ -51,7 +51,15 @@ void AddSecuritySettings(CLI::App* mapd, MapServerOptions* options) {
                  "concurrent UploadPassageChunked calls (0 = off)")
       ->type_name("N")
       ->group(quotas);
+  AddMapdSetting(mapd, "max-upload-streams-per-identity", &limits.max_upload_streams_per_identity,
+                 "concurrent UploadPassageChunked calls of one authenticated identity (0 = off)")
+      ->type_name("N")
+      ->group(quotas);
   AddMapdSetting(mapd, "max-watch-streams", &limits.max_watch_streams, "concurrent WatchRegion calls (0 = off)")
+      ->type_name("N")
+      ->group(quotas);
+  AddMapdSetting(mapd, "max-watch-streams-per-identity", &limits.max_watch_streams_per_identity,
+                 "concurrent WatchRegion calls of one authenticated identity (0 = off)")
       ->type_name("N")
       ->group(quotas);
   AddMapdSetting(mapd, "upload-idle-timeout-s", &limits.upload_idle_timeout_s,

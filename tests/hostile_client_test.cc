@@ -570,6 +570,7 @@ TEST_F(Hostile, StalledStreamsAreCappedAndTimedOutWithThreadsBounded) {
   MapServerOptions options = Options();
   options.limits.max_upload_streams = 32;
   options.limits.max_watch_streams = 32;
+  options.limits.max_upload_streams_per_identity = 0;  // the server's cap is what this floods
   options.limits.max_threads = 128;
   options.limits.upload_idle_timeout_s = 2;
   options.limits.vehicle_uploads_per_s = 0;
@@ -789,6 +790,110 @@ TEST_F(Hostile, WatchStreamsAreCapped) {
     again.stream->Finish();
   }
   EXPECT_TRUE(reopened);
+}
+
+// One identity holding streams open reaches its own caps long before the server's: another
+// vehicle still uploads in chunks and watches the map, and a stream the identity ends gives its
+// slot back.
+TEST_F(Hostile, OneIdentityHoldsAtMostItsShareOfTheStreams) {
+  MapServerOptions options = Options();
+  options.limits.max_upload_streams = 8;
+  options.limits.max_watch_streams = 8;
+  options.limits.max_upload_streams_per_identity = 2;
+  options.limits.max_watch_streams_per_identity = 2;
+  options.limits.upload_idle_timeout_s = 60;  // the held streams are not idle within the test
+  options.limits.vehicle_uploads_per_s = 0;
+  Start(options);
+  auto flood = Client(kFloodToken);
+  struct Upload {
+    grpc::ClientContext ctx;
+    pb::UploadPassageResponse response;
+    std::unique_ptr<grpc::ClientWriter<pb::UploadPassageChunk>> writer;
+  };
+  pb::UploadPassageChunk chunk;
+  chunk.set_data(std::string(1024, 'x'));
+  const auto open_upload = [&](const std::string& token) {
+    auto upload = std::make_unique<Upload>();
+    upload->ctx.AddMetadata("authorization", "Bearer " + token);
+    upload->ctx.set_deadline(std::chrono::system_clock::now() + std::chrono::seconds(30));
+    upload->writer = flood->stub()->UploadPassageChunked(&upload->ctx, &upload->response);
+    upload->writer->Write(chunk);  // held open: never WritesDone
+    return upload;
+  };
+  // A stream is admitted when the server has read its chunk: wait for that before the next.
+  const auto wait_for_open_uploads = [&](int n) {
+    for (int i = 0; i < 200 && server_->open_uploads() < n; ++i) std::this_thread::sleep_for(std::chrono::milliseconds(10));
+    return server_->open_uploads();
+  };
+  std::vector<std::unique_ptr<Upload>> held;
+  for (int i = 0; i < 2; ++i) {
+    held.push_back(open_upload(kFloodToken));
+    ASSERT_EQ(wait_for_open_uploads(i + 1), i + 1);
+  }
+  auto refused = open_upload(kFloodToken);
+  const grpc::Status third = refused->writer->Finish();
+  EXPECT_EQ(third.error_code(), grpc::StatusCode::RESOURCE_EXHAUSTED) << third.error_message();
+  EXPECT_TRUE(absl::StrContains(third.error_message(), "--max-upload-streams-per-identity")) << third.error_message();
+  EXPECT_TRUE(absl::StrContains(third.error_message(), "v-flood")) << third.error_message();
+
+  // Another vehicle's chunked upload goes through.
+  MapClientOptions chunked;
+  chunked.server = server_->address();
+  chunked.max_attempts = 1;
+  chunked.security.token = kV1Token;
+  chunked.unary_upload_limit_bytes = 0;
+  auto v1 = MapClient::Create(chunked);
+  ASSERT_TRUE(v1.ok()) << v1.status();
+  EXPECT_TRUE((*v1)->Upload(Wire("v1", "while-flooded")).ok());
+
+  // The same for watches.
+  struct Watch {
+    grpc::ClientContext ctx;
+    std::unique_ptr<grpc::ClientReader<pb::WatchRegionResponse>> stream;
+  };
+  pb::WatchRegionRequest request;
+  *request.mutable_box() = WorldBox();
+  pb::WatchRegionResponse first;
+  const auto open_watch = [&](const std::string& token) {
+    auto watch = std::make_unique<Watch>();
+    watch->ctx.AddMetadata("authorization", "Bearer " + token);
+    watch->ctx.set_deadline(std::chrono::system_clock::now() + std::chrono::seconds(30));
+    watch->stream = flood->stub()->WatchRegion(&watch->ctx, request);
+    return watch;
+  };
+  std::vector<std::unique_ptr<Watch>> watches;
+  for (int i = 0; i < 3; ++i) {
+    watches.push_back(open_watch(kFloodToken));
+    EXPECT_EQ(watches[i]->stream->Read(&first), i < 2) << "watch " << i;  // an admitted watch gets the version
+  }
+  const grpc::Status third_watch = watches[2]->stream->Finish();
+  EXPECT_EQ(third_watch.error_code(), grpc::StatusCode::RESOURCE_EXHAUSTED) << third_watch.error_message();
+  EXPECT_TRUE(absl::StrContains(third_watch.error_message(), "--max-watch-streams-per-identity"))
+      << third_watch.error_message();
+  auto other = open_watch(kV2Token);
+  EXPECT_TRUE(other->stream->Read(&first));
+  other->ctx.TryCancel();
+  other->stream->Finish();
+  for (int i = 0; i < 2; ++i) {
+    watches[i]->ctx.TryCancel();
+    watches[i]->stream->Finish();
+  }
+
+  // An upload the identity ends frees its slot.
+  held[0]->ctx.TryCancel();
+  held[0]->writer->Finish();
+  bool reopened = false;
+  for (int attempt = 0; attempt < 50 && !reopened; ++attempt) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(20));
+    if (server_->open_uploads() > 1) continue;
+    held[0] = open_upload(kFloodToken);
+    reopened = wait_for_open_uploads(2) == 2;
+  }
+  EXPECT_TRUE(reopened);
+  for (auto& upload : held) {
+    upload->ctx.TryCancel();
+    upload->writer->Finish();
+  }
 }
 
 }  // namespace
