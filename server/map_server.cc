@@ -43,8 +43,9 @@ absl::Status MapServerOptions::Validate() const {
   if (max_message_mb < 1 || max_message_mb > 2047) {
     return absl::InvalidArgumentError(absl::StrCat("max_message_mb: must lie in [1, 2047], got ", max_message_mb));
   }
-  if (max_passage_mb < 1 || max_passage_mb > 2047) {
-    return absl::InvalidArgumentError(absl::StrCat("max_passage_mb: must lie in [1, 2047], got ", max_passage_mb));
+  // At most 512: a stored upload must stay under SQLite's length limit (1,000,000,000 bytes).
+  if (max_passage_mb < 1 || max_passage_mb > 512) {
+    return absl::InvalidArgumentError(absl::StrCat("max_passage_mb: must lie in [1, 512], got ", max_passage_mb));
   }
   if (absl::Status s = security.Validate(); !s.ok()) return s;
   if (absl::Status s = limits.Validate(max_passage_mb); !s.ok()) return s;

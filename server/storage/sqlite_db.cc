@@ -19,6 +19,8 @@ absl::Status SqliteError(sqlite3* db, int rc, std::string_view what) {
     case SQLITE_CORRUPT:
     case SQLITE_NOTADB:
       return absl::DataLossError(message);
+    case SQLITE_TOOBIG:
+      return absl::InvalidArgumentError(absl::StrCat(message, " (over the database's length limit)"));
     case SQLITE_FULL:
       return absl::ResourceExhaustedError(absl::StrCat(message, " (no space left for the database; retry later)"));
     case SQLITE_IOERR:
@@ -36,32 +38,44 @@ SqliteStatement::~SqliteStatement() {
   sqlite3_clear_bindings(stmt_);
 }
 
+void SqliteStatement::Bound(int rc, int index) {
+  if (rc == SQLITE_OK || bind_rc_ != SQLITE_OK) return;
+  bind_rc_ = rc;
+  bind_index_ = index;
+}
+
 SqliteStatement& SqliteStatement::Bind(int index, int64_t value) {
-  sqlite3_bind_int64(stmt_, index, value);
+  Bound(sqlite3_bind_int64(stmt_, index, value), index);
   return *this;
 }
 
 SqliteStatement& SqliteStatement::Bind(int index, double value) {
-  sqlite3_bind_double(stmt_, index, value);
+  Bound(sqlite3_bind_double(stmt_, index, value), index);
   return *this;
 }
 
 SqliteStatement& SqliteStatement::Bind(int index, std::string_view text) {
-  sqlite3_bind_text(stmt_, index, text.data(), static_cast<int>(text.size()), SQLITE_TRANSIENT);
+  Bound(sqlite3_bind_text64(stmt_, index, text.data(), text.size(), SQLITE_TRANSIENT, SQLITE_UTF8), index);
   return *this;
 }
 
 SqliteStatement& SqliteStatement::BindBlob(int index, std::string_view bytes) {
-  sqlite3_bind_blob64(stmt_, index, bytes.data(), bytes.size(), SQLITE_TRANSIENT);
+  Bound(sqlite3_bind_blob64(stmt_, index, bytes.data(), bytes.size(), SQLITE_TRANSIENT), index);
   return *this;
 }
 
 SqliteStatement& SqliteStatement::BindNull(int index) {
-  sqlite3_bind_null(stmt_, index);
+  Bound(sqlite3_bind_null(stmt_, index), index);
   return *this;
 }
 
 absl::StatusOr<bool> SqliteStatement::Step() {
+  if (bind_rc_ != SQLITE_OK) {
+    const int rc = bind_rc_;
+    bind_rc_ = SQLITE_OK;
+    // Not the connection's message: a failed bind does not set it.
+    return SqliteError(nullptr, rc, absl::StrCat("bind of parameter ", bind_index_, " of '", sqlite3_sql(stmt_), "'"));
+  }
   const int rc = sqlite3_step(stmt_);
   if (rc == SQLITE_ROW) return true;
   if (rc == SQLITE_DONE) return false;

@@ -25,7 +25,9 @@ namespace crowdmap {
 class SqliteStatement {
  public:
   SqliteStatement(sqlite3* db, sqlite3_stmt* stmt) : db_(db), stmt_(stmt) {}
-  SqliteStatement(SqliteStatement&& other) noexcept : db_(other.db_), stmt_(other.stmt_) { other.stmt_ = nullptr; }
+  SqliteStatement(SqliteStatement&& other) noexcept : db_(other.db_), stmt_(other.stmt_), bind_rc_(other.bind_rc_) {
+    other.stmt_ = nullptr;
+  }
   SqliteStatement(const SqliteStatement&) = delete;
   SqliteStatement& operator=(const SqliteStatement&) = delete;
   ~SqliteStatement();
@@ -36,7 +38,8 @@ class SqliteStatement {
   SqliteStatement& BindBlob(int index, std::string_view bytes);
   SqliteStatement& BindNull(int index);
 
-  // Advances; true when a row is available, false when done.
+  // Advances; true when a row is available, false when done. A value that could not be bound
+  // fails the step instead (e.g. InvalidArgument for one over SQLite's length limit).
   absl::StatusOr<bool> Step();
   // Runs a statement that returns no rows.
   absl::Status Run();
@@ -48,8 +51,12 @@ class SqliteStatement {
   bool IsNull(int column) const;
 
  private:
+  void Bound(int rc, int index);  // keeps the first failed bind for Step
+
   sqlite3* db_;
   sqlite3_stmt* stmt_;
+  int bind_rc_ = 0;  // SQLITE_OK, or the first bind's error since the last step
+  int bind_index_ = 0;
 };
 
 // One SQLite connection with a cache of prepared statements. Not thread-safe: one user at a time.

@@ -6,6 +6,7 @@
 #include <cmath>
 #include <cstdio>
 #include <filesystem>
+#include <fstream>
 #include <memory>
 #include <string>
 #include <thread>
@@ -1084,6 +1085,103 @@ TEST(SqliteMapStore, ASchemaFourFileHasItsQueueMovedToTheQueueFile) {
       EXPECT_EQ((*out)[0]->record.id, 4);
     }
   }
+}
+
+// A start that copied a schema-4 file's queue and then failed before the map's own migration (a
+// full disk, say), followed by a rollback to the release before: that release takes uploads into
+// the map's file. The next start copies them too.
+TEST(SqliteMapStore, UploadsTakenBySchemaFourAfterAnInterruptedUpgradeAreCopiedToo) {
+  TempDir dir;
+  const std::string path = dir.File("map.db");
+  {
+    auto db = SqliteConnection::Open(path, 5000, /*read_only=*/false);
+    ASSERT_TRUE(db.ok()) << db.status();
+    ASSERT_TRUE(MigrateSchema(db->get(), 4).ok());
+    ASSERT_TRUE((*db)->Exec("INSERT INTO passages (id, vehicle_id, passage_id, state, attempts, received_unix_ms, "
+                            "finished_unix_ms, size_bytes, interruptions) VALUES (1, 'v', 'before', 1, 0, 10, 0, 5, 0);"
+                            "INSERT INTO passage_payloads (id, payload) VALUES (1, CAST('one' AS BLOB));")
+                    .ok());
+    auto queue = SqliteConnection::Open(SqliteQueuePath(path), 5000, /*read_only=*/false);
+    ASSERT_TRUE(queue.ok()) << queue.status();
+    ASSERT_TRUE(MigrateQueueSchema(queue->get()).ok());
+    ASSERT_TRUE(ImportQueueFromMapFile(queue->get(), path).ok());  // then the start failed
+    EXPECT_EQ(SqlInt(SqliteQueuePath(path), "SELECT COUNT(*) FROM passages"), 1);
+    // The release before takes an upload into the map's file.
+    ASSERT_TRUE((*db)->Exec("INSERT INTO passages (id, vehicle_id, passage_id, state, attempts, received_unix_ms, "
+                            "finished_unix_ms, size_bytes, interruptions) VALUES (2, 'v', 'after', 1, 0, 11, 0, 5, 0);"
+                            "INSERT INTO passage_payloads (id, payload) VALUES (2, CAST('two' AS BLOB));"
+                            "UPDATE passages SET state = 4, error = 'rejected by the release before' WHERE id = 1;")
+                    .ok());
+  }
+  auto store = OpenStore(path);
+  ASSERT_NE(store, nullptr);
+  ASSERT_TRUE(store->FindPassage("v", "after").ok()) << "the upload the release before took is not lost";
+  EXPECT_EQ(*store->GetPassagePayload(2), "two");
+  EXPECT_EQ(store->GetPassage(1)->state, PassageState::kRejected) << "the map file's queue is the truth";
+  ExpectStatsEqualTableCounts(store.get(), path);
+}
+
+// A queue file older than its map (restored from an earlier backup than the map's, or emptied)
+// would hand out ids the map already holds and let passages it contains be applied again: the
+// store refuses to open, and changes nothing.
+TEST(SqliteMapStore, AQueueFileOlderThanItsMapIsRefused) {
+  TempDir dir;
+  const std::string path = dir.File("map.db");
+  const std::string queue = SqliteQueuePath(path);
+  const std::string old_queue = dir.File("queue.backup");
+  {
+    auto store = OpenStore(path);
+    const int64_t first = EnqueueAndClaim(store.get(), "first");
+    ASSERT_TRUE(store->CommitPassageApplied(first, OneLandmarkDelta(0), SomeResult()).ok());
+  }
+  std::filesystem::copy_file(queue, old_queue);  // the store closed: its log is checkpointed
+  {
+    auto store = OpenStore(path);
+    const int64_t second = EnqueueAndClaim(store.get(), "second");
+    ASSERT_TRUE(store->CommitPassageApplied(second, OneLandmarkDelta(1), SomeResult()).ok());
+  }
+  for (const char* suffix : {"", "-wal", "-shm"}) std::remove((queue + suffix).c_str());
+  std::filesystem::copy_file(old_queue, queue);
+  auto refused = CreateSqliteMapStore(path);
+  ASSERT_FALSE(refused.ok());
+  EXPECT_EQ(refused.status().code(), absl::StatusCode::kFailedPrecondition);
+  EXPECT_NE(refused.status().message().find("id 2 missing"), std::string_view::npos) << refused.status();
+  EXPECT_NE(refused.status().message().find("one backup"), std::string_view::npos) << refused.status();
+  EXPECT_EQ(SqlInt(queue, "SELECT COUNT(*) FROM passages"), 1) << "nothing changed";
+
+  // An empty queue file likewise.
+  for (const char* suffix : {"", "-wal", "-shm"}) std::remove((queue + suffix).c_str());
+  std::ofstream(queue).close();
+  auto empty = CreateSqliteMapStore(path);
+  ASSERT_FALSE(empty.ok());
+  EXPECT_NE(empty.status().message().find("2 passage(s)"), std::string_view::npos) << empty.status();
+}
+
+// A value SQLite cannot bind (over its length limit) fails the statement, naming the parameter,
+// instead of being stored as NULL and reported as some constraint of the table.
+TEST(SqliteStatement, AValueThatCannotBeBoundFailsTheStepAndIsNotStoredAsNull) {
+  TempDir dir;
+  sqlite3* db = nullptr;
+  ASSERT_EQ(sqlite3_open(dir.File("t.db").c_str(), &db), SQLITE_OK);
+  ASSERT_EQ(sqlite3_exec(db, "CREATE TABLE t (b BLOB NOT NULL)", nullptr, nullptr, nullptr), SQLITE_OK);
+  sqlite3_limit(db, SQLITE_LIMIT_LENGTH, 100);
+  sqlite3_stmt* raw = nullptr;
+  ASSERT_EQ(sqlite3_prepare_v2(db, "INSERT INTO t (b) VALUES (?1)", -1, &raw, nullptr), SQLITE_OK);
+  {
+    SqliteStatement insert(db, raw);
+    const absl::Status too_big = insert.BindBlob(1, std::string(1000, 'x')).Run();
+    EXPECT_EQ(too_big.code(), absl::StatusCode::kInvalidArgument) << too_big;
+    EXPECT_NE(too_big.message().find("bind of parameter 1"), std::string_view::npos) << too_big;
+    EXPECT_TRUE(insert.BindBlob(1, std::string(10, 'x')).Run().ok()) << "the next step binds afresh";
+  }
+  sqlite3_finalize(raw);
+  sqlite3_stmt* count = nullptr;
+  ASSERT_EQ(sqlite3_prepare_v2(db, "SELECT COUNT(*), MAX(LENGTH(b)) FROM t", -1, &count, nullptr), SQLITE_OK);
+  ASSERT_EQ(sqlite3_step(count), SQLITE_ROW);
+  EXPECT_EQ(sqlite3_column_int(count, 0), 1);
+  EXPECT_EQ(sqlite3_column_int(count, 1), 10);
+  sqlite3_finalize(count);
+  sqlite3_close(db);
 }
 
 VehicleCalibration MakeVehicle(const std::string& id, double yaw_rad, int64_t passages, int64_t version) {

@@ -10,6 +10,7 @@
 
 #include "absl/strings/str_cat.h"
 #include "server/storage/factor_codec.h"
+#include "server/storage/map_store.h"
 
 namespace crowdmap {
 namespace {
@@ -474,26 +475,26 @@ absl::Status ImportQueueFromMapFile(SqliteConnection* queue, const std::string& 
   return WithMapAttached(queue, map_path, [&]() -> absl::Status {
     auto txn = SqliteWriteTransaction::Begin(queue);
     if (!txn.ok()) return txn.status();
-    auto done = queue->Prepare("SELECT COUNT(*) FROM queue_meta WHERE key = 'imported_from_map'");
-    if (!done.ok()) return done.status();
-    if (auto row = done->Step(); !row.ok()) return row.status();
-    if (done->Int(0) > 0) return txn->Commit();
+    // While the map file still has its queue (its migration past schema 4 has not run), no server
+    // has taken uploads into the queue file: a start that fails between the copy and the map's
+    // migration serves nothing. That queue is the truth, and is copied whole on every such start:
+    // after a rollback to an older release, uploads taken into the map's file meanwhile come over too.
     auto has_queue = queue->Prepare("SELECT COUNT(*) FROM m.sqlite_master WHERE type = 'table' AND name = 'passages'");
     if (!has_queue.ok()) return has_queue.status();
     if (auto row = has_queue->Step(); !row.ok()) return row.status();
-    if (has_queue->Int(0) > 0) {
-      if (auto s = queue->Exec(absl::StrCat(
-              "INSERT INTO passages (id, vehicle_id, passage_id, state, attempts, error, received_unix_ms, "
-              "finished_unix_ms, size_bytes, interruptions) SELECT id, vehicle_id, passage_id, state, attempts, error, "
-              "received_unix_ms, finished_unix_ms, size_bytes, interruptions FROM m.passages ORDER BY id;"
-              "INSERT INTO passage_payloads (id, payload) SELECT id, payload FROM m.passage_payloads;"
-              "INSERT INTO passage_results (id, ", kResultColumns, ") SELECT id, ", kResultColumns,
-              " FROM m.passage_results;"));
-          !s.ok()) {
-        return s;
-      }
+    if (has_queue->Int(0) == 0) return txn->Commit();
+    if (auto s = queue->Exec(absl::StrCat(
+            "DELETE FROM passage_results; DELETE FROM passage_payloads; DELETE FROM passages;"
+            "INSERT INTO passages (id, vehicle_id, passage_id, state, attempts, error, received_unix_ms, "
+            "finished_unix_ms, size_bytes, interruptions) SELECT id, vehicle_id, passage_id, state, attempts, error, "
+            "received_unix_ms, finished_unix_ms, size_bytes, interruptions FROM m.passages ORDER BY id;"
+            "INSERT INTO passage_payloads (id, payload) SELECT id, payload FROM m.passage_payloads;"
+            "INSERT INTO passage_results (id, ", kResultColumns, ") SELECT id, ", kResultColumns,
+            " FROM m.passage_results;"
+            "INSERT OR REPLACE INTO queue_meta (key, value) VALUES ('imported_from_map', 1)"));
+        !s.ok()) {
+      return s;
     }
-    if (auto s = queue->Exec("INSERT INTO queue_meta (key, value) VALUES ('imported_from_map', 1)"); !s.ok()) return s;
     return txn->Commit();
   });
 }
@@ -503,6 +504,33 @@ absl::StatusOr<int> ReconcileQueueWithMap(SqliteConnection* queue, const std::st
   absl::Status status = WithMapAttached(queue, map_path, [&]() -> absl::Status {
     auto txn = SqliteWriteTransaction::Begin(queue);
     if (!txn.ok()) return txn.status();
+    // Every passage the map holds must be in the queue, applied or excluded there (or processing,
+    // the crash case below). Otherwise the queue file is older than the map, or another map's: its
+    // next ids would be ids the map already holds, and passages the map contains would be applied
+    // again. Nothing is changed; the operator restores a matching pair.
+    auto stray = queue->Prepare(
+        "SELECT mp.id, p.state FROM m.map_passages mp LEFT JOIN passages p ON p.id = mp.id "
+        "WHERE p.id IS NULL OR p.state NOT IN (2, 3, 6) ORDER BY mp.id");
+    if (!stray.ok()) return stray.status();
+    int strays = 0;
+    std::string examples;
+    while (true) {
+      auto row = stray->Step();
+      if (!row.ok()) return row.status();
+      if (!*row) break;
+      if (++strays <= 5) {
+        absl::StrAppend(&examples, strays > 1 ? ", " : "", "id ", stray->Int(0), " ",
+                        stray->IsNull(1) ? std::string("missing")
+                                         : absl::StrCat("in state ", PassageStateName(static_cast<PassageState>(stray->Int(1)))));
+      }
+    }
+    if (strays > 0) {
+      return absl::FailedPreconditionError(absl::StrCat(
+          "db: the map ", map_path, " holds ", strays, " passage(s) that its queue file does not have as applied (",
+          examples, strays > 5 ? ", ..." : "",
+          "): the queue file is older than the map, or belongs to another map. Nothing was changed. Restore the map "
+          "and its queue from one backup (the map's copy taken first, then the queue's)"));
+    }
     // A passage applied in the map but still processing in the queue, or excluded in the map but
     // still applied in the queue: the map's commit landed and the queue's did not.
     constexpr char kBehind[] =

@@ -21,11 +21,16 @@ int LatestQueueSchemaVersion();
 absl::Status MigrateQueueSchema(SqliteConnection* queue);
 
 // Copies the passage queue of a map file at schema 4 (the queue shared the map's file) into the
-// queue file, once (a flag in the queue file records it, so a crash before the map file's own
-// migration repeats nothing). Run before MigrateSchema takes the map file past schema 4.
+// queue file, replacing what the queue file held: until the map file's own migration has dropped
+// its queue, that queue is the truth (a start that failed in between served nothing, and an older
+// release run after it took uploads into the map's file). Run before MigrateSchema takes the map
+// file past schema 4.
 absl::Status ImportQueueFromMapFile(SqliteConnection* queue, const std::string& map_path);
 
-// Brings the queue in line with the map file, which is the truth about what the map contains:
+// Brings the queue in line with the map file, which is the truth about what the map contains.
+// FailedPrecondition, nothing changed, when the map holds a passage the queue lacks or holds in
+// another state than applied, excluded or processing (a queue file older than the map, or another
+// map's). Otherwise:
 // - a passage the map holds as applied (or excluded) while the queue has it processing (or
 //   applied), after a crash between the map's commit and the queue's: recorded, with its result;
 // - a passage applied in the queue that the map does not contain (a map restored from a backup
