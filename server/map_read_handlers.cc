@@ -163,6 +163,13 @@ grpc::Status MapService::WatchRegion(grpc::ServerContext* ctx, const pb::WatchRe
   while (!ctx->IsCancelled()) {
     absl::StatusOr<LandmarkPage> page = context_->store->ChangedLandmarks(*box, since);
     if (!page.ok()) return log.Done(page.status());
+    if (messages == 0 && since > page->map_version) {
+      // Versions this map has not reached: the client's come from before a restore (whose map is
+      // then raised above them at start) or from another map. Its copy cannot be brought up to date.
+      return log.Done(absl::FailedPreconditionError(absl::StrCat(
+          "since_version: ", since, " is ahead of the map's version ", page->map_version,
+          " (another map, or one restored from a backup): read the region again and watch from its map_version")));
+    }
     if (messages == 0 || !page->landmarks.empty()) {
       // Only a change's last part carries its version: a client that resumes from the version of
       // an earlier part is sent the whole change again.

@@ -636,6 +636,27 @@ TEST_F(ServiceRpc, WatchRegionStreamsLandmarksChangedAfterTheVersion) {
   reader->Finish();
 }
 
+// A client whose version the map has not reached (it watched another map, or one since restored
+// from a backup) is told so instead of waiting, silently stale, for versions that will mean
+// something else.
+TEST_F(ServiceRpc, WatchRegionRefusesAVersionAheadOfTheMap) {
+  Start(true);
+  MustUpload(scenario_.MakePassage(0));
+  auto info = client_->WaitUntilIdle();
+  ASSERT_TRUE(info.ok());
+  grpc::ClientContext ctx;
+  ctx.set_deadline(std::chrono::system_clock::now() + std::chrono::seconds(30));
+  pb::WatchRegionRequest request;
+  *request.mutable_box() = MockVehicle::World();
+  request.set_since_version(info->map_version() + 1);
+  auto reader = client_->stub()->WatchRegion(&ctx, request);
+  pb::WatchRegionResponse first;
+  EXPECT_FALSE(reader->Read(&first));
+  const grpc::Status status = reader->Finish();
+  EXPECT_EQ(status.error_code(), grpc::StatusCode::FAILED_PRECONDITION) << status.error_message();
+  EXPECT_NE(status.error_message().find("since_version"), std::string::npos) << status.error_message();
+}
+
 // A change of more landmarks than one message holds comes in parts: only the last carries the new
 // version, so that a client resuming from the version it last saw gets the whole change again.
 TEST_F(ServiceRpc, WatchRegionSendsALargeChangeInPartsTheLastWithItsVersion) {

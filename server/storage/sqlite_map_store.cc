@@ -118,6 +118,8 @@ absl::StatusOr<std::unique_ptr<SqliteMapStore>> SqliteMapStore::Open(const std::
   {
     SqliteFile::Writer writer = (*queue)->LockWriter();
     if (auto n = ReconcileQueueWithMap(writer.db, path); !n.ok()) return n.status();
+    SqliteFile::Writer map_writer = (*map)->LockWriter();
+    if (auto raised = KeepVersionAheadOfQueue(map_writer.db, writer.db); !raised.ok()) return raised.status();
   }
   return std::unique_ptr<SqliteMapStore>(new SqliteMapStore(options, std::move(*map), std::move(*queue)));
 }
@@ -410,7 +412,7 @@ absl::Status SqliteMapStore::CommitMapChange(int64_t id, const MapDelta& delta, 
     if (!queue.ok()) return queue.status();
     if (auto s = CheckPassageState(queue->get(), id, from); !s.ok()) return s;
   }
-  PendingConfirmation change{id, from, to, NowUnixMs(), result};
+  PendingConfirmation change{id, from, to, NowUnixMs(), result, std::max(delta.version, delta.base_version)};
   {
     SqliteFile::Writer writer = map_->LockWriter();
     SqliteConnection* db = writer.db;
@@ -466,7 +468,52 @@ absl::Status SqliteMapStore::RecordMapChange(SqliteConnection* queue, const Pend
   if (change.result) {
     if (auto s = WriteResult(queue, "passage_results", change.id, *change.result); !s.ok()) return s;
   }
+  if (auto s = RecordMapVersionSeen(queue, change.map_version); !s.ok()) return s;
   return txn->Commit();
+}
+
+absl::Status SqliteMapStore::RecordMapVersionSeen(SqliteConnection* queue, int64_t version) {
+  auto seen = queue->Prepare(
+      "INSERT INTO queue_meta (key, value) VALUES ('map_version_seen', ?1) "
+      "ON CONFLICT (key) DO UPDATE SET value = MAX(value, excluded.value)");
+  if (!seen.ok()) return seen.status();
+  seen->Bind(1, version);
+  return seen->Run();
+}
+
+absl::StatusOr<int64_t> SqliteMapStore::KeepVersionAheadOfQueue(SqliteConnection* map, SqliteConnection* queue) {
+  // Queues written before the key existed: the versions of their applied passages' results.
+  auto seen = queue->Prepare(
+      "SELECT MAX(COALESCE((SELECT value FROM queue_meta WHERE key = 'map_version_seen'), 0), "
+      "COALESCE((SELECT MAX(map_version) FROM passage_results), 0))");
+  if (!seen.ok()) return seen.status();
+  if (auto row = seen->Step(); !row.ok()) return row.status();
+  const int64_t seen_version = seen->Int(0);
+  int64_t raised = 0;
+  {
+    auto txn = SqliteWriteTransaction::Begin(map);
+    if (!txn.ok()) return txn.status();
+    auto version = ReadMapVersion(map);
+    if (!version.ok()) return version.status();
+    if (*version < seen_version) {
+      raised = seen_version + 1;
+      if (auto s = map->Exec(absl::StrCat("UPDATE map_meta SET value = ", raised, " WHERE key = 'map_version';",
+                                          "UPDATE landmarks SET version = ", raised, ";"));
+          !s.ok()) {
+        return s;
+      }
+      spdlog::warn(
+          "event=map_version_raised from={} to={} (the map is older than its queue, restored from an earlier backup: "
+          "every landmark is stamped with the new version, so that watchers read them again)",
+          *version, raised);
+    }
+    if (auto s = txn->Commit(); !s.ok()) return s;
+    auto txn_queue = SqliteWriteTransaction::Begin(queue);
+    if (!txn_queue.ok()) return txn_queue.status();
+    if (auto s = RecordMapVersionSeen(queue, std::max(*version, raised)); !s.ok()) return s;
+    if (auto s = txn_queue->Commit(); !s.ok()) return s;
+  }
+  return raised;
 }
 
 void SqliteMapStore::ConfirmPending(SqliteConnection* queue) {

@@ -109,9 +109,17 @@ class SqliteMapStore : public MapStoreInterface {
     PassageState to = PassageState::kApplied;
     int64_t finished_unix_ms = 0;
     std::optional<PassageResult> result;
+    int64_t map_version = 0;  // the map's version after the change
   };
-  // In the queue writer's transaction: records one map change.
+  // In the queue writer's transaction: records one map change, and the highest map version the
+  // queue has seen (queue_meta 'map_version_seen').
   static absl::Status RecordMapChange(SqliteConnection* queue, const PendingConfirmation& change);
+  static absl::Status RecordMapVersionSeen(SqliteConnection* queue, int64_t version);
+  // At start, after the reconciliation: a map restored from a backup older than the queue's is at
+  // a version clients may have seen with other contents. Its version is raised above every one the
+  // queue recorded, and each landmark stamped with it, so that a client watching from any version
+  // it saw gets every landmark again. Returns the new version, or 0 when nothing was raised.
+  static absl::StatusOr<int64_t> KeepVersionAheadOfQueue(SqliteConnection* map, SqliteConnection* queue);
   // With the queue writer held: records the pending changes (each in its own transaction); those
   // that fail stay pending.
   void ConfirmPending(SqliteConnection* queue);

@@ -930,6 +930,41 @@ TEST(SqliteMapStore, AMapRestoredFromAnOlderBackupHasItsMissingPassagesAppliedAg
   ExpectStatsEqualTableCounts(store.get(), path);
 }
 
+// A map restored from a backup older than its queue's is at a version clients may have seen with
+// other contents: it is raised above every version the queue recorded, and every landmark carries
+// it, so that a client watching from any version it saw reads them all again.
+TEST(SqliteMapStore, AMapRestoredFromAnOlderBackupIsRaisedAboveEveryVersionItsQueueRecorded) {
+  TempDir dir;
+  const std::string path = dir.File("map.db");
+  const std::string backup = dir.File("map.backup");
+  {
+    auto store = OpenStore(path);
+    const int64_t first = EnqueueAndClaim(store.get(), "first");
+    ASSERT_TRUE(store->CommitPassageApplied(first, OneLandmarkDelta(0), SomeResult()).ok());
+  }
+  std::filesystem::copy_file(path, backup);  // closed: its log is checkpointed
+  {
+    auto store = OpenStore(path);
+    int64_t version = 1;
+    for (const char* name : {"second", "third"}) {
+      const int64_t id = EnqueueAndClaim(store.get(), name);
+      ASSERT_TRUE(store->CommitPassageApplied(id, OneLandmarkDelta(version++), SomeResult()).ok());
+    }
+  }
+  const std::string map_version = "SELECT value FROM map_meta WHERE key = 'map_version'";
+  ASSERT_EQ(SqlInt(path, map_version), 3);
+  for (const char* suffix : {"", "-wal", "-shm"}) std::remove((path + suffix).c_str());
+  std::filesystem::copy_file(backup, path);
+  auto store = OpenStore(path);
+  ASSERT_NE(store, nullptr);
+  EXPECT_EQ(SqlInt(path, map_version), 4) << "above the 3 clients may have seen";
+  EXPECT_EQ(SqlInt(path, "SELECT COUNT(*) FROM landmarks WHERE version <> 4"), 0);
+  EXPECT_EQ(store->FindPassage("v", "second")->state, PassageState::kQueued);
+  store.reset();
+  auto again = OpenStore(path);
+  EXPECT_EQ(SqlInt(path, map_version), 4) << "raised once";
+}
+
 TEST(SqliteMapStore, PruningDeletesOnlyTheUploadsOfAppliedPassages) {
   TempDir dir;
   const std::string path = dir.File("map.db");
