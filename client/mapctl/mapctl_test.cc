@@ -211,9 +211,15 @@ TEST_F(MapctlTest, WatchPrintsChangesSinceAVersion) {
   CliRun w = Mapctl({"watch", "--bbox", RouteBbox(), "--since", "0", "--updates", "1", "--seconds", "20"}, address_);
   ASSERT_EQ(w.code, 0) << w.err;
   EXPECT_TRUE(absl::StrContains(w.out, "\n  landmark ")) << w.out;
-  CliRun quiet = Mapctl({"watch", "--bbox", RouteBbox(), "--since", "1000000", "--seconds", "0.3"}, address_);
+  CliRun info = Mapctl({"info", "--json"}, address_);
+  ASSERT_TRUE(absl::StrContains(info.out, "\"map_version\": \"1\"")) << info.out;  // the one passage
+  CliRun quiet = Mapctl({"watch", "--bbox", RouteBbox(), "--since", "1", "--seconds", "0.3"}, address_);
   ASSERT_EQ(quiet.code, 0) << quiet.err;
   EXPECT_FALSE(absl::StrContains(quiet.out, "\n  landmark ")) << quiet.out;
+  // A version the map has not reached: refused, not waited on.
+  CliRun ahead = Mapctl({"watch", "--bbox", RouteBbox(), "--since", "1000000", "--seconds", "0.3"}, address_);
+  EXPECT_EQ(ahead.code, 1);
+  EXPECT_TRUE(absl::StrContains(ahead.err, "FAILED_PRECONDITION")) << ahead.err;
 }
 
 TEST_F(MapctlTest, BadInputGivesOneLineAndNonZeroExit) {

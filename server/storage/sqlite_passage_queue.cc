@@ -217,9 +217,13 @@ absl::StatusOr<StoredPassage> SqliteMapStore::FindPassage(const std::string& veh
 absl::StatusOr<std::vector<StoredPassage>> SqliteMapStore::ListPassages(const PassageQuery& query) {
   auto db = queue_->AcquireReader();
   if (!db.ok()) return db.status();
-  auto stmt = (*db)->Prepare(absl::StrCat(kPassageColumns,
-                                          "WHERE p.id > ?1 AND (?2 = 0 OR p.state = ?2) "
-                                          "AND (?3 = '' OR p.vehicle_id = ?3) ORDER BY p.id LIMIT ?4"));
+  // Only the filters asked for, written as plain equalities: SQLite then reads a state's passages
+  // by its index (state, id) and a vehicle's by (vehicle_id, passage_id), where "?2 = 0 OR ..."
+  // made it walk the whole queue by id.
+  auto stmt = (*db)->Prepare(absl::StrCat(kPassageColumns, "WHERE p.id > ?1",
+                                          query.state ? " AND p.state = ?2" : "",
+                                          query.vehicle_id.empty() ? "" : " AND p.vehicle_id = ?3",
+                                          " ORDER BY p.id LIMIT ?4"));
   if (!stmt.ok()) return stmt.status();
   stmt->Bind(1, query.after_id)
       .Bind(2, static_cast<int64_t>(query.state ? static_cast<int>(*query.state) : 0))
