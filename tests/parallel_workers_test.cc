@@ -190,7 +190,7 @@ TEST(ServiceRelinearization, TheWorkerRelinearizesStalePassagesAsTheInProcessUpd
 // re-linearising the stalest passage up to once per passage (re-linearisations in between would
 // give another map and other versions).
 TEST(ServiceRelinearization, ABacklogIsAppliedFirstAndItsRelinearisationsFollow) {
-  const std::vector<Passage> passages = CityPassages(12);
+  const std::vector<Passage> passages = CityPassages(16);
   MapUpdateOptions update = CityUpdateOptions();
   update.relinearize_sigmas = 0.5;
   TempDir dir;

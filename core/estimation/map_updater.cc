@@ -200,7 +200,7 @@ absl::StatusOr<SetAsideRequest> UpdateFromSubgraph(const Passage& passage, const
   if (absl::Status s = update.AddMapPrior(update_options, &problem); !s.ok()) return s;
 
   ceres::Solver::Summary solver_summary;
-  Solve(options, SolverOptions(options.max_solver_iterations), &problem, &solver_summary);
+  Solve(options, SubgraphSolveOptions(options.max_solver_iterations), &problem, &solver_summary);
   summary->solver_iterations += static_cast<int>(solver_summary.iterations.size());
   if (!solver_summary.IsSolutionUsable()) {
     return absl::InternalError(absl::StrCat("solver result unusable: ", solver_summary.message));
@@ -220,7 +220,7 @@ absl::StatusOr<SetAsideRequest> UpdateFromSubgraph(const Passage& passage, const
   if (const double variance_factor = VarianceFactor(chi2, dof, options.inflation_test_sigmas); variance_factor > 1.0) {
     summary->max_variance_factor = std::max(summary->max_variance_factor, variance_factor);
     Inflate(variance_factor, &measurement_weight);
-    Solve(options, SolverOptions(options.max_solver_iterations), &problem, &solver_summary);
+    Solve(options, SubgraphSolveOptions(options.max_solver_iterations), &problem, &solver_summary);
     summary->solver_iterations += static_cast<int>(solver_summary.iterations.size());
     if (!solver_summary.IsSolutionUsable()) {
       return absl::InternalError(absl::StrCat("solver result unusable after inflation: ", solver_summary.message));

@@ -103,6 +103,19 @@ ceres::Solver::Options SolverOptions(int max_iterations) {
   return options;
 }
 
+ceres::Solver::Options SubgraphSolveOptions(int max_iterations) {
+  ceres::Solver::Options options = SolverOptions(max_iterations);
+  // Levenberg-Marquardt's first steps close to Gauss-Newton's. Ceres's default radius (1e4) damps
+  // the Jacobi-scaled normal equations by 1e-4, which held back the weakly determined directions
+  // (landmarks along their rays, headings): from the refined initial poses a city subgraph took
+  // 5-6 iterations whose steps shrank by a third each, where Gauss-Newton's shrink quadratically
+  // (1 m, 1.5 cm, 0.5 mm). The radius still shrinks after a step that does not lower the cost. Not
+  // for the initial alignments, which start metres off (docs/results.md, "Subgraph solves started
+  // near Gauss-Newton").
+  options.initial_trust_region_radius = 1e6;
+  return options;
+}
+
 // ceres::Solve with options.yield_point called after each iteration and at the end.
 void Solve(const MapUpdateOptions& options, ceres::Solver::Options solver_options, ceres::Problem* problem,
            ceres::Solver::Summary* summary) {

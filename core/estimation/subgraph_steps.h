@@ -47,6 +47,9 @@ int SetAside(const std::unordered_set<LandmarkId>& landmarks_aside, const std::s
              SubgraphLandmarks* landmarks);
 
 ceres::Solver::Options SolverOptions(int max_iterations);
+// The options of a subgraph's solve from its refined initial guess: SolverOptions with Levenberg-
+// Marquardt started close to Gauss-Newton.
+ceres::Solver::Options SubgraphSolveOptions(int max_iterations);
 
 // ceres::Solve with options.yield_point called after each iteration and at the end.
 void Solve(const MapUpdateOptions& options, ceres::Solver::Options solver_options, ceres::Problem* problem,
