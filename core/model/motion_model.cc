@@ -10,24 +10,40 @@ double WrapAngle(double a) {
   return a <= -M_PI ? a + 2.0 * M_PI : a;
 }
 
+namespace {
+
+// sin(h) / h and its derivative, by their series near 0.
+double Sinc(double h) { return std::abs(h) < 1e-4 ? 1.0 - h * h / 6.0 : std::sin(h) / h; }
+double SincDerivative(double h) {
+  return std::abs(h) < 1e-4 ? -h / 3.0 : (h * std::cos(h) - std::sin(h)) / (h * h);
+}
+
+}  // namespace
+
 Pose2 BicycleStep(const Pose2& pose, double v, double xi, double dt, double wheelbase_m, Eigen::Matrix3d* d_pose,
                   Eigen::Matrix<double, 3, 2>* d_input, double turn_scale) {
   const double turn = turn_scale * v * std::sin(xi) * dt / wheelbase_m;
   const double phi = pose.z() + 0.5 * turn;
   const double c = std::cos(phi), s = std::sin(phi);
+  // The chord of the arc: v dt sin(turn / 2) / (turn / 2).
+  const double sinc = Sinc(0.5 * turn);
+  const double chord = v * dt * sinc;
   if (d_pose) {
-    *d_pose << 1, 0, -v * dt * s,  //
-        0, 1, v * dt * c,          //
+    *d_pose << 1, 0, -chord * s,  //
+        0, 1, chord * c,          //
         0, 0, 1;
   }
   if (d_input) {
     const double dturn_dv = turn_scale * std::sin(xi) * dt / wheelbase_m;
     const double dturn_dxi = turn_scale * v * std::cos(xi) * dt / wheelbase_m;
-    *d_input << dt * c - 0.5 * v * dt * s * dturn_dv, -0.5 * v * dt * s * dturn_dxi,  //
-        dt * s + 0.5 * v * dt * c * dturn_dv, 0.5 * v * dt * c * dturn_dxi,           //
+    const double dsinc = 0.5 * SincDerivative(0.5 * turn);
+    const double dchord_dv = dt * sinc + v * dt * dsinc * dturn_dv;
+    const double dchord_dxi = v * dt * dsinc * dturn_dxi;
+    *d_input << dchord_dv * c - 0.5 * chord * s * dturn_dv, dchord_dxi * c - 0.5 * chord * s * dturn_dxi,  //
+        dchord_dv * s + 0.5 * chord * c * dturn_dv, dchord_dxi * s + 0.5 * chord * c * dturn_dxi,          //
         dturn_dv, dturn_dxi;
   }
-  return {pose.x() + v * dt * c, pose.y() + v * dt * s, pose.z() + turn};
+  return {pose.x() + chord * c, pose.y() + chord * s, pose.z() + turn};
 }
 
 namespace {

@@ -29,12 +29,36 @@ std::vector<OdometrySample> CurvyOdometry(int samples) {
   return odometry;
 }
 
-TEST(BicycleStep, FollowsTheThesisFormula) {
+// A step follows the arc of constant turn: on a circle of radius R / sin(xi) about its centre.
+TEST(BicycleStep, FollowsTheArcOfConstantTurn) {
   const Pose2 pose(1.0, -2.0, 0.7);
+  for (const double dt : {0.04, 1.0, 5.0}) {
+    const double v = 11.0, xi = 0.3;
+    const double radius = kWheelbase / std::sin(xi);
+    const Eigen::Vector2d centre = pose.head<2>() + radius * Eigen::Vector2d(-std::sin(0.7), std::cos(0.7));
+    const double heading = 0.7 + v * dt / radius;
+    const Eigen::Vector2d expected = centre + radius * Eigen::Vector2d(std::sin(heading), -std::cos(heading));
+    const Pose2 step = BicycleStep(pose, v, xi, dt, kWheelbase);
+    EXPECT_LT((step.head<2>() - expected).norm(), 1e-12) << dt << " s";
+    EXPECT_NEAR(step.z(), heading, 1e-15) << dt << " s";
+  }
+  // Within v dt d^2 / 24 of the thesis's eq. 4.43 (v dt along the mean heading).
   const double v = 11.0, xi = 0.05, dt = 0.04;
   const double turn = v * std::sin(xi) * dt / kWheelbase;
-  const Pose2 expected(1.0 + v * dt * std::cos(0.7 + turn / 2), -2.0 + v * dt * std::sin(0.7 + turn / 2), 0.7 + turn);
-  EXPECT_LT((BicycleStep(pose, v, xi, dt, kWheelbase) - expected).norm(), 1e-15);
+  const Pose2 thesis(1.0 + v * dt * std::cos(0.7 + turn / 2), -2.0 + v * dt * std::sin(0.7 + turn / 2), 0.7 + turn);
+  const double leading = v * dt * turn * turn / 24;  // the series term; the next is 1e-5 of it here
+  EXPECT_NEAR((BicycleStep(pose, v, xi, dt, kWheelbase) - thesis).norm(), leading, 1e-4 * leading);
+}
+
+// A step split at any time ends where the whole step does: a pose node inside a long sample
+// interval does not change the motion.
+TEST(BicycleStep, AStepSplitInPartsEndsWhereTheWholeStepDoes) {
+  const Pose2 pose(3.0, 4.0, -1.2);
+  const double v = 10.0, xi = -0.2, dt = 5.0;  // a 5 s encoder gap in a curve of 13.7 m radius
+  const Pose2 whole = BicycleStep(pose, v, xi, dt, kWheelbase);
+  Pose2 parts = pose;
+  for (const double part : {0.7, 1.9, 0.01, 2.39}) parts = BicycleStep(parts, v, xi, part, kWheelbase);
+  EXPECT_LT((parts - whole).norm(), 1e-12);
 }
 
 TEST(BicycleStep, JacobiansMatchCentralFiniteDifferences) {
@@ -45,7 +69,9 @@ TEST(BicycleStep, JacobiansMatchCentralFiniteDifferences) {
   const Case cases[] = {{Pose2(1.0, -2.0, 0.7), 11.0, 0.05, 0.04},
                         {Pose2(-30.0, 12.0, -3.1), 14.0, -0.3, 0.04},
                         {Pose2(0.0, 0.0, M_PI / 2), 3.0, 0.6, 0.1},
-                        {Pose2(5.0, 5.0, 2.0), 0.0, 0.1, 0.04}};
+                        {Pose2(5.0, 5.0, 2.0), 0.0, 0.1, 0.04},
+                        {Pose2(1.0, 2.0, 0.3), 10.0, 0.2, 5.0},     // a long step: the chord well short of v dt
+                        {Pose2(1.0, 2.0, 0.3), 10.0, 1e-7, 0.04}};  // the series of sin(h) / h
   const double h = 1e-6;
   for (const Case& c : cases) {
     Eigen::Matrix3d d_pose;
