@@ -20,6 +20,8 @@ constexpr int kMaxCovariancePage = 2000;
 // parts that fit a client's default 4 MiB message limit.
 constexpr size_t kWatchMessageLandmarks = 1000;
 constexpr std::chrono::milliseconds kWatchPoll{500};
+// How long a watch from a version the map has not reached waits for it before it is refused.
+constexpr std::chrono::milliseconds kWatchAheadWait{2000};
 
 void CountCovarianceRead(ServerMetrics* metrics, const LandmarkPage& page) {
   if (metrics != nullptr && page.covariance.size() > 0) metrics->ObserveCovarianceRead(page.covariance_bound);
@@ -164,8 +166,15 @@ grpc::Status MapService::WatchRegion(grpc::ServerContext* ctx, const pb::WatchRe
     absl::StatusOr<LandmarkPage> page = context_->store->ChangedLandmarks(*box, since);
     if (!page.ok()) return log.Done(page.status());
     if (messages == 0 && since > page->map_version) {
-      // Versions this map has not reached: the client's come from before a restore (whose map is
-      // then raised above them at start) or from another map. Its copy cannot be brought up to date.
+      // A version just committed may not be served yet (the client read it from GetMapInfo or its
+      // passage's result): wait for it a moment.
+      context_->notifier->WaitAbove(since - 1, kWatchAheadWait);
+      page = context_->store->ChangedLandmarks(*box, since);
+      if (!page.ok()) return log.Done(page.status());
+    }
+    if (messages == 0 && since > page->map_version) {
+      // Versions this map has not reached: the client's come from another map, or from one since
+      // restored from a backup. Its copy cannot be brought up to date.
       return log.Done(absl::FailedPreconditionError(absl::StrCat(
           "since_version: ", since, " is ahead of the map's version ", page->map_version,
           " (another map, or one restored from a backup): read the region again and watch from its map_version")));

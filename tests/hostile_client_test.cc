@@ -609,6 +609,7 @@ TEST_F(Hostile, StalledStreamsAreCappedAndTimedOutWithThreadsBounded) {
 TEST_F(Hostile, CallsBeyondTheThreadPoolGetResourceExhaustedNotAHang) {
   MapServerOptions options = Options();
   options.limits.max_upload_streams = 0;
+  options.limits.max_upload_streams_per_identity = 0;  // the thread pool is what this fills
   options.limits.max_threads = 16;
   options.limits.upload_idle_timeout_s = 2;
   options.limits.vehicle_uploads_per_s = 0;

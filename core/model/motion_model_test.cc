@@ -91,6 +91,14 @@ TEST(BicycleStep, JacobiansMatchCentralFiniteDifferences) {
         (BicycleStep(c.pose, c.v, c.xi + h, c.dt, kWheelbase) - BicycleStep(c.pose, c.v, c.xi - h, c.dt, kWheelbase)) / (2 * h);
     EXPECT_LT((d_input.col(0) - dv).cwiseAbs().maxCoeff(), 1e-7) << "speed, v " << c.v;
     EXPECT_LT((d_input.col(1) - dxi).cwiseAbs().maxCoeff(), 1e-7) << "steering, v " << c.v;
+    // With the turn scaled, as Preintegrate's noise corrections do.
+    const double scale = 1.3;
+    BicycleStep(c.pose, c.v, c.xi, c.dt, kWheelbase, &d_pose, &d_input, scale);
+    const auto step = [&](double v, double xi) { return BicycleStep(c.pose, v, xi, c.dt, kWheelbase, nullptr, nullptr, scale); };
+    EXPECT_LT((d_input.col(0) - (step(c.v + h, c.xi) - step(c.v - h, c.xi)) / (2 * h)).cwiseAbs().maxCoeff(), 1e-7)
+        << "speed, turn scaled, v " << c.v;
+    EXPECT_LT((d_input.col(1) - (step(c.v, c.xi + h) - step(c.v, c.xi - h)) / (2 * h)).cwiseAbs().maxCoeff(), 1e-7)
+        << "steering, turn scaled, v " << c.v;
   }
 }
 

@@ -120,6 +120,7 @@ absl::StatusOr<std::unique_ptr<SqliteMapStore>> SqliteMapStore::Open(const std::
     if (auto n = ReconcileQueueWithMap(writer.db, path); !n.ok()) return n.status();
     SqliteFile::Writer map_writer = (*map)->LockWriter();
     if (auto raised = KeepVersionAheadOfQueue(map_writer.db, writer.db); !raised.ok()) return raised.status();
+    if (auto s = MarkQueueServed(writer.db); !s.ok()) return s;
   }
   return std::unique_ptr<SqliteMapStore>(new SqliteMapStore(options, std::move(*map), std::move(*queue)));
 }
@@ -496,7 +497,9 @@ absl::StatusOr<int64_t> SqliteMapStore::KeepVersionAheadOfQueue(SqliteConnection
     auto version = ReadMapVersion(map);
     if (!version.ok()) return version.status();
     if (*version < seen_version) {
-      raised = seen_version + 1;
+      // A new range of versions: the queue was backed up after the map, and the server went on
+      // past what it recorded, to versions clients saw. Above any of them, however far it went.
+      raised = (seen_version / kRestoredVersionStep + 1) * kRestoredVersionStep;
       if (auto s = map->Exec(absl::StrCat("UPDATE map_meta SET value = ", raised, " WHERE key = 'map_version';",
                                           "UPDATE landmarks SET version = ", raised, ";"));
           !s.ok()) {

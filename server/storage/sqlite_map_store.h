@@ -116,9 +116,12 @@ class SqliteMapStore : public MapStoreInterface {
   static absl::Status RecordMapChange(SqliteConnection* queue, const PendingConfirmation& change);
   static absl::Status RecordMapVersionSeen(SqliteConnection* queue, int64_t version);
   // At start, after the reconciliation: a map restored from a backup older than the queue's is at
-  // a version clients may have seen with other contents. Its version is raised above every one the
-  // queue recorded, and each landmark stamped with it, so that a client watching from any version
-  // it saw gets every landmark again. Returns the new version, or 0 when nothing was raised.
+  // a version clients may have seen with other contents. Its version is raised to the next
+  // multiple of kRestoredVersionStep above every one the queue recorded (clients may have seen
+  // later ones, from after the queue's backup), and each landmark stamped with it, so that a
+  // client watching from any version it saw gets every landmark again. Returns the new version, or
+  // 0 when nothing was raised.
+  static constexpr int64_t kRestoredVersionStep = int64_t{1} << 32;
   static absl::StatusOr<int64_t> KeepVersionAheadOfQueue(SqliteConnection* map, SqliteConnection* queue);
   // With the queue writer held: records the pending changes (each in its own transaction); those
   // that fail stay pending.

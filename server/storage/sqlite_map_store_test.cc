@@ -957,12 +957,13 @@ TEST(SqliteMapStore, AMapRestoredFromAnOlderBackupIsRaisedAboveEveryVersionItsQu
   std::filesystem::copy_file(backup, path);
   auto store = OpenStore(path);
   ASSERT_NE(store, nullptr);
-  EXPECT_EQ(SqlInt(path, map_version), 4) << "above the 3 clients may have seen";
-  EXPECT_EQ(SqlInt(path, "SELECT COUNT(*) FROM landmarks WHERE version <> 4"), 0);
+  const int64_t raised = int64_t{1} << 32;  // a new range: clients may have seen versions after 3
+  EXPECT_EQ(SqlInt(path, map_version), raised);
+  EXPECT_EQ(SqlInt(path, "SELECT COUNT(*) FROM landmarks WHERE version <> " + std::to_string(raised)), 0);
   EXPECT_EQ(store->FindPassage("v", "second")->state, PassageState::kQueued);
   store.reset();
   auto again = OpenStore(path);
-  EXPECT_EQ(SqlInt(path, map_version), 4) << "raised once";
+  EXPECT_EQ(SqlInt(path, map_version), raised) << "raised once";
 }
 
 TEST(SqliteMapStore, PruningDeletesOnlyTheUploadsOfAppliedPassages) {
@@ -1154,6 +1155,27 @@ TEST(SqliteMapStore, UploadsTakenBySchemaFourAfterAnInterruptedUpgradeAreCopiedT
   EXPECT_EQ(*store->GetPassagePayload(2), "two");
   EXPECT_EQ(store->GetPassage(1)->state, PassageState::kRejected) << "the map file's queue is the truth";
   ExpectStatsEqualTableCounts(store.get(), path);
+}
+
+// A map file created anew beside a queue that has served (the map lost, to be rebuilt from the
+// queue; or a schema-4 map restored beside it) starts at schema 4 with a queue of its own, empty or
+// older: the queue file is kept, and its applied passages are queued again.
+TEST(SqliteMapStore, AMapCreatedAnewBesideAServedQueueKeepsTheQueue) {
+  TempDir dir;
+  const std::string path = dir.File("map.db");
+  {
+    auto store = OpenStore(path);
+    const int64_t first = EnqueueAndClaim(store.get(), "first");
+    ASSERT_TRUE(store->CommitPassageApplied(first, OneLandmarkDelta(0), SomeResult()).ok());
+    ASSERT_TRUE(store->EnqueuePassages({MakeUpload("v", "queued", "other")}, 0).ok());
+  }
+  for (const char* suffix : {"", "-wal", "-shm"}) std::remove((path + suffix).c_str());
+  auto store = OpenStore(path);
+  ASSERT_NE(store, nullptr);
+  EXPECT_EQ(SqlInt(SqliteQueuePath(path), "SELECT COUNT(*) FROM passages"), 2);
+  EXPECT_EQ(SqlInt(SqliteQueuePath(path), "SELECT COUNT(*) FROM passage_payloads"), 2);
+  EXPECT_EQ(store->FindPassage("v", "first")->state, PassageState::kQueued) << "applied again to the new map";
+  EXPECT_EQ(store->FindPassage("v", "queued")->state, PassageState::kQueued);
 }
 
 // A queue file older than its map (restored from an earlier backup than the map's, or emptied)

@@ -475,14 +475,26 @@ absl::Status ImportQueueFromMapFile(SqliteConnection* queue, const std::string& 
   return WithMapAttached(queue, map_path, [&]() -> absl::Status {
     auto txn = SqliteWriteTransaction::Begin(queue);
     if (!txn.ok()) return txn.status();
-    // While the map file still has its queue (its migration past schema 4 has not run), no server
-    // has taken uploads into the queue file: a start that fails between the copy and the map's
-    // migration serves nothing. That queue is the truth, and is copied whole on every such start:
-    // after a rollback to an older release, uploads taken into the map's file meanwhile come over too.
+    // Until a start has completed on it (MarkQueueServed), the queue file has taken no upload: a
+    // start that fails between the copy and the map's migration serves nothing. Until then the map
+    // file's queue is the truth, and is copied whole on every start: after a rollback to an older
+    // release, uploads taken into the map's file meanwhile come over too. Once served, the queue
+    // file is never replaced: a map file created anew, or a schema-4 map restored, beside it has
+    // nothing the queue lacks.
+    auto served = queue->Prepare("SELECT COUNT(*) FROM queue_meta WHERE key = 'served'");
+    if (!served.ok()) return served.status();
+    if (auto row = served->Step(); !row.ok()) return row.status();
+    if (served->Int(0) > 0) return txn->Commit();
     auto has_queue = queue->Prepare("SELECT COUNT(*) FROM m.sqlite_master WHERE type = 'table' AND name = 'passages'");
     if (!has_queue.ok()) return has_queue.status();
     if (auto row = has_queue->Step(); !row.ok()) return row.status();
     if (has_queue->Int(0) == 0) return txn->Commit();
+    // A queue file of an earlier release carries no 'served' key: it is replaced only when the
+    // map's queue holds every passage it holds.
+    auto newer = queue->Prepare("SELECT COUNT(*) FROM passages WHERE id NOT IN (SELECT id FROM m.passages)");
+    if (!newer.ok()) return newer.status();
+    if (auto row = newer->Step(); !row.ok()) return row.status();
+    if (newer->Int(0) > 0) return txn->Commit();
     if (auto s = queue->Exec(absl::StrCat(
             "DELETE FROM passage_results; DELETE FROM passage_payloads; DELETE FROM passages;"
             "INSERT INTO passages (id, vehicle_id, passage_id, state, attempts, error, received_unix_ms, "
@@ -497,6 +509,10 @@ absl::Status ImportQueueFromMapFile(SqliteConnection* queue, const std::string& 
     }
     return txn->Commit();
   });
+}
+
+absl::Status MarkQueueServed(SqliteConnection* queue) {
+  return queue->Exec("INSERT OR REPLACE INTO queue_meta (key, value) VALUES ('served', 1)");
 }
 
 absl::StatusOr<int> ReconcileQueueWithMap(SqliteConnection* queue, const std::string& map_path) {

@@ -21,11 +21,14 @@ int LatestQueueSchemaVersion();
 absl::Status MigrateQueueSchema(SqliteConnection* queue);
 
 // Copies the passage queue of a map file at schema 4 (the queue shared the map's file) into the
-// queue file, replacing what the queue file held: until the map file's own migration has dropped
-// its queue, that queue is the truth (a start that failed in between served nothing, and an older
-// release run after it took uploads into the map's file). Run before MigrateSchema takes the map
-// file past schema 4.
+// queue file, replacing what the queue file held, as long as no start has completed on the queue
+// file (MarkQueueServed): until then the map file's queue is the truth (a start that failed in
+// between served nothing, and an older release run after it took uploads into the map's file).
+// Run before MigrateSchema takes the map file past schema 4.
 absl::Status ImportQueueFromMapFile(SqliteConnection* queue, const std::string& map_path);
+// Records that a start completed on the queue file: from then on it takes uploads, and no map
+// file's queue replaces it.
+absl::Status MarkQueueServed(SqliteConnection* queue);
 
 // Brings the queue in line with the map file, which is the truth about what the map contains.
 // FailedPrecondition, nothing changed, when the map holds a passage the queue lacks or holds in
