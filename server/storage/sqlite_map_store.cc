@@ -5,6 +5,7 @@
 
 #include <cmath>
 #include <filesystem>
+#include <fstream>
 #include <functional>
 #include <unordered_set>
 
@@ -119,10 +120,19 @@ absl::StatusOr<std::unique_ptr<SqliteMapStore>> SqliteMapStore::Open(const std::
     SqliteFile::Writer writer = (*queue)->LockWriter();
     if (auto n = ReconcileQueueWithMap(writer.db, path); !n.ok()) return n.status();
     SqliteFile::Writer map_writer = (*map)->LockWriter();
-    if (auto raised = KeepVersionAheadOfQueue(map_writer.db, writer.db); !raised.ok()) return raised.status();
+    auto raised = KeepVersionAheadOfQueue(map_writer.db, writer.db, ReadVersionMark(VersionMarkPath(path)));
+    if (!raised.ok()) return raised.status();
     if (auto s = MarkQueueServed(writer.db); !s.ok()) return s;
   }
-  return std::unique_ptr<SqliteMapStore>(new SqliteMapStore(options, std::move(*map), std::move(*queue)));
+  auto store = std::unique_ptr<SqliteMapStore>(
+      new SqliteMapStore(options, std::move(*map), std::move(*queue), VersionMarkPath(path)));
+  {
+    SqliteFile::Writer writer = store->map_->LockWriter();
+    auto version = ReadMapVersion(writer.db);
+    if (!version.ok()) return version.status();
+    store->WriteVersionMark(*version);
+  }
+  return store;
 }
 
 absl::StatusOr<int64_t> SqliteMapStore::ReadMapVersion(SqliteConnection* db) {
@@ -444,6 +454,7 @@ absl::Status SqliteMapStore::CommitMapChange(int64_t id, const MapDelta& delta, 
     }
     for (auto& [lid, placement] : written) (*placements_)[lid] = placement;
     for (LandmarkId lid : delta.removed_landmarks) placements_->erase(lid);
+    WriteVersionMark(change.map_version);
   }
   SqliteFile::Writer writer = queue_->LockWriter();
   pending_.push_back(std::move(change));
@@ -482,14 +493,29 @@ absl::Status SqliteMapStore::RecordMapVersionSeen(SqliteConnection* queue, int64
   return seen->Run();
 }
 
-absl::StatusOr<int64_t> SqliteMapStore::KeepVersionAheadOfQueue(SqliteConnection* map, SqliteConnection* queue) {
+int64_t SqliteMapStore::ReadVersionMark(const std::string& path) {
+  std::ifstream in(path);
+  int64_t version = 0;
+  if (!(in >> version) || version < 0) return 0;
+  return version;
+}
+
+void SqliteMapStore::WriteVersionMark(int64_t version) const {
+  // Written whole each time (a few bytes): a torn write leaves an unreadable mark, read as none.
+  std::ofstream out(version_mark_path_, std::ios::trunc);
+  out << version << "\n";
+  if (!out.flush()) spdlog::warn("event=version_mark_failed path={} version={}", version_mark_path_, version);
+}
+
+absl::StatusOr<int64_t> SqliteMapStore::KeepVersionAheadOfQueue(SqliteConnection* map, SqliteConnection* queue,
+                                                                int64_t marked) {
   // Queues written before the key existed: the versions of their applied passages' results.
   auto seen = queue->Prepare(
       "SELECT MAX(COALESCE((SELECT value FROM queue_meta WHERE key = 'map_version_seen'), 0), "
       "COALESCE((SELECT MAX(map_version) FROM passage_results), 0))");
   if (!seen.ok()) return seen.status();
   if (auto row = seen->Step(); !row.ok()) return row.status();
-  const int64_t seen_version = seen->Int(0);
+  const int64_t seen_version = std::max(seen->Int(0), marked);
   int64_t raised = 0;
   {
     auto txn = SqliteWriteTransaction::Begin(map);
@@ -506,7 +532,7 @@ absl::StatusOr<int64_t> SqliteMapStore::KeepVersionAheadOfQueue(SqliteConnection
         return s;
       }
       spdlog::warn(
-          "event=map_version_raised from={} to={} (the map is older than its queue, restored from an earlier backup: "
+          "event=map_version_raised from={} to={} (the map is older than its queue or its version mark, restored from a backup: "
           "every landmark is stamped with the new version, so that watchers read them again)",
           *version, raised);
     }

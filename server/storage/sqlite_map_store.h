@@ -56,8 +56,9 @@ class SqliteMapStore : public MapStoreInterface {
 
  private:
   SqliteMapStore(const SqliteMapStoreOptions& options, std::unique_ptr<SqliteFile> map,
-                 std::unique_ptr<SqliteFile> queue)
-      : options_(options), map_(std::move(map)), queue_(std::move(queue)) {}
+                 std::unique_ptr<SqliteFile> queue, std::string version_mark_path)
+      : options_(options), map_(std::move(map)), queue_(std::move(queue)),
+        version_mark_path_(std::move(version_mark_path)) {}
 
 
   // Helpers running on a connection the caller holds (inside its transaction when needed).
@@ -115,14 +116,21 @@ class SqliteMapStore : public MapStoreInterface {
   // queue has seen (queue_meta 'map_version_seen').
   static absl::Status RecordMapChange(SqliteConnection* queue, const PendingConfirmation& change);
   static absl::Status RecordMapVersionSeen(SqliteConnection* queue, int64_t version);
-  // At start, after the reconciliation: a map restored from a backup older than the queue's is at
-  // a version clients may have seen with other contents. Its version is raised to the next
-  // multiple of kRestoredVersionStep above every one the queue recorded (clients may have seen
-  // later ones, from after the queue's backup), and each landmark stamped with it, so that a
-  // client watching from any version it saw gets every landmark again. Returns the new version, or
-  // 0 when nothing was raised.
+  // At start, after the reconciliation: a restored map is at a version clients may have seen with
+  // other contents. When the queue recorded a later version, or the version mark `marked`
+  // (VersionMarkPath; 0 without one) holds one, the map's version is raised to the next multiple of
+  // kRestoredVersionStep above it (clients may have seen later ones still), and each landmark
+  // stamped with it, so that a client watching from any version it saw gets every landmark again.
+  // Returns the new version, or 0 when nothing was raised.
   static constexpr int64_t kRestoredVersionStep = int64_t{1} << 32;
-  static absl::StatusOr<int64_t> KeepVersionAheadOfQueue(SqliteConnection* map, SqliteConnection* queue);
+  static absl::StatusOr<int64_t> KeepVersionAheadOfQueue(SqliteConnection* map, SqliteConnection* queue,
+                                                         int64_t marked);
+  // "<db>.version": the last version committed, written after each map commit (not synced: a
+  // hint that can only be behind the map, never ahead of it). A map restored in place of a newer
+  // one finds the newer one's last version there, even when its queue was backed up with it.
+  static std::string VersionMarkPath(const std::string& map_path) { return map_path + ".version"; }
+  static int64_t ReadVersionMark(const std::string& path);  // 0 when absent or unreadable
+  void WriteVersionMark(int64_t version) const;             // logged, not returned, on failure
   // With the queue writer held: records the pending changes (each in its own transaction); those
   // that fail stay pending.
   void ConfirmPending(SqliteConnection* queue);
@@ -152,6 +160,7 @@ class SqliteMapStore : public MapStoreInterface {
   // The map file's placements as of its last commit, read at the first commit and dropped when a
   // commit fails (read again at the next); guarded by the map's writer lock.
   std::optional<Placements> placements_;
+  const std::string version_mark_path_;
 };
 
 }  // namespace crowdmap

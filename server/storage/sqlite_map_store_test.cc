@@ -966,6 +966,44 @@ TEST(SqliteMapStore, AMapRestoredFromAnOlderBackupIsRaisedAboveEveryVersionItsQu
   EXPECT_EQ(SqlInt(path, map_version), raised) << "raised once";
 }
 
+// Both files restored from one backup: the queue knows no later version, but the version mark
+// beside them holds the last one clients may have seen.
+TEST(SqliteMapStore, AMapAndQueueRestoredTogetherAreRaisedAboveTheVersionMark) {
+  TempDir dir;
+  const std::string path = dir.File("map.db");
+  const std::string queue = SqliteQueuePath(path);
+  {
+    auto store = OpenStore(path);
+    const int64_t first = EnqueueAndClaim(store.get(), "first");
+    ASSERT_TRUE(store->CommitPassageApplied(first, OneLandmarkDelta(0), SomeResult()).ok());
+  }
+  std::filesystem::copy_file(path, dir.File("map.backup"));
+  std::filesystem::copy_file(queue, dir.File("queue.backup"));
+  {
+    auto store = OpenStore(path);
+    const int64_t second = EnqueueAndClaim(store.get(), "second");
+    ASSERT_TRUE(store->CommitPassageApplied(second, OneLandmarkDelta(1), SomeResult()).ok());
+  }
+  std::ifstream mark(path + ".version");
+  int64_t marked = 0;
+  mark >> marked;
+  EXPECT_EQ(marked, 2) << "written after each commit";
+  for (const std::string& file : {path, queue}) {
+    for (const char* suffix : {"", "-wal", "-shm"}) std::remove((file + suffix).c_str());
+  }
+  std::filesystem::copy_file(dir.File("map.backup"), path);
+  std::filesystem::copy_file(dir.File("queue.backup"), queue);
+  auto store = OpenStore(path);
+  ASSERT_NE(store, nullptr);
+  const int64_t raised = int64_t{1} << 32;
+  EXPECT_EQ(SqlInt(path, "SELECT value FROM map_meta WHERE key = 'map_version'"), raised);
+  EXPECT_EQ(SqlInt(path, "SELECT COUNT(*) FROM landmarks WHERE version <> " + std::to_string(raised)), 0);
+  store.reset();
+  std::remove((path + ".version").c_str());  // a restore on another machine, without the mark
+  auto again = OpenStore(path);
+  EXPECT_EQ(SqlInt(path, "SELECT value FROM map_meta WHERE key = 'map_version'"), raised) << "not raised again";
+}
+
 TEST(SqliteMapStore, PruningDeletesOnlyTheUploadsOfAppliedPassages) {
   TempDir dir;
   const std::string path = dir.File("map.db");
