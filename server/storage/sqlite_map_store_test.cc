@@ -814,6 +814,11 @@ std::unique_ptr<MapStoreInterface> OpenStoreWithBusyTimeout(const std::string& p
   return store.ok() ? std::move(*store) : nullptr;
 }
 
+// Deletes a database file with its write-ahead log and shared memory, as a restore must.
+void RemoveDatabaseFile(const std::string& path) {
+  for (const char* suffix : {"", "-wal", "-shm"}) std::remove((path + suffix).c_str());
+}
+
 MapDelta OneLandmarkDelta(int64_t base_version) {
   MapDelta delta;
   delta.base_version = base_version;
@@ -953,7 +958,7 @@ TEST(SqliteMapStore, AMapRestoredFromAnOlderBackupIsRaisedAboveEveryVersionItsQu
   }
   const std::string map_version = "SELECT value FROM map_meta WHERE key = 'map_version'";
   ASSERT_EQ(SqlInt(path, map_version), 3);
-  for (const char* suffix : {"", "-wal", "-shm"}) std::remove((path + suffix).c_str());
+  RemoveDatabaseFile(path);
   std::filesystem::copy_file(backup, path);
   auto store = OpenStore(path);
   ASSERT_NE(store, nullptr);
@@ -988,9 +993,7 @@ TEST(SqliteMapStore, AMapAndQueueRestoredTogetherAreRaisedAboveTheVersionMark) {
   int64_t marked = 0;
   mark >> marked;
   EXPECT_EQ(marked, 2) << "written after each commit";
-  for (const std::string& file : {path, queue}) {
-    for (const char* suffix : {"", "-wal", "-shm"}) std::remove((file + suffix).c_str());
-  }
+  for (const std::string& file : {path, queue}) RemoveDatabaseFile(file);
   std::filesystem::copy_file(dir.File("map.backup"), path);
   std::filesystem::copy_file(dir.File("queue.backup"), queue);
   auto store = OpenStore(path);
@@ -1113,7 +1116,7 @@ TEST(SqliteMapStore, AMapWithoutItsQueueFileIsRefused) {
     const int64_t id = EnqueueAndClaim(store.get(), "p");
     ASSERT_TRUE(store->CommitPassageApplied(id, OneLandmarkDelta(0), SomeResult()).ok());
   }
-  for (const char* suffix : {"", "-wal", "-shm"}) std::remove((SqliteQueuePath(path) + suffix).c_str());
+  RemoveDatabaseFile(SqliteQueuePath(path));
   auto store = CreateSqliteMapStore(path);
   ASSERT_FALSE(store.ok());
   EXPECT_EQ(store.status().code(), absl::StatusCode::kFailedPrecondition);
@@ -1207,7 +1210,7 @@ TEST(SqliteMapStore, AMapCreatedAnewBesideAServedQueueKeepsTheQueue) {
     ASSERT_TRUE(store->CommitPassageApplied(first, OneLandmarkDelta(0), SomeResult()).ok());
     ASSERT_TRUE(store->EnqueuePassages({MakeUpload("v", "queued", "other")}, 0).ok());
   }
-  for (const char* suffix : {"", "-wal", "-shm"}) std::remove((path + suffix).c_str());
+  RemoveDatabaseFile(path);
   auto store = OpenStore(path);
   ASSERT_NE(store, nullptr);
   EXPECT_EQ(SqlInt(SqliteQueuePath(path), "SELECT COUNT(*) FROM passages"), 2);
@@ -1235,7 +1238,7 @@ TEST(SqliteMapStore, AQueueFileOlderThanItsMapIsRefused) {
     const int64_t second = EnqueueAndClaim(store.get(), "second");
     ASSERT_TRUE(store->CommitPassageApplied(second, OneLandmarkDelta(1), SomeResult()).ok());
   }
-  for (const char* suffix : {"", "-wal", "-shm"}) std::remove((queue + suffix).c_str());
+  RemoveDatabaseFile(queue);
   std::filesystem::copy_file(old_queue, queue);
   auto refused = CreateSqliteMapStore(path);
   ASSERT_FALSE(refused.ok());
@@ -1245,7 +1248,7 @@ TEST(SqliteMapStore, AQueueFileOlderThanItsMapIsRefused) {
   EXPECT_EQ(SqlInt(queue, "SELECT COUNT(*) FROM passages"), 1) << "nothing changed";
 
   // An empty queue file likewise.
-  for (const char* suffix : {"", "-wal", "-shm"}) std::remove((queue + suffix).c_str());
+  RemoveDatabaseFile(queue);
   std::ofstream(queue).close();
   auto empty = CreateSqliteMapStore(path);
   ASSERT_FALSE(empty.ok());
