@@ -173,6 +173,17 @@ TEST(ParallelWorkers, CityPassagesGiveTheMapOfTheirCommitOrder) {
   RunWithWorkers(2, CityPassages(24), CityUpdateOptions());
 }
 
+// A young map's joint solves (the warm-up), computed by one worker while the other commits: a
+// landmark or factor the solve has read may be gone, or new, by its next read. Such a computation
+// is made again, and the map is the one of the commit order. (mapd --workers 2 crashed on a fresh
+// map here: a window named a landmark the overlay no longer found.)
+TEST(ParallelWorkers, AYoungMapsJointSolvesUnderAnotherWorkersCommits) {
+  MapUpdateOptions update = CityUpdateOptions();
+  update.warmup_passages = 8;
+  update.retain_passages = 0;
+  RunWithWorkers(2, CityPassages(12), update);
+}
+
 // Local re-linearisation in the service (mapd --relinearize-sigmas): once the queue is empty, the
 // worker takes the stalest retained passage again for each passage applied, and commits it as a
 // change of its own; the map served and stored is the in-process updater's with the same

@@ -13,6 +13,7 @@
 
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
+#include "core/map/map_window.h"
 #include "core/estimation/factors.h"
 #include "core/estimation/landmark_update.h"
 #include "core/estimation/map_updater.h"
@@ -121,7 +122,9 @@ absl::StatusOr<PassageUpdate> SolveJointly(const std::vector<Passage>& passages,
     std::vector<int64_t> factor_ids;
     overlay.AppendPassageFactorIds(passage.vehicle_id, passage.passage_id, &factor_ids);
     for (int64_t id : factor_ids) {
-      for (LandmarkId l : overlay.FindFactor(id)->landmarks) touched.emplace(l, passage.passage_id);
+      const MapFactor* factor = overlay.FindFactor(id);
+      if (factor == nullptr) return RemovedWhileRead("factor", id);
+      for (LandmarkId l : factor->landmarks) touched.emplace(l, passage.passage_id);
       overlay.RemoveFactor(id);
     }
   }
@@ -375,7 +378,11 @@ absl::StatusOr<PassageUpdate> SolveJointly(const std::vector<Passage>& passages,
   // back with its record (its anchor); its estimate and marginal are written below.
   const auto covariance_start = std::chrono::steady_clock::now();
   if (area) {
-    for (LandmarkId id : removed) overlay.PutLandmark(*map.FindLandmark(id));
+    for (LandmarkId id : removed) {
+      const Landmark* record = map.FindLandmark(id);
+      if (record == nullptr) return RemovedWhileRead("landmark", id);
+      overlay.PutLandmark(*record);
+    }
   }
   auto position = [&](LandmarkId id) { return landmarks.position(index_of.at(id)); };
   if (correlated) {
@@ -530,6 +537,9 @@ absl::StatusOr<PassageUpdate> ComputeBatchUpdate(const std::vector<Passage>& pas
     unpinned.clear();
     joint = SolveJointly(passages, options, map, &*single, held_back, &unpinned);
   }
+  // A map that changed while it was read (a worker's, under other workers' commits): the whole
+  // computation is made again, not its sequential half kept.
+  if (joint.status().code() == absl::StatusCode::kAborted) return joint.status();
   if (joint.ok()) joint->summary.landmarks_held_back = static_cast<int>(held_back.size());
   std::string rejected = joint.ok() ? JointSolutionRejected(map, single->delta, *joint, options.max_joint_mahalanobis2)
                                     : std::string(joint.status().message());

@@ -254,7 +254,9 @@ absl::StatusOr<int> ResolveAround(const std::vector<LandmarkId>& seeds, const Ma
   }
   int conditioned = 0;
   for (size_t i = 0; i < ids.size(); ++i) {
-    Landmark record = *map->FindLandmark(ids[i]);
+    const Landmark* found = map->FindLandmark(ids[i]);
+    if (found == nullptr) return RemovedWhileRead("landmark", ids[i]);
+    Landmark record = *found;
     const Eigen::Vector2d offset = window->offsets().segment<2>(2 * i);
     const bool seed = i < seed_count;
     const bool refreshed = i < marginals.size();

@@ -795,7 +795,7 @@ absl::StatusOr<PassageUpdate> ComputeRelinearization(const std::vector<Passage>&
   if (area.empty()) return absl::InvalidArgumentError("passages: nothing to re-linearise");
   if (options.relinearize_area_passages >= 1) {
     absl::StatusOr<PassageUpdate> joint = ComputeAreaRelinearization(area, options, map);
-    if (joint.ok()) return joint;
+    if (joint.ok() || joint.status().code() == absl::StatusCode::kAborted) return joint;  // Aborted: read again
     spdlog::info("passage={} vehicle={} its area of {} passages not solved jointly, the passage alone instead: {}",
                  area.front().passage_id, area.front().vehicle_id, area.size(), joint.status().ToString());
   }

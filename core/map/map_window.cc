@@ -539,17 +539,15 @@ absl::Status MapWindowOptions::Validate() const {
   return absl::OkStatus();
 }
 
+absl::Status RemovedWhileRead(std::string_view what, int64_t id) {
+  return absl::AbortedError(absl::StrCat(std::string(what), " ", id, ": removed while the map was read (a change committed meanwhile)"));
+}
+
 absl::StatusOr<MapWindow> MapWindow::Build(const MapReaderInterface& map, const std::vector<LandmarkId>& seeds,
                                            const MapWindowOptions& options) {
   if (absl::Status s = options.Validate(); !s.ok()) return s;
   MapWindow w;
-  // A worker reads a map that other workers' commits change between its reads: a landmark or a
-  // factor that a link or a list named may be gone (folded, removed) by the time it is read. Such a
-  // computation is discarded (Overlaps), so the window fails instead of reading what is not there.
-  const auto gone = [](const char* what, int64_t id) {
-    return absl::AbortedError(
-        absl::StrCat(what, " ", id, ": removed while the window was read (a change committed meanwhile)"));
-  };
+  const auto gone = [](const char* what, int64_t id) { return RemovedWhileRead(what, id); };
   // Breadth-first over the links, level by level.
   std::vector<LandmarkId> frontier;
   w.index_.reserve(seeds.size());

@@ -1,7 +1,9 @@
 #ifndef CROWDMAP_CORE_MAP_MAP_WINDOW_H_
 #define CROWDMAP_CORE_MAP_MAP_WINDOW_H_
 
+#include <cstdint>
 #include <memory>
+#include <string_view>
 #include <vector>
 
 #include <Eigen/Core>
@@ -31,6 +33,11 @@ struct MapWindowOptions {
 
   absl::Status Validate() const;
 };
+
+// What a computation returns when a landmark or a factor that one read named is gone by the time
+// it is read: a worker reads a map that other workers' commits change between its reads, and such
+// a computation is discarded and made again (its read set overlaps the commit).
+absl::Status RemovedWhileRead(std::string_view what, int64_t id);
 
 // The map's estimate and covariance over the landmarks around some seeds, from the sparse
 // information matrix of its factors (a sparse Cholesky factorisation of the window).
