@@ -562,7 +562,9 @@ absl::Status CheckUpdateShifts(const MapDelta& delta, const MapReaderInterface& 
   for (size_t k = 0; k < moved.size() && k < 5; ++k) absl::StrAppend(&list, k ? ", " : "", moved[k].second);
   if (moved.size() > 5) absl::StrAppend(&list, " and ", moved.size() - 5, " more");
   return absl::FailedPreconditionError(absl::StrFormat(
-      "the update would move %d established landmark(s) further than %.1f of their sigmas: %s; the map is unchanged",
+      "the update would move %d established landmark(s) further than %.1f of their sigmas: %s; the map is unchanged "
+      "(a fault of the passage, or noise it does not declare: GNSS errors correlated over minutes declared white "
+      "give this; see NoiseModel.gnss_correlation_time_s)",
       moved.size(), std::sqrt(options.max_update_shift_mahalanobis2), list));
 }
 
