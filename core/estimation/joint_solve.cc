@@ -379,8 +379,8 @@ absl::StatusOr<PassageUpdate> SolveJointly(const std::vector<Passage>& passages,
   const auto covariance_start = std::chrono::steady_clock::now();
   if (area) {
     for (LandmarkId id : removed) {
-      const Landmark* record = map.FindLandmark(id);
-      if (record == nullptr) return RemovedWhileRead("landmark", id);
+      absl::StatusOr<Landmark> record = LandmarkStillThere(map, id);
+      if (!record.ok()) return record.status();
       overlay.PutLandmark(*record);
     }
   }

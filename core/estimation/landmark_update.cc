@@ -254,9 +254,9 @@ absl::StatusOr<int> ResolveAround(const std::vector<LandmarkId>& seeds, const Ma
   }
   int conditioned = 0;
   for (size_t i = 0; i < ids.size(); ++i) {
-    const Landmark* found = map->FindLandmark(ids[i]);
-    if (found == nullptr) return RemovedWhileRead("landmark", ids[i]);
-    Landmark record = *found;
+    absl::StatusOr<Landmark> found = LandmarkStillThere(*map, ids[i]);
+    if (!found.ok()) return found.status();
+    Landmark& record = *found;
     const Eigen::Vector2d offset = window->offsets().segment<2>(2 * i);
     const bool seed = i < seed_count;
     const bool refreshed = i < marginals.size();

@@ -147,9 +147,9 @@ absl::StatusOr<int> PassagePrior::Condition(const MapFactor& factor, int64_t ver
   int conditioned = 0;
   for (size_t k = 0; k < ids_.size(); ++k) {
     const int r = static_cast<int>(2 * k);
-    const Landmark* found = map->FindLandmark(ids_[k]);
-    if (found == nullptr) return RemovedWhileRead("landmark", ids_[k]);
-    Landmark record = *found;
+    absl::StatusOr<Landmark> found = LandmarkStillThere(*map, ids_[k]);
+    if (!found.ok()) return found.status();
+    Landmark& record = *found;
     // Against the stored estimate: a bounded window's own solve may have moved it already.
     if (!in_s[k] && (mean_.segment<2>(r) - record.Offset()).norm() < kMinWrittenChangeM) continue;
     record.position = LocalFrame(record.anchor).ToGeo(mean_.segment<2>(r));
@@ -175,9 +175,9 @@ absl::StatusOr<int> PassagePrior::Finish(int64_t version, MapOverlay* map) const
   int conditioned = 0;
   for (size_t w = seen_; w < window_ids.size(); ++w) {
     const Eigen::Vector2d offset = window_.offsets().segment<2>(2 * w) + moved->segment<2>(2 * w);
-    const Landmark* found = map->FindLandmark(window_ids[w]);
-    if (found == nullptr) return RemovedWhileRead("landmark", window_ids[w]);
-    Landmark record = *found;
+    absl::StatusOr<Landmark> found = LandmarkStillThere(*map, window_ids[w]);
+    if (!found.ok()) return found.status();
+    Landmark& record = *found;
     if ((offset - record.Offset()).norm() < kMinWrittenChangeM) continue;
     record.position = LocalFrame(record.anchor).ToGeo(offset);
     record.version = version;

@@ -543,6 +543,12 @@ absl::Status RemovedWhileRead(std::string_view what, int64_t id) {
   return absl::AbortedError(absl::StrCat(std::string(what), " ", id, ": removed while the map was read (a change committed meanwhile)"));
 }
 
+absl::StatusOr<Landmark> LandmarkStillThere(const MapReaderInterface& map, LandmarkId id) {
+  const Landmark* record = map.FindLandmark(id);
+  if (record == nullptr) return RemovedWhileRead("landmark", id);
+  return *record;
+}
+
 absl::StatusOr<MapWindow> MapWindow::Build(const MapReaderInterface& map, const std::vector<LandmarkId>& seeds,
                                            const MapWindowOptions& options) {
   if (absl::Status s = options.Validate(); !s.ok()) return s;

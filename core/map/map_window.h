@@ -38,6 +38,8 @@ struct MapWindowOptions {
 // it is read: a worker reads a map that other workers' commits change between its reads, and such
 // a computation is discarded and made again (its read set overlaps the commit).
 absl::Status RemovedWhileRead(std::string_view what, int64_t id);
+// The landmark's record, or RemovedWhileRead when `map` no longer has it.
+absl::StatusOr<Landmark> LandmarkStillThere(const MapReaderInterface& map, LandmarkId id);
 
 // The map's estimate and covariance over the landmarks around some seeds, from the sparse
 // information matrix of its factors (a sparse Cholesky factorisation of the window).
