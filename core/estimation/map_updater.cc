@@ -516,7 +516,14 @@ absl::Status ApplyPassage(const Passage& declared, const MapUpdateOptions& optio
     }
   }
   if (progress.counted.empty()) {
-    return absl::InvalidArgumentError("detections: no landmark of the passage could be estimated");
+    // What set its landmarks aside, so that an operator can tell a detector's fault from a
+    // trajectory's (a GNSS jump or an odometry fault leaves every ray pointing somewhere else).
+    return absl::InvalidArgumentError(absl::StrFormat(
+        "detections: no landmark of the passage could be estimated (%d detection(s) dropped at the initial guess, "
+        "%d landmark(s) not pinned down by its rays, %d disagreeing with the map, %d detection(s) beyond %.1f sigma; "
+        "a fault of its GNSS or odometry does this as well as one of its detections)",
+        summary->detections_dropped, summary->landmarks_held_back, summary->landmarks_disagreeing,
+        summary->detections_outliers, options.max_detection_residual_sigmas));
   }
   if (passage_prior) {
     absl::StatusOr<int> conditioned = passage_prior->Finish(overlay->version(), overlay);

@@ -216,6 +216,9 @@ TEST(ComputePassageUpdate, NewLandmarksTheBiasCorrectionMovesBeyondTheirSigmaAre
   EXPECT_EQ(strict.status().code(), absl::StatusCode::kInvalidArgument);
   EXPECT_NE(strict.status().message().find("no landmark of the passage could be estimated"), std::string::npos)
       << strict.status();
+  // What set them aside, for the operator.
+  EXPECT_NE(strict.status().message().find("landmark(s) not pinned down by its rays"), std::string::npos)
+      << strict.status();
 }
 
 TEST(ComputePassageUpdate, NewLandmarksNeedRaysSpanningTheMinimumParallax) {
