@@ -540,7 +540,8 @@ absl::Status MapWindowOptions::Validate() const {
 }
 
 absl::Status RemovedWhileRead(std::string_view what, int64_t id) {
-  return absl::AbortedError(absl::StrCat(std::string(what), " ", id, ": removed while the map was read (a change committed meanwhile)"));
+  return absl::AbortedError(
+      absl::StrCat(std::string(what), " ", id, ": removed while the map was read (a change committed meanwhile)"));
 }
 
 absl::StatusOr<Landmark> LandmarkStillThere(const MapReaderInterface& map, LandmarkId id) {
@@ -553,7 +554,6 @@ absl::StatusOr<MapWindow> MapWindow::Build(const MapReaderInterface& map, const 
                                            const MapWindowOptions& options) {
   if (absl::Status s = options.Validate(); !s.ok()) return s;
   MapWindow w;
-  const auto gone = [](const char* what, int64_t id) { return RemovedWhileRead(what, id); };
   // Breadth-first over the links, level by level.
   std::vector<LandmarkId> frontier;
   w.index_.reserve(seeds.size());
@@ -621,7 +621,7 @@ absl::StatusOr<MapWindow> MapWindow::Build(const MapReaderInterface& map, const 
       }
     });
     blocks.AddDiagonal(i, diagonal.value);
-    if (missing) return gone("landmark", *missing);
+    if (missing) return RemovedWhileRead("landmark", *missing);
     if (on_edge) edge.push_back(a);
   }
   w.closed_ = edge.empty();
@@ -655,7 +655,7 @@ absl::StatusOr<MapWindow> MapWindow::Build(const MapReaderInterface& map, const 
     for (int64_t id : factor_ids) {
       if (!checked.insert(id).second) continue;
       factor_landmarks.clear();
-      if (!map.AppendFactorLandmarks(id, &factor_landmarks)) return gone("map factor", id);
+      if (!map.AppendFactorLandmarks(id, &factor_landmarks)) return RemovedWhileRead("map factor", id);
       const int64_t outside = std::count_if(factor_landmarks.begin(), factor_landmarks.end(),
                                             [&](LandmarkId l) { return w.index(l) < 0; });
       if (outside > 0) {
@@ -671,7 +671,7 @@ absl::StatusOr<MapWindow> MapWindow::Build(const MapReaderInterface& map, const 
   bool pattern_grew = false;
   for (int64_t id : crossing) {
     const MapFactor* found = map.FindFactor(id);
-    if (found == nullptr) return gone("map factor", id);
+    if (found == nullptr) return RemovedWhileRead("map factor", id);
     const MapFactor& f = *found;
     std::vector<int> keep, other, keep_index;
     for (size_t k = 0; k < f.landmarks.size(); ++k) {

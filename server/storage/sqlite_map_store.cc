@@ -116,22 +116,18 @@ absl::StatusOr<std::unique_ptr<SqliteMapStore>> SqliteMapStore::Open(const std::
     if (auto s = MigrateSchema(writer.db); !s.ok()) return s;
     writer.db->OnProgress(options.write_yield_vm_steps, [] { sched_yield(); });
   }
+  absl::StatusOr<int64_t> version;  // the map's, once reconciled with the queue
   {
     SqliteFile::Writer writer = (*queue)->LockWriter();
     if (auto n = ReconcileQueueWithMap(writer.db, path); !n.ok()) return n.status();
     SqliteFile::Writer map_writer = (*map)->LockWriter();
-    auto raised = KeepVersionAheadOfQueue(map_writer.db, writer.db, ReadVersionMark(VersionMarkPath(path)));
-    if (!raised.ok()) return raised.status();
+    version = RaiseRestoredMapVersion(map_writer.db, writer.db, ReadVersionMark(VersionMarkPath(path)));
+    if (!version.ok()) return version.status();
     if (auto s = MarkQueueServed(writer.db); !s.ok()) return s;
   }
   auto store = std::unique_ptr<SqliteMapStore>(
       new SqliteMapStore(options, std::move(*map), std::move(*queue), VersionMarkPath(path)));
-  {
-    SqliteFile::Writer writer = store->map_->LockWriter();
-    auto version = ReadMapVersion(writer.db);
-    if (!version.ok()) return version.status();
-    store->WriteVersionMark(*version);
-  }
+  store->WriteVersionMark(*version);
   return store;
 }
 
@@ -507,7 +503,7 @@ void SqliteMapStore::WriteVersionMark(int64_t version) const {
   if (!out.flush()) spdlog::warn("event=version_mark_failed path={} version={}", version_mark_path_, version);
 }
 
-absl::StatusOr<int64_t> SqliteMapStore::KeepVersionAheadOfQueue(SqliteConnection* map, SqliteConnection* queue,
+absl::StatusOr<int64_t> SqliteMapStore::RaiseRestoredMapVersion(SqliteConnection* map, SqliteConnection* queue,
                                                                 int64_t marked) {
   // Queues written before the key existed: the versions of their applied passages' results.
   auto seen = queue->Prepare(
@@ -516,33 +512,31 @@ absl::StatusOr<int64_t> SqliteMapStore::KeepVersionAheadOfQueue(SqliteConnection
   if (!seen.ok()) return seen.status();
   if (auto row = seen->Step(); !row.ok()) return row.status();
   const int64_t seen_version = std::max(seen->Int(0), marked);
-  int64_t raised = 0;
-  {
-    auto txn = SqliteWriteTransaction::Begin(map);
-    if (!txn.ok()) return txn.status();
-    auto version = ReadMapVersion(map);
-    if (!version.ok()) return version.status();
-    if (*version < seen_version) {
-      // A new range of versions: the queue was backed up after the map, and the server went on
-      // past what it recorded, to versions clients saw. Above any of them, however far it went.
-      raised = (seen_version / kRestoredVersionStep + 1) * kRestoredVersionStep;
-      if (auto s = map->Exec(absl::StrCat("UPDATE map_meta SET value = ", raised, " WHERE key = 'map_version';",
-                                          "UPDATE landmarks SET version = ", raised, ";"));
-          !s.ok()) {
-        return s;
-      }
-      spdlog::warn(
-          "event=map_version_raised from={} to={} (the map is older than its queue or its version mark, restored from a backup: "
-          "every landmark is stamped with the new version, so that watchers read them again)",
-          *version, raised);
+  auto txn = SqliteWriteTransaction::Begin(map);
+  if (!txn.ok()) return txn.status();
+  absl::StatusOr<int64_t> version = ReadMapVersion(map);
+  if (!version.ok()) return version.status();
+  if (*version < seen_version) {
+    // A new range of versions: the queue was backed up after the map, and the server went on
+    // past what it recorded, to versions clients saw. Above any of them, however far it went.
+    const int64_t raised = (seen_version / kRestoredVersionStep + 1) * kRestoredVersionStep;
+    if (auto s = map->Exec(absl::StrCat("UPDATE map_meta SET value = ", raised, " WHERE key = 'map_version';",
+                                        "UPDATE landmarks SET version = ", raised, ";"));
+        !s.ok()) {
+      return s;
     }
-    if (auto s = txn->Commit(); !s.ok()) return s;
-    auto txn_queue = SqliteWriteTransaction::Begin(queue);
-    if (!txn_queue.ok()) return txn_queue.status();
-    if (auto s = RecordMapVersionSeen(queue, std::max(*version, raised)); !s.ok()) return s;
-    if (auto s = txn_queue->Commit(); !s.ok()) return s;
+    spdlog::warn(
+        "event=map_version_raised from={} to={} (the map is older than its queue or its version mark, restored from a "
+        "backup: every landmark is stamped with the new version, so that watchers read them again)",
+        *version, raised);
+    *version = raised;
   }
-  return raised;
+  if (auto s = txn->Commit(); !s.ok()) return s;
+  auto txn_queue = SqliteWriteTransaction::Begin(queue);
+  if (!txn_queue.ok()) return txn_queue.status();
+  if (auto s = RecordMapVersionSeen(queue, *version); !s.ok()) return s;
+  if (auto s = txn_queue->Commit(); !s.ok()) return s;
+  return version;
 }
 
 void SqliteMapStore::ConfirmPending(SqliteConnection* queue) {

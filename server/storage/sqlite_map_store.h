@@ -121,9 +121,9 @@ class SqliteMapStore : public MapStoreInterface {
   // (VersionMarkPath; 0 without one) holds one, the map's version is raised to the next multiple of
   // kRestoredVersionStep above it (clients may have seen later ones still), and each landmark
   // stamped with it, so that a client watching from any version it saw gets every landmark again.
-  // Returns the new version, or 0 when nothing was raised.
+  // Returns the map's version afterwards, raised or not.
   static constexpr int64_t kRestoredVersionStep = int64_t{1} << 32;
-  static absl::StatusOr<int64_t> KeepVersionAheadOfQueue(SqliteConnection* map, SqliteConnection* queue,
+  static absl::StatusOr<int64_t> RaiseRestoredMapVersion(SqliteConnection* map, SqliteConnection* queue,
                                                          int64_t marked);
   // "<db>.version": the last version committed, written after each map commit (not synced: a
   // hint that can only be behind the map, never ahead of it). A map restored in place of a newer
