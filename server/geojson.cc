@@ -55,7 +55,7 @@ ErrorEllipse ErrorEllipse95(const Eigen::Matrix2d& cov_en_m2) {
 double GeoJsonDegrees(double deg) { return std::round(deg * 1e9) / 1e9; }
 
 std::string LandmarksToGeoJson(const std::vector<::mapservice::v1::Landmark>& landmarks, int64_t map_version,
-                               const GeoJsonOptions& options) {
+                               const GeoJsonOptions& options, const std::vector<int64_t>* removed_ids) {
   const int points = std::max(8, options.ellipse_points);
   Json features = Json::array();
   for (const ::mapservice::v1::Landmark& l : landmarks) {
@@ -85,7 +85,8 @@ std::string LandmarksToGeoJson(const std::vector<::mapservice::v1::Landmark>& la
            {"properties", {{"id", l.id()}, {"kind", "error_ellipse_95"}}}});
     }
   }
-  const Json collection = {{"type", "FeatureCollection"}, {"map_version", map_version}, {"features", features}};
+  Json collection = {{"type", "FeatureCollection"}, {"map_version", map_version}, {"features", features}};
+  if (removed_ids != nullptr) collection["removed_ids"] = *removed_ids;
   return collection.dump() + "\n";
 }
 

@@ -30,9 +30,10 @@ struct GeoJsonOptions {
 
 // RFC 7946 FeatureCollection, on one line: one Point per landmark ([lon, lat]) with id,
 // covariance, 95% ellipse, version and counts as properties; optionally the ellipses as
-// counterclockwise Polygons.
+// counterclockwise Polygons. `removed_ids`, when given (a change list), are the collection's
+// `removed_ids`: landmarks the map no longer holds.
 std::string LandmarksToGeoJson(const std::vector<::mapservice::v1::Landmark>& landmarks, int64_t map_version,
-                               const GeoJsonOptions& options);
+                               const GeoJsonOptions& options, const std::vector<int64_t>* removed_ids = nullptr);
 
 }  // namespace crowdmap
 

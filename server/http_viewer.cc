@@ -254,6 +254,7 @@ HttpResponse HttpViewer::Landmarks(const std::string& query) const {
   std::vector<pb::Landmark> landmarks;
   int64_t version = 0;
   bool truncated = false;
+  std::optional<std::vector<int64_t>> removed;  // a change list's removed landmarks
   if (std::optional<std::string> since = QueryValue(query, "since_version"); since.has_value()) {
     int64_t since_version = 0;
     if (!absl::SimpleAtoi(*since, &since_version) || since_version < 0) {
@@ -263,6 +264,7 @@ HttpResponse HttpViewer::Landmarks(const std::string& query) const {
     if (!page.ok()) return FromStatus(page.status());
     version = page->map_version;
     for (const Landmark& l : page->landmarks) LandmarkToProto(l, &landmarks.emplace_back());
+    removed.emplace(page->removed.begin(), page->removed.end());
   } else {
     // Pages may come from successive map versions: the answer reports the oldest, so that a
     // client polling with since_version=<it> misses no change.
@@ -285,7 +287,8 @@ HttpResponse HttpViewer::Landmarks(const std::string& query) const {
     landmarks.resize(options_.max_landmarks);
     truncated = true;
   }
-  HttpResponse r = Json(200, LandmarksToGeoJson(landmarks, version, GeoJsonOptions{}));
+  HttpResponse r =
+      Json(200, LandmarksToGeoJson(landmarks, version, GeoJsonOptions{}, removed ? &*removed : nullptr));
   r.content_type = "application/geo+json";
   r.headers["X-Map-Version"] = std::to_string(version);
   if (truncated) r.headers["X-Truncated"] = std::to_string(options_.max_landmarks);

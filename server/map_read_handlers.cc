@@ -179,7 +179,7 @@ grpc::Status MapService::WatchRegion(grpc::ServerContext* ctx, const pb::WatchRe
           "since_version: ", since, " is ahead of the map's version ", page->map_version,
           " (another map, or one restored from a backup): read the region again and watch from its map_version")));
     }
-    if (messages == 0 || !page->landmarks.empty()) {
+    if (messages == 0 || !page->landmarks.empty() || !page->removed.empty()) {
       // Only a change's last part carries its version: a client that resumes from the version of
       // an earlier part is sent the whole change again.
       const size_t n = page->landmarks.size();
@@ -190,6 +190,9 @@ grpc::Status MapService::WatchRegion(grpc::ServerContext* ctx, const pb::WatchRe
         pb::WatchRegionResponse response;
         response.set_map_version(end == n ? page->map_version : since);
         for (size_t k = at; k < end; ++k) LandmarkToProto(page->landmarks[k], response.add_landmarks());
+        if (end == n) {
+          for (LandmarkId id : page->removed) response.add_removed_landmark_ids(id);
+        }
         written = writer->Write(response);
         ++messages;
         at = end;

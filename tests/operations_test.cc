@@ -149,6 +149,37 @@ TEST(Metrics, ScrapedValuesMatchTheRpcsUploadsAndAppliedPassages) {
 }
 
 // With --relinearize-sigmas the worker's re-linearisations are counted by outcome.
+// The viewer's change list (GET /api/landmarks?since_version=V) names the landmarks removed after
+// V, so that a page drops them; a full read has no such list.
+TEST(Viewer, AChangeListNamesTheLandmarksAnExclusionRemoved) {
+  TempDir dir;
+  MapServerOptions options = TestServerOptions(dir.File("map.db"));
+  options.http_listen = "127.0.0.1:0";
+  auto server = StartTestServer(options);
+  ASSERT_NE(server, nullptr);
+  ASSERT_GT(server->http_port(), 0);
+  MockVehicle vehicle(server->address());
+  const Scenario scenario = ShortScenario();
+  Passage lone = scenario.MakePassage(1);  // alone in seeing landmark 500
+  for (Detection& d : lone.detections) {
+    if (d.landmark_id == 1) d.landmark_id = 500;
+  }
+  ASSERT_TRUE(vehicle.Upload(scenario.MakePassage(0)).ok());
+  ASSERT_TRUE(vehicle.Upload(lone).ok());
+  ASSERT_TRUE(vehicle.WaitUntilIdle().ok());
+  auto excluded = vehicle.client()->ExcludePassage(PassageKey{0, lone.vehicle_id, lone.passage_id});
+  ASSERT_TRUE(excluded.ok()) << excluded.status();
+  const int64_t version = excluded->map_version();
+  const std::string world = "/api/landmarks?bbox=-180,-85,180,85";
+  const std::string before = HttpGet(server->http_port(), world + "&since_version=" + std::to_string(version - 1));
+  EXPECT_NE(before.find("\"removed_ids\":[500]"), std::string::npos) << before;
+  const std::string after = HttpGet(server->http_port(), world + "&since_version=" + std::to_string(version));
+  EXPECT_NE(after.find("\"removed_ids\":[]"), std::string::npos) << after;
+  const std::string all = HttpGet(server->http_port(), world);
+  ASSERT_FALSE(all.empty());
+  EXPECT_EQ(all.find("removed_ids"), std::string::npos) << all.substr(0, 200);
+}
+
 TEST(Metrics, RelinearizationsAreCounted) {
   TempDir dir;
   MapServerOptions options = TestServerOptions(dir.File("map.db"));

@@ -4,6 +4,7 @@
 
 #include <cmath>
 #include <future>
+#include <map>
 #include <set>
 #include <thread>
 #include <tuple>
@@ -634,6 +635,72 @@ TEST_F(ServiceRpc, WatchRegionStreamsLandmarksChangedAfterTheVersion) {
   for (const pb::Landmark& l : change.landmarks()) EXPECT_GT(l.version(), since);
   ctx.TryCancel();
   reader->Finish();
+}
+
+// A copy of a region kept by WatchRegion alone stays the served map when an exclusion removes
+// landmarks: they come as removed_landmark_ids in the change that removed them.
+TEST_F(ServiceRpc, WatchRegionReportsTheLandmarksAnExclusionRemoves) {
+  Start(true);
+  // Passage 1 alone sees landmark 500 (its detections of landmark 1 renamed).
+  Passage lone = scenario_.MakePassage(1);
+  int renamed = 0;
+  for (Detection& d : lone.detections) {
+    if (d.landmark_id == 1) {
+      d.landmark_id = 500;
+      ++renamed;
+    }
+  }
+  ASSERT_GT(renamed, 0);
+  MustUpload(scenario_.MakePassage(0));
+  MustUpload(lone);
+  MustUpload(scenario_.MakePassage(2));
+  ASSERT_TRUE(client_->WaitUntilIdle().ok());
+
+  grpc::ClientContext ctx;
+  ctx.set_deadline(std::chrono::system_clock::now() + std::chrono::seconds(30));
+  pb::WatchRegionRequest request;
+  *request.mutable_box() = MockVehicle::World();
+  auto reader = client_->stub()->WatchRegion(&ctx, request);
+  std::map<int64_t, pb::Landmark> copy;
+  pb::WatchRegionResponse change;
+  ASSERT_TRUE(reader->Read(&change));
+  for (const pb::Landmark& l : change.landmarks()) copy[l.id()] = l;
+  EXPECT_TRUE(change.removed_landmark_ids().empty());
+  ASSERT_EQ(copy.count(500), 1u);
+
+  absl::StatusOr<pb::ExcludePassageResponse> r =
+      client_->client()->ExcludePassage(PassageKey{0, lone.vehicle_id, lone.passage_id});
+  ASSERT_TRUE(r.ok()) << r.status();
+  ASSERT_TRUE(reader->Read(&change));
+  EXPECT_EQ(change.map_version(), r->map_version());
+  EXPECT_EQ(std::vector<int64_t>(change.removed_landmark_ids().begin(), change.removed_landmark_ids().end()),
+            std::vector<int64_t>{500});
+  for (const pb::Landmark& l : change.landmarks()) copy[l.id()] = l;
+  for (int64_t id : change.removed_landmark_ids()) copy.erase(id);
+  ctx.TryCancel();
+  reader->Finish();
+
+  absl::StatusOr<MapState> served = client_->DownloadMap(MockVehicle::World());
+  ASSERT_TRUE(served.ok()) << served.status();
+  std::vector<LandmarkId> kept;
+  for (const auto& [id, l] : copy) {
+    kept.push_back(id);
+    EXPECT_EQ(l.version(), served->FindLandmark(id)->version) << id;
+  }
+  EXPECT_EQ(kept, served->LandmarkIds());
+
+  // A watch that starts after the removal, from a version before it, is told too; one from the
+  // removal's version is not.
+  for (const auto& [since, want] : std::vector<std::pair<int64_t, size_t>>{{r->map_version() - 1, 1}, {r->map_version(), 0}}) {
+    grpc::ClientContext late_ctx;
+    late_ctx.set_deadline(std::chrono::system_clock::now() + std::chrono::seconds(30));
+    request.set_since_version(since);
+    auto late = client_->stub()->WatchRegion(&late_ctx, request);
+    ASSERT_TRUE(late->Read(&change));
+    EXPECT_EQ(static_cast<size_t>(change.removed_landmark_ids_size()), want) << "since " << since;
+    late_ctx.TryCancel();
+    late->Finish();
+  }
 }
 
 // A client whose version the map has not reached (it watched another map, or one since restored

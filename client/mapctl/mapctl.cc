@@ -478,12 +478,17 @@ absl::Status Watch(const Arguments& args, Context& ctx) {
       (void)google::protobuf::util::MessageToJsonString(change, &line, options);
       *ctx.out << line << "\n";
     } else {
-      *ctx.out << absl::StrFormat("map version %d: %d landmarks changed\n", change.map_version(),
+      *ctx.out << absl::StrFormat("map version %d: %d landmarks changed", change.map_version(),
                                   change.landmarks_size());
+      if (change.removed_landmark_ids_size() > 0) {
+        *ctx.out << absl::StrFormat(", %d removed", change.removed_landmark_ids_size());
+      }
+      *ctx.out << "\n";
       for (const pb::Landmark& l : change.landmarks()) {
         *ctx.out << absl::StrFormat("  landmark %d  %.8f %.8f  version %d  seen %d\n", l.id(), l.lat_deg(),
                                     l.lon_deg(), l.version(), l.passages_seen());
       }
+      for (int64_t id : change.removed_landmark_ids()) *ctx.out << absl::StrFormat("  landmark %d  removed\n", id);
     }
     ctx.out->flush();
     return args.updates <= 0 || ++received < args.updates;
@@ -620,7 +625,8 @@ std::unique_ptr<CLI::App> NewMapctlCommandLine(std::map<std::string, MapctlComma
   auto [region, region_args] = add("region", "landmarks inside a bounding box", &Region);
   add_bbox(region, region_args);
   auto [watch, watch_args] = add("watch",
-                                 "follow changes in a bounding box (until Ctrl-C, --seconds or --updates); each\n"
+                                 "follow changes in a bounding box (until Ctrl-C, --seconds or --updates): the\n"
+                                 "landmarks changed and those removed (\"landmark ID  removed\"); each\n"
                                  "call's first answer must come within --deadline-s; when the server restarts,\n"
                                  "it reconnects from the last version received (waiting up to --deadline-s for\n"
                                  "the server, a warning on stderr)",

@@ -220,6 +220,14 @@ TEST_F(MapctlTest, WatchPrintsChangesSinceAVersion) {
   CliRun ahead = Mapctl({"watch", "--bbox", RouteBbox(), "--since", "1000000", "--seconds", "10"}, address_);
   EXPECT_EQ(ahead.code, 1);
   EXPECT_TRUE(absl::StrContains(ahead.err, "FAILED_PRECONDITION")) << ahead.err;
+  // The only passage excluded: its landmarks are removed, and a watch says so.
+  ASSERT_EQ(Mapctl({"exclude", "1"}, address_).code, 0);
+  CliRun removed = Mapctl({"watch", "--bbox", RouteBbox(), "--since", "1", "--updates", "1", "--seconds", "20"},
+                          address_);
+  ASSERT_EQ(removed.code, 0) << removed.err;
+  EXPECT_TRUE(absl::StrContains(removed.out, absl::StrCat("0 landmarks changed, ", scenario_.landmarks, " removed")))
+      << removed.out;
+  EXPECT_EQ(Count(removed.out, " removed\n"), scenario_.landmarks + 1) << removed.out;
 }
 
 TEST_F(MapctlTest, BadInputGivesOneLineAndNonZeroExit) {

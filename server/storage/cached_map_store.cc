@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cstdint>
+#include <iterator>
 #include <set>
 
 #include "server/storage/map_reads.h"
@@ -15,6 +16,7 @@ bool Inside(const BoundingBox& box, const LatLon& p) {
 }
 
 bool ById(const Landmark& a, const Landmark& b) { return a.id < b.id; }
+bool RemovedById(const RemovedLandmark& a, const RemovedLandmark& b) { return a.id < b.id; }
 
 }  // namespace
 
@@ -38,6 +40,9 @@ absl::StatusOr<std::unique_ptr<CachedMapStore>> CachedMapStore::Create(std::uniq
   });
   auto view = std::make_shared<View>();
   view->version = map.version();
+  absl::StatusOr<std::vector<RemovedLandmark>> removed = store->inner_->RemovedLandmarks();
+  if (!removed.ok()) return removed.status();
+  view->removed = std::make_shared<const std::vector<RemovedLandmark>>(std::move(*removed));
   for (auto& [key, bucket] : buckets) {
     std::sort(bucket.begin(), bucket.end(), ById);
     view->tiles.emplace(key, std::make_shared<const Bucket>(std::move(bucket)));
@@ -110,11 +115,31 @@ std::shared_ptr<const CachedMapStore::View> CachedMapStore::ApplyToView(const Ma
     std::vector<const Landmark*> upserts;
   };
   std::unordered_map<TileKey, Change> changes;
+  std::vector<RemovedLandmark> removed;  // this delta's, in increasing id
   for (LandmarkId lid : delta.removed_landmarks) {
     auto old = tile_of_.find(lid);
     if (old == tile_of_.end()) continue;
+    const Bucket& bucket = *current->tiles.at(old->second);
+    auto record = std::lower_bound(bucket.begin(), bucket.end(), lid,
+                                   [](const Landmark& l, LandmarkId id) { return l.id < id; });
+    if (record != bucket.end() && record->id == lid) removed.push_back({lid, record->position, next->version});
     changes[old->second].leaving.insert(lid);
     tile_of_.erase(old);
+  }
+  std::sort(removed.begin(), removed.end(), RemovedById);
+  // A landmark that comes back is no longer removed; one removed again gets its new record.
+  auto removed_again = [&](const RemovedLandmark& r) {
+    return delta.landmarks.count(r.id) > 0 ||
+           std::binary_search(removed.begin(), removed.end(), r, RemovedById);
+  };
+  if (!removed.empty() || std::any_of(current->removed->begin(), current->removed->end(), removed_again)) {
+    std::vector<RemovedLandmark> all;
+    all.reserve(current->removed->size() + removed.size());
+    std::remove_copy_if(current->removed->begin(), current->removed->end(), std::back_inserter(all), removed_again);
+    const size_t kept = all.size();
+    all.insert(all.end(), removed.begin(), removed.end());
+    std::inplace_merge(all.begin(), all.begin() + static_cast<std::ptrdiff_t>(kept), all.end(), RemovedById);
+    next->removed = std::make_shared<const std::vector<RemovedLandmark>>(std::move(all));
   }
   for (const auto& [lid, landmark] : delta.landmarks) {
     const TileKey key = KeyOf(TileContaining(landmark.position));
@@ -260,7 +285,12 @@ absl::StatusOr<LandmarkPage> CachedMapStore::ChangedLandmarks(const BoundingBox&
   LandmarkPage page;
   page.map_version = view->version;
   page.landmarks = Select(*view, box, [&](const Landmark& l) { return l.version > since_version; }, SIZE_MAX);
+  for (const RemovedLandmark& r : *view->removed) {
+    if (r.version > since_version && Inside(box, r.position)) page.removed.push_back(r.id);
+  }
   return page;
 }
+
+absl::StatusOr<std::vector<RemovedLandmark>> CachedMapStore::RemovedLandmarks() { return *CurrentView()->removed; }
 
 }  // namespace crowdmap

@@ -98,6 +98,7 @@ class CachedMapStore : public MapStoreInterface {
   absl::StatusOr<LandmarkPage> GetTile(const TileId& tile, bool include_cross) override;
   absl::StatusOr<LandmarkPage> GetLandmarks(const std::vector<LandmarkId>& ids, bool include_cross) override;
   absl::StatusOr<LandmarkPage> ChangedLandmarks(const BoundingBox& box, int64_t since_version) override;
+  absl::StatusOr<std::vector<RemovedLandmark>> RemovedLandmarks() override;
 
  private:
   using TileKey = uint64_t;
@@ -106,6 +107,9 @@ class CachedMapStore : public MapStoreInterface {
   struct View {
     int64_t version = 0;
     std::unordered_map<TileKey, std::shared_ptr<const Bucket>> tiles;
+    // The removed landmarks' records (increasing id), loaded from the inner store and kept as
+    // commits remove landmarks or bring them back.
+    std::shared_ptr<const std::vector<RemovedLandmark>> removed;
   };
 
   CachedMapStore(std::unique_ptr<MapStoreInterface> inner, int covariance_window_hops, int covariance_cache_landmarks)

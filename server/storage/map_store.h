@@ -107,6 +107,17 @@ struct LandmarkPage {
   CovarianceBound covariance_bound = CovarianceBound::kExact;
   int64_t map_version = 0;
   bool more = false;  // further landmarks match after the last one returned
+  // ChangedLandmarks only: the landmarks removed from the box since its version (increasing id).
+  std::vector<LandmarkId> removed;
+};
+
+// A landmark the map no longer holds (an exclusion or a re-linearisation left it without
+// factors): where it last was and the map version that removed it. Kept so that a watcher whose
+// copy holds it learns of its removal; a landmark that comes back loses its record.
+struct RemovedLandmark {
+  LandmarkId id = 0;
+  LatLon position;
+  int64_t version = 0;
 };
 
 // One landmark and the passages that shaped it: those whose factors the map still keeps apart
@@ -212,8 +223,11 @@ class MapStoreInterface {
   // The landmarks of `ids` that the map holds (increasing id; the others are left out), with their
   // cross-covariances on request, as QueryRegion gives them for the landmarks of a box.
   virtual absl::StatusOr<LandmarkPage> GetLandmarks(const std::vector<LandmarkId>& ids, bool include_cross) = 0;
-  // Landmarks inside `box` whose version is greater than `since_version`.
+  // Landmarks inside `box` whose version is greater than `since_version`, and in `removed` those
+  // removed from it after that version.
   virtual absl::StatusOr<LandmarkPage> ChangedLandmarks(const BoundingBox& box, int64_t since_version) = 0;
+  // Every removed landmark's record (RemovedLandmark), in increasing id.
+  virtual absl::StatusOr<std::vector<RemovedLandmark>> RemovedLandmarks() = 0;
   virtual absl::StatusOr<MapStats> GetStats() = 0;
   // Landmark `id` and the passages that shaped it. NotFound when it is not mapped.
   virtual absl::StatusOr<LandmarkProvenance> GetLandmarkProvenance(LandmarkId id) = 0;

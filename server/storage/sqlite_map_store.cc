@@ -248,14 +248,29 @@ absl::Status SqliteMapStore::CheckPassageState(SqliteConnection* db, int64_t id,
 
 absl::Status SqliteMapStore::WriteMapDelta(SqliteConnection* db, const MapDelta& delta, const Placements& stored,
                                            Placements* written) {
+  const int64_t version = std::max(delta.version, delta.base_version);
   written->reserve(delta.landmarks.size());
   for (const auto& [lid, landmark] : delta.landmarks) {
     const auto it = stored.find(lid);
+    if (it == stored.end()) {
+      // A landmark that comes back is no longer removed.
+      auto stmt = db->Prepare("DELETE FROM removed_landmarks WHERE id = ?1");
+      if (!stmt.ok()) return stmt.status();
+      stmt->Bind(1, static_cast<int64_t>(lid));
+      if (auto s = stmt->Run(); !s.ok()) return s;
+    }
     if (auto s = WriteLandmark(db, landmark, it == stored.end() ? nullptr : &it->second, &(*written)[lid]); !s.ok()) {
       return s;
     }
   }
   for (LandmarkId lid : delta.removed_landmarks) {
+    // Where it last was, for the watchers whose copies hold it (ChangedLandmarks).
+    auto record = db->Prepare(
+        "INSERT OR REPLACE INTO removed_landmarks (id, lat_deg, lon_deg, version) "
+        "SELECT id, lat_deg, lon_deg, ?2 FROM landmarks WHERE id = ?1");
+    if (!record.ok()) return record.status();
+    record->Bind(1, static_cast<int64_t>(lid)).Bind(2, version);
+    if (auto s = record->Run(); !s.ok()) return s;
     for (const char* sql : {"DELETE FROM landmarks WHERE id = ?1", "DELETE FROM landmark_boxes WHERE id = ?1"}) {
       auto stmt = db->Prepare(sql);
       if (!stmt.ok()) return stmt.status();
@@ -292,7 +307,7 @@ absl::Status SqliteMapStore::WriteMapDelta(SqliteConnection* db, const MapDelta&
   }
   auto set_version = db->Prepare("UPDATE map_meta SET value = ?1 WHERE key = 'map_version'");
   if (!set_version.ok()) return set_version.status();
-  set_version->Bind(1, std::max(delta.version, delta.base_version));
+  set_version->Bind(1, version);
   if (auto s = set_version->Run(); !s.ok()) return s;
 
   return absl::OkStatus();
@@ -521,7 +536,8 @@ absl::StatusOr<int64_t> SqliteMapStore::RaiseRestoredMapVersion(SqliteConnection
     // past what it recorded, to versions clients saw. Above any of them, however far it went.
     const int64_t raised = (seen_version / kRestoredVersionStep + 1) * kRestoredVersionStep;
     if (auto s = map->Exec(absl::StrCat("UPDATE map_meta SET value = ", raised, " WHERE key = 'map_version';",
-                                        "UPDATE landmarks SET version = ", raised, ";"));
+                                        "UPDATE landmarks SET version = ", raised, ";",
+                                        "UPDATE removed_landmarks SET version = ", raised, ";"));
         !s.ok()) {
       return s;
     }
@@ -656,9 +672,9 @@ absl::Status SqliteMapStore::ReadMap(SqliteConnection* db, MapState* map) {
   return absl::OkStatus();
 }
 
-absl::StatusOr<LandmarkPage> SqliteMapStore::ReadPage(const std::string& where,
-                                                      const std::function<void(SqliteStatement&)>& bind, int limit,
-                                                      bool include_cross) {
+absl::StatusOr<LandmarkPage> SqliteMapStore::ReadPage(
+    const std::string& where, const std::function<void(SqliteStatement&)>& bind, int limit, bool include_cross,
+    const std::function<absl::Status(SqliteConnection*, LandmarkPage*)>& read_more) {
   auto db = map_->AcquireReader();
   if (!db.ok()) return db.status();
   // One read transaction: the version, the landmarks and their blocks come from the same commit.
@@ -672,6 +688,9 @@ absl::StatusOr<LandmarkPage> SqliteMapStore::ReadPage(const std::string& where,
   if (!stmt.ok()) return stmt.status();
   bind(*stmt);
   if (auto s = ReadLandmarks(*stmt, &page, limit); !s.ok()) return s;
+  if (read_more) {
+    if (auto s = read_more(db->get(), &page); !s.ok()) return s;
+  }
   if (include_cross && !page.landmarks.empty()) {
     // Without a map in memory (CachedMapStore has one), the whole map is read in the snapshot.
     MapState map;
@@ -720,7 +739,34 @@ absl::StatusOr<LandmarkPage> SqliteMapStore::ChangedLandmarks(const BoundingBox&
         BindBox(stmt, box);
         stmt.Bind(5, since_version);
       },
-      0, /*include_cross=*/false);
+      0, /*include_cross=*/false, [&](SqliteConnection* db, LandmarkPage* page) -> absl::Status {
+        auto stmt = db->Prepare(
+            "SELECT id FROM removed_landmarks WHERE version > ?5 AND lat_deg BETWEEN ?1 AND ?3 "
+            "AND lon_deg BETWEEN ?2 AND ?4 ORDER BY id");
+        if (!stmt.ok()) return stmt.status();
+        BindBox(*stmt, box);
+        stmt->Bind(5, since_version);
+        while (true) {
+          auto row = stmt->Step();
+          if (!row.ok()) return row.status();
+          if (!*row) return absl::OkStatus();
+          page->removed.push_back(stmt->Int(0));
+        }
+      });
+}
+
+absl::StatusOr<std::vector<RemovedLandmark>> SqliteMapStore::RemovedLandmarks() {
+  auto db = map_->AcquireReader();
+  if (!db.ok()) return db.status();
+  auto stmt = (*db)->Prepare("SELECT id, lat_deg, lon_deg, version FROM removed_landmarks ORDER BY id");
+  if (!stmt.ok()) return stmt.status();
+  std::vector<RemovedLandmark> out;
+  while (true) {
+    auto row = stmt->Step();
+    if (!row.ok()) return row.status();
+    if (!*row) return out;
+    out.push_back({stmt->Int(0), LatLon{stmt->Double(1), stmt->Double(2)}, stmt->Int(3)});
+  }
 }
 
 absl::StatusOr<LandmarkProvenance> SqliteMapStore::GetLandmarkProvenance(LandmarkId id) {

@@ -49,6 +49,7 @@ class SqliteMapStore : public MapStoreInterface {
   absl::StatusOr<LandmarkPage> GetTile(const TileId& tile, bool include_cross) override;
   absl::StatusOr<LandmarkPage> GetLandmarks(const std::vector<LandmarkId>& ids, bool include_cross) override;
   absl::StatusOr<LandmarkPage> ChangedLandmarks(const BoundingBox& box, int64_t since_version) override;
+  absl::StatusOr<std::vector<RemovedLandmark>> RemovedLandmarks() override;
   absl::StatusOr<MapStats> GetStats() override;
   absl::StatusOr<LandmarkProvenance> GetLandmarkProvenance(LandmarkId id) override;
   absl::StatusOr<VehicleCalibration> GetVehicle(const std::string& vehicle_id) override;
@@ -148,8 +149,10 @@ class SqliteMapStore : public MapStoreInterface {
   static absl::Status ReadMap(SqliteConnection* db, MapState* map);
   // Landmarks selected by `where` (after the common column list), bound by `bind`, read in one
   // snapshot with the map version; limit 0 = all.
-  absl::StatusOr<LandmarkPage> ReadPage(const std::string& where, const std::function<void(SqliteStatement&)>& bind,
-                                        int limit, bool include_cross);
+  // `read_more`, when given, adds to the page from the same snapshot.
+  absl::StatusOr<LandmarkPage> ReadPage(
+      const std::string& where, const std::function<void(SqliteStatement&)>& bind, int limit, bool include_cross,
+      const std::function<absl::Status(SqliteConnection*, LandmarkPage*)>& read_more = nullptr);
 
   const SqliteMapStoreOptions options_;
   // The map (landmarks, factors, base, version, map_passages) and the passage queue, in two files

@@ -742,6 +742,12 @@ TEST(SqliteMapStore, ExclusionWritesItsDeltaAndMarksThePassageInOneTransaction) 
   EXPECT_EQ(map.factor_count(), 0u);
   EXPECT_EQ(map.version(), 2);
   EXPECT_EQ(map.last_factor_id(), 1) << "factor ids are not reused";
+  // Watchers are told where the removed landmarks were, from the version before the removal.
+  const BoundingBox around{48.69, 2.16, 48.71, 2.18};
+  const BoundingBox elsewhere{48.0, 2.0, 48.1, 2.1};
+  EXPECT_EQ(store->ChangedLandmarks(around, 1)->removed, (std::vector<LandmarkId>{1, 2}));
+  EXPECT_TRUE(store->ChangedLandmarks(around, 2)->removed.empty());
+  EXPECT_TRUE(store->ChangedLandmarks(elsewhere, 0)->removed.empty());
   EXPECT_EQ(store->CommitPassageExcluded(id, exclusion).code(), absl::StatusCode::kFailedPrecondition)
       << "already excluded";
 }
@@ -949,6 +955,12 @@ TEST(SqliteMapStore, AMapRestoredFromAnOlderBackupIsRaisedAboveEveryVersionItsQu
   }
   std::filesystem::copy_file(path, backup);  // closed: its log is checkpointed
   {
+    // A landmark the backed-up map had removed: its record is restamped too.
+    auto db = SqliteConnection::Open(backup, 5000, /*read_only=*/false);
+    ASSERT_TRUE(db.ok()) << db.status();
+    ASSERT_TRUE((*db)->Exec("INSERT INTO removed_landmarks VALUES (99, 48.7, 2.17, 1)").ok());
+  }
+  {
     auto store = OpenStore(path);
     int64_t version = 1;
     for (const char* name : {"second", "third"}) {
@@ -965,6 +977,7 @@ TEST(SqliteMapStore, AMapRestoredFromAnOlderBackupIsRaisedAboveEveryVersionItsQu
   const int64_t raised = int64_t{1} << 32;  // a new range: clients may have seen versions after 3
   EXPECT_EQ(SqlInt(path, map_version), raised);
   EXPECT_EQ(SqlInt(path, "SELECT COUNT(*) FROM landmarks WHERE version <> " + std::to_string(raised)), 0);
+  EXPECT_EQ(SqlInt(path, "SELECT version FROM removed_landmarks WHERE id = 99"), raised);
   EXPECT_EQ(store->FindPassage("v", "second")->state, PassageState::kQueued);
   store.reset();
   auto again = OpenStore(path);
@@ -1376,12 +1389,12 @@ TEST(SqliteMapStore, ASchemaFiveMapGainsTheVehiclesTableAndRoomierBoxesAndKeepsI
     ASSERT_TRUE(store->CommitPassageApplied(id, delta, PassageResult()).ok());
   }
   // Back to the file schema 5 wrote: migration 5 -> 6 only adds the vehicles table, 6 -> 7 widens
-  // the R*Tree boxes, which schema 5 wrote as points.
-  ASSERT_EQ(LatestSchemaVersion(), 7);
+  // the R*Tree boxes, which schema 5 wrote as points, 7 -> 8 adds the removed landmarks' table.
+  ASSERT_EQ(LatestSchemaVersion(), 8);
   {
     auto db = SqliteConnection::Open(path, 5000, /*read_only=*/false);
     ASSERT_TRUE(db.ok()) << db.status();
-    ASSERT_TRUE((*db)->Exec("DROP TABLE vehicles; UPDATE landmark_boxes SET min_lat = 48.7, max_lat = 48.7, "
+    ASSERT_TRUE((*db)->Exec("DROP TABLE vehicles; DROP TABLE removed_landmarks; UPDATE landmark_boxes SET min_lat = 48.7, max_lat = 48.7, "
                             "min_lon = 2.17, max_lon = 2.17; PRAGMA user_version = 5;")
                     .ok());
   }
@@ -1390,7 +1403,7 @@ TEST(SqliteMapStore, ASchemaFiveMapGainsTheVehiclesTableAndRoomierBoxesAndKeepsI
   ASSERT_LT(SqlInt(path, box_sql), 10000);  // float rounding only
   auto store = OpenStore(path);
   ASSERT_NE(store, nullptr);
-  EXPECT_EQ(SqlInt(path, "PRAGMA user_version"), 7);
+  EXPECT_EQ(SqlInt(path, "PRAGMA user_version"), 8);
   EXPECT_GT(SqlInt(path, box_sql), 19000);  // 2e-5 degrees
   auto none = store->ListVehicles();
   ASSERT_TRUE(none.ok()) << none.status();
@@ -1637,10 +1650,12 @@ void ExpectSamePage(const absl::StatusOr<LandmarkPage>& got, const absl::StatusO
     EXPECT_EQ(a.passages_seen, b.passages_seen);
     EXPECT_EQ(a.last_seen_unix_ms, b.last_seen_unix_ms);
   }
+  EXPECT_EQ(got->removed, want->removed);
 }
 
-// Landmarks created, moved across tile borders and updated over many commits: after each one
-// the cache answers every read exactly as SQLite does; a refused commit changes neither.
+// Landmarks created, moved across tile borders, updated, removed and brought back over many
+// commits: after each one the cache answers every read exactly as SQLite does, the removals
+// included; a refused commit changes neither.
 TEST(CachedMapStore, AnswersLikeSqliteAcrossCommitsThatMoveLandmarksBetweenTiles) {
   TempDir dir;
   const std::string path = dir.File("map.db");
@@ -1664,7 +1679,20 @@ TEST(CachedMapStore, AnswersLikeSqliteAcrossCommitsThatMoveLandmarksBetweenTiles
       delta.landmarks[lid] = MakeLandmark(lid, tile_box.max_lat_deg + t * (lid % 2 ? 1 : -1),
                                           tile_box.max_lon_deg + t, version);
     }
+    if (step % 3 == 2) {
+      // Two landmarks removed (the next commits bring them back), one of them again.
+      for (LandmarkId lid : {LandmarkId{1} + step % 8, LandmarkId{1} + (step + 3) % 8}) {
+        delta.landmarks.erase(lid);
+        delta.removed_landmarks.push_back(lid);
+      }
+    }
     ASSERT_TRUE((*cached)->CommitPassageApplied(id, delta, {}).ok());
+    ExpectSamePage((*cached)->ChangedLandmarks(around, 0), sqlite->ChangedLandmarks(around, 0));
+    if (step % 3 == 2) {
+      auto changed = (*cached)->ChangedLandmarks(around, version - 1);
+      ASSERT_TRUE(changed.ok());
+      EXPECT_EQ(changed->removed.size(), 2u) << "step " << step;
+    }
     for (LandmarkId after : {0, 3}) {
       ExpectSamePage((*cached)->QueryRegion(around, after, 0, false), sqlite->QueryRegion(around, after, 0, false));
       ExpectSamePage((*cached)->QueryRegion(around, after, 3, false), sqlite->QueryRegion(around, after, 3, false));
@@ -1696,6 +1724,7 @@ TEST(CachedMapStore, AnswersLikeSqliteAcrossCommitsThatMoveLandmarksBetweenTiles
   auto reopened = CachedMapStore::Create(OpenStore(path));
   ASSERT_TRUE(reopened.ok());
   ExpectSamePage((*reopened)->QueryRegion(around, 0, 0, false), (*cached)->QueryRegion(around, 0, 0, false));
+  ExpectSamePage((*reopened)->ChangedLandmarks(around, 0), (*cached)->ChangedLandmarks(around, 0));
 }
 
 // Reads with covariances share one factorisation of the whole map per version, and on a small

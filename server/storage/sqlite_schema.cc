@@ -332,6 +332,18 @@ const std::vector<Migration>& Migrations() {
                                 min_lon = min_lon - 1e-5, max_lon = max_lon + 1e-5;
       )sql",
        nullptr},
+      // 7 -> 8: where each removed landmark last was, and the version that removed it, so that a
+      // watcher whose copy holds it is told (SqliteMapStore::WriteMapDelta; ChangedLandmarks).
+      {R"sql(
+      CREATE TABLE removed_landmarks (
+        id INTEGER PRIMARY KEY,
+        lat_deg REAL NOT NULL,
+        lon_deg REAL NOT NULL,
+        version INTEGER NOT NULL
+      ) STRICT;
+      CREATE INDEX removed_landmarks_by_version ON removed_landmarks (version);
+      )sql",
+       nullptr},
   };
   return kMigrations;
 }

@@ -356,8 +356,10 @@
       if (version !== viewer.version) {
         const changed = await getJson(`api/landmarks?bbox=${kWorld}&since_version=${viewer.version}`);
         merge(changed.body.features);
+        // Landmarks taken out of the map (an excluded passage's); servers that predate the list
+        // leave them out, and then the whole map is read again.
+        for (const id of changed.body.removed_ids || []) viewer.landmarks.delete(Number(id));
         viewer.version = changed.body.map_version;
-        // Landmarks taken out of the map (an excluded passage's) are not in a change list.
         if (Number(viewer.info.landmark_count) !== viewer.landmarks.size) await loadAll();
         if (viewer.selected !== null) renderDetails();
         scheduleDraw();
