@@ -202,6 +202,11 @@ std::unique_ptr<CLI::App> NewMapdCommandLine(MapdConfig* config) {
                  "estimate each passage's wheel-speed scale (tyre radius, pressure, wear), prior mean 1 with\n"
                  "this sigma (0: the encoders' speeds are taken as unbiased)")
       ->type_name("X");
+  AddMapdSetting(app, "correlated-gnss-min-lag1", &u.correlated_gnss_min_lag1,
+                 "a passage declaring white GNSS noise whose fixes' residuals against its own trajectory\n"
+                 "have a lag-1 correlation above X (errors correlated over minutes: most receivers) is\n"
+                 "estimated with a Gauss-Markov process instead (0 = off: declared noise taken as it is)")
+      ->type_name("X");
   AddMapdSetting(app, "fleet-yaw-prior-vehicles", &u.fleet_camera_yaw_prior_vehicles,
                  "with estimate-camera-yaw: once the map has N vehicles' records, a new vehicle's camera\n"
                  "yaw prior is centred on the fleet's mean (width their spread, at least 1 degree) instead\n"
@@ -311,6 +316,7 @@ std::string DescribeMapdConfig(const MapdConfig& config) {
       " estimate-camera-yaw=", u.estimate_camera_yaw ? "true" : "false",
       " fleet-yaw-prior-vehicles=", u.fleet_camera_yaw_prior_vehicles,
       " speed-scale-prior-sigma=", u.speed_scale_prior_sigma,
+      " correlated-gnss-min-lag1=", u.correlated_gnss_min_lag1,
       " metrics-listen=", o.metrics_listen.empty() ? "none" : EscapeForLog(o.metrics_listen),
       " http-listen=", o.http_listen.empty() ? "none" : EscapeForLog(o.http_listen),
       " viewer-basemap=", o.viewer_basemap.empty() ? "none" : EscapeForLog(o.viewer_basemap),

@@ -13,6 +13,7 @@
 
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
+#include "client/mapsim/experiment.h"
 #include "core/estimation/cramer_rao.h"
 
 namespace crowdmap {
@@ -219,6 +220,7 @@ absl::StatusOr<CityExperimentResult> RunCityExperiment(const CityExperimentOptio
       result.landmarks_held_back += update->summary.landmarks_held_back;
       result.landmarks_disagreeing += update->summary.landmarks_disagreeing;
       result.inflated_passages += update->summary.max_variance_factor > 1.0 ? 1 : 0;
+      CountGnssCheck(update->summary, &result.correlated_gnss_passages, &result.gnss_residual_lag1);
       result.detections_used += update->summary.detections_used;
       result.detections_outliers += update->summary.detections_outliers;
       result.relinearized_passages += RelinearizeStaleInMemory(passage_of, &updater, &map);
@@ -311,6 +313,8 @@ absl::Status WriteCityOutputs(const CityExperimentOptions& options, const CityEx
       {"passages_failed", result.failed_passages},
       {"passages_relinearized", result.relinearized_passages},
       {"passages_inflated", result.inflated_passages},
+      {"passages_correlated_gnss", result.correlated_gnss_passages},
+      {"gnss_residual_lag1", Percentiles(result.gnss_residual_lag1)},
       {"landmarks_held_back", result.landmarks_held_back},
       {"landmarks_disagreeing", result.landmarks_disagreeing},
       {"passages_quarantined", result.quarantined_passages},

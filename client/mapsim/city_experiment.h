@@ -82,6 +82,9 @@ struct CityExperimentResult {
   int landmarks_held_back = 0;   // summed over the passages (PassageUpdateSummary)
   int landmarks_disagreeing = 0;
   int inflated_passages = 0;     // whose consistency test scaled their covariances
+  // As ExperimentResult's.
+  int correlated_gnss_passages = 0;
+  std::vector<double> gnss_residual_lag1;
   int quarantined_passages = 0;  // refused by the map's checks (FailedPrecondition; also in failed_passages)
   int64_t detections_used = 0;
   int64_t detections_outliers = 0;  // set aside by the residual test

@@ -181,6 +181,7 @@ absl::StatusOr<ExperimentResult> RunExperiment(const ExperimentOptions& options,
         result.relinearized_passages += RelinearizeStaleInMemory(passage_of, &updater, &result.final_map);
         record.subgraphs = u->summary.subgraphs;
         if (u->summary.max_variance_factor > 1.0) ++result.inflated_passages;
+        CountGnssCheck(u->summary, &result.correlated_gnss_passages, &result.gnss_residual_lag1);
         if (u->summary.joint_rejected) ++result.joint_rejected_passages;
         result.detections_used += u->summary.detections_used;
         result.detections_outliers += u->summary.detections_outliers;
@@ -303,6 +304,8 @@ absl::Status WriteExperimentOutputs(const ExperimentOptions& options, const Expe
       {"relinearize_sigmas", options.update.relinearize_sigmas},
       {"relinearize_area_passages", options.update.relinearize_area_passages},
       {"inflated_passages", result.inflated_passages},
+      {"correlated_gnss_passages", result.correlated_gnss_passages},
+      {"gnss_residual_lag1", Percentiles(result.gnss_residual_lag1)},
       {"max_subgraph_dim", options.update.max_subgraph_dim},
       {"detections_per_landmark", options.update.detections_per_landmark},
       {"spread_detections", options.update.spread_detections},
@@ -350,6 +353,18 @@ absl::Status WriteExperimentOutputs(const ExperimentOptions& options, const Expe
                         absl::StrFormat("%s, N=%d, %s noise, seed %d", options.strategy, options.scenario.landmarks,
                                         NoiseConfigName(options.scenario.noise), options.scenario.seed),
                         (std::filesystem::path(dir) / "errors.svg").string());
+}
+
+void CountGnssCheck(const PassageUpdateSummary& summary, int* correlated_passages, std::vector<double>* lag1) {
+  if (summary.gnss_correlation_time_s > 0.0) ++*correlated_passages;
+  if (summary.gnss_residual_lag1 != 0.0) lag1->push_back(summary.gnss_residual_lag1);
+}
+
+std::map<std::string, double> Percentiles(std::vector<double> values) {
+  if (values.empty()) return {};
+  std::sort(values.begin(), values.end());
+  auto at = [&](double q) { return values[static_cast<size_t>(std::lround(q * static_cast<double>(values.size() - 1)))]; };
+  return {{"p50", at(0.5)}, {"p95", at(0.95)}, {"max", values.back()}};
 }
 
 }  // namespace crowdmap

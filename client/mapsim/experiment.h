@@ -3,6 +3,7 @@
 
 #include <functional>
 #include <limits>
+#include <map>
 #include <string>
 #include <vector>
 
@@ -58,6 +59,11 @@ struct ExperimentResult {
   int failed_passages = 0;          // passages the estimator rejected (the map is unchanged by them)
   int relinearized_passages = 0;    // re-linearisations applied (MapUpdateOptions::relinearize_sigmas)
   int inflated_passages = 0;        // passages whose measurement covariances the consistency test inflated
+  // Passages declaring white GNSS noise estimated with a Gauss-Markov process their residuals
+  // showed (MapUpdateOptions::correlated_gnss_min_lag1), and every checked passage's residual lag-1
+  // correlation.
+  int correlated_gnss_passages = 0;
+  std::vector<double> gnss_residual_lag1;
   int joint_rejected_passages = 0;  // warm-up passages applied sequentially: the joint solve was not usable
   // What the map's gates set aside (as mapd would): passages quarantined (FailedPrecondition, the
   // map's checks refused them; counted in failed_passages too), detections used and set aside as
@@ -114,6 +120,12 @@ absl::StatusOr<ExperimentResult> RunExperiment(const ExperimentOptions& options,
 absl::Status WriteExperimentOutputs(const ExperimentOptions& options, const ExperimentResult& result,
                                     const std::string& dir,
                                     const std::vector<std::pair<std::string, double>>& extra_summary = {});
+
+// Counts a passage that was estimated with the GNSS process its residuals showed, and keeps the
+// residuals' lag-1 correlation of one that was checked (PassageUpdateSummary).
+void CountGnssCheck(const PassageUpdateSummary& summary, int* correlated_passages, std::vector<double>* lag1);
+// "p50", "p95" and "max" of `values` (empty: none), for summary.json.
+std::map<std::string, double> Percentiles(std::vector<double> values);
 
 }  // namespace crowdmap
 

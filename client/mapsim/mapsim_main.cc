@@ -177,6 +177,12 @@ void AddMapUpdateFlags(CLI::App* command, MapUpdateOptions* update) {
                       "0 = off: the speeds taken as unbiased, as mapd by default)")
       ->check(NonNegative())
       ->type_name("X");
+  command->add_option("--correlated-gnss-min-lag1", update->correlated_gnss_min_lag1,
+                      "a passage declaring white GNSS noise whose fixes' residuals have a lag-1 correlation\n"
+                      "above X is estimated with a Gauss-Markov process instead, as mapd (0 = off)")
+      ->check(CLI::Range(0.0, 0.999))
+      ->default_val(update->correlated_gnss_min_lag1)
+      ->type_name("X");
   // Gates given in sigmas, kept as squared Mahalanobis distances.
   const auto add_sigmas = [command](const std::string& flag, double* mahalanobis2, const std::string& description) {
     command->add_option_function<double>(flag, [mahalanobis2](double sigmas) { *mahalanobis2 = sigmas * sigmas; },

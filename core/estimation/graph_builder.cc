@@ -284,6 +284,27 @@ absl::StatusOr<PassageGraph> BuildPassageGraph(const Passage& passage, const Gra
                    [](const CameraObservation& a, const CameraObservation& b) { return a.node < b.node; });
 
   g.initial_poses = AlignDeadReckoning(g, passage.calibration, options.alignment_window_s);
+  if (options.detect_correlated_gnss && g.gnss_correlation_time_s <= 0.0) {
+    // The passage's own trajectory, its fixes taken as declared, on a pose graph of its fixes'
+    // times alone (a third of the nodes on the loop: the check's solve is the passage's smallest).
+    PassageGraph fixes;
+    for (const GnssObservation& o : g.gnss) fixes.node_times_s.push_back(o.t_s);
+    fixes.node_times_s = MergeTimes(std::move(fixes.node_times_s), options.node_merge_tolerance_s);
+    for (size_t k = 0; k + 1 < fixes.node_times_s.size(); ++k) {
+      fixes.motions.push_back(Preintegrate(passage.odometry, fixes.node_times_s[k], fixes.node_times_s[k + 1],
+                                           wheelbase, passage.noise));
+    }
+    fixes.gnss = g.gnss;
+    for (GnssObservation& o : fixes.gnss) o.node = NodeIndex(fixes.node_times_s, o.t_s, options.node_merge_tolerance_s);
+    fixes.initial_poses = AlignDeadReckoning(fixes, passage.calibration, options.alignment_window_s);
+    if (absl::Status s = SolvePoseGraph(passage.calibration, 10, &fixes); !s.ok()) return s;
+    g.gnss_residuals = MeasureGnssResiduals(fixes.gnss, fixes.initial_poses, passage.calibration.gnss_lever_arm_m);
+    g.correlated_gnss = CorrelatedGnssFromResiduals(*g.gnss_residuals, *options.detect_correlated_gnss);
+    if (g.correlated_gnss) {
+      g.gnss_correlation_time_s = g.correlated_gnss->correlation_time_s;
+      for (GnssObservation& o : g.gnss) o.cov_m2 *= g.correlated_gnss->covariance_scale;
+    }
+  }
   if (options.refine_initial_poses) {
     if (absl::Status s = SolvePoseGraph(passage.calibration, options.max_init_iterations, &g); !s.ok()) return s;
   }

@@ -7,6 +7,7 @@
 #include <ceres/ceres.h>
 
 #include "absl/status/statusor.h"
+#include "core/estimation/gnss_correlation.h"
 #include "core/geo/local_frame.h"
 #include "core/model/motion_model.h"
 #include "core/model/passage.h"
@@ -35,6 +36,10 @@ struct GraphOptions {
   // Origin of the graph's East/North frame; unset: the passage's first GNSS fix. Graphs of several
   // passages solved together share one.
   std::optional<LatLon> frame_origin;
+  // Set: a passage that declares white GNSS noise is checked for correlated errors (the residuals
+  // of its fixes against its odometry + GNSS trajectory, gnss_correlation.h) and, where they show,
+  // estimated with the Gauss-Markov process they give (PassageGraph::correlated_gnss).
+  std::optional<CorrelatedGnssOptions> detect_correlated_gnss;
 };
 
 struct GnssObservation {
@@ -61,6 +66,11 @@ struct PassageGraph {
   double gnss_correlation_time_s = 0.0;
   std::vector<CameraObservation> detections;   // used detections, sorted by node
   int detections_dropped = 0;                  // detections not kept (beyond the last K)
+  // With GraphOptions::detect_correlated_gnss, for a passage that declares white GNSS noise: its
+  // fixes' residuals, and the process it is estimated with when they show correlated errors
+  // (gnss_correlation_time_s and each fix's cov_m2 are then the process's).
+  std::optional<GnssResidualStats> gnss_residuals;
+  std::optional<CorrelatedGnss> correlated_gnss;
 
   int node_count() const { return static_cast<int>(node_times_s.size()); }
 };

@@ -123,6 +123,13 @@ struct MapUpdateOptions {
   // With AR(1) GNSS the state hurt (mean error 0.91 -> 3.65 m, NEES/dof 0.32 -> 4.0 on a clean
   // fleet), so it stays off by default, in mapd too. 0 = off: the speeds are taken as unbiased.
   double speed_scale_prior_sigma = 0.0;
+  // A passage that declares white GNSS noise whose fixes' residuals against its own odometry +
+  // GNSS trajectory have a lag-1 correlation above this is estimated with a Gauss-Markov process
+  // instead (gnss_correlation.h): the correlation time the residuals' fix-to-fix differences give,
+  // the covariance scaled up to the residuals' where they are larger than declared.
+  // Errors correlated over minutes, declared white, otherwise place the passage's landmarks metres
+  // off with centimetre covariances. 0 = off.
+  double correlated_gnss_min_lag1 = 0.5;
   // A map landmark that a subgraph's solve moves further than this from its map estimate (squared
   // Mahalanobis distance in the map's marginal covariance; an honest update moves it by much less,
   // since its move has covariance prior - posterior) is one the passage and the map disagree

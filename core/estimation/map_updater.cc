@@ -424,6 +424,10 @@ absl::Status MapUpdateOptions::Validate() const {
     return absl::InvalidArgumentError(absl::StrCat("fleet_camera_yaw_prior_vehicles: must be >= 0 (0 = off), got ",
                                                    fleet_camera_yaw_prior_vehicles));
   }
+  if (!(correlated_gnss_min_lag1 >= 0.0 && correlated_gnss_min_lag1 < 1.0)) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("correlated_gnss_min_lag1: must lie in [0, 1) (0 = off), got ", correlated_gnss_min_lag1));
+  }
   if (max_solver_iterations < 1) {
     return absl::InvalidArgumentError(absl::StrCat("max_solver_iterations: must be >= 1, got ", max_solver_iterations));
   }
@@ -443,7 +447,14 @@ std::string PassageUpdateSummary::Brief() const {
                                                         camera_yaw_offset_rad * 180.0 / M_PI,
                                                         camera_yaw_sigma_rad * 180.0 / M_PI)
                                      : std::string()) +
-         SpeedScaleBrief();
+         SpeedScaleBrief() + GnssBrief();
+}
+
+std::string PassageUpdateSummary::GnssBrief() const {
+  if (gnss_residual_lag1 == 0.0) return "";
+  std::string out = absl::StrFormat(" gnss_residual_lag1=%.2f", gnss_residual_lag1);
+  if (gnss_correlation_time_s > 0.0) absl::StrAppendFormat(&out, " gnss_correlation_time_s=%.0f", gnss_correlation_time_s);
+  return out;
 }
 
 std::string PassageUpdateSummary::SpeedScaleBrief() const {
@@ -473,6 +484,8 @@ absl::Status ApplyPassage(const Passage& declared, const MapUpdateOptions& optio
 
   summary->nodes = graph->node_count();
   summary->detections_dropped = graph->detections_dropped;
+  if (graph->gnss_residuals) summary->gnss_residual_lag1 = graph->gnss_residuals->lag1;
+  if (graph->correlated_gnss) summary->gnss_correlation_time_s = graph->correlated_gnss->correlation_time_s;
   const int max_dim = options.strategy == UpdateStrategy::kCorrelatedSubdivided ? options.max_subgraph_dim : 0;
   const std::vector<NodeRange> ranges = SubdivideGraph(*graph, max_dim);
   summary->subgraphs = static_cast<int>(ranges.size());
@@ -598,6 +611,11 @@ GraphOptions UpdateGraphOptions(const MapUpdateOptions& options) {
   graph.spread_detections = options.spread_detections;
   graph.detection_spacing_s = options.detection_spacing_s;
   graph.detection_spacing_m = options.detection_spacing_m;
+  if (options.correlated_gnss_min_lag1 > 0.0) {
+    CorrelatedGnssOptions correlated;
+    correlated.min_lag1 = options.correlated_gnss_min_lag1;
+    graph.detect_correlated_gnss = correlated;
+  }
   return graph;
 }
 

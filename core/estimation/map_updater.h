@@ -49,6 +49,11 @@ struct PassageUpdateSummary {
   // subgraph's estimate and its standard deviation.
   double speed_scale = 0.0;
   double speed_scale_sigma = 0.0;
+  // A passage declaring white GNSS noise (MapUpdateOptions::correlated_gnss_min_lag1): the lag-1
+  // correlation of its fixes' residuals, and the correlation time of the process it was estimated
+  // with where they showed correlated errors (0: as declared).
+  double gnss_residual_lag1 = 0.0;
+  double gnss_correlation_time_s = 0.0;
   int64_t map_version = 0;  // version after the update
   int joint_passages = 0;       // passages solved jointly (warm-up or re-solve); 0 = sequential update
   bool joint_rejected = false;  // the joint solve was not usable, this is the sequential update
@@ -57,6 +62,10 @@ struct PassageUpdateSummary {
   // " speed_scale=... speed_scale_sigma=..." when the scale was estimated, "" otherwise (a part of
   // Brief() that the service's applied-passage line carries too).
   std::string SpeedScaleBrief() const;
+  // " gnss_residual_lag1=..." for a passage checked for correlated GNSS errors (gnss_correlation.h),
+  // with " gnss_correlation_time_s=..." when it was estimated with the process they showed; ""
+  // otherwise. In the applied-passage line too.
+  std::string GnssBrief() const;
 };
 
 struct PassageUpdate {
