@@ -148,7 +148,6 @@ TEST(Metrics, ScrapedValuesMatchTheRpcsUploadsAndAppliedPassages) {
   EXPECT_EQ(m[std::string("mapd_build_info{version=\"") + CROWDMAP_VERSION + "\"}"], 1);
 }
 
-// With --relinearize-sigmas the worker's re-linearisations are counted by outcome.
 // The viewer's change list (GET /api/landmarks?since_version=V) names the landmarks removed after
 // V, so that a page drops them; a full read has no such list.
 TEST(Viewer, AChangeListNamesTheLandmarksAnExclusionRemoved) {
@@ -160,10 +159,7 @@ TEST(Viewer, AChangeListNamesTheLandmarksAnExclusionRemoved) {
   ASSERT_GT(server->http_port(), 0);
   MockVehicle vehicle(server->address());
   const Scenario scenario = ShortScenario();
-  Passage lone = scenario.MakePassage(1);  // alone in seeing landmark 500
-  for (Detection& d : lone.detections) {
-    if (d.landmark_id == 1) d.landmark_id = 500;
-  }
+  const Passage lone = WithLandmarkRenamed(scenario.MakePassage(1), 1, 500);
   ASSERT_TRUE(vehicle.Upload(scenario.MakePassage(0)).ok());
   ASSERT_TRUE(vehicle.Upload(lone).ok());
   ASSERT_TRUE(vehicle.WaitUntilIdle().ok());
@@ -180,6 +176,7 @@ TEST(Viewer, AChangeListNamesTheLandmarksAnExclusionRemoved) {
   EXPECT_EQ(all.find("removed_ids"), std::string::npos) << all.substr(0, 200);
 }
 
+// With --relinearize-sigmas the worker's re-linearisations are counted by outcome.
 TEST(Metrics, RelinearizationsAreCounted) {
   TempDir dir;
   MapServerOptions options = TestServerOptions(dir.File("map.db"));

@@ -641,16 +641,7 @@ TEST_F(ServiceRpc, WatchRegionStreamsLandmarksChangedAfterTheVersion) {
 // landmarks: they come as removed_landmark_ids in the change that removed them.
 TEST_F(ServiceRpc, WatchRegionReportsTheLandmarksAnExclusionRemoves) {
   Start(true);
-  // Passage 1 alone sees landmark 500 (its detections of landmark 1 renamed).
-  Passage lone = scenario_.MakePassage(1);
-  int renamed = 0;
-  for (Detection& d : lone.detections) {
-    if (d.landmark_id == 1) {
-      d.landmark_id = 500;
-      ++renamed;
-    }
-  }
-  ASSERT_GT(renamed, 0);
+  const Passage lone = WithLandmarkRenamed(scenario_.MakePassage(1), 1, 500);
   MustUpload(scenario_.MakePassage(0));
   MustUpload(lone);
   MustUpload(scenario_.MakePassage(2));

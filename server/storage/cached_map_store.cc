@@ -127,15 +127,21 @@ std::shared_ptr<const CachedMapStore::View> CachedMapStore::ApplyToView(const Ma
     tile_of_.erase(old);
   }
   std::sort(removed.begin(), removed.end(), RemovedById);
-  // A landmark that comes back is no longer removed; one removed again gets its new record.
-  auto removed_again = [&](const RemovedLandmark& r) {
-    return delta.landmarks.count(r.id) > 0 ||
-           std::binary_search(removed.begin(), removed.end(), r, RemovedById);
+  // A landmark that comes back is no longer removed; one removed again gets its new record. The
+  // records are copied only when the delta touches them (looked up by id: they are never pruned).
+  const std::vector<RemovedLandmark>& records = *current->removed;
+  const auto recorded = [&](LandmarkId id) {
+    return std::binary_search(records.begin(), records.end(), RemovedLandmark{id, {}, 0}, RemovedById);
   };
-  if (!removed.empty() || std::any_of(current->removed->begin(), current->removed->end(), removed_again)) {
+  const bool returns = std::any_of(delta.landmarks.begin(), delta.landmarks.end(),
+                                   [&](const auto& entry) { return recorded(entry.first); });
+  auto removed_again = [&](const RemovedLandmark& r) {
+    return delta.landmarks.count(r.id) > 0 || std::binary_search(removed.begin(), removed.end(), r, RemovedById);
+  };
+  if (!removed.empty() || returns) {
     std::vector<RemovedLandmark> all;
-    all.reserve(current->removed->size() + removed.size());
-    std::remove_copy_if(current->removed->begin(), current->removed->end(), std::back_inserter(all), removed_again);
+    all.reserve(records.size() + removed.size());
+    std::remove_copy_if(records.begin(), records.end(), std::back_inserter(all), removed_again);
     const size_t kept = all.size();
     all.insert(all.end(), removed.begin(), removed.end());
     std::inplace_merge(all.begin(), all.begin() + static_cast<std::ptrdiff_t>(kept), all.end(), RemovedById);

@@ -36,6 +36,20 @@ inline Scenario ShortScenario(int landmarks = 6, double duration_s = 40.0) {
   return *std::move(scenario);
 }
 
+// `passage` with its detections of landmark `from` reported as `to`: a landmark it alone sees,
+// which excluding it removes from the map.
+inline Passage WithLandmarkRenamed(Passage passage, LandmarkId from, LandmarkId to) {
+  int renamed = 0;
+  for (Detection& d : passage.detections) {
+    if (d.landmark_id == from) {
+      d.landmark_id = to;
+      ++renamed;
+    }
+  }
+  EXPECT_GT(renamed, 0) << "the passage does not see landmark " << from;
+  return passage;
+}
+
 }  // namespace crowdmap
 
 #endif  // CROWDMAP_TESTS_SUPPORT_TEST_SERVER_H_
