@@ -202,6 +202,39 @@ absl::Status SolvePoseGraph(const Calibration& calib, int max_iterations, Passag
   return absl::OkStatus();
 }
 
+// The odometry preintegrated between consecutive node times.
+std::vector<RelativeMotion> MotionsBetween(const Passage& passage, const std::vector<double>& node_times_s) {
+  std::vector<RelativeMotion> motions;
+  motions.reserve(node_times_s.size());
+  for (size_t k = 0; k + 1 < node_times_s.size(); ++k) {
+    motions.push_back(Preintegrate(passage.odometry, node_times_s[k], node_times_s[k + 1],
+                                   passage.calibration.wheelbase_m, passage.noise));
+  }
+  return motions;
+}
+
+// GraphOptions::detect_correlated_gnss for `g`, a passage that declares white GNSS noise: the
+// residuals of its fixes against its own trajectory, its fixes taken as declared, solved on a pose
+// graph of its fixes' times alone (a third of the nodes on the loop: the check's solve is the
+// passage's smallest); where they show correlated errors, `g` takes the process they give.
+absl::Status CheckGnssCorrelation(const Passage& passage, const GraphOptions& options, PassageGraph* g) {
+  PassageGraph fixes;
+  for (const GnssObservation& o : g->gnss) fixes.node_times_s.push_back(o.t_s);
+  fixes.node_times_s = MergeTimes(std::move(fixes.node_times_s), options.node_merge_tolerance_s);
+  fixes.motions = MotionsBetween(passage, fixes.node_times_s);
+  fixes.gnss = g->gnss;
+  for (GnssObservation& o : fixes.gnss) o.node = NodeIndex(fixes.node_times_s, o.t_s, options.node_merge_tolerance_s);
+  fixes.initial_poses = AlignDeadReckoning(fixes, passage.calibration, options.alignment_window_s);
+  if (absl::Status s = SolvePoseGraph(passage.calibration, /*max_iterations=*/10, &fixes); !s.ok()) return s;
+  g->gnss_residuals = MeasureGnssResiduals(fixes.gnss, fixes.initial_poses, passage.calibration.gnss_lever_arm_m);
+  g->correlated_gnss = CorrelatedGnssFromResiduals(*g->gnss_residuals, *options.detect_correlated_gnss);
+  if (g->correlated_gnss) {
+    g->gnss_correlation_time_s = g->correlated_gnss->correlation_time_s;
+    for (GnssObservation& o : g->gnss) o.cov_m2 *= g->correlated_gnss->covariance_scale;
+  }
+  return absl::OkStatus();
+}
+
 }  // namespace
 
 void AddPoseGraphFactors(const PassageGraph& graph, int first, int last, const Eigen::Vector2d& gnss_lever_arm_m,
@@ -257,11 +290,7 @@ absl::StatusOr<PassageGraph> BuildPassageGraph(const Passage& passage, const Gra
   for (const Detection* d : used) times.push_back(d->t_s);
   g.node_times_s = MergeTimes(std::move(times), options.node_merge_tolerance_s);
 
-  const double wheelbase = passage.calibration.wheelbase_m;
-  g.motions.reserve(g.node_times_s.size());
-  for (size_t k = 0; k + 1 < g.node_times_s.size(); ++k) {
-    g.motions.push_back(Preintegrate(passage.odometry, g.node_times_s[k], g.node_times_s[k + 1], wheelbase, passage.noise));
-  }
+  g.motions = MotionsBetween(passage, g.node_times_s);
 
   g.gnss_correlation_time_s = passage.noise.gnss_correlation_time_s;
   const double process_sigma_m = passage.noise.gnss_process_sigma_m;
@@ -285,25 +314,7 @@ absl::StatusOr<PassageGraph> BuildPassageGraph(const Passage& passage, const Gra
 
   g.initial_poses = AlignDeadReckoning(g, passage.calibration, options.alignment_window_s);
   if (options.detect_correlated_gnss && g.gnss_correlation_time_s <= 0.0) {
-    // The passage's own trajectory, its fixes taken as declared, on a pose graph of its fixes'
-    // times alone (a third of the nodes on the loop: the check's solve is the passage's smallest).
-    PassageGraph fixes;
-    for (const GnssObservation& o : g.gnss) fixes.node_times_s.push_back(o.t_s);
-    fixes.node_times_s = MergeTimes(std::move(fixes.node_times_s), options.node_merge_tolerance_s);
-    for (size_t k = 0; k + 1 < fixes.node_times_s.size(); ++k) {
-      fixes.motions.push_back(Preintegrate(passage.odometry, fixes.node_times_s[k], fixes.node_times_s[k + 1],
-                                           wheelbase, passage.noise));
-    }
-    fixes.gnss = g.gnss;
-    for (GnssObservation& o : fixes.gnss) o.node = NodeIndex(fixes.node_times_s, o.t_s, options.node_merge_tolerance_s);
-    fixes.initial_poses = AlignDeadReckoning(fixes, passage.calibration, options.alignment_window_s);
-    if (absl::Status s = SolvePoseGraph(passage.calibration, 10, &fixes); !s.ok()) return s;
-    g.gnss_residuals = MeasureGnssResiduals(fixes.gnss, fixes.initial_poses, passage.calibration.gnss_lever_arm_m);
-    g.correlated_gnss = CorrelatedGnssFromResiduals(*g.gnss_residuals, *options.detect_correlated_gnss);
-    if (g.correlated_gnss) {
-      g.gnss_correlation_time_s = g.correlated_gnss->correlation_time_s;
-      for (GnssObservation& o : g.gnss) o.cov_m2 *= g.correlated_gnss->covariance_scale;
-    }
+    if (absl::Status s = CheckGnssCorrelation(passage, options, &g); !s.ok()) return s;
   }
   if (options.refine_initial_poses) {
     if (absl::Status s = SolvePoseGraph(passage.calibration, options.max_init_iterations, &g); !s.ok()) return s;
