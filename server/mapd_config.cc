@@ -176,6 +176,10 @@ std::unique_ptr<CLI::App> NewMapdCommandLine(MapdConfig* config) {
                  "a detection whose residual at a subgraph's solution exceeds X pixel sigmas is set aside\n"
                  "as an outlier (0 = off)")
       ->type_name("X");
+  AddMapdSetting(app, "sensor-test-sigmas", &u.sensor_test_sigmas,
+                 "a sensor (odometry, GNSS, camera) whose residuals' chi-square exceeds their redundancy by X\n"
+                 "sigmas has its declared covariances scaled by their ratio for that subgraph (0 = off)")
+      ->type_name("X");
   AddSigmasSetting(app, "max-landmark-shift-sigmas", &u.max_landmark_shift_mahalanobis2,
                    "a map landmark a subgraph's solve would move further than X of the map's sigmas is set\n"
                    "aside for that passage (0 = off)");
@@ -308,7 +312,7 @@ std::string DescribeMapdConfig(const MapdConfig& config) {
       " relinearizations-per-passage=", u.relinearizations_per_passage, " retain-passages=", u.retain_passages,
       " workers=", o.worker.workers, " worker-nice=", o.worker.nice, " max-queue=", o.max_queue,
       " max-message-mb=", o.max_message_mb, " max-passage-mb=", o.max_passage_mb,
-      " max-detection-residual-sigmas=", u.max_detection_residual_sigmas,
+      " max-detection-residual-sigmas=", u.max_detection_residual_sigmas, " sensor-test-sigmas=", u.sensor_test_sigmas,
       " max-landmark-shift-sigmas=", std::sqrt(u.max_landmark_shift_mahalanobis2),
       " max-update-shift-sigmas=", std::sqrt(u.max_update_shift_mahalanobis2),
       " max-new-landmark-ray-sigma-m=", u.max_new_landmark_ray_sigma_m,

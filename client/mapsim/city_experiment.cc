@@ -221,6 +221,7 @@ absl::StatusOr<CityExperimentResult> RunCityExperiment(const CityExperimentOptio
       result.landmarks_disagreeing += update->summary.landmarks_disagreeing;
       result.inflated_passages += update->summary.max_variance_factor > 1.0 ? 1 : 0;
       CountGnssCheck(update->summary, &result.correlated_gnss_passages, &result.gnss_residual_lag1);
+      CountSensorInflations(update->summary, &result.sensor_inflations);
       result.detections_used += update->summary.detections_used;
       result.detections_outliers += update->summary.detections_outliers;
       result.relinearized_passages += RelinearizeStaleInMemory(passage_of, &updater, &map);
@@ -315,6 +316,8 @@ absl::Status WriteCityOutputs(const CityExperimentOptions& options, const CityEx
       {"passages_inflated", result.inflated_passages},
       {"passages_correlated_gnss", result.correlated_gnss_passages},
       {"gnss_residual_lag1", Percentiles(result.gnss_residual_lag1)},
+      {"sensor_test_sigmas", options.update.sensor_test_sigmas},
+      {"sensor_inflated", SensorInflationsJson(result.sensor_inflations)},
       {"landmarks_held_back", result.landmarks_held_back},
       {"landmarks_disagreeing", result.landmarks_disagreeing},
       {"passages_quarantined", result.quarantined_passages},

@@ -11,6 +11,7 @@
 #include <Eigen/Core>
 
 #include "absl/status/statusor.h"
+#include "client/mapsim/experiment.h"
 #include "core/estimation/map_updater.h"
 #include "core/sim/city_scenario.h"
 #include "core/sim/faults.h"
@@ -85,6 +86,7 @@ struct CityExperimentResult {
   // As ExperimentResult's.
   int correlated_gnss_passages = 0;
   std::vector<double> gnss_residual_lag1;
+  SensorInflations sensor_inflations;
   int quarantined_passages = 0;  // refused by the map's checks (FailedPrecondition; also in failed_passages)
   int64_t detections_used = 0;
   int64_t detections_outliers = 0;  // set aside by the residual test

@@ -182,6 +182,7 @@ absl::StatusOr<ExperimentResult> RunExperiment(const ExperimentOptions& options,
         record.subgraphs = u->summary.subgraphs;
         if (u->summary.max_variance_factor > 1.0) ++result.inflated_passages;
         CountGnssCheck(u->summary, &result.correlated_gnss_passages, &result.gnss_residual_lag1);
+        CountSensorInflations(u->summary, &result.sensor_inflations);
         if (u->summary.joint_rejected) ++result.joint_rejected_passages;
         result.detections_used += u->summary.detections_used;
         result.detections_outliers += u->summary.detections_outliers;
@@ -306,6 +307,8 @@ absl::Status WriteExperimentOutputs(const ExperimentOptions& options, const Expe
       {"inflated_passages", result.inflated_passages},
       {"correlated_gnss_passages", result.correlated_gnss_passages},
       {"gnss_residual_lag1", Percentiles(result.gnss_residual_lag1)},
+      {"sensor_test_sigmas", options.update.sensor_test_sigmas},
+      {"sensor_inflated", SensorInflationsJson(result.sensor_inflations)},
       {"max_subgraph_dim", options.update.max_subgraph_dim},
       {"detections_per_landmark", options.update.detections_per_landmark},
       {"spread_detections", options.update.spread_detections},
@@ -358,6 +361,23 @@ absl::Status WriteExperimentOutputs(const ExperimentOptions& options, const Expe
 void CountGnssCheck(const PassageUpdateSummary& summary, int* correlated_passages, std::vector<double>* lag1) {
   if (summary.gnss_correlation_time_s > 0.0) ++*correlated_passages;
   if (summary.gnss_residual_lag1 != 0.0) lag1->push_back(summary.gnss_residual_lag1);
+}
+
+void CountSensorInflations(const PassageUpdateSummary& summary, SensorInflations* inflations) {
+  for (int s = 0; s < 3; ++s) {
+    if (summary.sensor_test_factors[s] <= 1.0) continue;
+    ++inflations->passages[s];
+    inflations->factors[s].push_back(summary.sensor_test_factors[s]);
+  }
+}
+
+nlohmann::ordered_json SensorInflationsJson(const SensorInflations& inflations) {
+  nlohmann::ordered_json out;
+  const char* names[] = {"odometry", "gnss", "camera"};
+  for (int s = 0; s < 3; ++s) {
+    out[names[s]] = {{"passages", inflations.passages[s]}, {"factor", Percentiles(inflations.factors[s])}};
+  }
+  return out;
 }
 
 std::map<std::string, double> Percentiles(std::vector<double> values) {

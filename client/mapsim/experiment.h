@@ -7,6 +7,8 @@
 #include <string>
 #include <vector>
 
+#include <nlohmann/json.hpp>
+
 #include "absl/status/statusor.h"
 #include "core/estimation/graph_builder.h"
 #include "core/estimation/map_updater.h"
@@ -15,6 +17,13 @@
 #include "core/sim/scenario.h"
 
 namespace crowdmap {
+
+// Per sensor (odometry, GNSS, camera), the passages whose own test found the sensor noisier than
+// declared (MapUpdateOptions::sensor_test_sigmas), and the variance factors found.
+struct SensorInflations {
+  int passages[3] = {0, 0, 0};
+  std::vector<double> factors[3];
+};
 
 class CramerRaoBound;
 
@@ -64,6 +73,7 @@ struct ExperimentResult {
   // correlation.
   int correlated_gnss_passages = 0;
   std::vector<double> gnss_residual_lag1;
+  SensorInflations sensor_inflations;  // MapUpdateOptions::sensor_test_sigmas
   int joint_rejected_passages = 0;  // warm-up passages applied sequentially: the joint solve was not usable
   // What the map's gates set aside (as mapd would): passages quarantined (FailedPrecondition, the
   // map's checks refused them; counted in failed_passages too), detections used and set aside as
@@ -126,6 +136,10 @@ absl::Status WriteExperimentOutputs(const ExperimentOptions& options, const Expe
 void CountGnssCheck(const PassageUpdateSummary& summary, int* correlated_passages, std::vector<double>* lag1);
 // "p50", "p95" and "max" of `values` (empty: none), for summary.json.
 std::map<std::string, double> Percentiles(std::vector<double> values);
+
+void CountSensorInflations(const PassageUpdateSummary& summary, SensorInflations* inflations);
+// {"odometry": {"passages": N, "factor": Percentiles}, "gnss": ..., "camera": ...}, for summary.json.
+nlohmann::ordered_json SensorInflationsJson(const SensorInflations& inflations);
 
 }  // namespace crowdmap
 

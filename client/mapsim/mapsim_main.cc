@@ -77,12 +77,14 @@ void AddScenarioFlags(CLI::App* command, ScenarioOptions* scenario, bool with_no
   }
 }
 
-// Factors of the sensors' noise, each scaling it both as drawn and as declared in the passages.
+// Factors of the sensors' noise, each scaling it both as drawn and as declared in the passages;
+// and factors by which the drawn noise exceeds the declared.
 struct NoiseScales {
   double steering = 1.0;
   double speed = 1.0;
   double gnss = 1.0;
   double pixel = 1.0;
+  UndeclaredNoiseScales undeclared;
 };
 
 void AddNoiseScaleFlags(CLI::App* command, NoiseScales* scales) {
@@ -93,6 +95,18 @@ void AddNoiseScaleFlags(CLI::App* command, NoiseScales* scales) {
       {"--pixel-noise-scale", &scales->pixel, "camera's pixel"}};
   for (const auto& [name, scale, sensor] : flags) {
     command->add_option(name, *scale, absl::StrCat("scale the ", sensor, " noise, drawn and modelled alike"))
+        ->check(Positive())
+        ->type_name("X");
+  }
+  const std::tuple<const char*, double*, const char*> undeclared[] = {
+      {"--undeclared-steering-noise-scale", &scales->undeclared.steering, "steering"},
+      {"--undeclared-speed-noise-scale", &scales->undeclared.speed, "wheel-speed"},
+      {"--undeclared-pixel-noise-scale", &scales->undeclared.pixel, "pixel"},
+      {"--undeclared-gnss-noise-scale", &scales->undeclared.gnss, "GNSS"}};
+  for (const auto& [name, scale, sensor] : undeclared) {
+    command
+        ->add_option(name, *scale,
+                     absl::StrCat("draw the ", sensor, " noise X times as large as the passages declare it"))
         ->check(Positive())
         ->type_name("X");
   }
@@ -107,6 +121,12 @@ void ScaleNoise(const NoiseScales& scales, NoiseModel* sensors, double* gnss_sig
 
 void ScaleNoise(const NoiseScales& scales, ScenarioOptions* scenario) {
   ScaleNoise(scales, &scenario->noise_model, &scenario->gnss_sigma_m);
+  scenario->undeclared_noise = scales.undeclared;
+}
+
+void ScaleNoise(const NoiseScales& scales, CityScenarioOptions* city) {
+  ScaleNoise(scales, &city->noise_model, &city->gnss_sigma_m);
+  city->undeclared_noise = scales.undeclared;
 }
 
 // --warmup-passages, --relinearize-until-passages, --window-hops, --retain-passages,
@@ -182,6 +202,12 @@ void AddMapUpdateFlags(CLI::App* command, MapUpdateOptions* update) {
                       "above X is estimated with a Gauss-Markov process instead, as mapd (0 = off)")
       ->check(CLI::Range(0.0, 0.999))
       ->default_val(update->correlated_gnss_min_lag1)
+      ->type_name("X");
+  command->add_option("--sensor-test-sigmas", update->sensor_test_sigmas,
+                      "a sensor whose residuals' chi-square exceeds their redundancy by X sigmas has its\n"
+                      "covariances scaled by their ratio, as mapd (0 = off)")
+      ->check(NonNegative())
+      ->default_val(update->sensor_test_sigmas)
       ->type_name("X");
   // Gates given in sigmas, kept as squared Mahalanobis distances.
   const auto add_sigmas = [command](const std::string& flag, double* mahalanobis2, const std::string& description) {
@@ -459,7 +485,7 @@ void AddCityFlags(CLI::App* command, CityCommand* c) {
 
 absl::Status RunCityCommand(CityCommand& c) {
   CityExperimentOptions& options = c.options;
-  ScaleNoise(c.scales, &options.city.noise_model, &options.city.gnss_sigma_m);
+  ScaleNoise(c.scales, &options.city);
   if (absl::Status s = options.Validate(); !s.ok()) return AsUsageError(s);
 
   if (!c.export_dir.empty()) {

@@ -39,7 +39,7 @@ absl::StatusOr<std::vector<PoseBiasBin>> RunPoseBias(const PoseBiasOptions& opti
     if (!graph.ok()) return graph.status();
     std::vector<Pose2> corrected = graph->initial_poses;
     ceres::Problem problem;
-    AddPoseGraphFactors(*graph, 0, graph->node_count() - 1, passage.calibration.gnss_lever_arm_m, nullptr, &corrected,
+    AddPoseGraphFactors(*graph, 0, graph->node_count() - 1, passage.calibration.gnss_lever_arm_m, nullptr, nullptr, &corrected,
                         &problem);
     absl::StatusOr<GraphLinearization> linearization = GraphLinearization::Compute(&problem, {});
     if (!linearization.ok()) return linearization.status();

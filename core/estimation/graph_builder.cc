@@ -186,7 +186,7 @@ std::vector<Pose2> AlignDeadReckoning(const PassageGraph& g, const Calibration& 
 
 absl::Status SolvePoseGraph(const Calibration& calib, int max_iterations, PassageGraph* g) {
   ceres::Problem problem;
-  AddPoseGraphFactors(*g, 0, g->node_count() - 1, calib.gnss_lever_arm_m, nullptr, &g->initial_poses, &problem,
+  AddPoseGraphFactors(*g, 0, g->node_count() - 1, calib.gnss_lever_arm_m, nullptr, nullptr, &g->initial_poses, &problem,
                       /*independent_fixes=*/true);
   ceres::Solver::Options options;
   options.linear_solver_type = ceres::SPARSE_NORMAL_CHOLESKY;
@@ -238,16 +238,17 @@ absl::Status CheckGnssCorrelation(const Passage& passage, const GraphOptions& op
 }  // namespace
 
 void AddPoseGraphFactors(const PassageGraph& graph, int first, int last, const Eigen::Vector2d& gnss_lever_arm_m,
-                         ceres::LossFunction* loss, std::vector<Pose2>* poses, ceres::Problem* problem,
+                         ceres::LossFunction* odometry_loss, ceres::LossFunction* gnss_loss,
+                         std::vector<Pose2>* poses, ceres::Problem* problem,
                          bool independent_fixes, double* speed_scale) {
   auto pose = [&](int node) { return (*poses)[node - first].data(); };
   for (Pose2& p : *poses) problem->AddParameterBlock(p.data(), 3);
   for (int k = first; k < last; ++k) {
     if (speed_scale != nullptr) {
-      problem->AddResidualBlock(ScaledOdometryFactor::Create(graph.motions[k]), loss, pose(k), pose(k + 1),
+      problem->AddResidualBlock(ScaledOdometryFactor::Create(graph.motions[k]), odometry_loss, pose(k), pose(k + 1),
                                 speed_scale);
     } else {
-      problem->AddResidualBlock(OdometryFactor::Create(graph.motions[k]), loss, pose(k), pose(k + 1));
+      problem->AddResidualBlock(OdometryFactor::Create(graph.motions[k]), odometry_loss, pose(k), pose(k + 1));
     }
   }
   const double tau = independent_fixes ? 0.0 : graph.gnss_correlation_time_s;
@@ -255,7 +256,7 @@ void AddPoseGraphFactors(const PassageGraph& graph, int first, int last, const E
     const GnssObservation& o = graph.gnss[j];
     if (o.node < first || o.node > last) continue;
     if (tau <= 0.0 || j == 0) {
-      problem->AddResidualBlock(GnssFactor::Create(o.position_m, o.cov_m2, gnss_lever_arm_m), loss, pose(o.node));
+      problem->AddResidualBlock(GnssFactor::Create(o.position_m, o.cov_m2, gnss_lever_arm_m), gnss_loss, pose(o.node));
       continue;
     }
     const GnssObservation& previous = graph.gnss[j - 1];
@@ -264,11 +265,11 @@ void AddPoseGraphFactors(const PassageGraph& graph, int first, int last, const E
     if (previous.node == o.node) {
       problem->AddResidualBlock(GnssAr1Factor::CreateAtOneNode(previous.position_m, previous.cov_m2, o.position_m,
                                                                o.cov_m2, gnss_lever_arm_m, dt_s, tau),
-                                loss, pose(o.node));
+                                gnss_loss, pose(o.node));
     } else {
       problem->AddResidualBlock(GnssAr1Factor::Create(previous.position_m, previous.cov_m2, o.position_m, o.cov_m2,
                                                       gnss_lever_arm_m, dt_s, tau),
-                                loss, pose(previous.node), pose(o.node));
+                                gnss_loss, pose(previous.node), pose(o.node));
     }
   }
 }

@@ -87,7 +87,8 @@ struct PassageGraph {
 // and bounded bearing residuals to the map then turn it into wrong minima), not for estimates.
 // With `speed_scale` (a parameter block of 1), the odometry factors are ScaledOdometryFactor's on it.
 void AddPoseGraphFactors(const PassageGraph& graph, int first, int last, const Eigen::Vector2d& gnss_lever_arm_m,
-                         ceres::LossFunction* loss, std::vector<Pose2>* poses, ceres::Problem* problem,
+                         ceres::LossFunction* odometry_loss, ceres::LossFunction* gnss_loss,
+                         std::vector<Pose2>* poses, ceres::Problem* problem,
                          bool independent_fixes = false, double* speed_scale = nullptr);
 
 absl::StatusOr<PassageGraph> BuildPassageGraph(const Passage& passage, const GraphOptions& options);

@@ -268,7 +268,7 @@ TEST_F(GraphBuilderTest, RejectsAPassageWithFewerThanTwoFixes) {
 int GnssBlocks(const PassageGraph& g, int first, int last) {
   std::vector<Pose2> poses(g.initial_poses.begin() + first, g.initial_poses.begin() + last + 1);
   ceres::Problem problem;
-  AddPoseGraphFactors(g, first, last, Eigen::Vector2d(0.5, 0.0), nullptr, &poses, &problem);
+  AddPoseGraphFactors(g, first, last, Eigen::Vector2d(0.5, 0.0), nullptr, nullptr, &poses, &problem);
   return problem.NumResidualBlocks() - (last - first);  // less the odometry between the nodes
 }
 

@@ -192,6 +192,11 @@ absl::StatusOr<GraphLinearization> GraphLinearization::ComputeOver(ceres::Proble
       crs.num_rows, crs.num_cols, static_cast<int>(crs.values.size()), crs.rows.data(), crs.cols.data(),
       crs.values.data());
   g.jt_ = jacobian.transpose();
+  g.residual_rows_.reserve(g.residuals_.size());
+  for (int k = 0, row = 0; k < static_cast<int>(g.residuals_.size()); ++k) {
+    g.residual_rows_.push_back(row);
+    row += problem->GetCostFunctionForResidualBlock(g.residuals_[k])->num_residuals();
+  }
   const Eigen::SparseMatrix<double> h = g.jt_ * jacobian;
   const int nx = g.other_dim_, nl = g.landmark_dim_;
   g.b_ = h.topRightCorner(nx, nl);
@@ -258,10 +263,53 @@ double GraphLinearization::Sigma(int u, int v) const {
   return (*a_inv_)(u, v) + w_sigma_.row(u).dot(w_.row(v));  // A^-1 + W Sigma_LL W^T
 }
 
-absl::Status GraphLinearization::CorrectSecondOrderBias(ceres::Problem* problem, BiasCorrectionStats* stats) {
-  const auto start = std::chrono::steady_clock::now();
+void GraphLinearization::PrepareSigma() {
+  if (sigma_ready_) return;
   if (other_dim_ > 0) a_inv_ = std::make_unique<SelectedInverse>(*a_llt_);
   w_sigma_ = w_ * sigma_ll_;
+  sigma_ready_ = true;
+}
+
+Eigen::MatrixXd GraphLinearization::SigmaOver(const std::vector<int>& columns) const {
+  const int n = static_cast<int>(columns.size());
+  Eigen::MatrixXd cov(n, n);
+  for (int u = 0; u < n; ++u) {
+    for (int v = 0; v <= u; ++v) cov(u, v) = cov(v, u) = Sigma(columns[u], columns[v]);
+  }
+  return cov;
+}
+
+std::unordered_map<ceres::ResidualBlockId, double> GraphLinearization::Redundancies() {
+  PrepareSigma();
+  std::unordered_map<ceres::ResidualBlockId, double> out;
+  out.reserve(residual_rows_.size());
+  std::vector<int> columns;
+  for (size_t k = 0; k < residual_rows_.size(); ++k) {
+    const int first = residual_rows_[k], rows = (k + 1 < residual_rows_.size() ? residual_rows_[k + 1]
+                                                                                : static_cast<int>(jt_.cols())) - first;
+    // The block's columns: the union of its rows' non-zeros (each row of J is a column of J^T).
+    columns.clear();
+    for (int r = first; r < first + rows; ++r) {
+      for (Eigen::SparseMatrix<double>::InnerIterator it(jt_, r); it; ++it) columns.push_back(static_cast<int>(it.row()));
+    }
+    std::sort(columns.begin(), columns.end());
+    columns.erase(std::unique(columns.begin(), columns.end()), columns.end());
+    Eigen::MatrixXd j = Eigen::MatrixXd::Zero(rows, static_cast<int>(columns.size()));
+    for (int r = 0; r < rows; ++r) {
+      for (Eigen::SparseMatrix<double>::InnerIterator it(jt_, first + r); it; ++it) {
+        j(r, std::lower_bound(columns.begin(), columns.end(), static_cast<int>(it.row())) - columns.begin()) =
+            it.value();
+      }
+    }
+    // tr(J_k Sigma J_k^T): the part of the block's residuals the estimate absorbs.
+    out.emplace(residuals_[k], rows - (j * SigmaOver(columns)).cwiseProduct(j).sum());
+  }
+  return out;
+}
+
+absl::Status GraphLinearization::CorrectSecondOrderBias(ceres::Problem* problem, BiasCorrectionStats* stats) {
+  const auto start = std::chrono::steady_clock::now();
+  PrepareSigma();
 
   // d_k = tr(Sigma_k d2r_k) for every residual, by central differences along the Cholesky
   // columns of Sigma_k. The cost functions are evaluated directly on perturbed copies of their
@@ -290,11 +338,7 @@ absl::Status GraphLinearization::CorrectSecondOrderBias(ceres::Problem* problem,
       for (int c = 0; c < size; ++c) index.push_back(offset_.at(blocks[k]) + c);
     }
     const int nv = static_cast<int>(index.size());
-    Eigen::MatrixXd cov(nv, nv);
-    for (int u = 0; u < nv; ++u) {
-      for (int v = 0; v <= u; ++v) cov(u, v) = cov(v, u) = Sigma(index[u], index[v]);
-    }
-    Eigen::LLT<Eigen::MatrixXd> root(cov);
+    Eigen::LLT<Eigen::MatrixXd> root(SigmaOver(index));
     if (root.info() != Eigen::Success) {
       return absl::InternalError("bias correction: a covariance block is not positive definite");
     }

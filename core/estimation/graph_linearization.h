@@ -83,13 +83,24 @@ class GraphLinearization {
   // residual blocks (the map prior) contribute nothing and are skipped.
   absl::Status CorrectSecondOrderBias(ceres::Problem* problem, BiasCorrectionStats* stats);
 
+  // The redundancy (Foerstner) of each residual block the linearisation holds (all but the priors
+  // on landmarks alone): its residuals' count minus its share of the parameters,
+  // tr(J_k H^-1 J_k^T), with the loss's weights in J_k. Summed with the priors' they make the
+  // residuals' count minus the parameters'. At the solution a group of blocks has a chi-square of
+  // its redundancy on average when its noise is as weighted: the measure of each sensor's variance
+  // factor (variance component estimation).
+  std::unordered_map<ceres::ResidualBlockId, double> Redundancies();
+
  private:
   GraphLinearization() = default;
   // Over `residual_blocks` only (a subset of the problem's, in its order).
   static absl::StatusOr<GraphLinearization> ComputeOver(ceres::Problem* problem, const std::vector<double*>& landmarks,
                                                         std::vector<ceres::ResidualBlockId> residual_blocks);
-  // Sigma = H^-1 at columns u, v (u, v on the pattern of H).
+  // Sigma = H^-1 at columns u, v (u, v on the pattern of H), once PrepareSigma has run.
+  void PrepareSigma();
   double Sigma(int u, int v) const;
+  // Sigma over `columns` (all on one residual block's variables), dense.
+  Eigen::MatrixXd SigmaOver(const std::vector<int>& columns) const;
   struct LandmarkMarginal {
     Eigen::MatrixXd covariance;
     Eigen::VectorXd gradient;
@@ -103,6 +114,7 @@ class GraphLinearization {
   std::vector<double*> ordered_;                  // other blocks, then the landmarks
   std::unordered_map<const double*, int> offset_; // column of each block
   std::vector<ceres::ResidualBlockId> residuals_; // row order of the Jacobian
+  std::vector<int> residual_rows_;                // the first row of each
   int other_dim_ = 0;
   int landmark_dim_ = 0;
   Eigen::SparseMatrix<double> jt_;                // J^T
@@ -115,6 +127,7 @@ class GraphLinearization {
   Eigen::VectorXd landmark_gradient_;
   Eigen::VectorXd other_gradient_;                // the cost's gradient in the other blocks
   Eigen::MatrixXd w_sigma_;                       // A^-1 B Sigma_LL
+  bool sigma_ready_ = false;                      // a_inv_ and w_sigma_ computed
   std::optional<LandmarkMarginal> factor_;        // without the blocks the factor leaves out
 };
 

@@ -147,6 +147,75 @@ TEST(GraphLinearization, ScalarMarginalSplitsIntoTheVarianceGivenTheLandmarksAnd
   EXPECT_GT(m.from_landmarks, 0.0);
 }
 
+// Two residuals on the scalar state and a landmark.
+struct TwoRowResidual {
+  explicit TwoRowResidual(const Eigen::Matrix<double, 2, 3>& a) : a(a) {}
+  template <typename T>
+  bool operator()(const T* y, const T* l, T* r) const {
+    for (int i = 0; i < 2; ++i) r[i] = T(a(i, 0)) * y[0] + T(a(i, 1)) * l[0] + T(a(i, 2)) * l[1] - T(0.1 * i);
+    return true;
+  }
+  Eigen::Matrix<double, 2, 3> a;
+};
+
+// Each block's redundancy is its rows' count minus its share of the hat matrix J H^-1 J^T, taken
+// with the loss's weight; all of them together are the rows less the parameters.
+TEST(GraphLinearization, RedundanciesAreTheResidualsLessTheirShareOfTheParameters) {
+  std::mt19937 rng(5);
+  std::uniform_real_distribution<double> u(-1.0, 1.0);
+  double y = 0.2;
+  std::vector<Eigen::Vector2d> landmarks(2, Eigen::Vector2d(0.3, -0.1));
+  ceres::Problem::Options options;
+  options.loss_function_ownership = ceres::DO_NOT_TAKE_OWNERSHIP;
+  ceres::Problem problem(options);
+  ceres::ScaledLoss weight(nullptr, 0.25, ceres::DO_NOT_TAKE_OWNERSHIP);
+  std::vector<Eigen::MatrixXd> rows;  // each block's weighted Jacobian over (y, l0, l1)
+  std::vector<ceres::ResidualBlockId> ids;
+  for (int k = 0; k < 9; ++k) {
+    const int i = k % 2;
+    const bool weighted = k % 3 == 0;
+    Eigen::MatrixXd j = Eigen::MatrixXd::Zero(k < 6 ? 1 : 2, 5);
+    if (k < 6) {
+      const Eigen::Vector3d a(u(rng), u(rng), u(rng));
+      ids.push_back(problem.AddResidualBlock(new ceres::AutoDiffCostFunction<ScalarLandmarkResidual, 1, 1, 2>(
+                                               new ScalarLandmarkResidual(a(0), a(1), a(2), u(rng))),
+                                           weighted ? &weight : nullptr, &y, landmarks[i].data()));
+      j(0, 0) = a(0);
+      j.block<1, 2>(0, 1 + 2 * i) = a.tail<2>().transpose();
+    } else {
+      Eigen::Matrix<double, 2, 3> a;
+      for (int c = 0; c < 6; ++c) a(c) = u(rng);
+      ids.push_back(problem.AddResidualBlock(
+          new ceres::AutoDiffCostFunction<TwoRowResidual, 2, 1, 2>(new TwoRowResidual(a)),
+          weighted ? &weight : nullptr, &y, landmarks[i].data()));
+      j.col(0) = a.col(0);
+      j.block<2, 2>(0, 1 + 2 * i) = a.rightCols<2>();
+    }
+    if (weighted) j *= 0.5;  // sqrt(0.25)
+    rows.push_back(j);
+  }
+  Eigen::MatrixXd h = Eigen::MatrixXd::Zero(5, 5);
+  for (const Eigen::MatrixXd& j : rows) h += j.transpose() * j;
+  const Eigen::MatrixXd sigma = h.inverse();
+
+  absl::StatusOr<GraphLinearization> lin =
+      GraphLinearization::Compute(&problem, {landmarks[0].data(), landmarks[1].data()});
+  ASSERT_TRUE(lin.ok()) << lin.status();
+  const std::unordered_map<ceres::ResidualBlockId, double> redundancies = lin->Redundancies();
+  ASSERT_EQ(redundancies.size(), rows.size());
+  double sum = 0.0, count = 0.0;
+  for (size_t k = 0; k < rows.size(); ++k) {
+    const double expected = rows[k].rows() - (rows[k] * sigma * rows[k].transpose()).trace();
+    ASSERT_EQ(redundancies.count(ids[k]), 1u) << k;
+    const double redundancy = redundancies.at(ids[k]);
+    EXPECT_NEAR(redundancy, expected, 1e-12) << k;
+    EXPECT_GT(redundancy, 0.0) << k;
+    sum += redundancy;
+    count += rows[k].rows();
+  }
+  EXPECT_NEAR(sum, count - 5.0, 1e-12);
+}
+
 // What the factor leaves out is as if the problem never had it, in both ways of taking it out: a
 // prior on the scalar state (a rank-one downdate) and a residual on the state and a landmark (a
 // second linearisation). The rest of the linearisation keeps the block.

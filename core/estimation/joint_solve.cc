@@ -211,7 +211,7 @@ absl::StatusOr<PassageUpdate> SolveJointly(const std::vector<Passage>& passages,
   prior_options.window = window;
   if (absl::Status s = landmarks.AddMapPrior(prior_options, &problem); !s.ok()) return s;
   for (int i = 0; i < landmarks.size(); ++i) Eigen::Map<Eigen::Vector2d>(landmarks.block(i)) = initial[landmarks.id(i)];
-  std::vector<std::unique_ptr<ceres::LossFunctionWrapper>> weights;
+  std::vector<std::unique_ptr<MeasurementWeights>> weights;
   std::vector<std::vector<ceres::ResidualBlockId>> blocks_of(count);
   std::vector<double> landmark_dims_of(count, 0.0);  // the landmarks' dimensions, shared by detections
   std::unordered_set<ceres::ResidualBlockId> camera_blocks;
@@ -230,11 +230,12 @@ absl::StatusOr<PassageUpdate> SolveJointly(const std::vector<Passage>& passages,
   std::vector<double> speed_scale(count, 1.0);
   const bool scaled = options.speed_scale_prior_sigma > 0.0;
   for (int p = 0; p < count; ++p) {
-    weights.push_back(std::make_unique<ceres::LossFunctionWrapper>(new ceres::TrivialLoss(), ceres::TAKE_OWNERSHIP));
+    weights.push_back(std::make_unique<MeasurementWeights>());
     std::vector<ceres::ResidualBlockId> before;
     problem.GetResidualBlocks(&before);
     AddPoseGraphFactors(graphs[p], 0, graphs[p].node_count() - 1, passages[p].calibration.gnss_lever_arm_m,
-                        weights[p].get(), &poses[p], &problem, /*independent_fixes=*/false,
+                        weights[p]->loss(MeasurementWeights::kOdometry), weights[p]->loss(MeasurementWeights::kGnss),
+                        &poses[p], &problem, /*independent_fixes=*/false,
                         scaled ? &speed_scale[p] : nullptr);
     problem.GetResidualBlocks(&blocks_of[p]);
     blocks_of[p].erase(blocks_of[p].begin(), blocks_of[p].begin() + before.size());
@@ -250,7 +251,7 @@ absl::StatusOr<PassageUpdate> SolveJointly(const std::vector<Passage>& passages,
       const LandmarkId id = seen[p].ids[i];
       for (const CameraObservation* d : seen[p].detections[i]) {
         blocks_of[p].push_back(AddCameraResidual(d->u_px, passages[p].noise.pixel_sigma_px, passages[p].calibration,
-                                                 weights[p].get(), poses[p][d->node].data(), block_of[id],
+                                                 weights[p]->loss(MeasurementWeights::kCamera), poses[p][d->node].data(), block_of[id],
                                                  options.estimate_camera_yaw ? &yaw_offset_rad[p] : nullptr, &problem));
         camera_blocks.insert(blocks_of[p].back());
         ++summary.detections_used;
@@ -313,7 +314,7 @@ absl::StatusOr<PassageUpdate> SolveJointly(const std::vector<Passage>& passages,
       if (const double variance_factor = VarianceFactor(chi2, dof, options.inflation_test_sigmas);
           variance_factor > 1.0) {
         summary.max_variance_factor = std::max(summary.max_variance_factor, variance_factor);
-        Inflate(variance_factor, weights[p].get());
+        weights[p]->InflateAll(variance_factor);
         inflated = true;
       }
     }
@@ -325,8 +326,13 @@ absl::StatusOr<PassageUpdate> SolveJointly(const std::vector<Passage>& passages,
       }
     }
   }
-  summary.solve_ms = MillisecondsSince(solve_start);
-  summary.final_cost = solver_summary.final_cost;
+  // Each passage's sensors tested on their own, as a subgraph's are.
+  std::vector<WeightedBlocks> weighted;
+  for (int p = 0; p < count; ++p) weighted.push_back({&blocks_of[p], weights[p].get()});
+  absl::StatusOr<GraphLinearization> linearization =
+      LinearizeTestingSensors(&problem, landmark_blocks, weighted, SolverOptions(options.max_solver_iterations),
+                              options, &solver_summary, &summary);
+  if (!linearization.ok()) return linearization.status();
   // A landmark only these passages informed re-enters the map as a new one would: the rays of one
   // of them must pin it down at the joint solution (WellDeterminedNewLandmark). Rays that barely
   // cross let the solve slide it far along them, and the map would hold it there. In a young map
@@ -360,6 +366,8 @@ absl::StatusOr<PassageUpdate> SolveJointly(const std::vector<Passage>& passages,
                         2.0 * solver_summary.final_cost, dof, options.max_chi2_per_dof));
   }
 
+  summary.solve_ms = MillisecondsSince(solve_start);
+  summary.final_cost = solver_summary.final_cost;
   // Each passage's own factor, at the solution: its poses are disjoint from the others', so the
   // joint information is exactly the sum of these.
   std::vector<LandmarkInformation> information(count);
@@ -370,8 +378,7 @@ absl::StatusOr<PassageUpdate> SolveJointly(const std::vector<Passage>& passages,
     if (!info.ok()) return failed(p, info.status());
     information[p] = *std::move(info);
   }
-  absl::StatusOr<GraphLinearization> linearization = LinearizeSolution(&problem, landmark_blocks, options, &summary);
-  if (!linearization.ok()) return linearization.status();
+  if (absl::Status s = CorrectBias(&*linearization, &problem, options, &summary); !s.ok()) return s;
 
   // The result replaces the factors of the passages, at one new version of `map`; a passage's
   // factor carries its share of the bias correction. A landmark that left the map with them comes

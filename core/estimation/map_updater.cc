@@ -157,8 +157,8 @@ absl::StatusOr<SetAsideRequest> UpdateFromSubgraph(const Passage& passage, const
   if (landmarks.ids.empty()) return SetAsideRequest{};
 
   LandmarkUpdate update(graph.frame, map, landmarks.ids);
-  // Weight of the passage's measurements: 1 until the consistency test asks for inflation.
-  ceres::LossFunctionWrapper measurement_weight(new ceres::TrivialLoss(), ceres::TAKE_OWNERSHIP);
+  // Weights of the passage's measurements, per sensor: 1 until a consistency test asks for inflation.
+  MeasurementWeights weights;
   ceres::Problem::Options problem_options;
   problem_options.loss_function_ownership = ceres::DO_NOT_TAKE_OWNERSHIP;
   ceres::Problem problem(problem_options);
@@ -166,7 +166,8 @@ absl::StatusOr<SetAsideRequest> UpdateFromSubgraph(const Passage& passage, const
   // The wheel-speed scale: this subgraph's own state, its prior the same in every subgraph.
   double speed_scale = 1.0;
   double* speed_scale_block = options.speed_scale_prior_sigma > 0.0 ? &speed_scale : nullptr;
-  AddPoseGraphFactors(graph, range.first, range.last, calib.gnss_lever_arm_m, &measurement_weight, &poses, &problem,
+  AddPoseGraphFactors(graph, range.first, range.last, calib.gnss_lever_arm_m, weights.loss(MeasurementWeights::kOdometry),
+                      weights.loss(MeasurementWeights::kGnss), &poses, &problem,
                       /*independent_fixes=*/false, speed_scale_block);
   if (speed_scale_block != nullptr) {
     problem.AddResidualBlock(ScalarPriorFactor::Create(1.0, options.speed_scale_prior_sigma), nullptr,
@@ -184,7 +185,8 @@ absl::StatusOr<SetAsideRequest> UpdateFromSubgraph(const Passage& passage, const
     problem.AddParameterBlock(update.block(i), 2);
     for (const CameraObservation* d : landmarks.detections[i]) {
       const ceres::ResidualBlockId id = AddCameraResidual(
-          d->u_px, passage.noise.pixel_sigma_px, calib, &measurement_weight, poses[d->node - range.first].data(),
+          d->u_px, passage.noise.pixel_sigma_px, calib, weights.loss(MeasurementWeights::kCamera),
+          poses[d->node - range.first].data(),
           update.block(i), options.estimate_camera_yaw ? &yaw_offset_rad : nullptr, &problem);
       camera_residuals.push_back({id, {d->node, d->landmark_id}});
       ++summary->detections_used;
@@ -219,7 +221,7 @@ absl::StatusOr<SetAsideRequest> UpdateFromSubgraph(const Passage& passage, const
   }
   if (const double variance_factor = VarianceFactor(chi2, dof, options.inflation_test_sigmas); variance_factor > 1.0) {
     summary->max_variance_factor = std::max(summary->max_variance_factor, variance_factor);
-    Inflate(variance_factor, &measurement_weight);
+    weights.InflateAll(variance_factor);
     Solve(options, SubgraphSolveOptions(options.max_solver_iterations), &problem, &solver_summary);
     summary->solver_iterations += static_cast<int>(solver_summary.iterations.size());
     if (!solver_summary.IsSolutionUsable()) {
@@ -228,7 +230,6 @@ absl::StatusOr<SetAsideRequest> UpdateFromSubgraph(const Passage& passage, const
     chi2 = 2.0 * solver_summary.final_cost;
   }
   summary->solve_ms += MillisecondsSince(solve_start);
-  summary->final_cost += solver_summary.final_cost;
 
   if (std::vector<LandmarkId> unfit = LandmarksToSetAside(update, landmarks, poses, range, passage, options, summary);
       !unfit.empty()) {
@@ -245,11 +246,17 @@ absl::StatusOr<SetAsideRequest> UpdateFromSubgraph(const Passage& passage, const
   // record's update keep it (GraphLinearization's factor_covariance and factor_gradient).
   std::vector<ceres::ResidualBlockId> factor_leaves_out;
   if (yaw_prior != nullptr) factor_leaves_out.push_back(yaw_prior);
+  std::vector<ceres::ResidualBlockId> blocks;
+  problem.GetResidualBlocks(&blocks);
+  absl::StatusOr<GraphLinearization> linearization =
+      LinearizeTestingSensors(&problem, landmark_blocks, {{&blocks, &weights}},
+                              SubgraphSolveOptions(options.max_solver_iterations), options, &solver_summary, summary,
+                              factor_leaves_out);
+  if (!linearization.ok()) return linearization.status();
+  summary->final_cost += solver_summary.final_cost;
   std::vector<Eigen::Vector2d> solved(update.size());
   for (int i = 0; i < update.size(); ++i) solved[i] = update.position(i);
-  absl::StatusOr<GraphLinearization> linearization =
-      LinearizeSolution(&problem, landmark_blocks, options, summary, factor_leaves_out);
-  if (!linearization.ok()) return linearization.status();
+  if (absl::Status s = CorrectBias(&*linearization, &problem, options, summary); !s.ok()) return s;
   if (std::vector<LandmarkId> unfit = NewLandmarksBentByTheirBias(update, solved, *linearization, options);
       !unfit.empty()) {
     summary->landmarks_held_back += static_cast<int>(unfit.size());
@@ -383,6 +390,10 @@ absl::Status MapUpdateOptions::Validate() const {
     return absl::InvalidArgumentError(
         absl::StrCat("inflation_test_sigmas: must be >= 0 (0 = off), got ", inflation_test_sigmas));
   }
+  if (!(sensor_test_sigmas >= 0.0)) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("sensor_test_sigmas: must be >= 0 (0 = off), got ", sensor_test_sigmas));
+  }
   if (!(max_chi2_per_dof >= 0.0)) {
     return absl::InvalidArgumentError(absl::StrCat("max_chi2_per_dof: must be >= 0 (0 = off), got ", max_chi2_per_dof));
   }
@@ -438,10 +449,11 @@ std::string PassageUpdateSummary::Brief() const {
   return absl::StrFormat(
       "nodes=%d subgraphs=%d updated=%d created=%d held_back=%d disagreeing=%d conditioned=%d detections=%d dropped=%d "
       "outliers=%d iterations=%d "
-      "variance_factor=%.2f solve_ms=%.2f covariance_ms=%.2f bias_correction_ms=%.2f bias_correction_m=%.3f "
-      "total_ms=%.2f version=%d joint_passages=%d joint_rejected=%d",
+      "variance_factor=%.2f odometry_factor=%.2f gnss_factor=%.2f camera_factor=%.2f solve_ms=%.2f covariance_ms=%.2f "
+      "bias_correction_ms=%.2f bias_correction_m=%.3f total_ms=%.2f version=%d joint_passages=%d joint_rejected=%d",
       nodes, subgraphs, landmarks_updated, landmarks_created, landmarks_held_back, landmarks_disagreeing, landmarks_conditioned, detections_used,
-      detections_dropped, detections_outliers, solver_iterations, max_variance_factor, solve_ms, covariance_ms, bias_correction_ms,
+      detections_dropped, detections_outliers, solver_iterations, max_variance_factor, sensor_test_factors[0],
+      sensor_test_factors[1], sensor_test_factors[2], solve_ms, covariance_ms, bias_correction_ms,
       max_bias_correction_m, total_ms, map_version, joint_passages, joint_rejected ? 1 : 0) +
          (camera_yaw_sigma_rad > 0.0 ? absl::StrFormat(" camera_yaw_deg=%.3f camera_yaw_sigma_deg=%.3f",
                                                         camera_yaw_offset_rad * 180.0 / M_PI,

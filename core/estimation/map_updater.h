@@ -35,7 +35,10 @@ struct PassageUpdateSummary {
   int detections_outliers = 0;    // residual beyond options.max_detection_residual_sigmas: not used
   int solver_iterations = 0;
   double final_cost = 0.0;
-  double max_variance_factor = 1.0;  // largest inflation applied to a subgraph (1 = none)
+  double max_variance_factor = 1.0;  // largest inflation of a subgraph's measurements by their chi2 (1 = none)
+  // The largest variance factor each sensor's own test applied over the subgraphs (odometry, GNSS,
+  // camera; MapUpdateOptions::sensor_test_sigmas), beyond max_variance_factor's (1 = none).
+  double sensor_test_factors[3] = {1.0, 1.0, 1.0};
   double solve_ms = 0.0;
   double covariance_ms = 0.0;
   double bias_correction_ms = 0.0;

@@ -192,7 +192,7 @@ void InitializePoses(const PassageGraph& graph, const NodeRange& range, const Pa
                      const MapUpdateOptions& update_options, SubgraphLandmarks* landmarks, std::vector<Pose2>* poses) {
   AlignToMap(graph, range, passage, *landmarks, update_options, poses);
   ceres::Problem problem;
-  AddPoseGraphFactors(graph, range.first, range.last, passage.calibration.gnss_lever_arm_m, nullptr, poses, &problem,
+  AddPoseGraphFactors(graph, range.first, range.last, passage.calibration.gnss_lever_arm_m, nullptr, nullptr, poses, &problem,
                       /*independent_fixes=*/true);
   for (size_t i = 0; i < landmarks->ids.size(); ++i) {
     if (!landmarks->known[i]) continue;
@@ -296,35 +296,118 @@ bool WellDeterminedNewLandmark(const RayGeometry& geometry, const MapUpdateOptio
          geometry.sigma_m <= options.max_new_landmark_ray_sigma_m;
 }
 
-// After a usable solve: the landmarks' marginal covariance at the solution and (if enabled) the
-// second-order bias correction of the solution, with their times added to `summary`.
-absl::StatusOr<GraphLinearization> LinearizeSolution(ceres::Problem* problem, const std::vector<double*>& landmark_blocks,
-                                                     const MapUpdateOptions& options, PassageUpdateSummary* summary,
-                                                     const std::vector<ceres::ResidualBlockId>& factor_leaves_out) {
+absl::StatusOr<GraphLinearization> Linearize(ceres::Problem* problem, const std::vector<double*>& landmark_blocks,
+                                             const MapUpdateOptions& options, PassageUpdateSummary* summary,
+                                             const std::vector<ceres::ResidualBlockId>& factor_leaves_out) {
   const auto covariance_start = std::chrono::steady_clock::now();
   absl::StatusOr<GraphLinearization> linearization =
       GraphLinearization::Compute(problem, landmark_blocks, factor_leaves_out);
   if (!linearization.ok()) return linearization.status();
   summary->covariance_ms += MillisecondsSince(covariance_start);
   Yield(options);
-  if (options.bias_correction) {
-    BiasCorrectionStats bias;
-    if (absl::Status s = linearization->CorrectSecondOrderBias(problem, &bias); !s.ok()) return s;
-    summary->bias_correction_ms += bias.ms;
-    summary->max_bias_correction_m = std::max(summary->max_bias_correction_m, bias.max_landmark_shift_m);
-    Yield(options);
+  return linearization;
+}
+
+absl::StatusOr<GraphLinearization> LinearizeTestingSensors(
+    ceres::Problem* problem, const std::vector<double*>& landmark_blocks, const std::vector<WeightedBlocks>& passages,
+    const ceres::Solver::Options& solver_options, const MapUpdateOptions& options,
+    ceres::Solver::Summary* solver_summary, PassageUpdateSummary* summary,
+    const std::vector<ceres::ResidualBlockId>& factor_leaves_out) {
+  absl::StatusOr<GraphLinearization> linearization =
+      Linearize(problem, landmark_blocks, options, summary, factor_leaves_out);
+  std::vector<std::array<double, MeasurementWeights::kSensors>> before;
+  for (const WeightedBlocks& p : passages) before.push_back(p.weights->factors());
+  for (int round = 0; round < kSensorTestRounds && linearization.ok() && options.sensor_test_sigmas > 0.0;
+       ++round) {
+    const std::unordered_map<ceres::ResidualBlockId, double> redundancies = linearization->Redundancies();
+    bool raised = false;
+    for (const WeightedBlocks& p : passages) {
+      raised |= RaiseSensorVarianceFactors(SensorResidualsOf(problem, *p.blocks, redundancies, *p.weights),
+                                           options.sensor_test_sigmas, p.weights);
+    }
+    if (!raised) break;
+    Solve(options, solver_options, problem, solver_summary);
+    summary->solver_iterations += static_cast<int>(solver_summary->iterations.size());
+    if (!solver_summary->IsSolutionUsable()) {
+      return absl::InternalError(absl::StrCat("solver result unusable after a sensor's inflation: ",
+                                              solver_summary->message));
+    }
+    linearization = Linearize(problem, landmark_blocks, options, summary, factor_leaves_out);
+  }
+  for (size_t p = 0; p < passages.size(); ++p) {
+    for (int s = 0; s < MeasurementWeights::kSensors; ++s) {
+      summary->sensor_test_factors[s] =
+          std::max(summary->sensor_test_factors[s], passages[p].weights->factors()[s] / before[p][s]);
+    }
   }
   return linearization;
 }
 
+absl::Status CorrectBias(GraphLinearization* linearization, ceres::Problem* problem, const MapUpdateOptions& options,
+                         PassageUpdateSummary* summary) {
+  if (!options.bias_correction) return absl::OkStatus();
+  BiasCorrectionStats bias;
+  if (absl::Status s = linearization->CorrectSecondOrderBias(problem, &bias); !s.ok()) return s;
+  summary->bias_correction_ms += bias.ms;
+  summary->max_bias_correction_m = std::max(summary->max_bias_correction_m, bias.max_landmark_shift_m);
+  Yield(options);
+  return absl::OkStatus();
+}
 
 double VarianceFactor(double chi2, double dof, double test_sigmas) {
   if (test_sigmas <= 0.0 || dof <= 0.0 || chi2 <= dof + test_sigmas * std::sqrt(2.0 * dof)) return 1.0;
   return chi2 / dof;
 }
 
-void Inflate(double variance_factor, ceres::LossFunctionWrapper* weight) {
-  weight->Reset(new ceres::ScaledLoss(nullptr, 1.0 / variance_factor, ceres::TAKE_OWNERSHIP), ceres::TAKE_OWNERSHIP);
+MeasurementWeights::MeasurementWeights()
+    : losses_{{new ceres::TrivialLoss(), ceres::TAKE_OWNERSHIP},
+              {new ceres::TrivialLoss(), ceres::TAKE_OWNERSHIP},
+              {new ceres::TrivialLoss(), ceres::TAKE_OWNERSHIP}} {}
+
+int MeasurementWeights::SensorOf(const ceres::LossFunction* loss) const {
+  for (int s = 0; s < kSensors; ++s) {
+    if (loss == &losses_[s]) return s;
+  }
+  return -1;
+}
+
+void MeasurementWeights::Inflate(Sensor sensor, double factor) {
+  factors_[sensor] *= factor;
+  losses_[sensor].Reset(new ceres::ScaledLoss(nullptr, 1.0 / factors_[sensor], ceres::TAKE_OWNERSHIP),
+                        ceres::TAKE_OWNERSHIP);
+}
+
+void MeasurementWeights::InflateAll(double factor) {
+  for (int s = 0; s < kSensors; ++s) Inflate(static_cast<Sensor>(s), factor);
+}
+
+SensorResiduals SensorResidualsOf(ceres::Problem* problem, const std::vector<ceres::ResidualBlockId>& blocks,
+                                  const std::unordered_map<ceres::ResidualBlockId, double>& redundancies,
+                                  const MeasurementWeights& weights) {
+  SensorResiduals out;
+  for (ceres::ResidualBlockId id : blocks) {
+    const int sensor = weights.SensorOf(problem->GetLossFunctionForResidualBlock(id));
+    const auto redundancy = redundancies.find(id);
+    double cost = 0.0;
+    if (sensor < 0 || redundancy == redundancies.end() ||
+        !problem->EvaluateResidualBlock(id, /*apply_loss_function=*/true, &cost, nullptr, nullptr)) {
+      continue;
+    }
+    out.chi2[sensor] += 2.0 * cost;
+    out.redundancy[sensor] += redundancy->second;
+  }
+  return out;
+}
+
+bool RaiseSensorVarianceFactors(const SensorResiduals& residuals, double test_sigmas, MeasurementWeights* weights) {
+  bool raised = false;
+  for (int s = 0; s < MeasurementWeights::kSensors; ++s) {
+    if (const double factor = VarianceFactor(residuals.chi2[s], residuals.redundancy[s], test_sigmas); factor > 1.0) {
+      weights->Inflate(static_cast<MeasurementWeights::Sensor>(s), factor);
+      raised = true;
+    }
+  }
+  return raised;
 }
 
 }  // namespace crowdmap

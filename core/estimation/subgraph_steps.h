@@ -4,6 +4,7 @@
 // The steps that the sequential update (map_updater.cc) and the joint solve (joint_solve.cc)
 // share: grouping a subgraph's detections, the initial guess, the solve, the linearisation.
 
+#include <array>
 #include <chrono>
 #include <set>
 #include <unordered_set>
@@ -80,20 +81,81 @@ RayGeometry NewLandmarkGeometry(const std::vector<Pose2>& poses, int first_node,
 // Whether a new landmark may enter the map with this geometry (the options' creation rule).
 bool WellDeterminedNewLandmark(const RayGeometry& geometry, const MapUpdateOptions& options);
 
-// After a usable solve: the landmarks' marginal covariance (and the factor's, without
-// `factor_leaves_out`: GraphLinearization::Compute) and (if enabled) the second-order bias
-// correction of the solution, with their times added to `summary`.
-absl::StatusOr<GraphLinearization> LinearizeSolution(ceres::Problem* problem, const std::vector<double*>& landmark_blocks,
-                                                     const MapUpdateOptions& options, PassageUpdateSummary* summary,
-                                                     const std::vector<ceres::ResidualBlockId>& factor_leaves_out = {});
+// After a usable solve: the linearisation at the solution (the landmarks' marginal covariance,
+// and the factor's without `factor_leaves_out`: GraphLinearization::Compute), its time added to
+// `summary`.
+absl::StatusOr<GraphLinearization> Linearize(ceres::Problem* problem, const std::vector<double*>& landmark_blocks,
+                                             const MapUpdateOptions& options, PassageUpdateSummary* summary,
+                                             const std::vector<ceres::ResidualBlockId>& factor_leaves_out = {});
+
+// The second-order bias correction (if enabled) of the solution `linearization` was computed at,
+// its time added to `summary`.
+absl::Status CorrectBias(GraphLinearization* linearization, ceres::Problem* problem, const MapUpdateOptions& options,
+                         PassageUpdateSummary* summary);
 
 // The consistency test of a solve: chi2 / dof when chi2 exceeds dof by more than `test_sigmas`
 // standard deviations (sqrt(2 dof)), the factor the measurement covariances are then inflated by;
 // 1 otherwise (and when test_sigmas is 0).
 double VarianceFactor(double chi2, double dof, double test_sigmas);
 
-// Scales the measurements weighted by `weight` for a variance factor (their covariances times it).
-void Inflate(double variance_factor, ceres::LossFunctionWrapper* weight);
+// The weights of a passage's measurements, one per sensor: 1 / the sensor's variance factor,
+// which is 1 until a consistency test finds the sensor's noise larger than the passage declares.
+// The losses are what the residual blocks are added with (the problem must not own them).
+class MeasurementWeights {
+ public:
+  enum Sensor { kOdometry = 0, kGnss = 1, kCamera = 2 };
+  static constexpr int kSensors = 3;
+
+  MeasurementWeights();
+  ceres::LossFunctionWrapper* loss(Sensor sensor) { return &losses_[sensor]; }
+  double factor(Sensor sensor) const { return factors_[sensor]; }
+  const std::array<double, kSensors>& factors() const { return factors_; }
+  // The sensor whose loss `loss` is; -1 for any other (a prior).
+  int SensorOf(const ceres::LossFunction* loss) const;
+  // Every sensor's variance factor times `factor` (the whole passage's test).
+  void InflateAll(double factor);
+  void Inflate(Sensor sensor, double factor);
+
+ private:
+  ceres::LossFunctionWrapper losses_[kSensors];
+  std::array<double, kSensors> factors_ = {1.0, 1.0, 1.0};
+};
+
+// Each sensor's residuals at the solution: their chi-square (with the sensor's current weight)
+// and their redundancy (GraphLinearization::Redundancies).
+struct SensorResiduals {
+  double chi2[MeasurementWeights::kSensors] = {0.0, 0.0, 0.0};
+  double redundancy[MeasurementWeights::kSensors] = {0.0, 0.0, 0.0};
+};
+// Over `blocks` (the residual blocks of one passage), those weighted by `weights`.
+SensorResiduals SensorResidualsOf(ceres::Problem* problem, const std::vector<ceres::ResidualBlockId>& blocks,
+                                  const std::unordered_map<ceres::ResidualBlockId, double>& redundancies,
+                                  const MeasurementWeights& weights);
+
+// Variance component estimation (Foerstner): a sensor whose chi-square at the solution exceeds
+// its redundancy by more than `test_sigmas` standard deviations has its variance factor raised by
+// their ratio. The whole passage's test (VarianceFactor over all residuals) misses one sensor
+// noisier than declared when the others hold most of the degrees of freedom; this finds it.
+// Returns whether any weight changed (the graph is then to be solved again).
+bool RaiseSensorVarianceFactors(const SensorResiduals& residuals, double test_sigmas, MeasurementWeights* weights);
+// Rounds of that test (each a solve) per graph.
+constexpr int kSensorTestRounds = 2;
+
+// One passage's residual blocks in a graph and their weights.
+struct WeightedBlocks {
+  const std::vector<ceres::ResidualBlockId>* blocks;
+  MeasurementWeights* weights;
+};
+
+// Linearize after a usable solve, then each passage's sensors tested (RaiseSensorVarianceFactors):
+// while one is raised (at most kSensorTestRounds times) the graph is solved again (with
+// `solver_options`; `solver_summary` is the last solve's) and linearised at the new solution.
+// The largest factor each sensor's test applied goes to summary->sensor_test_factors.
+absl::StatusOr<GraphLinearization> LinearizeTestingSensors(
+    ceres::Problem* problem, const std::vector<double*>& landmark_blocks, const std::vector<WeightedBlocks>& passages,
+    const ceres::Solver::Options& solver_options, const MapUpdateOptions& options,
+    ceres::Solver::Summary* solver_summary, PassageUpdateSummary* summary,
+    const std::vector<ceres::ResidualBlockId>& factor_leaves_out = {});
 
 }  // namespace crowdmap
 

@@ -1,7 +1,10 @@
 #include "core/estimation/subgraph_steps.h"
 
 #include <cmath>
+#include <random>
+#include <vector>
 
+#include <ceres/ceres.h>
 #include <gtest/gtest.h>
 
 namespace crowdmap {
@@ -52,6 +55,70 @@ TEST(WellDeterminedNewLandmark, AppliesTheRangeAndTheSigmaBounds) {
   EXPECT_TRUE(WellDeterminedNewLandmark({1.0, 50.0}, options));
   EXPECT_FALSE(WellDeterminedNewLandmark({1.0, 150.0}, options));
   EXPECT_FALSE(WellDeterminedNewLandmark({2.5, 50.0}, options));
+}
+
+
+// r = (a^T x - b) / sigma on a 2-D state.
+struct LinearResidual {
+  LinearResidual(double a0, double a1, double b, double sigma) : a0(a0), a1(a1), b(b), sigma(sigma) {}
+  template <typename T>
+  bool operator()(const T* x, T* r) const {
+    r[0] = (T(a0) * x[0] + T(a1) * x[1] - T(b)) / T(sigma);
+    return true;
+  }
+  double a0, a1, b, sigma;
+};
+
+// Three sensors measure a landmark (2-D) and another state (2-D), each declaring sigma 1; the
+// camera's noise is drawn 3 times as large. Its own test finds a variance factor near 9; the
+// others, as declared, keep theirs. The whole graph's test alone would scale all three alike.
+TEST(SensorVarianceFactors, TheSensorNoisierThanDeclaredIsFoundAndOnlyIt) {
+  for (const double camera_scale : {1.0, 3.0}) {
+    std::mt19937 rng(3);
+    std::normal_distribution<double> noise(0.0, 1.0);
+    std::uniform_real_distribution<double> u(-1.0, 1.0);
+    const Eigen::Vector2d true_landmark(2.0, -1.0), true_other(0.5, 0.3);
+    Eigen::Vector2d landmark = Eigen::Vector2d::Zero(), other = Eigen::Vector2d::Zero();
+    MeasurementWeights weights;
+    ceres::Problem::Options problem_options;
+    problem_options.loss_function_ownership = ceres::DO_NOT_TAKE_OWNERSHIP;
+    ceres::Problem problem(problem_options);
+    auto add = [&](MeasurementWeights::Sensor sensor, double* block, const Eigen::Vector2d& truth, double scale) {
+      const double a0 = u(rng), a1 = u(rng);
+      const double b = a0 * truth.x() + a1 * truth.y() + scale * noise(rng);
+      problem.AddResidualBlock(new ceres::AutoDiffCostFunction<LinearResidual, 1, 2>(new LinearResidual(a0, a1, b, 1.0)),
+                               weights.loss(sensor), block);
+    };
+    for (int k = 0; k < 400; ++k) {
+      add(MeasurementWeights::kCamera, landmark.data(), true_landmark, camera_scale);
+      add(MeasurementWeights::kGnss, landmark.data(), true_landmark, 1.0);
+      add(MeasurementWeights::kOdometry, other.data(), true_other, 1.0);
+    }
+    ceres::Solver::Options options;
+    options.linear_solver_type = ceres::DENSE_QR;
+    ceres::Solver::Summary summary;
+    ceres::Solve(options, &problem, &summary);
+    ASSERT_TRUE(summary.IsSolutionUsable());
+    absl::StatusOr<GraphLinearization> linearization = GraphLinearization::Compute(&problem, {landmark.data()});
+    ASSERT_TRUE(linearization.ok()) << linearization.status();
+    std::vector<ceres::ResidualBlockId> blocks;
+    problem.GetResidualBlocks(&blocks);
+    const SensorResiduals residuals = SensorResidualsOf(&problem, blocks, linearization->Redundancies(), weights);
+    // 400 residuals each, less 2 parameters shared by the camera and GNSS, 2 for the odometry.
+    EXPECT_NEAR(residuals.redundancy[MeasurementWeights::kOdometry], 398.0, 1e-9);
+    EXPECT_NEAR(residuals.redundancy[MeasurementWeights::kCamera] + residuals.redundancy[MeasurementWeights::kGnss],
+                798.0, 1e-9);
+    const bool raised = RaiseSensorVarianceFactors(residuals, 4.0, &weights);
+    EXPECT_EQ(raised, camera_scale > 1.0);
+    EXPECT_EQ(weights.factor(MeasurementWeights::kOdometry), 1.0);
+    EXPECT_EQ(weights.factor(MeasurementWeights::kGnss), 1.0);
+    if (camera_scale > 1.0) {
+      EXPECT_GT(weights.factor(MeasurementWeights::kCamera), 0.8 * 9.0);
+      EXPECT_LT(weights.factor(MeasurementWeights::kCamera), 1.25 * 9.0);
+    } else {
+      EXPECT_EQ(weights.factor(MeasurementWeights::kCamera), 1.0);
+    }
+  }
 }
 
 }  // namespace

@@ -65,6 +65,7 @@ absl::Status CityScenarioOptions::Validate() const {
                                            building_m, " m wide"));
   }
   if (!(speed_max_mps >= speed_min_mps)) return Invalid("speed_max_mps", "must be >= speed_min_mps");
+  if (absl::Status s = undeclared_noise.Validate(); !s.ok()) return s;
   if (!(max_steering_rad < 1.2)) return Invalid("max_steering_rad", "must be < 1.2");
   // The lane's arcs through turns (see TurnRadiusM: 0.7 and 1.1 road widths) must be drivable at
   // the steering limit, and two of them must fit along the shortest block.

@@ -78,7 +78,8 @@ struct CityScenarioOptions {
   double max_detection_range_m = 50.0;
   bool occlusion = true;  // buildings hide the landmarks behind them
   Calibration calibration;  // true calibration (and what the vehicles report)
-  NoiseModel noise_model;   // sigmas used both to draw noise and in the uploaded passages
+  NoiseModel noise_model;   // sigmas declared in the uploaded passages (and drawn, times undeclared_noise)
+  UndeclaredNoiseScales undeclared_noise;
 
   // InvalidArgument naming the first bad field, e.g. "block_m: ...".
   absl::Status Validate() const;

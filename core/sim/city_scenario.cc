@@ -93,12 +93,14 @@ std::pair<Passage, CityDrive> CityScenario::MakePassageWithTruth(int index) cons
   p.start_time_unix_ms = 1767225600000LL + static_cast<int64_t>(index) * 300000;
   p.calibration = vehicle.calibration;
   p.noise = o.noise_model;
-  p.odometry = SimulateOdometry(drive.inputs, drive.duration_s, o.noise_model, &noise);
+  const NoiseModel drawn = DrawnNoise(o.noise_model, o.undeclared_noise);
+  p.odometry = SimulateOdometry(drive.inputs, drive.duration_s, drawn, &noise);
   for (OdometrySample& sample : p.odometry) sample.speed_mps *= vehicle.speed_scale;
 
   GnssSimulation gnss;
   gnss.rate_hz = vehicle.gnss_rate_hz;
   gnss.sigma_m = o.gnss_sigma_m;
+  gnss.undeclared_scale = o.undeclared_noise.gnss;
   gnss.ar1 = HasGnssAr1(o.noise);
   gnss.ar1_alpha = o.gnss_ar1_alpha;
   p.noise.gnss_correlation_time_s = gnss.CorrelationTimeS();  // the passage declares its GNSS process
@@ -135,7 +137,7 @@ std::pair<Passage, CityDrive> CityScenario::MakePassageWithTruth(int index) cons
     for (const VisibleLandmark& seen : VisibleLandmarks(pose, vehicle.true_camera)) {
       auto [it, fresh] = pixel_errors.try_emplace(seen.id);
       if (fresh || (it->second.drawn_at - pose).norm() > 1e-9) {
-        it->second = {pose, o.noise_model.pixel_sigma_px * noise.Normal()};
+        it->second = {pose, drawn.pixel_sigma_px * noise.Normal()};
       }
       const double u = seen.u_px + it->second.error_px;
       if (u >= 0.0 && u <= vehicle.true_camera.image_width_px) p.detections.push_back({t, seen.id, u});

@@ -104,6 +104,7 @@ absl::Status ScenarioOptions::Validate() const {
     return absl::InvalidArgumentError(absl::StrCat("vehicles, vehicle_yaw_bias_sigma_rad: must be >= 0 and in [0, 0.5), got ",
                                                    vehicles, ", ", vehicle_yaw_bias_sigma_rad));
   }
+  if (absl::Status s = undeclared_noise.Validate(); !s.ok()) return s;
   if (alternate_directions && piece_max_m > 0.0) {
     return absl::InvalidArgumentError("alternate_directions: not with partial drives (piece_min_m, piece_max_m)");
   }
@@ -198,11 +199,13 @@ Passage Scenario::MakePassage(int index) const {
   p.start_time_unix_ms = 1767225600000LL + static_cast<int64_t>(index) * 200000;
   p.calibration = o.calibration;
   p.noise = o.noise_model;
-  p.odometry = SimulateOdometry(Backwards(index) ? backward_inputs_ : true_inputs_, o.duration_s, o.noise_model, &noise);
+  const NoiseModel drawn = DrawnNoise(o.noise_model, o.undeclared_noise);
+  p.odometry = SimulateOdometry(Backwards(index) ? backward_inputs_ : true_inputs_, o.duration_s, drawn, &noise);
 
   GnssSimulation gnss;
   gnss.rate_hz = o.gnss_rate_hz;
   gnss.sigma_m = o.gnss_sigma_m;
+  gnss.undeclared_scale = o.undeclared_noise.gnss;
   gnss.ar1 = o.noise == NoiseConfig::kGnssAr1 || o.noise == NoiseConfig::kGnssAr1YawBias;
   gnss.ar1_alpha = o.gnss_ar1_alpha;
   p.noise.gnss_correlation_time_s = gnss.CorrelationTimeS();  // the passage declares its GNSS process
@@ -220,7 +223,7 @@ Passage Scenario::MakePassage(int index) const {
       if (!TruePixel(pose, lm.position_m, true_camera, o.min_detection_range_m, o.max_detection_range_m, &u_true)) {
         continue;
       }
-      if (DetectedPixel(u_true, true_camera, o.noise_model.pixel_sigma_px, &noise, &u)) {
+      if (DetectedPixel(u_true, true_camera, drawn.pixel_sigma_px, &noise, &u)) {
         p.detections.push_back({t, lm.id, u});
       }
     }

@@ -11,6 +11,7 @@
 #include "core/geo/local_frame.h"
 #include "core/model/motion_model.h"
 #include "core/model/passage.h"
+#include "core/sim/sensor_simulation.h"
 
 namespace crowdmap {
 
@@ -44,7 +45,8 @@ struct ScenarioOptions {
   double min_detection_range_m = 5.0;
   double max_detection_range_m = 50.0;
   Calibration calibration;         // true calibration (and what the vehicle reports)
-  NoiseModel noise_model;          // sigmas used both to draw noise and in the uploaded passage
+  NoiseModel noise_model;          // sigmas declared in the uploaded passage (and drawn, times undeclared_noise)
+  UndeclaredNoiseScales undeclared_noise;
   // Partial drives: each passage keeps one piece of the route (its measurements within it), of a
   // length uniform in [piece_min_m, piece_max_m] (at most the route) starting uniformly along the
   // rest, drawn from (seed, index). Both 0 = the whole route.

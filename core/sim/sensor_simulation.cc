@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <cmath>
 
+#include "absl/strings/str_cat.h"
 #include "core/model/camera_model.h"
 
 namespace crowdmap {
@@ -12,6 +13,24 @@ uint64_t SplitMix64(uint64_t x) {
   x = (x ^ (x >> 30)) * 0xBF58476D1CE4E5B9ull;
   x = (x ^ (x >> 27)) * 0x94D049BB133111EBull;
   return x ^ (x >> 31);
+}
+
+absl::Status UndeclaredNoiseScales::Validate() const {
+  for (const auto& [field, value] : {std::pair<const char*, double>{"speed", speed}, {"steering", steering}, {"pixel", pixel}, {"gnss", gnss}}) {
+    if (!(std::isfinite(value) && value > 0.0)) {
+      return absl::InvalidArgumentError(
+          absl::StrCat("undeclared_noise.", field, ": must be a finite factor > 0, got ", value));
+    }
+  }
+  return absl::OkStatus();
+}
+
+NoiseModel DrawnNoise(const NoiseModel& declared, const UndeclaredNoiseScales& scales) {
+  NoiseModel drawn = declared;
+  drawn.speed_sigma_mps *= scales.speed;
+  drawn.steering_sigma_rad *= scales.steering;
+  drawn.pixel_sigma_px *= scales.pixel;
+  return drawn;
 }
 
 Pose2 PoseAlongInputs(const std::vector<Pose2>& poses, const std::vector<OdometrySample>& inputs, double dt_s,
@@ -41,7 +60,7 @@ double GnssSimulation::CorrelationTimeS() const {
 
 std::vector<GnssFix> SimulateGnss(const TruePoseFn& pose_at, double duration_s, const LocalFrame& frame,
                                   const Calibration& calibration, const GnssSimulation& gnss, NoiseSource* source) {
-  const double sigma = gnss.sigma_m;
+  const double sigma = gnss.sigma_m * gnss.undeclared_scale;  // drawn; sigma_m is declared
   const double beta = std::sqrt(1.0 - gnss.ar1_alpha * gnss.ar1_alpha);
   // Stationary start. North is drawn before East: the order in which the scenario's first
   // passages (measured in the README) were drawn.
@@ -66,7 +85,7 @@ std::vector<GnssFix> SimulateGnss(const TruePoseFn& pose_at, double duration_s, 
     g.t_s = t;
     g.lat_deg = fix.lat_deg;
     g.lon_deg = fix.lon_deg;
-    g.cov_en_m2 = Eigen::Matrix2d::Identity() * sigma * sigma;
+    g.cov_en_m2 = Eigen::Matrix2d::Identity() * gnss.sigma_m * gnss.sigma_m;
     out.push_back(g);
   }
   return out;

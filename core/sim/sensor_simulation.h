@@ -11,6 +11,8 @@
 
 #include <Eigen/Core>
 
+#include "absl/status/status.h"
+
 #include "core/geo/local_frame.h"
 #include "core/model/motion_model.h"
 #include "core/model/passage.h"
@@ -32,6 +34,22 @@ class NoiseSource {
   std::normal_distribution<double> normal_{0.0, 1.0};
 };
 
+// How much larger than declared a fleet's sensor noise really is: a passage declares the
+// scenario's NoiseModel and its noise is drawn with those sigmas times these factors (a detector
+// or encoders worse than their data sheet). 1 = as declared.
+struct UndeclaredNoiseScales {
+  double speed = 1.0;
+  double steering = 1.0;
+  double pixel = 1.0;
+  double gnss = 1.0;  // GnssSimulation::undeclared_scale
+
+  // InvalidArgument naming the first factor that is not finite and > 0.
+  absl::Status Validate() const;
+};
+
+// The sigmas noise is drawn with: `declared` times `scales`.
+NoiseModel DrawnNoise(const NoiseModel& declared, const UndeclaredNoiseScales& scales);
+
 // The true pose at time t_s (seconds since the passage start).
 using TruePoseFn = std::function<Pose2(double t_s)>;
 
@@ -46,7 +64,8 @@ std::vector<OdometrySample> SimulateOdometry(const std::vector<OdometrySample>& 
 
 struct GnssSimulation {
   double rate_hz = 1.0;
-  double sigma_m = 10.0;
+  double sigma_m = 10.0;        // declared with each fix
+  double undeclared_scale = 1.0;  // the error is drawn with sigma_m times this
   bool ar1 = false;          // e_k = alpha e_(k-1) + sqrt(1 - alpha^2) w_k per axis, else white
   double ar1_alpha = 0.988;
 
@@ -56,7 +75,8 @@ struct GnssSimulation {
 };
 
 // Fixes at k / rate_hz for k = 0.. while t <= duration_s, of the antenna (lever arm from
-// `calibration`) with the declared covariance sigma_m^2 I.
+// `calibration`) with the declared covariance sigma_m^2 I (their error drawn with sigma_m times
+// undeclared_scale).
 std::vector<GnssFix> SimulateGnss(const TruePoseFn& pose_at, double duration_s, const LocalFrame& frame,
                                   const Calibration& calibration, const GnssSimulation& gnss, NoiseSource* source);
 
