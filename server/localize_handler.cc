@@ -78,6 +78,7 @@ grpc::Status MapService::LocalizePassage(grpc::ServerContext* ctx, const pb::Loc
   // The offset is estimated again in the localisation, the prior's uncertainty its own.
   PassageLocalizerOptions options;
   options.camera_yaw_sigma_rad = std::sqrt(vehicle->camera_yaw_variance_rad2);
+  options.correlated_gnss_min_lag1 = context_->update.correlated_gnss_min_lag1;
   absl::StatusOr<PassageLocalization> result =
       crowdmap::LocalizePassage(*passage, LocalizationMapFromPage(*page), options);
   if (!result.ok()) return log.Done(result.status());

@@ -305,6 +305,9 @@ absl::Status PassageLocalizerOptions::Validate() const {
   }
   if (max_gating_rounds < 1) return absl::InvalidArgumentError("max_gating_rounds: must be >= 1");
   if (max_solver_iterations < 1) return absl::InvalidArgumentError("max_solver_iterations: must be >= 1");
+  if (!(correlated_gnss_min_lag1 >= 0.0 && correlated_gnss_min_lag1 < 1.0)) {
+    return absl::InvalidArgumentError("correlated_gnss_min_lag1: must lie in [0, 1) (0 = off)");
+  }
   if (!(camera_yaw_sigma_rad >= 0.0 && camera_yaw_sigma_rad < M_PI)) {
     return absl::InvalidArgumentError("camera_yaw_sigma_rad: must lie in [0, pi)");
   }
@@ -336,9 +339,11 @@ double ChiSquareUpperQuantile(double dof, double probability) {
 std::string PassageLocalization::Brief() const {
   return absl::StrFormat(
       "poses=%d landmarks=%d detections=%d rejected=%d chi2=%.1f dof=%d camera_yaw_offset_rad=%.5f+-%.5f "
-      "map_version=%d solve_ms=%.1f",
+      "map_version=%d solve_ms=%.1f%s",
       poses.size(), landmarks_used.size(), detections_used, rejected.size(), chi2, dof, camera_yaw_offset_rad,
-      camera_yaw_sigma_rad, map_version, solve_ms);
+      camera_yaw_sigma_rad, map_version, solve_ms,
+      gnss_correlation_time_s > 0.0 ? absl::StrFormat(" gnss_correlation_time_s=%.1f", gnss_correlation_time_s)
+                                    : std::string());
 }
 
 absl::StatusOr<LocalizationMap> ReadLocalizationMap(const MapReaderInterface& map, const Passage& passage,
@@ -375,12 +380,18 @@ absl::StatusOr<PassageLocalization> LocalizePassage(const Passage& passage, cons
   // InitializePoses refines the aligned dead reckoning against the GNSS and the map's bearings in
   // one solve: the graph's own GNSS-only refinement before it would be undone.
   graph_options.refine_initial_poses = false;
+  if (options.correlated_gnss_min_lag1 > 0.0) {
+    CorrelatedGnssOptions correlated;
+    correlated.min_lag1 = options.correlated_gnss_min_lag1;
+    graph_options.detect_correlated_gnss = correlated;
+  }
   absl::StatusOr<PassageGraph> graph = BuildPassageGraph(passage, graph_options);
   if (!graph.ok()) return graph.status();
 
   PassageLocalization out;
   out.frame = graph->frame;
   out.map_version = map.version;
+  if (graph->correlated_gnss) out.gnss_correlation_time_s = graph->correlated_gnss->correlation_time_s;
   // The map landmarks the passage detects, in map order (the map may hold many more).
   std::unordered_map<LandmarkId, int> index;
   for (size_t k = 0; k < map.ids.size(); ++k) index[map.ids[k]] = -1;

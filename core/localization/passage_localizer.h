@@ -50,6 +50,10 @@ struct PassageLocalizerOptions {
   // degree does not bend the trajectory with an uncertainty that does not show it. 0: the
   // calibration is taken as exact.
   double camera_yaw_sigma_rad = 0.0;
+  // A passage declaring white GNSS noise whose fixes' residuals show a lag-1 correlation above this
+  // is localised with the Gauss-Markov process they give (as the map's updates do:
+  // MapUpdateOptions::correlated_gnss_min_lag1). 0: the declared noise as it is.
+  double correlated_gnss_min_lag1 = 0.5;
 
   absl::Status Validate() const;
 };
@@ -90,6 +94,10 @@ struct PassageLocalization {
   // (PassageLocalizerOptions::camera_yaw_sigma_rad; both 0 when not estimated).
   double camera_yaw_offset_rad = 0.0;
   double camera_yaw_sigma_rad = 0.0;
+  // The correlation time of the GNSS process the passage was localised with where its fixes
+  // showed correlated errors it declared white (PassageLocalizerOptions::correlated_gnss_min_lag1);
+  // 0: as declared.
+  double gnss_correlation_time_s = 0.0;
   double chi2 = 0.0;            // final solve: sum of squared whitened residuals
   int dof = 0;                  // residuals - parameters
   int64_t map_version = 0;
