@@ -65,6 +65,10 @@ absl::Status MapWorkerOptions::Validate() const {
     return absl::InvalidArgumentError(absl::StrCat("max_interruptions: must be >= 1, got ", max_interruptions));
   }
   if (nice < 0 || nice > 19) return absl::InvalidArgumentError(absl::StrCat("worker-nice: must lie in [0, 19], got ", nice));
+  if (!(settled_upload_retention_days >= 0.0)) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "settled-upload-retention-days: must be >= 0 (0 = keep for good), got ", settled_upload_retention_days));
+  }
   return update.Validate();
 }
 
@@ -171,6 +175,7 @@ void MapWorker::Run() {
       next = TakeNext();
     }
     if (!next) {
+      PruneWhileIdle();
       if (RelinearizeOneWhileIdle()) continue;
       if (!WaitForWork()) break;
       continue;
@@ -323,11 +328,40 @@ void MapWorker::RecordCommitted(const MapDelta& delta, MapWriteSet written) {
 void MapWorker::PrunePayloads(const std::vector<MapUpdater::PassageKey>& folded) {
   if (folded.empty()) return;
   absl::StatusOr<int> pruned = store_->PrunePassagePayloads(folded);
-  if (!pruned.ok()) {  // the uploads stay: nothing is lost, the queue file is only larger
-    spdlog::warn("event=payload_prune_failed passages={} error=\"{}\"", folded.size(), pruned.status().ToString());
+  if (!pruned.ok()) {  // the uploads stay (nothing is lost, the queue file is only larger) until a retry
+    spdlog::warn("event=payload_prune_failed passages={} error=\"{}\" retry=\"while idle\"", folded.size(),
+                 pruned.status().ToString());
+    std::lock_guard<std::mutex> lock(prune_mu_);
+    prune_failed_.insert(prune_failed_.end(), folded.begin(), folded.end());
     return;
   }
   spdlog::info("event=payloads_pruned passages={} reason=\"factors folded into the map's base\"", *pruned);
+}
+
+void MapWorker::PruneWhileIdle() {
+  std::vector<MapUpdater::PassageKey> retry;
+  {
+    std::lock_guard<std::mutex> lock(prune_mu_);
+    const auto now = std::chrono::steady_clock::now();
+    if (now < next_idle_prune_) return;
+    next_idle_prune_ = now + options_.idle_prune_every;
+    retry.swap(prune_failed_);
+  }
+  if (!retry.empty()) PrunePayloads(retry);  // a failure queues them again
+  if (options_.settled_upload_retention_days <= 0.0) return;
+  const auto retention_ms = static_cast<int64_t>(options_.settled_upload_retention_days * 86400e3);
+  absl::StatusOr<int> pruned = store_->PruneSettledPayloads(NowUnixMs() - retention_ms, kSettledPruneBatch);
+  if (!pruned.ok()) {
+    spdlog::warn("event=payload_prune_failed error=\"{}\" retry=\"while idle\"", pruned.status().ToString());
+    return;
+  }
+  if (*pruned == 0) return;
+  spdlog::info("event=payloads_pruned passages={} reason=\"settled (rejected, excluded or discarded) {} days ago\"",
+               *pruned, options_.settled_upload_retention_days);
+  if (*pruned == kSettledPruneBatch) {  // more to do: at the next idle moment
+    std::lock_guard<std::mutex> lock(prune_mu_);
+    next_idle_prune_ = std::chrono::steady_clock::now();
+  }
 }
 
 void MapWorker::Apply(const StoredPassage& record, const Passage& passage) {

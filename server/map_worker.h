@@ -55,6 +55,11 @@ struct MapWorkerOptions {
   // milliseconds: restarts during a long solve must not end with the passage failed.
   int sequential_after_interruptions = 3;
   std::chrono::milliseconds idle_poll{200};
+  // The uploads of passages that ended rejected, excluded or discarded are deleted this many days
+  // after they finished (MapStoreInterface::PruneSettledPayloads), looked for while the queue is
+  // empty, at most every idle_prune_every; their records stay. 0 = kept for good.
+  double settled_upload_retention_days = 30.0;
+  std::chrono::milliseconds idle_prune_every{60000};
   // Scheduling niceness of the worker threads (Linux, 0..19). Applying passages is background
   // work: a positive value lets request handling preempt the solver, so reads stay fast while the
   // map is updated, and costs nothing when the CPU is otherwise idle.
@@ -176,6 +181,9 @@ class MapWorker {
   // Deletes the stored uploads of `folded` passages (MapStoreInterface::PrunePassagePayloads); a
   // failure is logged, never fatal.
   void PrunePayloads(const std::vector<MapUpdater::PassageKey>& folded);
+  // While the queue is empty, at most every options_.idle_prune_every: the folded passages' uploads whose
+  // deletion failed before, and those of settled passages past options_.settled_upload_retention_days.
+  void PruneWhileIdle();
   void Finish(const StoredPassage& record, PassageState state, const std::string& reason);
   // A claimed passage back to the queue, its attempt not counted (MapStoreInterface::
   // ReleaseClaimedPassage): not started, or stopped by a stop before anything about it was learnt
@@ -213,6 +221,11 @@ class MapWorker {
   std::mutex claim_mu_;  // one claim at a time; guards the two below
   std::deque<Claimed> lookahead_;
   std::map<int64_t, RouteFootprint> in_flight_;  // routes of the passages being computed, by id
+
+  std::mutex prune_mu_;  // guards the two below
+  std::vector<MapUpdater::PassageKey> prune_failed_;  // folded passages whose uploads are still stored
+  std::chrono::steady_clock::time_point next_idle_prune_{};
+  static constexpr int kSettledPruneBatch = 1000;
 
   std::vector<std::thread> threads_;
 };

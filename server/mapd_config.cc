@@ -161,6 +161,11 @@ std::unique_ptr<CLI::App> NewMapdCommandLine(MapdConfig* config) {
                  "excluded (ExcludePassage); older ones are folded into the map's base, which keeps the\n"
                  "storage bounded (at least the young map's joint solves; 0 = keep all)")
       ->type_name("N");
+  AddMapdSetting(app, "settled-upload-retention-days", &o.worker.settled_upload_retention_days,
+                 "the uploads of passages that ended rejected, excluded or discarded are deleted this many days\n"
+                 "after (their records stay; failed and quarantined ones keep theirs for a requeue; 0 = keep\n"
+                 "for good)")
+      ->type_name("D");
   AddMapdSetting(app, "worker-nice", &o.worker.nice,
                  "scheduling niceness of the worker threads, 0..19: map updates yield the CPU to requests,\n"
                  "so reads stay fast under load")
@@ -310,7 +315,8 @@ std::string DescribeMapdConfig(const MapdConfig& config) {
       " spread-detections=", u.spread_detections ? "true" : "false", " window-hops=", u.window_hops, " read-window-hops=", o.read_window_hops, " warmup-passages=", u.warmup_passages,
       " relinearize-until-passages=", u.relinearize_until_passages, " relinearize-sigmas=", u.relinearize_sigmas,
       " relinearizations-per-passage=", u.relinearizations_per_passage, " retain-passages=", u.retain_passages,
-      " workers=", o.worker.workers, " worker-nice=", o.worker.nice, " max-queue=", o.max_queue,
+      " workers=", o.worker.workers, " worker-nice=", o.worker.nice,
+      " settled-upload-retention-days=", o.worker.settled_upload_retention_days, " max-queue=", o.max_queue,
       " max-message-mb=", o.max_message_mb, " max-passage-mb=", o.max_passage_mb,
       " max-detection-residual-sigmas=", u.max_detection_residual_sigmas, " sensor-test-sigmas=", u.sensor_test_sigmas,
       " max-landmark-shift-sigmas=", std::sqrt(u.max_landmark_shift_mahalanobis2),

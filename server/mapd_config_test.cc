@@ -99,6 +99,14 @@ TEST(MapdConfig, RejectsUnknownFlagsAndBadValues) {
   auto nice = ParseWithEnvironment({"--worker-nice", "20"}, {});
   ASSERT_FALSE(nice.ok());
   EXPECT_NE(nice.status().message().find("worker-nice"), std::string::npos) << nice.status();
+  auto retention = ParseWithEnvironment({"--settled-upload-retention-days", "-1"}, {});
+  ASSERT_FALSE(retention.ok());
+  EXPECT_NE(retention.status().message().find("settled-upload-retention-days"), std::string::npos)
+      << retention.status();
+  auto kept = ParseWithEnvironment({}, {{"MAPD_SETTLED_UPLOAD_RETENTION_DAYS", "0"}});
+  ASSERT_TRUE(kept.ok()) << kept.status();
+  EXPECT_EQ(kept->server.worker.settled_upload_retention_days, 0.0);
+  EXPECT_EQ(MapWorkerOptions().settled_upload_retention_days, 30.0);
 }
 
 TEST(MapdConfig, ReadsUpdateOptions) {

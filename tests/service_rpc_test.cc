@@ -454,6 +454,47 @@ TEST_F(ServiceRpc, ExcludePassageGivesTheMapWithoutIt) {
   EXPECT_EQ(client_->GetMapInfo()->passages_applied(), 4);
 }
 
+// The uploads of settled passages (rejected, excluded) are deleted by the idle worker once their
+// retention has passed; their records stay, and an applied passage keeps its upload.
+TEST_F(ServiceRpc, TheWorkerDeletesSettledUploadsAfterTheirRetention) {
+  MapServerOptions options = TestServerOptions(dir_.File("map.db"), true);
+  options.worker.update.warmup_passages = 0;
+  options.worker.settled_upload_retention_days = 1e-9;  // under a millisecond
+  options.worker.idle_prune_every = std::chrono::milliseconds(20);
+  server_ = StartTestServer(options);
+  ASSERT_NE(server_, nullptr);
+  client_ = std::make_unique<MockVehicle>(server_->address());
+  for (int i = 0; i < 3; ++i) MustUpload(scenario_.MakePassage(i));
+  const Passage kept = scenario_.MakePassage(0), excluded = scenario_.MakePassage(3);
+  // Each detection of a landmark the map does not know, one apiece: nothing the passage could
+  // estimate (a new landmark needs three rays), which the worker rejects.
+  Passage rejected = scenario_.MakePassage(4);
+  for (size_t k = 0; k < rejected.detections.size(); ++k) rejected.detections[k].landmark_id = 100000 + k;
+  for (const Passage& p : {excluded, rejected}) MustUpload(p);
+  ASSERT_TRUE(client_->WaitUntilIdle().ok());
+  ASSERT_TRUE(client_->client()->ExcludePassage(PassageKey{0, excluded.vehicle_id, excluded.passage_id}).ok());
+  auto pruned = [&](const Passage& p) {
+    absl::StatusOr<pb::PassageStatus> status = client_->GetPassage(p.vehicle_id, p.passage_id);
+    return status.ok() && status->payload_pruned_unix_ms() > 0;
+  };
+  const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(10);
+  while (!(pruned(excluded) && pruned(rejected)) && std::chrono::steady_clock::now() < deadline) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(20));
+  }
+  for (const auto& [p, state] : {std::pair<const Passage*, pb::PassageState>{&excluded, pb::PASSAGE_STATE_EXCLUDED},
+                                 {&rejected, pb::PASSAGE_STATE_REJECTED}}) {
+    absl::StatusOr<pb::PassageStatus> status = client_->GetPassage(p->vehicle_id, p->passage_id);
+    ASSERT_TRUE(status.ok()) << status.status();
+    EXPECT_EQ(status->state(), state) << "the record stays";
+    EXPECT_GT(status->payload_pruned_unix_ms(), 0) << p->passage_id;
+    EXPECT_EQ(server_->store()->GetPassagePayload(status->id()).status().code(), absl::StatusCode::kNotFound);
+  }
+  absl::StatusOr<pb::PassageStatus> applied = client_->GetPassage(kept.vehicle_id, kept.passage_id);
+  ASSERT_TRUE(applied.ok()) << applied.status();
+  EXPECT_EQ(applied->payload_pruned_unix_ms(), 0);
+  EXPECT_TRUE(server_->store()->GetPassagePayload(applied->id()).ok());
+}
+
 TEST_F(ServiceRpc, PassagesBeyondTheRetentionAreFoldedIntoTheBase) {
   MapServerOptions options = TestServerOptions(dir_.File("map.db"), true);
   options.worker.update.warmup_passages = 0;  // no joint solve needs the passages back

@@ -55,6 +55,9 @@ class CachedMapStore : public MapStoreInterface {
   absl::StatusOr<int> PrunePassagePayloads(const std::vector<std::pair<std::string, std::string>>& passages) override {
     return inner_->PrunePassagePayloads(passages);
   }
+  absl::StatusOr<int> PruneSettledPayloads(int64_t finished_before_unix_ms, int limit) override {
+    return inner_->PruneSettledPayloads(finished_before_unix_ms, limit);
+  }
   absl::StatusOr<std::optional<ClaimedPassage>> ClaimNextPassage() override { return inner_->ClaimNextPassage(); }
   absl::StatusOr<std::optional<ClaimedPassage>> ClaimNextPassageAhead() override {
     return inner_->ClaimNextPassageAhead();

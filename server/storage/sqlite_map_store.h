@@ -30,6 +30,7 @@ class SqliteMapStore : public MapStoreInterface {
   absl::StatusOr<std::vector<StoredPassage>> ListPassages(const PassageQuery& query) override;
   absl::StatusOr<std::string> GetPassagePayload(int64_t id) override;
   absl::StatusOr<int> PrunePassagePayloads(const std::vector<std::pair<std::string, std::string>>& passages) override;
+  absl::StatusOr<int> PruneSettledPayloads(int64_t finished_before_unix_ms, int limit) override;
   absl::StatusOr<std::optional<ClaimedPassage>> ClaimNextPassage() override { return Claim(/*started=*/true); }
   absl::StatusOr<std::optional<ClaimedPassage>> ClaimNextPassageAhead() override { return Claim(/*started=*/false); }
   absl::Status MarkPassageStarted(int64_t id) override;

@@ -1046,6 +1046,60 @@ TEST(SqliteMapStore, PruningDeletesOnlyTheUploadsOfAppliedPassages) {
   ExpectStatsEqualTableCounts(store.get(), path);
 }
 
+TEST(SqliteMapStore, SettledUploadsAreDeletedAfterTheirRetentionAndOnlyThose) {
+  TempDir dir;
+  const std::string path = dir.File("map.db");
+  const std::string queue = SqliteQueuePath(path);
+  auto store = OpenStore(path);
+  // Excluded (applied, then taken out again), rejected, discarded (failed, then an operator's
+  // discard); failed and quarantined, which an operator may still requeue; one still queued.
+  const int64_t excluded = EnqueueAndClaim(store.get(), "excluded");
+  ASSERT_TRUE(store->CommitPassageApplied(excluded, TwoLandmarksOneFactor(), {}).ok());
+  MapDelta exclusion;
+  exclusion.base_version = 1;
+  exclusion.version = 2;
+  exclusion.removed_factors = {1};
+  exclusion.removed_landmarks = {1, 2};
+  ASSERT_TRUE(store->CommitPassageExcluded(excluded, exclusion).ok());
+  const int64_t rejected = EnqueueAndClaim(store.get(), "rejected");
+  ASSERT_TRUE(store->FinishPassageWithoutChange(rejected, PassageState::kRejected, "bad").ok());
+  const int64_t discarded = EnqueueAndClaim(store.get(), "discarded");
+  ASSERT_TRUE(store->FinishPassageWithoutChange(discarded, PassageState::kFailed, "solver unusable").ok());
+  ASSERT_TRUE(store->MovePassage(discarded, {PassageState::kFailed}, PassageState::kDiscarded, false).ok());
+  const int64_t failed = EnqueueAndClaim(store.get(), "failed");
+  ASSERT_TRUE(store->FinishPassageWithoutChange(failed, PassageState::kFailed, "solver unusable").ok());
+  const int64_t quarantined = EnqueueAndClaim(store.get(), "quarantined");
+  ASSERT_TRUE(store->FinishPassageWithoutChange(quarantined, PassageState::kQuarantined, "inconsistent").ok());
+  ASSERT_TRUE(store->EnqueuePassages({MakeUpload("v", "queued")}, 0).ok());
+  const int64_t queued = store->FindPassage("v", "queued")->id;
+
+  const int64_t now = NowUnixMs();
+  EXPECT_EQ(*store->PruneSettledPayloads(now - 86400000, 1000), 0) << "none finished a day ago";
+  EXPECT_EQ(*store->PruneSettledPayloads(now + 1000, 0), 0);
+  // Oldest first, at most the limit per call.
+  EXPECT_EQ(*store->PruneSettledPayloads(now + 1000, 2), 2);
+  EXPECT_GT(store->GetPassage(excluded)->payload_pruned_unix_ms, 0);
+  EXPECT_GT(store->GetPassage(rejected)->payload_pruned_unix_ms, 0);
+  EXPECT_EQ(store->GetPassage(discarded)->payload_pruned_unix_ms, 0);
+  EXPECT_EQ(*store->PruneSettledPayloads(now + 1000, 1000), 1);
+  EXPECT_EQ(*store->PruneSettledPayloads(now + 1000, 1000), 0) << "once";
+
+  for (const int64_t id : {excluded, rejected, discarded}) {
+    const absl::StatusOr<std::string> gone = store->GetPassagePayload(id);
+    EXPECT_EQ(gone.status().code(), absl::StatusCode::kNotFound) << id;
+    EXPECT_NE(gone.status().message().find("was deleted after the retention of settled uploads"), std::string::npos)
+        << gone.status();
+  }
+  EXPECT_EQ(store->GetPassage(rejected)->state, PassageState::kRejected) << "the record stays";
+  EXPECT_EQ(store->GetPassage(rejected)->error, "bad");
+  for (const int64_t id : {failed, quarantined, queued}) {
+    EXPECT_EQ(*store->GetPassagePayload(id), "bytes") << id;
+    EXPECT_EQ(store->GetPassage(id)->payload_pruned_unix_ms, 0) << id;
+  }
+  EXPECT_EQ(SqlInt(queue, "SELECT COUNT(*) FROM passage_payloads"), 3);
+  ExpectStatsEqualTableCounts(store.get(), path);
+}
+
 TEST(SqliteMapStore, APrunedPassageAMapRestoredFromAnOlderBackupLacksFailsWithTheReason) {
   TempDir dir;
   const std::string path = dir.File("map.db");

@@ -251,8 +251,12 @@ absl::StatusOr<std::string> SqliteMapStore::GetPassagePayload(int64_t id) {
   auto record = ReadPassage(db->get(), id);
   if (!record.ok()) return record.status();
   if (record->has_value() && (*record)->payload_pruned_unix_ms > 0) {
-    return absl::NotFoundError(absl::StrCat("payload of passage id ", id,
-                                            " was deleted once its factors were folded into the map's base"));
+    if ((*record)->state == PassageState::kApplied) {
+      return absl::NotFoundError(absl::StrCat("payload of passage id ", id,
+                                              " was deleted once its factors were folded into the map's base"));
+    }
+    return absl::NotFoundError(absl::StrCat("payload of passage id ", id, " (", PassageStateName((*record)->state),
+                                            ") was deleted after the retention of settled uploads"));
   }
   return absl::NotFoundError(absl::StrCat("payload of passage id ", id, " not found"));
 }
@@ -288,6 +292,39 @@ absl::StatusOr<int> SqliteMapStore::PrunePassagePayloads(
   }
   if (auto s = txn->Commit(); !s.ok()) return s;
   return pruned;
+}
+
+absl::StatusOr<int> SqliteMapStore::PruneSettledPayloads(int64_t finished_before_unix_ms, int limit) {
+  if (limit <= 0) return 0;
+  SqliteFile::Writer writer = queue_->LockWriter();
+  SqliteConnection* db = writer.db;
+  auto txn = SqliteWriteTransaction::Begin(db);
+  if (!txn.ok()) return txn.status();
+  std::vector<int64_t> ids;
+  {
+    auto mark = db->Prepare(absl::StrCat(
+        "UPDATE passages SET payload_pruned_unix_ms = ?3 WHERE id IN (SELECT id FROM passages WHERE state IN (",
+        static_cast<int>(PassageState::kRejected), ", ", static_cast<int>(PassageState::kExcluded), ", ",
+        static_cast<int>(PassageState::kDiscarded),
+        ") AND payload_pruned_unix_ms = 0 AND finished_unix_ms > 0 AND finished_unix_ms < ?1 ORDER BY id LIMIT ?2) "
+        "RETURNING id"));
+    if (!mark.ok()) return mark.status();
+    mark->Bind(1, finished_before_unix_ms).Bind(2, static_cast<int64_t>(limit)).Bind(3, NowUnixMs());
+    for (;;) {
+      auto row = mark->Step();
+      if (!row.ok()) return row.status();
+      if (!*row) break;
+      ids.push_back(mark->Int(0));
+    }
+  }
+  for (int64_t id : ids) {
+    auto erase = db->Prepare("DELETE FROM passage_payloads WHERE id = ?1");
+    if (!erase.ok()) return erase.status();
+    erase->Bind(1, id);
+    if (auto s = erase->Run(); !s.ok()) return s;
+  }
+  if (auto s = txn->Commit(); !s.ok()) return s;
+  return static_cast<int>(ids.size());
 }
 
 absl::StatusOr<std::optional<ClaimedPassage>> SqliteMapStore::Claim(bool started) {
