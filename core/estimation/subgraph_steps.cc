@@ -402,6 +402,9 @@ SensorResiduals SensorResidualsOf(ceres::Problem* problem, const std::vector<cer
 bool RaiseSensorVarianceFactors(const SensorResiduals& residuals, double test_sigmas, MeasurementWeights* weights) {
   bool raised = false;
   for (int s = 0; s < MeasurementWeights::kSensors; ++s) {
+    // Less than one degree of freedom tells nothing about a variance (a sensor the graph's other
+    // measurements barely check, e.g. two fixes on a short piece).
+    if (residuals.redundancy[s] < 1.0) continue;
     if (const double factor = VarianceFactor(residuals.chi2[s], residuals.redundancy[s], test_sigmas); factor > 1.0) {
       weights->Inflate(static_cast<MeasurementWeights::Sensor>(s), factor);
       raised = true;

@@ -121,5 +121,19 @@ TEST(SensorVarianceFactors, TheSensorNoisierThanDeclaredIsFoundAndOnlyIt) {
   }
 }
 
+// A sensor the rest of the graph barely checks (under one degree of freedom) is not tested: its
+// chi-square says nothing about its variance.
+TEST(SensorVarianceFactors, ASensorWithUnderOneDegreeOfFreedomIsLeftAsDeclared) {
+  MeasurementWeights weights;
+  SensorResiduals residuals;
+  residuals.chi2[MeasurementWeights::kGnss] = 40.0;
+  residuals.redundancy[MeasurementWeights::kGnss] = 0.6;
+  residuals.chi2[MeasurementWeights::kCamera] = 40.0;
+  residuals.redundancy[MeasurementWeights::kCamera] = 1.5;
+  EXPECT_TRUE(RaiseSensorVarianceFactors(residuals, 4.0, &weights));
+  EXPECT_EQ(weights.factor(MeasurementWeights::kGnss), 1.0);
+  EXPECT_NEAR(weights.factor(MeasurementWeights::kCamera), 40.0 / 1.5, 1e-12);
+}
+
 }  // namespace
 }  // namespace crowdmap
