@@ -76,7 +76,8 @@ struct PassageGraph {
 };
 
 // Adds the pose blocks of nodes first..last (inclusive; poses[k] is node first + k) and the
-// odometry and GNSS factors among them to `problem`. `loss` (may be null) weights every residual.
+// odometry and GNSS factors among them to `problem`, weighted by `odometry_loss` and `gnss_loss`
+// (each may be null: unweighted).
 // With coloured GNSS noise the fixes enter as the process's innovations (GnssAr1Factor): the
 // passage's first fix alone, every other with the one before it. An innovation whose earlier fix
 // lies before `first` is left out, like the odometry across the cut: the subgraphs of a passage
