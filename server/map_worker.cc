@@ -499,7 +499,7 @@ void MapWorker::Apply(const StoredPassage& record, const Passage& passage) {
               record.passage_id, record.vehicle_id, record.id, result.nodes, result.subgraphs,
               result.landmarks_updated, result.landmarks_created, result.landmarks_conditioned, result.solve_ms,
               result.total_ms, commit_ms, delta.added_factors.size(), delta.version, recomputed, commit_wait_ms,
-              trim_ms, summary.SpeedScaleBrief() + summary.GnssBrief());
+              trim_ms, summary.SpeedScaleBrief() + summary.GnssBrief() + summary.SensorBrief());
           return;
         }
         if (owed > 0) {  // not applied: nothing owed for it

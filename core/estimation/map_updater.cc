@@ -449,17 +449,22 @@ std::string PassageUpdateSummary::Brief() const {
   return absl::StrFormat(
       "nodes=%d subgraphs=%d updated=%d created=%d held_back=%d disagreeing=%d conditioned=%d detections=%d dropped=%d "
       "outliers=%d iterations=%d "
-      "variance_factor=%.2f odometry_factor=%.2f gnss_factor=%.2f camera_factor=%.2f solve_ms=%.2f covariance_ms=%.2f "
-      "bias_correction_ms=%.2f bias_correction_m=%.3f total_ms=%.2f version=%d joint_passages=%d joint_rejected=%d",
+      "variance_factor=%.2f solve_ms=%.2f covariance_ms=%.2f bias_correction_ms=%.2f bias_correction_m=%.3f "
+      "total_ms=%.2f version=%d joint_passages=%d joint_rejected=%d",
       nodes, subgraphs, landmarks_updated, landmarks_created, landmarks_held_back, landmarks_disagreeing, landmarks_conditioned, detections_used,
-      detections_dropped, detections_outliers, solver_iterations, max_variance_factor, sensor_test_factors[0],
-      sensor_test_factors[1], sensor_test_factors[2], solve_ms, covariance_ms, bias_correction_ms,
+      detections_dropped, detections_outliers, solver_iterations, max_variance_factor, solve_ms, covariance_ms, bias_correction_ms,
       max_bias_correction_m, total_ms, map_version, joint_passages, joint_rejected ? 1 : 0) +
          (camera_yaw_sigma_rad > 0.0 ? absl::StrFormat(" camera_yaw_deg=%.3f camera_yaw_sigma_deg=%.3f",
                                                         camera_yaw_offset_rad * 180.0 / M_PI,
                                                         camera_yaw_sigma_rad * 180.0 / M_PI)
                                      : std::string()) +
-         SpeedScaleBrief() + GnssBrief();
+         SpeedScaleBrief() + GnssBrief() + SensorBrief();
+}
+
+std::string PassageUpdateSummary::SensorBrief() const {
+  if (sensor_test_factors[0] <= 1.0 && sensor_test_factors[1] <= 1.0 && sensor_test_factors[2] <= 1.0) return "";
+  return absl::StrFormat(" odometry_factor=%.2f gnss_factor=%.2f camera_factor=%.2f", sensor_test_factors[0],
+                         sensor_test_factors[1], sensor_test_factors[2]);
 }
 
 std::string PassageUpdateSummary::GnssBrief() const {

@@ -69,6 +69,9 @@ struct PassageUpdateSummary {
   // with " gnss_correlation_time_s=..." when it was estimated with the process they showed; ""
   // otherwise. In the applied-passage line too.
   std::string GnssBrief() const;
+  // " odometry_factor=... gnss_factor=... camera_factor=..." (sensor_test_factors) when a sensor's
+  // own test raised one, "" otherwise. In the applied-passage line too.
+  std::string SensorBrief() const;
 };
 
 struct PassageUpdate {

@@ -31,7 +31,21 @@ Scenario MakeScenario(int landmarks, uint64_t seed = 1) {
   return *std::move(scenario);
 }
 
+// The applied-passage line names the sensors a passage's own tests weighted down, and only then.
+TEST(PassageUpdateSummary, SensorBriefNamesTheFactorsOnlyWhenASensorWasRaised) {
+  PassageUpdateSummary summary;
+  EXPECT_EQ(summary.SensorBrief(), "");
+  summary.sensor_test_factors[2] = 3.91;
+  EXPECT_EQ(summary.SensorBrief(), " odometry_factor=1.00 gnss_factor=1.00 camera_factor=3.91");
+  EXPECT_NE(summary.Brief().find(" camera_factor=3.91"), std::string::npos) << summary.Brief();
+}
+
 TEST(MapUpdateOptions, RejectsOutOfRangeValuesNamingTheField) {
+  {
+    MapUpdateOptions negative;
+    negative.sensor_test_sigmas = -1.0;
+    EXPECT_NE(negative.Validate().message().find("sensor_test_sigmas"), std::string::npos);
+  }
   MapUpdateOptions options;
   options.max_subgraph_dim = 5;
   EXPECT_NE(options.Validate().message().find("max_subgraph_dim"), std::string::npos);
