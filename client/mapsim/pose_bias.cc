@@ -39,8 +39,8 @@ absl::StatusOr<std::vector<PoseBiasBin>> RunPoseBias(const PoseBiasOptions& opti
     if (!graph.ok()) return graph.status();
     std::vector<Pose2> corrected = graph->initial_poses;
     ceres::Problem problem;
-    AddPoseGraphFactors(*graph, 0, graph->node_count() - 1, passage.calibration.gnss_lever_arm_m, nullptr, nullptr, &corrected,
-                        &problem);
+    AddPoseGraphFactors(*graph, 0, graph->node_count() - 1, passage.calibration.gnss_lever_arm_m, nullptr, nullptr,
+                        &corrected, &problem);
     absl::StatusOr<GraphLinearization> linearization = GraphLinearization::Compute(&problem, {});
     if (!linearization.ok()) return linearization.status();
     if (absl::Status s = linearization->CorrectSecondOrderBias(&problem, nullptr); !s.ok()) return s;

@@ -102,13 +102,13 @@ absl::StatusOr<PassageFisherInformation> PassageLandmarkInformation(
   ceres::Problem::Options problem_options;
   ceres::Problem problem(problem_options);
   if (graph->gnss_correlation_time_s <= 0.0) {
-    AddPoseGraphFactors(*graph, 0, graph->node_count() - 1, passage.calibration.gnss_lever_arm_m, nullptr, nullptr, &poses,
-                        &problem);
+    AddPoseGraphFactors(*graph, 0, graph->node_count() - 1, passage.calibration.gnss_lever_arm_m, nullptr, nullptr,
+                        &poses, &problem);
   } else {
     PassageGraph odometry_only = *graph;
     odometry_only.gnss.clear();
-    AddPoseGraphFactors(odometry_only, 0, graph->node_count() - 1, passage.calibration.gnss_lever_arm_m, nullptr, nullptr,
-                        &poses, &problem);
+    AddPoseGraphFactors(odometry_only, 0, graph->node_count() - 1, passage.calibration.gnss_lever_arm_m, nullptr,
+                        nullptr, &poses, &problem);
     std::vector<int> block_of_fix;
     std::vector<double*> fix_blocks;
     std::map<int, int> block_of_node;

@@ -206,8 +206,8 @@ Eigen::MatrixXd EstimatorGraphInformation(const LoopBound& loop, const Passage& 
   std::vector<Pose2> poses;
   for (double t : graph->node_times_s) poses.push_back(loop.scenario.TruePoseAt(t));
   ceres::Problem problem;
-  AddPoseGraphFactors(*graph, 0, graph->node_count() - 1, passage.calibration.gnss_lever_arm_m, nullptr, nullptr, &poses,
-                      &problem);
+  AddPoseGraphFactors(*graph, 0, graph->node_count() - 1, passage.calibration.gnss_lever_arm_m, nullptr, nullptr,
+                      &poses, &problem);
   std::vector<Eigen::Vector2d> positions;
   for (LandmarkId id : order) positions.push_back(loop.scenario.landmarks()[id - 1].position_m);
   std::vector<double*> blocks;

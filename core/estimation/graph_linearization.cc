@@ -290,7 +290,9 @@ std::unordered_map<ceres::ResidualBlockId, double> GraphLinearization::Redundanc
     // The block's columns: the union of its rows' non-zeros (each row of J is a column of J^T).
     columns.clear();
     for (int r = first; r < first + rows; ++r) {
-      for (Eigen::SparseMatrix<double>::InnerIterator it(jt_, r); it; ++it) columns.push_back(static_cast<int>(it.row()));
+      for (Eigen::SparseMatrix<double>::InnerIterator it(jt_, r); it; ++it) {
+        columns.push_back(static_cast<int>(it.row()));
+      }
     }
     std::sort(columns.begin(), columns.end());
     columns.erase(std::unique(columns.begin(), columns.end()), columns.end());

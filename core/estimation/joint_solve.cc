@@ -251,7 +251,8 @@ absl::StatusOr<PassageUpdate> SolveJointly(const std::vector<Passage>& passages,
       const LandmarkId id = seen[p].ids[i];
       for (const CameraObservation* d : seen[p].detections[i]) {
         blocks_of[p].push_back(AddCameraResidual(d->u_px, passages[p].noise.pixel_sigma_px, passages[p].calibration,
-                                                 weights[p]->loss(MeasurementWeights::kCamera), poses[p][d->node].data(), block_of[id],
+                                                 weights[p]->loss(MeasurementWeights::kCamera),
+                                                 poses[p][d->node].data(), block_of[id],
                                                  options.estimate_camera_yaw ? &yaw_offset_rad[p] : nullptr, &problem));
         camera_blocks.insert(blocks_of[p].back());
         ++summary.detections_used;

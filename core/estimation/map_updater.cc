@@ -166,9 +166,9 @@ absl::StatusOr<SetAsideRequest> UpdateFromSubgraph(const Passage& passage, const
   // The wheel-speed scale: this subgraph's own state, its prior the same in every subgraph.
   double speed_scale = 1.0;
   double* speed_scale_block = options.speed_scale_prior_sigma > 0.0 ? &speed_scale : nullptr;
-  AddPoseGraphFactors(graph, range.first, range.last, calib.gnss_lever_arm_m, weights.loss(MeasurementWeights::kOdometry),
-                      weights.loss(MeasurementWeights::kGnss), &poses, &problem,
-                      /*independent_fixes=*/false, speed_scale_block);
+  AddPoseGraphFactors(graph, range.first, range.last, calib.gnss_lever_arm_m,
+                      weights.loss(MeasurementWeights::kOdometry), weights.loss(MeasurementWeights::kGnss), &poses,
+                      &problem, /*independent_fixes=*/false, speed_scale_block);
   if (speed_scale_block != nullptr) {
     problem.AddResidualBlock(ScalarPriorFactor::Create(1.0, options.speed_scale_prior_sigma), nullptr,
                              speed_scale_block);

@@ -192,8 +192,8 @@ void InitializePoses(const PassageGraph& graph, const NodeRange& range, const Pa
                      const MapUpdateOptions& update_options, SubgraphLandmarks* landmarks, std::vector<Pose2>* poses) {
   AlignToMap(graph, range, passage, *landmarks, update_options, poses);
   ceres::Problem problem;
-  AddPoseGraphFactors(graph, range.first, range.last, passage.calibration.gnss_lever_arm_m, nullptr, nullptr, poses, &problem,
-                      /*independent_fixes=*/true);
+  AddPoseGraphFactors(graph, range.first, range.last, passage.calibration.gnss_lever_arm_m, nullptr, nullptr, poses,
+                      &problem, /*independent_fixes=*/true);
   for (size_t i = 0; i < landmarks->ids.size(); ++i) {
     if (!landmarks->known[i]) continue;
     for (const CameraObservation* d : landmarks->detections[i]) {

@@ -84,7 +84,8 @@ void InitializePoses(const PassageGraph& graph, const Passage& passage, const Lo
                      const std::vector<MappedDetection>& detections, const PassageLocalizerOptions& options,
                      std::vector<Pose2>* poses) {
   ceres::Problem problem;
-  AddPoseGraphFactors(graph, 0, graph.node_count() - 1, passage.calibration.gnss_lever_arm_m, nullptr, nullptr, poses, &problem);
+  AddPoseGraphFactors(graph, 0, graph.node_count() - 1, passage.calibration.gnss_lever_arm_m, nullptr, nullptr, poses,
+                      &problem);
   std::vector<Eigen::Vector2d> landmarks = prior.mean;
   for (const MappedDetection& d : detections) {
     problem.AddResidualBlock(
@@ -127,7 +128,8 @@ JointProblem BuildProblem(const PassageGraph& graph, const Passage& passage, con
   JointProblem jp;
   jp.problem = std::make_unique<ceres::Problem>();
   ceres::Problem& problem = *jp.problem;
-  AddPoseGraphFactors(graph, 0, graph.node_count() - 1, passage.calibration.gnss_lever_arm_m, nullptr, nullptr, poses, &problem);
+  AddPoseGraphFactors(graph, 0, graph.node_count() - 1, passage.calibration.gnss_lever_arm_m, nullptr, nullptr, poses,
+                      &problem);
   jp.parameters = 3 * graph.node_count();
   std::vector<bool> seen(landmarks->size(), false);
   for (const MappedDetection& d : detections) {

@@ -334,7 +334,8 @@ absl::Status StreamingLocalizer::Start() {
   // The pose graph solved again to the end, for the covariance at the solution.
   std::vector<Pose2> poses = graph->initial_poses;
   ceres::Problem problem;
-  AddPoseGraphFactors(*graph, 0, graph->node_count() - 1, calibration_.gnss_lever_arm_m, nullptr, nullptr, &poses, &problem);
+  AddPoseGraphFactors(*graph, 0, graph->node_count() - 1, calibration_.gnss_lever_arm_m, nullptr, nullptr, &poses,
+                      &problem);
   ceres::Solver::Options solver;
   solver.linear_solver_type = ceres::SPARSE_NORMAL_CHOLESKY;
   solver.function_tolerance = 1e-12;

@@ -16,7 +16,10 @@ uint64_t SplitMix64(uint64_t x) {
 }
 
 absl::Status UndeclaredNoiseScales::Validate() const {
-  for (const auto& [field, value] : {std::pair<const char*, double>{"speed", speed}, {"steering", steering}, {"pixel", pixel}, {"gnss", gnss}}) {
+  for (const auto& [field, value] : {std::pair<const char*, double>{"speed", speed},
+                                     {"steering", steering},
+                                     {"pixel", pixel},
+                                     {"gnss", gnss}}) {
     if (!(std::isfinite(value) && value > 0.0)) {
       return absl::InvalidArgumentError(
           absl::StrCat("undeclared_noise.", field, ": must be a finite factor > 0, got ", value));
