@@ -31,6 +31,11 @@ struct AppliedPassageTimings {
   double covariance_ms = 0.0;  // its covariance recoveries (PassageUpdateSummary::covariance_ms)
   double commit_ms = 0.0;      // the durable transaction
   int recomputed = 0;          // times the update was computed again (MapWorkerOptions::workers)
+  // The consistency tests that weighted the passage down: the whole subgraph's chi-square
+  // (MapUpdateOptions::inflation_test_sigmas), and each sensor's own (odometry, GNSS, camera;
+  // sensor_test_sigmas).
+  bool inflated = false;
+  bool sensor_inflated[3] = {false, false, false};
 };
 
 struct MapWorkerOptions {

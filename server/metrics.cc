@@ -173,6 +173,13 @@ absl::StatusOr<std::unique_ptr<ServerMetrics>> ServerMetrics::Start(const std::s
                          .Help("updates computed again because another worker's commit changed what they read (--workers)")
                          .Register(r)
                          .Add({});
+  auto& inflations = prometheus::BuildCounter()
+                         .Name("mapd_passage_inflations_total")
+                         .Help("applied passages whose noise a consistency test found larger than declared, by test: "
+                               "the whole subgraph's chi-square, or one sensor's own (odometry, gnss, camera)")
+                         .Register(r);
+  const char* tests[] = {"whole", "odometry", "gnss", "camera"};
+  for (int t = 0; t < 4; ++t) m->inflated_[t] = &inflations.Add({{"test", tests[t]}});
   auto& relinearizations = prometheus::BuildCounter()
                                .Name("mapd_relinearizations_total")
                                .Help("retained passages taken again at the map's current estimate "
@@ -252,6 +259,10 @@ void ServerMetrics::ObserveApplied(const AppliedPassageTimings& t) {
   covariance_->Observe(t.covariance_ms / 1000.0);
   commit_->Observe(t.commit_ms / 1000.0);
   recomputed_->Increment(t.recomputed);
+  if (t.inflated) inflated_[0]->Increment();
+  for (int s = 0; s < 3; ++s) {
+    if (t.sensor_inflated[s]) inflated_[1 + s]->Increment();
+  }
 }
 
 void ServerMetrics::WatchWorker(const MapWorker* worker) { store_collector_->WatchWorker(worker); }

@@ -63,6 +63,37 @@ std::string Rpc(const std::string& method, const std::string& code) {
   return "{code=\"" + code + "\",method=\"" + method + "\",service=\"mapservice.v1.MapService\"}";
 }
 
+// A fleet whose camera is three times as noisy as it declares: its passages' camera tests count.
+TEST(Metrics, PassagesWhoseCameraIsNoisierThanDeclaredAreCounted) {
+  TempDir dir;
+  MapServerOptions options = TestServerOptions(dir.File("map.db"));
+  options.metrics_listen = "127.0.0.1:0";
+  auto server = StartTestServer(options);
+  ASSERT_NE(server, nullptr);
+  MockVehicle vehicle(server->address());
+  ScenarioOptions noisy;
+  noisy.landmarks = 25;
+  noisy.duration_s = 80.0;
+  noisy.undeclared_noise.pixel = 3.0;
+  const absl::StatusOr<Scenario> scenario = Scenario::Create(noisy);
+  ASSERT_TRUE(scenario.ok()) << scenario.status();
+  for (int i = 0; i < 4; ++i) {
+    pb::Passage wire;
+    PassageToProto(scenario->MakePassage(i), &wire);
+    ASSERT_TRUE(vehicle.UploadOnce(wire).ok());
+  }
+  ASSERT_TRUE(vehicle.WaitUntilIdle().ok());
+  std::map<std::string, double> m;
+  for (const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(10);;) {
+    m = ParseExposition(HttpGet(server->metrics_port(), "/metrics"));
+    if (m["mapd_passage_commit_seconds_count"] >= 4 || std::chrono::steady_clock::now() > deadline) break;
+    std::this_thread::sleep_for(std::chrono::milliseconds(20));
+  }
+  EXPECT_GE(m["mapd_passage_inflations_total{test=\"camera\"}"], 2);
+  EXPECT_EQ(m["mapd_passage_inflations_total{test=\"odometry\"}"], 0);
+  EXPECT_EQ(m["mapd_passage_inflations_total{test=\"gnss\"}"], 0);
+}
+
 TEST(Metrics, ScrapedValuesMatchTheRpcsUploadsAndAppliedPassages) {
   TempDir dir;
   MapServerOptions options = TestServerOptions(dir.File("map.db"));
@@ -139,6 +170,11 @@ TEST(Metrics, ScrapedValuesMatchTheRpcsUploadsAndAppliedPassages) {
   EXPECT_GE(m["mapd_passage_apply_seconds_sum"], m["mapd_passage_solve_seconds_sum"]);
   ASSERT_EQ(m.count("mapd_passage_recomputed_total"), 1u);
   EXPECT_EQ(m["mapd_passage_recomputed_total"], 0) << "one worker never computes an update again";
+  for (const char* test : {"whole", "odometry", "gnss", "camera"}) {
+    const std::string series = std::string("mapd_passage_inflations_total{test=\"") + test + "\"}";
+    ASSERT_EQ(m.count(series), 1u) << series;
+    EXPECT_EQ(m[series], 0) << "honest passages: " << series;
+  }
   ASSERT_EQ(m.count("mapd_relinearizations_total{outcome=\"committed\"}"), 1u);
   EXPECT_EQ(m["mapd_relinearizations_total{outcome=\"committed\"}"], 0) << "off by default";
   EXPECT_GT(info->landmark_count(), 0);
