@@ -230,7 +230,9 @@ class MapWorker {
   std::mutex prune_mu_;  // guards the two below
   std::vector<MapUpdater::PassageKey> prune_failed_;  // folded passages whose uploads are still stored
   std::chrono::steady_clock::time_point next_idle_prune_{};
-  static constexpr int kSettledPruneBatch = 1000;
+  // Uploads deleted per transaction: the queue file's writer is the uploads' too, and their
+  // acknowledgements must not wait behind a long deletion (the rest follows at the next idle step).
+  static constexpr int kSettledPruneBatch = 64;
 
   std::vector<std::thread> threads_;
 };
