@@ -63,6 +63,22 @@ std::string Rpc(const std::string& method, const std::string& code) {
   return "{code=\"" + code + "\",method=\"" + method + "\",service=\"mapservice.v1.MapService\"}";
 }
 
+// The metrics once `passages` applied passages are in them (their raw text in `text`, if given).
+// The worker records a passage's timings once its commit is durable, so a scrape right after the
+// store shows it applied can miss the last one.
+std::map<std::string, double> ScrapeOnceApplied(int port, int passages, std::string* text = nullptr) {
+  std::string scraped;
+  std::map<std::string, double> m;
+  for (const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(10);;) {
+    scraped = HttpGet(port, "/metrics");
+    m = ParseExposition(scraped);
+    if (m["mapd_passage_commit_seconds_count"] >= passages || std::chrono::steady_clock::now() > deadline) break;
+    std::this_thread::sleep_for(std::chrono::milliseconds(20));
+  }
+  if (text != nullptr) *text = std::move(scraped);
+  return m;
+}
+
 // A fleet whose camera is three times as noisy as it declares: its passages' camera tests count.
 TEST(Metrics, PassagesWhoseCameraIsNoisierThanDeclaredAreCounted) {
   TempDir dir;
@@ -83,12 +99,7 @@ TEST(Metrics, PassagesWhoseCameraIsNoisierThanDeclaredAreCounted) {
     ASSERT_TRUE(vehicle.UploadOnce(wire).ok());
   }
   ASSERT_TRUE(vehicle.WaitUntilIdle().ok());
-  std::map<std::string, double> m;
-  for (const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(10);;) {
-    m = ParseExposition(HttpGet(server->metrics_port(), "/metrics"));
-    if (m["mapd_passage_commit_seconds_count"] >= 4 || std::chrono::steady_clock::now() > deadline) break;
-    std::this_thread::sleep_for(std::chrono::milliseconds(20));
-  }
+  std::map<std::string, double> m = ScrapeOnceApplied(server->metrics_port(), 4);
   EXPECT_GE(m["mapd_passage_inflations_total{test=\"camera\"}"], 2);
   EXPECT_EQ(m["mapd_passage_inflations_total{test=\"odometry\"}"], 0);
   EXPECT_EQ(m["mapd_passage_inflations_total{test=\"gnss\"}"], 0);
@@ -134,17 +145,9 @@ TEST(Metrics, ScrapedValuesMatchTheRpcsUploadsAndAppliedPassages) {
     ASSERT_EQ(response.covariance_bound(), pb::COVARIANCE_BOUND_EXACT);
   }
 
-  // The worker records a passage's timings once its commit is durable, so a scrape right after
-  // the store shows it applied can miss the last one: scrape until all three are there.
   std::string text;
-  std::map<std::string, double> m;
-  for (const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(10);;) {
-    text = HttpGet(server->metrics_port(), "/metrics");
-    ASSERT_FALSE(text.empty()) << "no answer from the metrics endpoint";
-    m = ParseExposition(text);
-    if (m["mapd_passage_commit_seconds_count"] >= 3 || std::chrono::steady_clock::now() > deadline) break;
-    std::this_thread::sleep_for(std::chrono::milliseconds(20));
-  }
+  std::map<std::string, double> m = ScrapeOnceApplied(server->metrics_port(), 3, &text);
+  ASSERT_FALSE(text.empty()) << "no answer from the metrics endpoint";
   EXPECT_EQ(m["mapd_rpc_duration_seconds_count" + Rpc("UploadPassage", "OK")], 4);
   EXPECT_EQ(m["mapd_rpc_duration_seconds_count" + Rpc("GetPassage", "NOT_FOUND")], 2);
   EXPECT_GT(m["mapd_rpc_duration_seconds_sum" + Rpc("UploadPassage", "OK")], 0);
@@ -228,7 +231,7 @@ TEST(Metrics, RelinearizationsAreCounted) {
   auto idle = vehicle.WaitUntilIdle();
   ASSERT_TRUE(idle.ok()) << idle.status();
   ASSERT_EQ(idle->passages_applied(), 4);
-  std::map<std::string, double> m = ParseExposition(HttpGet(server->metrics_port(), "/metrics"));
+  std::map<std::string, double> m = ScrapeOnceApplied(server->metrics_port(), 4);
   // A young map moves by far more than a tenth of its sigmas with each passage.
   EXPECT_GE(m["mapd_relinearizations_total{outcome=\"committed\"}"], 1);
   ASSERT_EQ(m.count("mapd_relinearizations_total{outcome=\"refused\"}"), 1u);
