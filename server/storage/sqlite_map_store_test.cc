@@ -713,6 +713,16 @@ MapDelta TwoLandmarksOneFactor() {
   return applied;
 }
 
+// Its exclusion: the factor and both landmarks removed, version 2.
+MapDelta ExclusionOfTwoLandmarksOneFactor() {
+  MapDelta exclusion;
+  exclusion.base_version = 1;
+  exclusion.version = 2;
+  exclusion.removed_factors = {1};
+  exclusion.removed_landmarks = {1, 2};
+  return exclusion;
+}
+
 TEST(SqliteMapStore, ExclusionWritesItsDeltaAndMarksThePassageInOneTransaction) {
   TempDir dir;
   const std::string path = dir.File("map.db");
@@ -723,11 +733,7 @@ TEST(SqliteMapStore, ExclusionWritesItsDeltaAndMarksThePassageInOneTransaction) 
   EXPECT_EQ(store->CommitPassageExcluded(id, MapDelta()).code(), absl::StatusCode::kFailedPrecondition);
   ASSERT_TRUE(store->CommitPassageApplied(id, applied, {}).ok());
 
-  MapDelta exclusion;
-  exclusion.base_version = 1;
-  exclusion.version = 2;
-  exclusion.removed_factors = {1};
-  exclusion.removed_landmarks = {1, 2};
+  const MapDelta exclusion = ExclusionOfTwoLandmarksOneFactor();
   MapDelta stale = exclusion;
   stale.base_version = 0;
   EXPECT_EQ(store->CommitPassageExcluded(id, stale).code(), absl::StatusCode::kFailedPrecondition);
@@ -1055,12 +1061,7 @@ TEST(SqliteMapStore, SettledUploadsAreDeletedAfterTheirRetentionAndOnlyThose) {
   // discard); failed and quarantined, which an operator may still requeue; one still queued.
   const int64_t excluded = EnqueueAndClaim(store.get(), "excluded");
   ASSERT_TRUE(store->CommitPassageApplied(excluded, TwoLandmarksOneFactor(), {}).ok());
-  MapDelta exclusion;
-  exclusion.base_version = 1;
-  exclusion.version = 2;
-  exclusion.removed_factors = {1};
-  exclusion.removed_landmarks = {1, 2};
-  ASSERT_TRUE(store->CommitPassageExcluded(excluded, exclusion).ok());
+  ASSERT_TRUE(store->CommitPassageExcluded(excluded, ExclusionOfTwoLandmarksOneFactor()).ok());
   const int64_t rejected = EnqueueAndClaim(store.get(), "rejected");
   ASSERT_TRUE(store->FinishPassageWithoutChange(rejected, PassageState::kRejected, "bad").ok());
   const int64_t discarded = EnqueueAndClaim(store.get(), "discarded");
