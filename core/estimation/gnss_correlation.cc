@@ -48,6 +48,13 @@ GnssResidualStats MeasureGnssResiduals(const std::vector<GnssObservation>& gnss,
   return stats;
 }
 
+std::optional<CorrelatedGnssOptions> CorrelatedGnssCheck(double min_lag1) {
+  if (!(min_lag1 > 0.0)) return std::nullopt;
+  CorrelatedGnssOptions options;
+  options.min_lag1 = min_lag1;
+  return options;
+}
+
 std::optional<CorrelatedGnss> CorrelatedGnssFromResiduals(const GnssResidualStats& residuals,
                                                           const CorrelatedGnssOptions& options) {
   // Residuals larger than declared: the process's variance is at least theirs.

@@ -49,6 +49,10 @@ struct CorrelatedGnssOptions {
   double significance_sigmas = 2.5;
 };
 
+// The check a min_lag1 setting asks for (GraphOptions::detect_correlated_gnss): the defaults with
+// that threshold, none for 0 (the declared noise taken as it is).
+std::optional<CorrelatedGnssOptions> CorrelatedGnssCheck(double min_lag1);
+
 // The process to estimate the passage with: its correlation time (s) and the factor that scales
 // each fix's declared covariance into the process's stationary one.
 struct CorrelatedGnss {

@@ -628,11 +628,7 @@ GraphOptions UpdateGraphOptions(const MapUpdateOptions& options) {
   graph.spread_detections = options.spread_detections;
   graph.detection_spacing_s = options.detection_spacing_s;
   graph.detection_spacing_m = options.detection_spacing_m;
-  if (options.correlated_gnss_min_lag1 > 0.0) {
-    CorrelatedGnssOptions correlated;
-    correlated.min_lag1 = options.correlated_gnss_min_lag1;
-    graph.detect_correlated_gnss = correlated;
-  }
+  graph.detect_correlated_gnss = CorrelatedGnssCheck(options.correlated_gnss_min_lag1);
   return graph;
 }
 

@@ -382,11 +382,7 @@ absl::StatusOr<PassageLocalization> LocalizePassage(const Passage& passage, cons
   // InitializePoses refines the aligned dead reckoning against the GNSS and the map's bearings in
   // one solve: the graph's own GNSS-only refinement before it would be undone.
   graph_options.refine_initial_poses = false;
-  if (options.correlated_gnss_min_lag1 > 0.0) {
-    CorrelatedGnssOptions correlated;
-    correlated.min_lag1 = options.correlated_gnss_min_lag1;
-    graph_options.detect_correlated_gnss = correlated;
-  }
+  graph_options.detect_correlated_gnss = CorrelatedGnssCheck(options.correlated_gnss_min_lag1);
   absl::StatusOr<PassageGraph> graph = BuildPassageGraph(passage, graph_options);
   if (!graph.ok()) return graph.status();
 
