@@ -65,9 +65,10 @@ absl::Status MapWorkerOptions::Validate() const {
     return absl::InvalidArgumentError(absl::StrCat("max_interruptions: must be >= 1, got ", max_interruptions));
   }
   if (nice < 0 || nice > 19) return absl::InvalidArgumentError(absl::StrCat("worker-nice: must lie in [0, 19], got ", nice));
-  if (!(settled_upload_retention_days >= 0.0)) {
-    return absl::InvalidArgumentError(absl::StrCat(
-        "settled-upload-retention-days: must be >= 0 (0 = keep for good), got ", settled_upload_retention_days));
+  // (at most a hundred years: the retention is taken in milliseconds as a 64-bit integer)
+  if (!(settled_upload_retention_days >= 0.0 && settled_upload_retention_days <= kMaxRetentionDays)) {
+    return absl::InvalidArgumentError(absl::StrCat("settled-upload-retention-days: must lie in [0, ", kMaxRetentionDays,
+                                                   "] (0 = keep for good), got ", settled_upload_retention_days));
   }
   return update.Validate();
 }
@@ -105,6 +106,16 @@ absl::Status MapWorker::LoadUpdater() {
     if (!applied.ok()) return applied.status();
     for (const StoredPassage& record : *applied) {
       absl::StatusOr<std::string> payload = store_->GetPassagePayload(record.id);
+      if (absl::IsNotFound(payload.status())) {
+        // An applied passage without its upload: a map restored from a backup brought back one
+        // that was excluded and whose upload was deleted since. The joint solves need every
+        // passage: the map goes on with sequential updates (MapUpdater takes none with fewer
+        // passages kept than applied).
+        spdlog::warn("event=joint_solves_given_up passage={} reason=\"{}\"", record.id,
+                     std::string(payload.status().message()));
+        kept.clear();
+        break;
+      }
       if (!payload.ok()) return payload.status();
       absl::StatusOr<Passage> passage = DecodeStoredPassage(*payload);
       if (!passage.ok()) return absl::DataLossError(absl::StrCat("applied passage ", record.id, ": ", passage.status().message()));

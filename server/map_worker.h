@@ -64,6 +64,7 @@ struct MapWorkerOptions {
   // after they finished (MapStoreInterface::PruneSettledPayloads), looked for while the queue is
   // empty, at most every idle_prune_every; their records stay. 0 = kept for good.
   double settled_upload_retention_days = 30.0;
+  static constexpr double kMaxRetentionDays = 36525.0;
   std::chrono::milliseconds idle_prune_every{60000};
   // Scheduling niceness of the worker threads (Linux, 0..19). Applying passages is background
   // work: a positive value lets request handling preempt the solver, so reads stay fast while the

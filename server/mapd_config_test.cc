@@ -103,6 +103,11 @@ TEST(MapdConfig, RejectsUnknownFlagsAndBadValues) {
   ASSERT_FALSE(retention.ok());
   EXPECT_NE(retention.status().message().find("settled-upload-retention-days"), std::string::npos)
       << retention.status();
+  for (const char* beyond : {"1e300", "inf", "nan"}) {
+    auto huge = ParseWithEnvironment({"--settled-upload-retention-days", beyond}, {});
+    ASSERT_FALSE(huge.ok()) << beyond;
+    EXPECT_NE(huge.status().message().find("settled-upload-retention-days"), std::string::npos) << huge.status();
+  }
   auto kept = ParseWithEnvironment({}, {{"MAPD_SETTLED_UPLOAD_RETENTION_DAYS", "0"}});
   ASSERT_TRUE(kept.ok()) << kept.status();
   EXPECT_EQ(kept->server.worker.settled_upload_retention_days, 0.0);

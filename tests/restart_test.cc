@@ -90,6 +90,42 @@ TEST(ServiceRestart, MapVersionsAndQueueSurviveARestart) {
   }
 }
 
+// A young map whose worker finds an applied passage without its upload (a map restored from a
+// backup taken before the passage was excluded, its upload deleted since) starts all the same: it
+// gives up its joint solves, which need every passage, and applies the next passages sequentially.
+TEST(ServiceRestart, AYoungMapMissingAnAppliedPassagesUploadGoesOnWithoutJointSolves) {
+  TempDir dir;
+  const std::string db = dir.File("map.db");
+  const Scenario scenario = ShortScenario();
+  {
+    auto server = StartTestServer(WarmingUp(TestServerOptions(db, /*start_worker=*/true)));
+    MockVehicle client(server->address());
+    for (int i = 0; i < 3; ++i) ASSERT_TRUE(client.Upload(scenario.MakePassage(i)).ok());
+    ASSERT_TRUE(client.WaitUntilIdle().ok());
+    server->Shutdown();
+  }
+  {
+    auto queue = SqliteConnection::Open(SqliteQueuePath(db), 1000, /*read_only=*/false);
+    ASSERT_TRUE(queue.ok()) << queue.status();
+    ASSERT_TRUE((*queue)
+                    ->Exec("UPDATE passages SET payload_pruned_unix_ms = 1 WHERE id = (SELECT MIN(id) FROM passages); "
+                           "DELETE FROM passage_payloads WHERE id = (SELECT MIN(id) FROM passages)")
+                    .ok());
+  }
+  auto server = StartTestServer(WarmingUp(TestServerOptions(db, /*start_worker=*/true)));
+  ASSERT_NE(server, nullptr);
+  MockVehicle client(server->address());
+  for (int i = 3; i < 5; ++i) ASSERT_TRUE(client.Upload(scenario.MakePassage(i)).ok());
+  auto info = client.WaitUntilIdle();
+  ASSERT_TRUE(info.ok()) << info.status();
+  EXPECT_EQ(info->passages_applied(), 5);
+  EXPECT_EQ(info->passages_failed(), 0);
+  // The fourth passage, otherwise the young map's joint re-solve of its first four, is sequential.
+  auto fourth = client.GetPassage("sim-3", scenario.MakePassage(3).passage_id);
+  ASSERT_TRUE(fourth.ok()) << fourth.status();
+  EXPECT_EQ(fourth->result().strategy().find("+joint"), std::string::npos) << fourth->result().strategy();
+}
+
 }  // namespace
 }  // namespace crowdmap
 

@@ -5,6 +5,7 @@
 
 #include <Eigen/Cholesky>
 
+#include "absl/strings/str_cat.h"
 #include "core/estimation/graph_builder.h"
 
 namespace crowdmap {
@@ -53,6 +54,11 @@ std::optional<CorrelatedGnssOptions> CorrelatedGnssCheck(double min_lag1) {
   CorrelatedGnssOptions options;
   options.min_lag1 = min_lag1;
   return options;
+}
+
+absl::Status ValidateCorrelatedGnssMinLag1(double min_lag1, const char* field) {
+  if (min_lag1 >= 0.0 && min_lag1 < 1.0) return absl::OkStatus();
+  return absl::InvalidArgumentError(absl::StrCat(field, ": must lie in [0, 1) (0 = off), got ", min_lag1));
 }
 
 std::optional<CorrelatedGnss> CorrelatedGnssFromResiduals(const GnssResidualStats& residuals,

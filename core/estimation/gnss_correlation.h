@@ -14,6 +14,7 @@
 
 #include <Eigen/Core>
 
+#include "absl/status/status.h"
 #include "core/model/motion_model.h"
 
 namespace crowdmap {
@@ -52,6 +53,8 @@ struct CorrelatedGnssOptions {
 // The check a min_lag1 setting asks for (GraphOptions::detect_correlated_gnss): the defaults with
 // that threshold, none for 0 (the declared noise taken as it is).
 std::optional<CorrelatedGnssOptions> CorrelatedGnssCheck(double min_lag1);
+// InvalidArgument naming `field` unless min_lag1 lies in [0, 1).
+absl::Status ValidateCorrelatedGnssMinLag1(double min_lag1, const char* field);
 
 // The process to estimate the passage with: its correlation time (s) and the factor that scales
 // each fix's declared covariance into the process's stationary one.

@@ -298,6 +298,15 @@ absl::StatusOr<PassageUpdate> SolveJointly(const std::vector<Passage>& passages,
       }
     }
   }
+  // At the solution as declared (before any inflation below), as UpdateFromSubgraph's limit.
+  const int joint_dof = problem.NumResiduals() - problem.NumParameters();
+  if (options.max_chi2_per_dof > 0.0 && joint_dof > 0 &&
+      2.0 * solver_summary.final_cost > options.max_chi2_per_dof * joint_dof) {
+    return absl::FailedPreconditionError(
+        absl::StrFormat("solution inconsistent with the measurements: chi2=%.1f for %d degrees of freedom (limit %.1f "
+                        "per dof)",
+                        2.0 * solver_summary.final_cost, joint_dof, options.max_chi2_per_dof));
+  }
   // The consistency test of UpdateFromSubgraph, passage by passage: the chi-square of each
   // passage's residuals against its share of the degrees of freedom.
   if (options.inflation_test_sigmas > 0.0) {
@@ -327,6 +336,7 @@ absl::StatusOr<PassageUpdate> SolveJointly(const std::vector<Passage>& passages,
       }
     }
   }
+  summary.solve_ms = MillisecondsSince(solve_start);
   // Each passage's sensors tested on their own, as a subgraph's are.
   std::vector<WeightedBlocks> weighted;
   for (int p = 0; p < count; ++p) weighted.push_back({&blocks_of[p], weights[p].get()});
@@ -349,7 +359,8 @@ absl::StatusOr<PassageUpdate> SolveJointly(const std::vector<Passage>& passages,
       if (it == seen[p].ids.end()) continue;
       const RayGeometry geometry = NewLandmarkGeometry(
           poses[p], 0, seen[p].detections[it - seen[p].ids.begin()], landmarks.position(index_of.at(id)),
-          passages[p].calibration, passages[p].noise.pixel_sigma_px);
+          passages[p].calibration,
+          passages[p].noise.pixel_sigma_px * std::sqrt(weights[p]->factor(MeasurementWeights::kCamera)));
       pinned = WellDeterminedNewLandmark(geometry, options);
     }
     if (!pinned) unpinned->push_back(id);
@@ -359,15 +370,6 @@ absl::StatusOr<PassageUpdate> SolveJointly(const std::vector<Passage>& passages,
         "landmark %d: only the %d passages inform it, and none of their rays pins it down as a new landmark's must",
         unpinned->front(), count));
   }
-  const int dof = problem.NumResiduals() - problem.NumParameters();
-  if (options.max_chi2_per_dof > 0.0 && dof > 0 && 2.0 * solver_summary.final_cost > options.max_chi2_per_dof * dof) {
-    return absl::FailedPreconditionError(
-        absl::StrFormat("solution inconsistent with the measurements: chi2=%.1f for %d degrees of freedom (limit %.1f "
-                        "per dof)",
-                        2.0 * solver_summary.final_cost, dof, options.max_chi2_per_dof));
-  }
-
-  summary.solve_ms = MillisecondsSince(solve_start);
   summary.final_cost = solver_summary.final_cost;
   // Each passage's own factor, at the solution: its poses are disjoint from the others', so the
   // joint information is exactly the sum of these.

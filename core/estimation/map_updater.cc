@@ -15,6 +15,7 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
 #include "core/estimation/factors.h"
+#include "core/estimation/gnss_correlation.h"
 #include "core/estimation/graph_builder.h"
 #include "core/estimation/graph_linearization.h"
 #include "core/estimation/landmark_update.h"
@@ -79,11 +80,12 @@ std::vector<DetectionKey> OutlierDetections(ceres::Problem* problem, const std::
 // WellDeterminedNewLandmark), and map landmarks it moves further from their map estimate than the
 // map's own uncertainty allows (options.max_landmark_shift_mahalanobis2: the passage and the map
 // disagree about them, a wrong association or a wrong map; either way the passage's
-// detections of them are not trusted).
+// detections of them are not trusted). `pixel_sigma_px`: the camera's sigma as the solve weighted
+// it (the declared one times the square root of its variance factor).
 std::vector<LandmarkId> LandmarksToSetAside(const LandmarkUpdate& update, const SubgraphLandmarks& landmarks,
                                             const std::vector<Pose2>& poses, const NodeRange& range,
-                                            const Passage& passage, const MapUpdateOptions& options,
-                                            PassageUpdateSummary* summary) {
+                                            const Passage& passage, double pixel_sigma_px,
+                                            const MapUpdateOptions& options, PassageUpdateSummary* summary) {
   std::vector<LandmarkId> unfit;
   for (int i = 0; i < update.size(); ++i) {
     if (update.in_map(i)) {
@@ -95,7 +97,7 @@ std::vector<LandmarkId> LandmarksToSetAside(const LandmarkUpdate& update, const 
       continue;
     }
     const RayGeometry geometry = NewLandmarkGeometry(poses, range.first, landmarks.detections[i], update.position(i),
-                                                     passage.calibration, passage.noise.pixel_sigma_px);
+                                                     passage.calibration, pixel_sigma_px);
     if (!WellDeterminedNewLandmark(geometry, options)) {
       unfit.push_back(update.id(i));
       ++summary->landmarks_held_back;
@@ -230,11 +232,15 @@ absl::StatusOr<SetAsideRequest> UpdateFromSubgraph(const Passage& passage, const
     chi2 = 2.0 * solver_summary.final_cost;
   }
   summary->solve_ms += MillisecondsSince(solve_start);
-
-  if (std::vector<LandmarkId> unfit = LandmarksToSetAside(update, landmarks, poses, range, passage, options, summary);
-      !unfit.empty()) {
-    return SetAsideRequest{std::move(unfit), {}};
-  }
+  // Before the linearisation, which needs every landmark determined; again below if the sensors'
+  // own tests weight the solution anew.
+  const auto set_aside = [&] {
+    const double pixel_sigma_px =
+        passage.noise.pixel_sigma_px * std::sqrt(weights.factor(MeasurementWeights::kCamera));
+    return LandmarksToSetAside(update, landmarks, poses, range, passage, pixel_sigma_px, options, summary);
+  };
+  if (std::vector<LandmarkId> unfit = set_aside(); !unfit.empty()) return SetAsideRequest{std::move(unfit), {}};
+  const std::array<double, MeasurementWeights::kSensors> tested_factors = weights.factors();
 
   std::vector<double*> landmark_blocks;
   for (int i = 0; i < update.size(); ++i) landmark_blocks.push_back(update.block(i));
@@ -253,6 +259,9 @@ absl::StatusOr<SetAsideRequest> UpdateFromSubgraph(const Passage& passage, const
                               SubgraphSolveOptions(options.max_solver_iterations), options, &solver_summary, summary,
                               factor_leaves_out);
   if (!linearization.ok()) return linearization.status();
+  if (weights.factors() != tested_factors) {  // the solution to commit is another one
+    if (std::vector<LandmarkId> unfit = set_aside(); !unfit.empty()) return SetAsideRequest{std::move(unfit), {}};
+  }
   summary->final_cost += solver_summary.final_cost;
   std::vector<Eigen::Vector2d> solved(update.size());
   for (int i = 0; i < update.size(); ++i) solved[i] = update.position(i);
@@ -435,9 +444,8 @@ absl::Status MapUpdateOptions::Validate() const {
     return absl::InvalidArgumentError(absl::StrCat("fleet_camera_yaw_prior_vehicles: must be >= 0 (0 = off), got ",
                                                    fleet_camera_yaw_prior_vehicles));
   }
-  if (!(correlated_gnss_min_lag1 >= 0.0 && correlated_gnss_min_lag1 < 1.0)) {
-    return absl::InvalidArgumentError(
-        absl::StrCat("correlated_gnss_min_lag1: must lie in [0, 1) (0 = off), got ", correlated_gnss_min_lag1));
+  if (absl::Status s = ValidateCorrelatedGnssMinLag1(correlated_gnss_min_lag1, "correlated_gnss_min_lag1"); !s.ok()) {
+    return s;
   }
   if (max_solver_iterations < 1) {
     return absl::InvalidArgumentError(absl::StrCat("max_solver_iterations: must be >= 1, got ", max_solver_iterations));

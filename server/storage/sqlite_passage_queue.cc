@@ -252,8 +252,10 @@ absl::StatusOr<std::string> SqliteMapStore::GetPassagePayload(int64_t id) {
   if (!record.ok()) return record.status();
   if (record->has_value() && (*record)->payload_pruned_unix_ms > 0) {
     if ((*record)->state == PassageState::kApplied) {
-      return absl::NotFoundError(absl::StrCat("payload of passage id ", id,
-                                              " was deleted once its factors were folded into the map's base"));
+      return absl::NotFoundError(absl::StrCat(
+          "payload of passage id ", id,
+          " was deleted once its factors were folded into the map's base, or after it was excluded (a map restored "
+          "from an older backup applies it again)"));
     }
     return absl::NotFoundError(absl::StrCat("payload of passage id ", id, " (", PassageStateName((*record)->state),
                                             ") was deleted after the retention of settled uploads"));
