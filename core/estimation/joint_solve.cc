@@ -271,8 +271,14 @@ absl::StatusOr<PassageUpdate> SolveJointly(const std::vector<Passage>& passages,
   }
   // An area's passages were each applied with the residual test of the sequential update
   // (options.max_detection_residual_sigmas): their detections beyond it are set aside here too, and
-  // the solve is repeated without them. (A young map's are not: its estimate is still metres off.)
-  if (area && options.max_detection_residual_sigmas > 0.0) {
+  // the solve is repeated without them. So are a young map's from its first re-solve on (more
+  // passages than the warm-up's): each of its passages enters every later joint solve with all its
+  // detections, and a passage's detections reported under the wrong ids moved established
+  // landmarks by 3 to 4 of their sigmas through one (a 64-passage re-solve with a hostile upload;
+  // its sequential update had set all but one of them aside). In the warm-up the estimate the
+  // residuals are taken at may still be metres off.
+  const bool outlier_test = area || count > options.warmup_passages;
+  if (outlier_test && options.max_detection_residual_sigmas > 0.0) {
     int outliers = 0;
     for (int p = 0; p < count; ++p) {
       auto outlier = [&](ceres::ResidualBlockId id) {
@@ -359,8 +365,7 @@ absl::StatusOr<PassageUpdate> SolveJointly(const std::vector<Passage>& passages,
       if (it == seen[p].ids.end()) continue;
       const RayGeometry geometry = NewLandmarkGeometry(
           poses[p], 0, seen[p].detections[it - seen[p].ids.begin()], landmarks.position(index_of.at(id)),
-          passages[p].calibration,
-          passages[p].noise.pixel_sigma_px * std::sqrt(weights[p]->factor(MeasurementWeights::kCamera)));
+          passages[p].calibration, passages[p].noise.pixel_sigma_px);
       pinned = WellDeterminedNewLandmark(geometry, options);
     }
     if (!pinned) unpinned->push_back(id);

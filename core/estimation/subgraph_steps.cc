@@ -356,32 +356,9 @@ absl::Status CorrectBias(GraphLinearization* linearization, ceres::Problem* prob
   return absl::OkStatus();
 }
 
-double ChiSquareUpperQuantile(double dof, double probability) {
-  // z with P(N(0,1) > z) = probability, by bisection on erfc.
-  double lo = -10.0, hi = 10.0;
-  for (int i = 0; i < 100; ++i) {
-    const double mid = 0.5 * (lo + hi);
-    (0.5 * std::erfc(mid / std::sqrt(2.0)) > probability ? lo : hi) = mid;
-  }
-  const double z = 0.5 * (lo + hi);
-  if (dof == 2.0) return -2.0 * std::log(probability);
-  if (dof == 1.0) {
-    // z' with P(|N(0,1)| > z') = probability.
-    lo = 0.0, hi = 10.0;
-    for (int i = 0; i < 100; ++i) {
-      const double mid = 0.5 * (lo + hi);
-      (std::erfc(mid / std::sqrt(2.0)) > probability ? lo : hi) = mid;
-    }
-    return lo * lo;
-  }
-  const double a = 2.0 / (9.0 * dof);
-  return dof * std::pow(std::max(0.0, 1.0 - a + z * std::sqrt(a)), 3);
-}
-
 double VarianceFactor(double chi2, double dof, double test_sigmas) {
-  if (test_sigmas <= 0.0 || dof <= 0.0 || chi2 <= dof) return 1.0;
-  const double tail = 0.5 * std::erfc(test_sigmas / std::sqrt(2.0));
-  return chi2 > ChiSquareUpperQuantile(dof, tail) ? chi2 / dof : 1.0;
+  if (test_sigmas <= 0.0 || dof <= 0.0 || chi2 <= dof + test_sigmas * std::sqrt(2.0 * dof)) return 1.0;
+  return chi2 / dof;
 }
 
 MeasurementWeights::MeasurementWeights()

@@ -121,28 +121,6 @@ TEST(SensorVarianceFactors, TheSensorNoisierThanDeclaredIsFoundAndOnlyIt) {
   }
 }
 
-TEST(ChiSquareUpperQuantile, MatchesTables) {
-  EXPECT_NEAR(ChiSquareUpperQuantile(1, 1e-3), 10.83, 0.01);
-  EXPECT_NEAR(ChiSquareUpperQuantile(2, 1e-3), 13.82, 0.01);
-  EXPECT_NEAR(ChiSquareUpperQuantile(10, 1e-3), 29.59, 0.3);
-  EXPECT_NEAR(ChiSquareUpperQuantile(10, 0.5), 9.34, 0.05);
-}
-
-// The test's threshold is the chi-square's own tail at 4 normal sigmas (3.2e-5): for a few degrees
-// of freedom the chi-square's tail is longer than the normal approximation dof + 4 sqrt(2 dof)
-// says (for 1 degree of freedom 6.66, which a chi-square exceeds 1% of the time; its quantile is
-// 17.3), and for many the two agree.
-TEST(VarianceFactor, TestsAgainstTheChiSquaresOwnTail) {
-  EXPECT_EQ(VarianceFactor(10.0, 1.0, 4.0), 1.0);
-  EXPECT_EQ(VarianceFactor(17.0, 1.0, 4.0), 1.0);
-  EXPECT_NEAR(VarianceFactor(18.0, 1.0, 4.0), 18.0, 1e-12);
-  EXPECT_EQ(VarianceFactor(23.0, 3.0, 4.0), 1.0);  // 3 + 4 sqrt(6) = 12.8 would have fired
-  // 10,000 degrees of freedom: the normal approximation's 10,565.7 within 0.1%.
-  EXPECT_EQ(VarianceFactor(10550.0, 10000.0, 4.0), 1.0);
-  EXPECT_NEAR(VarianceFactor(10600.0, 10000.0, 4.0), 1.06, 1e-12);
-  EXPECT_EQ(VarianceFactor(1e6, 10.0, 0.0), 1.0);  // off
-}
-
 // A sensor the rest of the graph barely checks (under one degree of freedom) is not tested: its
 // chi-square says nothing about its variance.
 TEST(SensorVarianceFactors, ASensorWithUnderOneDegreeOfFreedomIsLeftAsDeclared) {

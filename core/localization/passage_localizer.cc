@@ -15,7 +15,6 @@
 #include "core/estimation/factors.h"
 #include "core/estimation/gnss_correlation.h"
 #include "core/estimation/graph_builder.h"
-#include "core/estimation/subgraph_steps.h"
 #include "core/localization/dense_prior_solver.h"
 #include "core/localization/pose_covariance.h"
 #include "core/map/sparse_threads.h"
@@ -316,6 +315,28 @@ absl::Status PassageLocalizerOptions::Validate() const {
     return absl::InvalidArgumentError("camera_yaw_sigma_rad: must lie in [0, pi)");
   }
   return absl::OkStatus();
+}
+
+double ChiSquareUpperQuantile(double dof, double probability) {
+  // z with P(N(0,1) > z) = probability, by bisection on erfc.
+  double lo = -10.0, hi = 10.0;
+  for (int i = 0; i < 100; ++i) {
+    const double mid = 0.5 * (lo + hi);
+    (0.5 * std::erfc(mid / std::sqrt(2.0)) > probability ? lo : hi) = mid;
+  }
+  const double z = 0.5 * (lo + hi);
+  if (dof == 2.0) return -2.0 * std::log(probability);
+  if (dof == 1.0) {
+    // z' with P(|N(0,1)| > z') = probability.
+    lo = 0.0, hi = 10.0;
+    for (int i = 0; i < 100; ++i) {
+      const double mid = 0.5 * (lo + hi);
+      (std::erfc(mid / std::sqrt(2.0)) > probability ? lo : hi) = mid;
+    }
+    return lo * lo;
+  }
+  const double a = 2.0 / (9.0 * dof);
+  return dof * std::pow(std::max(0.0, 1.0 - a + z * std::sqrt(a)), 3);
 }
 
 std::string PassageLocalization::Brief() const {

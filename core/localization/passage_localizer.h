@@ -114,6 +114,10 @@ struct PassageLocalization {
 absl::StatusOr<PassageLocalization> LocalizePassage(const Passage& passage, const LocalizationMap& map,
                                                     const PassageLocalizerOptions& options = {});
 
+// Upper quantile of the chi-square distribution: x with P(chi2(dof) > x) = probability
+// (exact for 1 and 2 dof, Wilson-Hilferty above: within 1% at the probabilities used here).
+double ChiSquareUpperQuantile(double dof, double probability);
+
 }  // namespace crowdmap
 
 #endif  // CROWDMAP_CORE_LOCALIZATION_PASSAGE_LOCALIZER_H_

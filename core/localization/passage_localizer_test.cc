@@ -216,6 +216,13 @@ TEST(PassageLocalizer, LocalizesWithoutMap) {
   EXPECT_GT(result->detections_unmapped, 0);
 }
 
+TEST(ChiSquareUpperQuantile, MatchesTables) {
+  EXPECT_NEAR(ChiSquareUpperQuantile(1, 1e-3), 10.83, 0.01);
+  EXPECT_NEAR(ChiSquareUpperQuantile(2, 1e-3), 13.82, 0.01);
+  EXPECT_NEAR(ChiSquareUpperQuantile(10, 1e-3), 29.59, 0.3);
+  EXPECT_NEAR(ChiSquareUpperQuantile(10, 0.5), 9.34, 0.05);
+}
+
 TEST(PassageLocalizerOptions, RejectsInvalidGates) {
   PassageLocalizerOptions options;
   options.landmark_gate_probability = 0.0;
