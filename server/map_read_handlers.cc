@@ -11,6 +11,24 @@
 namespace crowdmap {
 namespace {
 
+// A place among the reads with covariances running at once (MapServiceContext::covariance_reads),
+// or RESOURCE_EXHAUSTED with its retry time in `ctx`'s trailers; no lease for a read without them.
+absl::StatusOr<std::unique_ptr<ConcurrentCalls::Lease>> EnterCovarianceRead(const MapServiceContext& context,
+                                                                            bool include_cross,
+                                                                            grpc::ServerContextBase* ctx) {
+  if (!include_cross || context.covariance_reads == nullptr) return nullptr;
+  absl::StatusOr<std::unique_ptr<ConcurrentCalls::Lease>> lease = context.covariance_reads->Enter();
+  if (!lease.ok()) AddRetryTrailers(lease.status(), ctx);
+  return lease;
+}
+
+// The request's box, which it must give: an absent one would read as the box (0, 0) to (0, 0).
+template <typename Request>
+absl::StatusOr<BoundingBox> RequiredBox(const Request& request) {
+  if (!request.has_box()) return absl::InvalidArgumentError("box: required");
+  return BoundingBoxFromProto(request.box(), "box");
+}
+
 constexpr int kDefaultRegionPage = 1000;
 constexpr int kMaxRegionPage = 10000;
 // With covariances a page's joint covariance is (2n)^2 doubles, read whole: 128 MB at 2,000
@@ -89,13 +107,19 @@ grpc::Status MapService::ServeTile(grpc::ServerContextBase* ctx, const pb::GetTi
   if (auto who = CheckAccess(context_->auth, *ctx, Permission::kReadMap, &log); !who.ok()) return log.Done(who.status());
   const TileId tile{request->tile().z(), request->tile().x(), request->tile().y()};
   log.Add(absl::StrCat("tile=", tile.z, "/", tile.x, "/", tile.y));
-  if (tile.z != kStorageZoom || !IsValidTile(tile)) {
+  if (tile.z != kStorageZoom) {
     return log.Done(absl::InvalidArgumentError(
-        absl::StrCat("tile: ", tile.z, "/", tile.x, "/", tile.y, " is not a tile at the storage zoom ", kStorageZoom)));
+        absl::StrCat("tile.z: tiles are served at the storage zoom ", kStorageZoom, ", got ", tile.z)));
+  }
+  if (!IsValidTile(tile)) {
+    return log.Done(absl::InvalidArgumentError(absl::StrCat("tile: x and y must lie in [0, ", (1 << kStorageZoom) - 1,
+                                                            "] at zoom ", kStorageZoom, ", got ", tile.x, "/", tile.y)));
   }
   absl::StatusOr<pb::CovarianceFormat> format = CovarianceFormatFromProto(
       request->covariance_format(), request->include_cross_covariance(), "covariance_format");
   if (!format.ok()) return log.Done(format.status());
+  auto heavy = EnterCovarianceRead(*context_, request->include_cross_covariance(), ctx);
+  if (!heavy.ok()) return log.Done(heavy.status());
   absl::StatusOr<LandmarkPage> page = context_->store->GetTile(tile, request->include_cross_covariance());
   if (!page.ok()) return log.Done(page.status());
   *response->mutable_tile() = request->tile();
@@ -113,7 +137,7 @@ grpc::Status MapService::ServeRegion(grpc::ServerContextBase* ctx, const pb::Que
                                      pb::QueryRegionResponse* response) {
   RequestLog log("QueryRegion", ctx);
   if (auto who = CheckAccess(context_->auth, *ctx, Permission::kReadMap, &log); !who.ok()) return log.Done(who.status());
-  absl::StatusOr<BoundingBox> box = BoundingBoxFromProto(request->box(), "box");
+  absl::StatusOr<BoundingBox> box = RequiredBox(*request);
   if (!box.ok()) return log.Done(box.status());
   if (request->page_size() < 0 || request->page_size() > kMaxRegionPage) {
     return log.Done(absl::InvalidArgumentError(absl::StrCat("page_size: must lie in [0, ", kMaxRegionPage, "]")));
@@ -132,6 +156,8 @@ grpc::Status MapService::ServeRegion(grpc::ServerContextBase* ctx, const pb::Que
     return log.Done(absl::InvalidArgumentError(absl::StrCat("page_size: at most ", kMaxCovariancePage,
                                                             " with include_cross_covariance, got ", limit)));
   }
+  auto heavy = EnterCovarianceRead(*context_, request->include_cross_covariance(), ctx);
+  if (!heavy.ok()) return log.Done(heavy.status());
   absl::StatusOr<LandmarkPage> page =
       context_->store->QueryRegion(*box, *after, limit, request->include_cross_covariance());
   if (!page.ok()) return log.Done(page.status());
@@ -155,7 +181,7 @@ grpc::Status MapService::WatchRegion(grpc::ServerContext* ctx, const pb::WatchRe
     AddRetryTrailers(stream.status(), ctx);
     return log.Done(stream.status());
   }
-  absl::StatusOr<BoundingBox> box = BoundingBoxFromProto(request->box(), "box");
+  absl::StatusOr<BoundingBox> box = RequiredBox(*request);
   if (!box.ok()) return log.Done(box.status());
   if (request->since_version() < 0) return log.Done(absl::InvalidArgumentError("since_version: must be >= 0"));
   int64_t since = request->since_version();

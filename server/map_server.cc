@@ -188,12 +188,15 @@ absl::StatusOr<std::unique_ptr<MapServer>> MapServer::Start(const MapServerOptio
   server->quotas_ = std::make_unique<VehicleQuotas>(options.limits);
   server->inflight_ = std::make_unique<InflightBytes>(static_cast<int64_t>(options.limits.max_inflight_mb) << 20);
   server->streams_ = std::make_unique<StreamLimiter>(options.limits);
+  server->covariance_reads_ = std::make_unique<ConcurrentCalls>(
+      options.limits.max_covariance_reads, "reads with covariances", "--max-covariance-reads");
 
   MapServiceContext& context = server->context_;
   context.auth = server->auth_.get();
   context.quotas = server->quotas_.get();
   context.inflight = server->inflight_.get();
   context.streams = server->streams_.get();
+  context.covariance_reads = server->covariance_reads_.get();
   context.store = server->store_.get();
   context.committer = server->committer_.get();
   context.worker = server->worker_.get();
@@ -232,13 +235,15 @@ absl::StatusOr<std::unique_ptr<MapServer>> MapServer::Start(const MapServerOptio
                CROWDMAP_VERSION, options.listen, server->port_, options.db_path, UpdateStrategyName(context.update.strategy), options.worker.workers, options.max_queue);
   spdlog::info("event=security tls={} mtls={} auth={} identities={} reflection={} max_threads={} max_upload_streams={} "
                "max_upload_streams_per_identity={} max_watch_streams={} max_watch_streams_per_identity={} "
-               "upload_idle_timeout_s={} max_inflight_mb={} vehicle_uploads_per_s={} vehicle_upload_mb_per_s={}",
+               "upload_idle_timeout_s={} max_inflight_mb={} vehicle_uploads_per_s={} vehicle_upload_mb_per_s={} "
+               "max_covariance_reads={}",
                options.security.tls(), !options.security.tls_client_ca.empty(), auth_on,
                auth_on ? server->auth_->identities() : 0, reflection, options.limits.max_threads,
                options.limits.max_upload_streams, options.limits.max_upload_streams_per_identity,
                options.limits.max_watch_streams, options.limits.max_watch_streams_per_identity,
                options.limits.upload_idle_timeout_s, options.limits.max_inflight_mb,
-               options.limits.vehicle_uploads_per_s, options.limits.vehicle_upload_mb_per_s);
+               options.limits.vehicle_uploads_per_s, options.limits.vehicle_upload_mb_per_s,
+               options.limits.max_covariance_reads);
   if (auth_on && !options.security.tls() && !IsLoopbackListen(options.listen)) {
     spdlog::warn("event=plaintext_tokens listen={} (bearer tokens cross the network in clear: give --tls-cert and --tls-key)",
                  options.listen);

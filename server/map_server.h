@@ -104,6 +104,7 @@ class MapServer {
   std::unique_ptr<VehicleQuotas> quotas_;
   std::unique_ptr<InflightBytes> inflight_;
   std::unique_ptr<StreamLimiter> streams_;
+  std::unique_ptr<ConcurrentCalls> covariance_reads_;
   MapServiceContext context_;
   std::unique_ptr<MapService> service_;
   std::unique_ptr<grpc::Server> server_;

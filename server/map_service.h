@@ -37,6 +37,7 @@ struct MapServiceContext {
   VehicleQuotas* quotas = nullptr;
   InflightBytes* inflight = nullptr;
   StreamLimiter* streams = nullptr;
+  ConcurrentCalls* covariance_reads = nullptr;  // null: no limit
 };
 
 // GetMapInfo's answer (also the map viewer's): the store's counts, the estimator's settings and the

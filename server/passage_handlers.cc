@@ -8,12 +8,19 @@
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_split.h"
+#include "core/model/passage.h"
 #include "server/map_service.h"
 #include "server/request_log.h"
 #include "server/wire_parse.h"
 
 namespace crowdmap {
 namespace {
+
+// A passage's idempotency key as a request names it: checked as an upload's (ValidateId).
+absl::Status ValidateKey(const std::string& vehicle_id, const std::string& passage_id) {
+  if (absl::Status s = ValidateId("vehicle_id", vehicle_id); !s.ok()) return s;
+  return ValidateId("passage_id", passage_id);
+}
 
 constexpr char kPageTokenPrefix[] = "after";
 constexpr int kDefaultPassagePage = 100;
@@ -168,6 +175,8 @@ grpc::Status MapService::UploadPassageRaw(grpc::ServerContextBase* ctx, const gr
   pb::UploadPassageRequest request;
   if (s = ParseWireMessage(FlattenByteBuffer(*raw), "", &request); !s.ok()) return log.Done(s);
   const pb::Passage& wire = request.passage();
+  // Checked before the log line or a message can echo them.
+  if (s = ValidateKey(wire.vehicle_id(), wire.passage_id()); !s.ok()) return log.Done(s);
   log.Add(absl::StrCat("passage=", wire.passage_id(), " vehicle=", wire.vehicle_id()));
   s = AcceptUpload(*who, wire, wire.ByteSizeLong(), wire.SerializeAsString(), response);
   if (s.ok()) {
@@ -220,6 +229,7 @@ grpc::Status MapService::UploadPassageChunkedRaw(grpc::ServerContext* ctx,
     return log.Done(absl::InvalidArgumentError(
         absl::StrCat(s.message(), " (the chunks, joined in order, must form one serialized Passage)")));
   }
+  if (absl::Status s = ValidateKey(wire.vehicle_id(), wire.passage_id()); !s.ok()) return log.Done(s);
   log.Add(absl::StrCat("passage=", wire.passage_id(), " vehicle=", wire.vehicle_id()));
   const size_t size = bytes.size();
   absl::Status s = AcceptUpload(*who, wire, size, std::move(bytes), response);
@@ -232,11 +242,23 @@ grpc::Status MapService::UploadPassageChunkedRaw(grpc::ServerContext* ctx,
 
 absl::StatusOr<StoredPassage> MapService::FindRecord(int64_t id, const std::string& vehicle_id,
                                                      const std::string& passage_id, RequestLog* log) {
+  const bool keyed = !vehicle_id.empty() || !passage_id.empty();
+  if (keyed) {
+    if (absl::Status s = ValidateKey(vehicle_id, passage_id); !s.ok()) return s;
+  }
   if (id != 0) {
     log->Add(absl::StrCat("id=", id));
-    return context_->store->GetPassage(id);
+    absl::StatusOr<StoredPassage> record = context_->store->GetPassage(id);
+    // Both given: they must name the same passage (an exclusion must not take the one the caller
+    // did not mean).
+    if (record.ok() && keyed && (record->vehicle_id != vehicle_id || record->passage_id != passage_id)) {
+      return absl::InvalidArgumentError(absl::StrCat(
+          "id: passage ", id, " is not vehicle_id '", vehicle_id, "' passage_id '", passage_id,
+          "'; give the id, or vehicle_id and passage_id, or both of one passage"));
+    }
+    return record;
   }
-  if (!vehicle_id.empty() && !passage_id.empty()) {
+  if (keyed) {
     log->Add(absl::StrCat("passage=", passage_id, " vehicle=", vehicle_id));
     return context_->store->FindPassage(vehicle_id, passage_id);
   }
@@ -329,6 +351,9 @@ grpc::Status MapService::ListPassages(grpc::ServerContext* ctx, const pb::ListPa
   RequestLog log("ListPassages", ctx);
   absl::StatusOr<Principal> who = CheckAccess(context_->auth, *ctx, Permission::kReadPassages, &log);
   if (!who.ok()) return log.Done(who.status());
+  if (!request->vehicle_id().empty()) {
+    if (absl::Status s = ValidateId("vehicle_id", request->vehicle_id()); !s.ok()) return log.Done(s);
+  }
   if (!who->MayReadAllPassages() && request->vehicle_id() != who->name) {
     return log.Done(absl::PermissionDeniedError(
         absl::StrCat("vehicle_id: a vehicle lists its own passages only; set it to '", who->name, "'")));

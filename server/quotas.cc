@@ -35,6 +35,10 @@ absl::Status LimitOptions::Validate(int max_passage_mb) const {
     return absl::InvalidArgumentError(
         "--max-upload-streams, --max-watch-streams, --upload-idle-timeout-s, --max-inflight-mb: must be >= 0 (0 = off)");
   }
+  if (max_covariance_reads < 0) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("--max-covariance-reads: must be >= 0 (0 = off), got ", max_covariance_reads));
+  }
   if (max_upload_streams_per_identity < 0) {
     return absl::InvalidArgumentError(absl::StrCat("--max-upload-streams-per-identity: must be >= 0 (0 = off), got ",
                                                    max_upload_streams_per_identity));
@@ -147,6 +151,30 @@ absl::Status InflightBytes::Lease::GrowTo(size_t total) {
   }
   held_ += more;
   return absl::OkStatus();
+}
+
+ConcurrentCalls::ConcurrentCalls(int max, std::string what, std::string flag)
+    : max_(max), what_(std::move(what)), flag_(std::move(flag)) {}
+
+ConcurrentCalls::Lease::~Lease() {
+  std::lock_guard<std::mutex> lock(owner_->mu_);
+  --owner_->running_;
+}
+
+absl::StatusOr<std::unique_ptr<ConcurrentCalls::Lease>> ConcurrentCalls::Enter() {
+  std::lock_guard<std::mutex> lock(mu_);
+  if (max_ > 0 && running_ >= max_) {
+    return ExhaustedRetryAfter(absl::StrCat(what_, ": ", running_, " running, the most at once (", flag_,
+                                            "); retry shortly"),
+                               std::chrono::seconds(1));
+  }
+  ++running_;
+  return std::unique_ptr<Lease>(new Lease(this));
+}
+
+int ConcurrentCalls::running() const {
+  std::lock_guard<std::mutex> lock(mu_);
+  return running_;
 }
 
 StreamLimiter::StreamLimiter(const LimitOptions& limits)

@@ -27,6 +27,10 @@ struct LimitOptions {
   int vehicle_upload_burst_mb = 128;    // MiB at once; at least max_passage_mb
   int max_upload_streams = 64;          // concurrent UploadPassageChunked calls (0 = off)
   int max_watch_streams = 128;          // concurrent WatchRegion calls (0 = off)
+  // Concurrent reads with covariances (GetTile, QueryRegion with include_cross_covariance): each
+  // holds its page's dense joint covariance and a factorisation of the map around it, up to a few
+  // hundred MB for a page of 2,000 landmarks (0 = off).
+  int max_covariance_reads = 4;
   // The same per authenticated identity (a token or certificate), so that one identity cannot
   // hold the server's streams (0 = off; callers are not told apart with authentication off).
   int max_upload_streams_per_identity = 4;
@@ -109,6 +113,33 @@ class InflightBytes {
 
 // Counts the streaming calls, in all and per identity, and cancels chunked uploads that stall. A
 // watchdog thread checks the open uploads every quarter of the idle timeout (at most every second).
+// At most `max` calls of one kind at once (0 = no limit); the next one gets RESOURCE_EXHAUSTED
+// naming the setting, with a retry time. Thread-safe.
+class ConcurrentCalls {
+ public:
+  ConcurrentCalls(int max, std::string what, std::string flag);
+  ConcurrentCalls(const ConcurrentCalls&) = delete;
+  ConcurrentCalls& operator=(const ConcurrentCalls&) = delete;
+
+  class Lease {
+   public:
+    ~Lease();
+
+   private:
+    friend class ConcurrentCalls;
+    explicit Lease(ConcurrentCalls* owner) : owner_(owner) {}
+    ConcurrentCalls* owner_;
+  };
+  absl::StatusOr<std::unique_ptr<Lease>> Enter();
+  int running() const;
+
+ private:
+  const int max_;
+  const std::string what_, flag_;
+  mutable std::mutex mu_;
+  int running_ = 0;
+};
+
 class StreamLimiter {
  public:
   // Reads the stream caps and the idle timeout of `limits`.

@@ -62,6 +62,11 @@ void AddSecuritySettings(CLI::App* mapd, MapServerOptions* options) {
                  "concurrent WatchRegion calls of one authenticated identity (0 = off)")
       ->type_name("N")
       ->group(quotas);
+  AddMapdSetting(mapd, "max-covariance-reads", &limits.max_covariance_reads,
+                 "concurrent GetTile and QueryRegion calls with include_cross_covariance; each holds its\n"
+                 "page's dense covariance, up to a few hundred MB at 2,000 landmarks (0 = off)")
+      ->type_name("N")
+      ->group(quotas);
   AddMapdSetting(mapd, "upload-idle-timeout-s", &limits.upload_idle_timeout_s,
                  "a chunked upload that sends no bytes for N s, or averages under 1 KiB/s once open N s, is\n"
                  "cancelled; at least one chunk's time on the slowest link (0 = off)")

@@ -1,5 +1,6 @@
 // MapService handlers that read the vehicles' estimated camera calibrations.
 #include "absl/strings/str_cat.h"
+#include "core/model/passage.h"
 #include "server/map_service.h"
 #include "server/request_log.h"
 
@@ -16,7 +17,7 @@ grpc::Status MapService::GetVehicle(grpc::ServerContext* ctx, const pb::GetVehic
   RequestLog log("GetVehicle", ctx);
   absl::StatusOr<Principal> who = CheckAccess(context_->auth, *ctx, Permission::kReadPassages, &log);
   if (!who.ok()) return log.Done(who.status());
-  if (request->vehicle_id().empty()) return log.Done(absl::InvalidArgumentError("vehicle_id: required"));
+  if (absl::Status s = ValidateId("vehicle_id", request->vehicle_id()); !s.ok()) return log.Done(s);
   log.Add(absl::StrCat("vehicle=", request->vehicle_id()));
   // What a vehicle's camera does is its own business: a vehicle reads only its own.
   if (!who->MayReadAllPassages()) {

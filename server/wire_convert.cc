@@ -81,11 +81,9 @@ absl::StatusOr<Passage> PassageFromProto(const pb::Passage& wire) {
     if (g.has_cov_en_m2()) {
       fix.cov_en_m2 = MatrixFromProto(g.cov_en_m2());
     } else if (g.has_sigma_m()) {
-      // Within what receivers report (RTK's centimetres to a fix hundreds of metres off), so that
-      // its square is a covariance the validation can judge.
-      if (!std::isfinite(g.sigma_m()) || g.sigma_m() < 1e-3 || g.sigma_m() > 1e4) {
+      if (!std::isfinite(g.sigma_m()) || g.sigma_m() < kMinGnssSigmaM || g.sigma_m() > kMaxGnssSigmaM) {
         return Invalid(absl::StrCat("gnss[", i, "].sigma_m"),
-                       absl::StrCat("must lie in [0.001, 10000] m, got ", g.sigma_m()));
+                       absl::StrCat("must lie in [", kMinGnssSigmaM, ", ", kMaxGnssSigmaM, "] m, got ", g.sigma_m()));
       }
       fix.cov_en_m2 = Eigen::Matrix2d::Identity() * g.sigma_m() * g.sigma_m();
     } else {

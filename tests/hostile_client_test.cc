@@ -748,6 +748,27 @@ TEST(VehicleQuotas, BytesAndPassagesAreBothTakenOrNeitherWithTheWaitInTheStatus)
   EXPECT_TRUE(quotas.Admit("b", 1).ok());  // another vehicle has its own buckets
 }
 
+// Reads with covariances beyond the cap are refused with a retry time, naming the setting; a
+// finished one gives its place back; 0 is no cap.
+TEST(ConcurrentCalls, AtMostTheCapRunAndTheNextIsToldWhenToRetry) {
+  ConcurrentCalls reads(2, "reads with covariances", "--max-covariance-reads");
+  auto first = reads.Enter();
+  auto second = reads.Enter();
+  ASSERT_TRUE(first.ok() && second.ok());
+  auto third = reads.Enter();
+  ASSERT_EQ(third.status().code(), absl::StatusCode::kResourceExhausted);
+  EXPECT_TRUE(absl::StrContains(third.status().message(), "--max-covariance-reads")) << third.status();
+  EXPECT_GT(RetryAfter(third.status()).count(), 0);
+  EXPECT_EQ(reads.running(), 2);
+  first->reset();
+  EXPECT_EQ(reads.running(), 1);
+  EXPECT_TRUE(reads.Enter().ok());
+  ConcurrentCalls unlimited(0, "reads", "--flag");
+  std::vector<std::unique_ptr<ConcurrentCalls::Lease>> held;
+  for (int i = 0; i < 100; ++i) held.push_back(*unlimited.Enter());
+  EXPECT_EQ(unlimited.running(), 100);
+}
+
 TEST_F(Hostile, WatchStreamsAreCapped) {
   MapServerOptions options = Options();
   options.limits.max_watch_streams = 2;

@@ -97,6 +97,7 @@ TEST_F(LocalizeRpc, RefusesAPassageNamingMoreLandmarksThanOneReadHolds) {
   for (LandmarkId id = 1; id <= 2001; ++id) {
     Detection d = first;
     d.landmark_id = id;
+    d.t_s += 1e-3 * static_cast<double>(id);  // a frame holds at most 1,000 detections
     passage.detections.push_back(d);
   }
   pb::Passage wire;

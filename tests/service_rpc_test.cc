@@ -100,6 +100,35 @@ TEST_F(ServiceRpc, GetPassageFindsByIdAndByKeyAndReportsNotFound) {
   grpc::ClientContext ctx2;
   EXPECT_EQ(client_->stub()->GetPassage(&ctx2, pb::GetPassageRequest(), &by_id).error_code(),
             grpc::StatusCode::INVALID_ARGUMENT);
+  // The id and the key together must name one passage.
+  grpc::ClientContext both_ctx;
+  request.set_vehicle_id(first.vehicle_id);
+  request.set_passage_id(first.passage_id);
+  EXPECT_TRUE(client_->stub()->GetPassage(&both_ctx, request, &by_id).ok());
+  grpc::ClientContext other_ctx;
+  request.set_passage_id("another");
+  const grpc::Status other = client_->stub()->GetPassage(&other_ctx, request, &by_id);
+  EXPECT_EQ(other.error_code(), grpc::StatusCode::INVALID_ARGUMENT);
+  EXPECT_NE(other.error_message().find("id: passage"), std::string::npos) << other.error_message();
+  // An identifier no upload could have is refused, naming the field but not echoing it.
+  for (const std::string& bad : {std::string(10000, 'V'), std::string("with space")}) {
+    auto refused = client_->GetPassage(bad, "p");
+    EXPECT_EQ(refused.status().code(), absl::StatusCode::kInvalidArgument) << refused.status();
+    EXPECT_EQ(std::string(refused.status().message()).rfind("vehicle_id: ", 0), 0u) << refused.status();
+    EXPECT_LT(refused.status().message().size(), 200u);
+  }
+  grpc::ClientContext vehicle_ctx;
+  pb::GetVehicleRequest vehicle_request;
+  vehicle_request.set_vehicle_id(std::string(1 << 20, 'V'));
+  pb::Vehicle vehicle;
+  const grpc::Status long_vehicle = client_->stub()->GetVehicle(&vehicle_ctx, vehicle_request, &vehicle);
+  EXPECT_EQ(long_vehicle.error_code(), grpc::StatusCode::INVALID_ARGUMENT);
+  EXPECT_LT(long_vehicle.error_message().size(), 200u);
+  Passage long_id = scenario_.MakePassage(1);
+  long_id.vehicle_id = std::string(300000, 'V');
+  auto upload = client_->Upload(long_id);
+  EXPECT_EQ(upload.status().code(), absl::StatusCode::kInvalidArgument) << upload.status();
+  EXPECT_LT(upload.status().message().size(), 200u);
 }
 
 TEST_F(ServiceRpc, ListPassagesPagesInArrivalOrderAndFilters) {
@@ -299,6 +328,12 @@ TEST_F(ServiceRpc, QueryRegionPagesCoverTheMapWithCovariances) {
       EXPECT_EQ(status.error_message().rfind("page_size:", 0), 0u) << status.error_message();
     }
   }
+  // Without a box (which would read as the point (0, 0)) the request is refused by name.
+  grpc::ClientContext no_box_ctx;
+  pb::QueryRegionResponse no_box_response;
+  const grpc::Status no_box = client_->stub()->QueryRegion(&no_box_ctx, pb::QueryRegionRequest(), &no_box_response);
+  EXPECT_EQ(no_box.error_code(), grpc::StatusCode::INVALID_ARGUMENT);
+  EXPECT_EQ(no_box.error_message(), "box: required");
 }
 
 // The packed layout carries the same matrix as the blocks, on both reads with covariances; a
@@ -447,6 +482,16 @@ TEST_F(ServiceRpc, ExcludePassageGivesTheMapWithoutIt) {
   grpc::ClientContext empty_ctx;
   EXPECT_EQ(client_->stub()->ExcludePassage(&empty_ctx, pb::ExcludePassageRequest(), &ignored).error_code(),
             grpc::StatusCode::INVALID_ARGUMENT);
+  // An id and a key of two passages: refused, and neither is taken out.
+  const Passage kept = scenario_.MakePassage(3);
+  grpc::ClientContext mixed_ctx;
+  pb::ExcludePassageRequest mixed;
+  mixed.set_id(client_->GetPassage(scenario_.MakePassage(0).vehicle_id, scenario_.MakePassage(0).passage_id)->id());
+  mixed.set_vehicle_id(kept.vehicle_id);
+  mixed.set_passage_id(kept.passage_id);
+  EXPECT_EQ(client_->stub()->ExcludePassage(&mixed_ctx, mixed, &ignored).error_code(),
+            grpc::StatusCode::INVALID_ARGUMENT);
+  EXPECT_EQ(client_->GetMapInfo()->passages_applied(), 3);
 
   // A later passage is applied on the map without passage 2.
   MustUpload(scenario_.MakePassage(4));

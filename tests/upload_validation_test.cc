@@ -127,7 +127,7 @@ TEST_F(UploadValidation, RejectsPassageWithoutDetections) {
 }
 
 TEST_F(UploadValidation, RejectsEmptyPassage) {
-  ExpectRejected([](pb::Passage* p) { p->Clear(); }, "calibration");
+  ExpectRejected([](pb::Passage* p) { p->Clear(); }, "vehicle_id");  // the key is checked first
   ExpectRejected(
       [](pb::Passage* p) {
         const pb::Calibration c = p->calibration();

@@ -273,7 +273,13 @@ absl::StatusOr<DensePriorSolution> SolveWithDensePrior(ceres::Problem* problem, 
     }
     if (!decreased) {
       set_state(x);
-      if (fresh) return absl::InternalError("localization: no Gauss-Newton step decreases the cost");
+      // Measurements no pose sequence fits well enough for a descent from here: detections reported
+      // under other landmarks' ids, for one; the input's doing, not the server's.
+      if (fresh) {
+        return absl::FailedPreconditionError(
+            "localization: no Gauss-Newton step decreases the cost (detections: do they name the landmarks they "
+            "saw?)");
+      }
       relinearize = true;
       continue;
     }

@@ -2,7 +2,10 @@
 
 #include <algorithm>
 #include <cmath>
+#include <map>
 #include <string>
+#include <utility>
+#include <vector>
 
 #include <Eigen/LU>
 #include <openssl/evp.h>
@@ -46,7 +49,8 @@ absl::Status CheckTime(const char* list, size_t i, double t, double previous, bo
   if (t < 0.0) return Invalid(f, absl::StrCat("must be >= 0, got ", t));
   if (t > kMaxTimeS) return Invalid(f, absl::StrCat("must be at most ", kMaxTimeS, " s, got ", t));
   if (i > 0 && (strict ? t <= previous : t < previous)) {
-    return Invalid(f, absl::StrCat("time goes backwards: ", t, " after ", previous));
+    return Invalid(f, absl::StrCat(t < previous ? "time goes backwards: " : "time does not advance: ", t,
+                                   " after ", previous));
   }
   return absl::OkStatus();
 }
@@ -59,10 +63,63 @@ absl::Status CheckRange(const std::string& field, double v, double lo, double hi
   return absl::OkStatus();
 }
 
-// Identifiers: 1 to kMaxIdLength printable ASCII characters (they appear in logs and file names).
-constexpr size_t kMaxIdLength = 128;
+// A camera frame (detections at one time) holds at most this many detections.
+constexpr size_t kMaxDetectionsPerFrame = 1000;
+// Two ids whose detections coincide to this share of the pixel sigma in at least
+// kMinCoincidentFrames frames, and in at least half the frames of the one seen less, are one
+// landmark reported twice: distinct landmarks seen from a moving camera part by their parallax.
+constexpr double kCoincidentPixelSigmas = 0.1;
+constexpr int kMinCoincidentFrames = 3;
+// No more than this many detections of one frame lie that close to one another.
+constexpr size_t kMaxCoincidentDetections = 16;
 
-absl::Status CheckId(const char* field, const std::string& id) {
+// The detections name each landmark once: no frame overfull, no landmark under two ids (a copied
+// detection would count its ray twice, and the map would hold a landmark twice with half the
+// variance each).
+absl::Status CheckLandmarksSeenOnce(const Passage& p) {
+  const double close_px = kCoincidentPixelSigmas * p.noise.pixel_sigma_px;
+  std::map<LandmarkId, int> frames;                             // per id
+  std::map<std::pair<LandmarkId, LandmarkId>, int> coincident;  // per pair of ids
+  std::vector<const Detection*> frame;
+  for (size_t begin = 0; begin < p.detections.size();) {
+    size_t end = begin;
+    while (end < p.detections.size() && p.detections[end].t_s == p.detections[begin].t_s) ++end;
+    if (end - begin > kMaxDetectionsPerFrame) {
+      return Invalid(Field("detections", begin, "t_s"),
+                     absl::StrCat(end - begin, " detections at ", p.detections[begin].t_s,
+                                  " s; a frame holds at most ", kMaxDetectionsPerFrame));
+    }
+    frame.clear();
+    for (size_t i = begin; i < end; ++i) frame.push_back(&p.detections[i]);
+    std::sort(frame.begin(), frame.end(), [](const Detection* a, const Detection* b) { return a->u_px < b->u_px; });
+    for (size_t a = 0; a < frame.size(); ++a) {
+      ++frames[frame[a]->landmark_id];
+      for (size_t b = a + 1; b < frame.size() && frame[b]->u_px - frame[a]->u_px <= close_px; ++b) {
+        // (which also bounds this loop's work on a hostile frame)
+        if (b - a >= kMaxCoincidentDetections) {
+          return Invalid(Field("detections", begin, "u_px"),
+                         absl::StrCat("more than ", kMaxCoincidentDetections, " detections at ",
+                                      p.detections[begin].t_s, " s within ", close_px, " px of one another"));
+        }
+        const auto [lo, hi] = std::minmax(frame[a]->landmark_id, frame[b]->landmark_id);
+        if (lo != hi) ++coincident[{lo, hi}];
+      }
+    }
+    begin = end;
+  }
+  for (const auto& [ids, count] : coincident) {
+    if (count >= kMinCoincidentFrames && 2 * count >= std::min(frames[ids.first], frames[ids.second])) {
+      return Invalid("detections", absl::StrCat("landmarks ", ids.first, " and ", ids.second,
+                                                " are seen at the same pixel (within ", close_px, " px) in ", count,
+                                                " frames: one landmark under two ids"));
+    }
+  }
+  return absl::OkStatus();
+}
+
+}  // namespace
+
+absl::Status ValidateId(const char* field, const std::string& id) {
   if (id.empty()) return Invalid(field, "must not be empty");
   if (id.size() > kMaxIdLength) {
     return Invalid(field, absl::StrCat("must be at most ", kMaxIdLength, " characters, got ", id.size()));
@@ -75,6 +132,8 @@ absl::Status CheckId(const char* field, const std::string& id) {
   }
   return absl::OkStatus();
 }
+
+namespace {
 
 // Physical bounds of the rules below.
 constexpr double kMaxSpeedMps = 100.0;         // 360 km/h
@@ -152,8 +211,8 @@ absl::Status ValidateNoise(const NoiseModel& n) {
 }  // namespace
 
 absl::Status ValidatePassage(const Passage& p) {
-  if (auto s = CheckId("vehicle_id", p.vehicle_id); !s.ok()) return s;
-  if (auto s = CheckId("passage_id", p.passage_id); !s.ok()) return s;
+  if (auto s = ValidateId("vehicle_id", p.vehicle_id); !s.ok()) return s;
+  if (auto s = ValidateId("passage_id", p.passage_id); !s.ok()) return s;
   if (p.odometry.empty()) return Invalid("odometry", "passage has no odometry samples");
   if (p.gnss.size() < 2) return Invalid("gnss", "passage needs at least 2 GNSS fixes");
   if (p.detections.empty()) return Invalid("detections", "passage has no detections");
@@ -194,6 +253,13 @@ absl::Status ValidatePassage(const Passage& p) {
         c(0, 0) <= 0.0 || c(1, 1) <= 0.0 || c.determinant() <= 0.0) {
       return Invalid(Field("gnss", i, "cov_en_m2"), "must be a finite, symmetric, positive-definite 2x2 matrix");
     }
+    const double min_variance = kMinGnssSigmaM * kMinGnssSigmaM, max_variance = kMaxGnssSigmaM * kMaxGnssSigmaM;
+    if (c(0, 0) < min_variance || c(0, 0) > max_variance || c(1, 1) < min_variance || c(1, 1) > max_variance) {
+      return Invalid(Field("gnss", i, "cov_en_m2"),
+                     absl::StrCat("East and North variances must lie in [", min_variance, ", ", max_variance,
+                                  "] m^2 (sigmas of ", kMinGnssSigmaM, " to ", kMaxGnssSigmaM, " m), got ", c(0, 0),
+                                  " and ", c(1, 1)));
+    }
     if (g.lat_deg == 0.0 && g.lon_deg == 0.0) {
       return Invalid(absl::StrCat("gnss[", i, "]"), "(0, 0) is what a receiver without a fix reports; leave such fixes out");
     }
@@ -229,7 +295,8 @@ absl::Status ValidatePassage(const Passage& p) {
   };
   if (auto s = beyond_a_day("odometry", p.odometry); !s.ok()) return s;
   if (auto s = beyond_a_day("gnss", p.gnss); !s.ok()) return s;
-  return beyond_a_day("detections", p.detections);
+  if (auto s = beyond_a_day("detections", p.detections); !s.ok()) return s;
+  return CheckLandmarksSeenOnce(p);
 }
 
 namespace {

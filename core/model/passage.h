@@ -31,6 +31,10 @@ struct Calibration {
 // applied by default: a passage that declares no process is estimated with white GNSS noise.
 constexpr double kStandardReceiverGnssCorrelationTimeS = 82.8;
 constexpr double kStandardReceiverGnssProcessSigmaM = 10.0;
+// A fix's sigma per axis lies within what receivers report (RTK's millimetres to a fix kilometres
+// off): its covariance's variances lie within the squares.
+constexpr double kMinGnssSigmaM = 1e-3;
+constexpr double kMaxGnssSigmaM = 1e4;
 
 // Measurement noise the estimator assumes. Defaults: thesis Table 5.1, white GNSS noise.
 struct NoiseModel {
@@ -87,6 +91,12 @@ struct Passage {
 // uploads with the same digest are the same drive: the service takes it once, whatever ids it
 // comes under, since a drive counted twice makes the map twice as sure of its errors.
 std::string PassageContentDigest(const Passage& passage);
+
+// Identifiers (vehicle_id, passage_id): 1 to kMaxIdLength printable ASCII characters without
+// spaces (they appear in logs and file names). InvalidArgument naming `field` otherwise, without
+// echoing the identifier.
+constexpr size_t kMaxIdLength = 128;
+absl::Status ValidateId(const char* field, const std::string& id);
 
 // Checks a passage before it is accepted. The message names the offending field with its index,
 // e.g. "gnss[12].lat_deg: latitude 91.2 outside [-90, 90]". Returns InvalidArgument on failure.

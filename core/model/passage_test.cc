@@ -83,6 +83,8 @@ std::vector<BadInput> BadInputs() {
       {"gnss[1].cov_en_m2", [](Passage* p) { p->gnss[1].cov_en_m2.setZero(); }},
       {"gnss[1].cov_en_m2", [](Passage* p) { p->gnss[1].cov_en_m2 << 4.0, 1.0, 0.0, 4.0; }},  // asymmetric
       {"gnss[1].cov_en_m2", [](Passage* p) { p->gnss[1].cov_en_m2(0, 0) = kNan; }},
+      {"gnss[1].cov_en_m2", [](Passage* p) { p->gnss[1].cov_en_m2 = Eigen::Matrix2d::Identity() * 1e300; }},
+      {"gnss[1].cov_en_m2", [](Passage* p) { p->gnss[1].cov_en_m2 = Eigen::Matrix2d::Identity() * 1e-8; }},
       {"detections[1].u_px", [](Passage* p) { p->detections[1].u_px = p->calibration.image_width_px + 1.0; }},
       {"detections[1].u_px", [](Passage* p) { p->detections[1].u_px = -0.5; }},
       {"detections[0].u_px", [](Passage* p) { p->detections[0].u_px = kNan; }},
@@ -127,6 +129,28 @@ std::vector<BadInput> BadInputs() {
       {"detections[1].landmark_id", [](Passage* p) { p->detections[1].landmark_id = -3; }},
       {"detections[1].landmark_id", [](Passage* p) { p->detections[1].landmark_id = 0; }},
       {"detections[2].t_s", [](Passage* p) { p->detections[2].t_s = p->odometry.back().t_s + 60.0; }},
+      // One landmark under two ids: the first landmark's detections copied under another id.
+      {"detections", [](Passage* p) {
+         const double end_s = p->detections.back().t_s;
+         const LandmarkId first = p->detections.front().landmark_id;
+         for (int k = 1; k <= 3; ++k) p->detections.push_back({end_s + 0.1 * k, first, 500.0 + k});
+         std::vector<Detection> copied;
+         for (const Detection& d : p->detections) {
+           copied.push_back(d);
+           if (d.landmark_id == first) copied.push_back({d.t_s, 999999, d.u_px + 0.01 * p->noise.pixel_sigma_px});
+         }
+         p->detections = copied;
+       }},
+      {"detections[0].u_px", [](Passage* p) {  // a frame of detections at one pixel
+         std::vector<Detection> frame(17, p->detections.front());
+         for (size_t k = 0; k < frame.size(); ++k) frame[k].landmark_id = 1000 + static_cast<LandmarkId>(k);
+         p->detections.insert(p->detections.begin(), frame.begin(), frame.end());
+       }},
+      {"detections[0].t_s", [](Passage* p) {  // an overfull frame
+         std::vector<Detection> frame(1001, p->detections.front());
+         for (size_t k = 0; k < frame.size(); ++k) frame[k].landmark_id = 1000 + static_cast<LandmarkId>(k);
+         p->detections.insert(p->detections.begin(), frame.begin(), frame.end());
+       }},
       {"vehicle_id", [](Passage* p) { p->vehicle_id = "v\nerror event=disk_full"; }},
       {"vehicle_id", [](Passage* p) { p->vehicle_id = std::string(200, 'v'); }},
       {"passage_id", [](Passage* p) { p->passage_id = "with space"; }},
