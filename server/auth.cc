@@ -12,6 +12,7 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_split.h"
 #include "absl/strings/strip.h"
+#include "core/model/passage.h"
 
 namespace crowdmap {
 namespace {
@@ -119,8 +120,12 @@ absl::Status Principal::MayActFor(const std::string& vehicle_id) const {
   if (role == Role::kOperator) {
     return absl::PermissionDeniedError(absl::StrCat("vehicle_id: '", name, "' is an operator: operators read, they do not upload"));
   }
+  // (an identifier no upload could carry is not echoed)
+  const std::string named = vehicle_id.size() <= kMaxIdLength
+                                ? absl::StrCat("'", vehicle_id, "'")
+                                : absl::StrCat("of ", vehicle_id.size(), " characters");
   return absl::PermissionDeniedError(
-      absl::StrCat("vehicle_id: '", vehicle_id, "' is not the authenticated vehicle '", name, "'"));
+      absl::StrCat("vehicle_id: ", named, " is not the authenticated vehicle '", name, "'"));
 }
 
 std::string Sha256Hex(const std::string& text) {

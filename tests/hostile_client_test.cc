@@ -265,6 +265,10 @@ TEST_F(Hostile, RolesLimitWhoReadsPassagesAndWhoAdministers) {
   EXPECT_FALSE(absl::StrContains(others.message(), "v1")) << others;
   EXPECT_EQ(v2->GetPassage("v1", "p1").status().code(), absl::StatusCode::kPermissionDenied);
   EXPECT_EQ(v2->GetPassage("v1", "unknown").status().code(), absl::StatusCode::kPermissionDenied) << "the same";
+  // An identifier no upload could carry is refused without being echoed.
+  const absl::Status long_id = v2->GetPassage(std::string(10000, 'V'), "p1").status();
+  EXPECT_EQ(long_id.code(), absl::StatusCode::kPermissionDenied) << long_id;
+  EXPECT_LT(long_id.message().size(), 200u);
   EXPECT_EQ(v2->ListPassages(std::nullopt).status().code(), absl::StatusCode::kPermissionDenied);
   auto listed = ops->ListPassages(std::nullopt);
   ASSERT_TRUE(listed.ok()) << listed.status();
