@@ -168,8 +168,8 @@ class MapStoreInterface {
   virtual absl::StatusOr<int> PrunePassagePayloads(const std::vector<std::pair<std::string, std::string>>& passages) = 0;
   // Deletes the uploads of passages that ended rejected, excluded or discarded (nothing takes
   // them again; failed and quarantined ones keep theirs, which an operator may requeue) and
-  // finished before `finished_before_unix_ms`, at most `limit` of them, oldest first. Their
-  // records stay. Returns how many were deleted.
+  // finished before `finished_before_unix_ms`, at most `limit` of them, in the order they were
+  // uploaded. Their records stay. Returns how many were deleted.
   virtual absl::StatusOr<int> PruneSettledPayloads(int64_t finished_before_unix_ms, int limit) = 0;
 
   // Takes the oldest queued passage to apply it: state processing, attempts + 1, started. nullopt
