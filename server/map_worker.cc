@@ -503,7 +503,9 @@ void MapWorker::Apply(const StoredPassage& record, const Passage& passage) {
             const auto ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - apply_start);
             AppliedPassageTimings timings{ms.count(), result.solve_ms, result.covariance_ms, commit_ms, recomputed};
             timings.inflated = summary.max_variance_factor > 1.0;
-            for (int s = 0; s < 3; ++s) timings.sensor_inflated[s] = summary.sensor_test_factors[s] > 1.0;
+            for (int s = 0; s < kPassageSensors; ++s) {
+              timings.sensor_inflated[s] = summary.sensor_test_factors[s] > 1.0;
+            }
             options_.on_applied(timings);
           }
           spdlog::info(

@@ -35,7 +35,7 @@ struct AppliedPassageTimings {
   // (MapUpdateOptions::inflation_test_sigmas), and each sensor's own (odometry, GNSS, camera;
   // sensor_test_sigmas).
   bool inflated = false;
-  bool sensor_inflated[3] = {false, false, false};
+  bool sensor_inflated[kPassageSensors] = {false, false, false};
 };
 
 struct MapWorkerOptions {

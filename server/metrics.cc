@@ -178,8 +178,8 @@ absl::StatusOr<std::unique_ptr<ServerMetrics>> ServerMetrics::Start(const std::s
                          .Help("applied passages whose noise a consistency test found larger than declared, by test: "
                                "the whole subgraph's chi-square, or one sensor's own (odometry, gnss, camera)")
                          .Register(r);
-  const char* tests[] = {"whole", "odometry", "gnss", "camera"};
-  for (int t = 0; t < 4; ++t) m->inflated_[t] = &inflations.Add({{"test", tests[t]}});
+  m->inflated_[0] = &inflations.Add({{"test", "whole"}});
+  for (int s = 0; s < kPassageSensors; ++s) m->inflated_[1 + s] = &inflations.Add({{"test", PassageSensorName(s)}});
   auto& relinearizations = prometheus::BuildCounter()
                                .Name("mapd_relinearizations_total")
                                .Help("retained passages taken again at the map's current estimate "
@@ -260,7 +260,7 @@ void ServerMetrics::ObserveApplied(const AppliedPassageTimings& t) {
   commit_->Observe(t.commit_ms / 1000.0);
   recomputed_->Increment(t.recomputed);
   if (t.inflated) inflated_[0]->Increment();
-  for (int s = 0; s < 3; ++s) {
+  for (int s = 0; s < kPassageSensors; ++s) {
     if (t.sensor_inflated[s]) inflated_[1 + s]->Increment();
   }
 }

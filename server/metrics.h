@@ -79,7 +79,7 @@ class ServerMetrics {
   prometheus::Histogram* covariance_ = nullptr;
   prometheus::Histogram* commit_ = nullptr;
   prometheus::Counter* recomputed_ = nullptr;
-  prometheus::Counter* inflated_[4] = {};  // by test: the whole subgraph's, odometry, GNSS, camera
+  prometheus::Counter* inflated_[1 + kPassageSensors] = {};  // by test: the whole subgraph's, then each sensor's
   prometheus::Counter* relinearized_ = nullptr;
   prometheus::Counter* relinearizations_refused_ = nullptr;
   prometheus::Counter* upload_bytes_ = nullptr;

@@ -364,7 +364,7 @@ void CountGnssCheck(const PassageUpdateSummary& summary, int* correlated_passage
 }
 
 void CountSensorInflations(const PassageUpdateSummary& summary, SensorInflations* inflations) {
-  for (int s = 0; s < 3; ++s) {
+  for (int s = 0; s < kPassageSensors; ++s) {
     if (summary.sensor_test_factors[s] <= 1.0) continue;
     ++inflations->passages[s];
     inflations->factors[s].push_back(summary.sensor_test_factors[s]);
@@ -373,9 +373,8 @@ void CountSensorInflations(const PassageUpdateSummary& summary, SensorInflations
 
 nlohmann::ordered_json SensorInflationsJson(const SensorInflations& inflations) {
   nlohmann::ordered_json out;
-  const char* names[] = {"odometry", "gnss", "camera"};
-  for (int s = 0; s < 3; ++s) {
-    out[names[s]] = {{"passages", inflations.passages[s]}, {"factor", Percentiles(inflations.factors[s])}};
+  for (int s = 0; s < kPassageSensors; ++s) {
+    out[PassageSensorName(s)] = {{"passages", inflations.passages[s]}, {"factor", Percentiles(inflations.factors[s])}};
   }
   return out;
 }

@@ -21,8 +21,8 @@ namespace crowdmap {
 // Per sensor (odometry, GNSS, camera), the passages whose own test found the sensor noisier than
 // declared (MapUpdateOptions::sensor_test_sigmas), and the variance factors found.
 struct SensorInflations {
-  int passages[3] = {0, 0, 0};
-  std::vector<double> factors[3];
+  int passages[kPassageSensors] = {0, 0, 0};
+  std::vector<double> factors[kPassageSensors];
 };
 
 class CramerRaoBound;

@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <chrono>
 #include <cmath>
+#include <iterator>
 #include <map>
 #include <memory>
 #include <optional>
@@ -468,10 +469,20 @@ std::string PassageUpdateSummary::Brief() const {
          SpeedScaleBrief() + GnssBrief() + SensorBrief();
 }
 
+const char* PassageSensorName(int sensor) {
+  static const char* const kNames[kPassageSensors] = {"odometry", "gnss", "camera"};
+  return sensor >= 0 && sensor < kPassageSensors ? kNames[sensor] : "unknown";
+}
+
 std::string PassageUpdateSummary::SensorBrief() const {
-  if (sensor_test_factors[0] <= 1.0 && sensor_test_factors[1] <= 1.0 && sensor_test_factors[2] <= 1.0) return "";
-  return absl::StrFormat(" odometry_factor=%.2f gnss_factor=%.2f camera_factor=%.2f", sensor_test_factors[0],
-                         sensor_test_factors[1], sensor_test_factors[2]);
+  if (std::all_of(std::begin(sensor_test_factors), std::end(sensor_test_factors), [](double f) { return f <= 1.0; })) {
+    return "";
+  }
+  std::string out;
+  for (int s = 0; s < kPassageSensors; ++s) {
+    absl::StrAppendFormat(&out, " %s_factor=%.2f", PassageSensorName(s), sensor_test_factors[s]);
+  }
+  return out;
 }
 
 std::string PassageUpdateSummary::GnssBrief() const {

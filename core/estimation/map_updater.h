@@ -20,6 +20,12 @@
 
 namespace crowdmap {
 
+// The sensors a passage's measurements come from, each tested on its own, in this order
+// (PassageUpdateSummary::sensor_test_factors, MeasurementWeights::Sensor): odometry, GNSS, camera.
+constexpr int kPassageSensors = 3;
+// "odometry", "gnss", "camera".
+const char* PassageSensorName(int sensor);
+
 // What applying one passage did; Brief() is a key=value log line.
 struct PassageUpdateSummary {
   int nodes = 0;
@@ -38,7 +44,7 @@ struct PassageUpdateSummary {
   double max_variance_factor = 1.0;  // largest inflation of a subgraph's measurements by their chi2 (1 = none)
   // The largest variance factor each sensor's own test applied over the subgraphs (odometry, GNSS,
   // camera; MapUpdateOptions::sensor_test_sigmas), beyond max_variance_factor's (1 = none).
-  double sensor_test_factors[3] = {1.0, 1.0, 1.0};
+  double sensor_test_factors[kPassageSensors] = {1.0, 1.0, 1.0};
   double solve_ms = 0.0;
   double covariance_ms = 0.0;
   double bias_correction_ms = 0.0;

@@ -108,7 +108,7 @@ double VarianceFactor(double chi2, double dof, double test_sigmas);
 class MeasurementWeights {
  public:
   enum Sensor { kOdometry = 0, kGnss = 1, kCamera = 2 };
-  static constexpr int kSensors = 3;
+  static constexpr int kSensors = kPassageSensors;
 
   MeasurementWeights();
   ceres::LossFunctionWrapper* loss(Sensor sensor) { return &losses_[sensor]; }
