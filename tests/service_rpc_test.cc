@@ -561,7 +561,16 @@ TEST_F(ServiceRpc, PassagesBeyondTheRetentionAreFoldedIntoTheBase) {
     last_two += status->result().subgraphs();
   }
   EXPECT_EQ(info->factor_count(), last_two);
-  // The stored uploads of the folded passages are deleted; the retained ones' are kept.
+  // The stored uploads of the folded passages are deleted; the retained ones' are kept. The worker
+  // deletes them just after its commit, which may come after the queue looks idle: waited for.
+  const auto pruned = [&](int i) {
+    absl::StatusOr<pb::PassageStatus> status =
+        client_->GetPassage(scenario_.MakePassage(i).vehicle_id, scenario_.MakePassage(i).passage_id);
+    return status.ok() && status->payload_pruned_unix_ms() > 0;
+  };
+  for (int attempt = 0; attempt < 200 && !(pruned(0) && pruned(1) && pruned(2)); ++attempt) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(50));
+  }
   for (int i = 0; i < 5; ++i) {
     const Passage p = scenario_.MakePassage(i);
     absl::StatusOr<pb::PassageStatus> status = client_->GetPassage(p.vehicle_id, p.passage_id);
