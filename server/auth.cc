@@ -121,9 +121,8 @@ absl::Status Principal::MayActFor(const std::string& vehicle_id) const {
     return absl::PermissionDeniedError(absl::StrCat("vehicle_id: '", name, "' is an operator: operators read, they do not upload"));
   }
   // (an identifier no upload could carry is not echoed)
-  const std::string named = vehicle_id.size() <= kMaxIdLength
-                                ? absl::StrCat("'", vehicle_id, "'")
-                                : absl::StrCat("of ", vehicle_id.size(), " characters");
+  const std::string named = ValidateId("vehicle_id", vehicle_id).ok() ? absl::StrCat("'", vehicle_id, "'")
+                                                                       : std::string("(not a valid one)");
   return absl::PermissionDeniedError(
       absl::StrCat("vehicle_id: ", named, " is not the authenticated vehicle '", name, "'"));
 }

@@ -86,23 +86,48 @@ absl::Status ReadMapInfo(MapStoreInterface& store, const MapUpdateOptions& updat
   return absl::OkStatus();
 }
 
+namespace {
+
+// A unary call's reactor that holds a lease until the call is done: a read's response (hundreds of
+// MB for a page of 2,000 landmarks with covariances) lives until a client has taken it all, which
+// a slow one draws out long after the handler returned.
+class LeaseHoldingReactor final : public grpc::ServerUnaryReactor {
+ public:
+  explicit LeaseHoldingReactor(std::unique_ptr<ConcurrentCalls::Lease> lease) : lease_(std::move(lease)) {}
+  void OnDone() override { delete this; }
+
+ private:
+  std::unique_ptr<ConcurrentCalls::Lease> lease_;
+};
+
+// Finishes the call with `status`, the lease held until it is done (gRPC's own reactor without one).
+grpc::ServerUnaryReactor* FinishHoldingLease(grpc::CallbackServerContext* ctx, const grpc::Status& status,
+                                             std::unique_ptr<ConcurrentCalls::Lease> lease) {
+  grpc::ServerUnaryReactor* reactor =
+      lease == nullptr ? ctx->DefaultReactor() : new LeaseHoldingReactor(std::move(lease));
+  reactor->Finish(status);
+  return reactor;
+}
+
+}  // namespace
+
 grpc::ServerUnaryReactor* MapService::GetTile(grpc::CallbackServerContext* ctx, const pb::GetTileRequest* request,
                                               pb::GetTileResponse* response) {
-  grpc::ServerUnaryReactor* reactor = ctx->DefaultReactor();
-  reactor->Finish(ServeTile(ctx, request, response));
-  return reactor;
+  std::unique_ptr<ConcurrentCalls::Lease> lease;
+  const grpc::Status status = ServeTile(ctx, request, response, &lease);
+  return FinishHoldingLease(ctx, status, std::move(lease));
 }
 
 grpc::ServerUnaryReactor* MapService::QueryRegion(grpc::CallbackServerContext* ctx,
                                                   const pb::QueryRegionRequest* request,
                                                   pb::QueryRegionResponse* response) {
-  grpc::ServerUnaryReactor* reactor = ctx->DefaultReactor();
-  reactor->Finish(ServeRegion(ctx, request, response));
-  return reactor;
+  std::unique_ptr<ConcurrentCalls::Lease> lease;
+  const grpc::Status status = ServeRegion(ctx, request, response, &lease);
+  return FinishHoldingLease(ctx, status, std::move(lease));
 }
 
 grpc::Status MapService::ServeTile(grpc::ServerContextBase* ctx, const pb::GetTileRequest* request,
-                                   pb::GetTileResponse* response) {
+                                   pb::GetTileResponse* response, std::unique_ptr<ConcurrentCalls::Lease>* lease) {
   RequestLog log("GetTile", ctx);
   if (auto who = CheckAccess(context_->auth, *ctx, Permission::kReadMap, &log); !who.ok()) return log.Done(who.status());
   const TileId tile{request->tile().z(), request->tile().x(), request->tile().y()};
@@ -120,6 +145,7 @@ grpc::Status MapService::ServeTile(grpc::ServerContextBase* ctx, const pb::GetTi
   if (!format.ok()) return log.Done(format.status());
   auto heavy = EnterCovarianceRead(*context_, request->include_cross_covariance(), ctx);
   if (!heavy.ok()) return log.Done(heavy.status());
+  *lease = std::move(*heavy);
   absl::StatusOr<LandmarkPage> page = context_->store->GetTile(tile, request->include_cross_covariance());
   if (!page.ok()) return log.Done(page.status());
   *response->mutable_tile() = request->tile();
@@ -134,7 +160,8 @@ grpc::Status MapService::ServeTile(grpc::ServerContextBase* ctx, const pb::GetTi
 }
 
 grpc::Status MapService::ServeRegion(grpc::ServerContextBase* ctx, const pb::QueryRegionRequest* request,
-                                     pb::QueryRegionResponse* response) {
+                                     pb::QueryRegionResponse* response,
+                                     std::unique_ptr<ConcurrentCalls::Lease>* lease) {
   RequestLog log("QueryRegion", ctx);
   if (auto who = CheckAccess(context_->auth, *ctx, Permission::kReadMap, &log); !who.ok()) return log.Done(who.status());
   absl::StatusOr<BoundingBox> box = RequiredBox(*request);
@@ -158,6 +185,7 @@ grpc::Status MapService::ServeRegion(grpc::ServerContextBase* ctx, const pb::Que
   }
   auto heavy = EnterCovarianceRead(*context_, request->include_cross_covariance(), ctx);
   if (!heavy.ok()) return log.Done(heavy.status());
+  *lease = std::move(*heavy);
   absl::StatusOr<LandmarkPage> page =
       context_->store->QueryRegion(*box, *after, limit, request->include_cross_covariance());
   if (!page.ok()) return log.Done(page.status());

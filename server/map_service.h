@@ -124,19 +124,25 @@ class MapService final : public MapServiceBase {
                             pb::ListVehiclesResponse* response) override;
 
  private:
-  // The record named by an id, or by vehicle_id and passage_id.
+  // The record named by an id, or by vehicle_id and passage_id, or by both (InvalidArgument when
+  // they name two passages). With `own_reader` (a caller who reads only its own vehicle's), another
+  // vehicle's passage named by its id answers as a missing one, before the key is compared.
   absl::StatusOr<StoredPassage> FindRecord(int64_t id, const std::string& vehicle_id, const std::string& passage_id,
-                                           RequestLog* log);
+                                           const Principal* own_reader, RequestLog* log);
   // Validates, commits and acknowledges one upload (both upload RPCs end here).
   // `who` may upload only as itself (Principal::MayActFor); the upload counts against the quota of
   // its vehicle_id.
   absl::Status AcceptUpload(const Principal& who, const pb::Passage& wire, size_t wire_bytes, std::string payload,
                             pb::UploadPassageResponse* response);
 
+  // The reads with covariances hold a place among those capped (MapServiceContext::covariance_reads)
+  // in `lease` until their response is sent (FinishHoldingLease).
   grpc::Status ServeTile(grpc::ServerContextBase* ctx, const pb::GetTileRequest* request,
-                         pb::GetTileResponse* response);
+                         pb::GetTileResponse* response,
+                         std::unique_ptr<ConcurrentCalls::Lease>* lease);
   grpc::Status ServeRegion(grpc::ServerContextBase* ctx, const pb::QueryRegionRequest* request,
-                           pb::QueryRegionResponse* response);
+                           pb::QueryRegionResponse* response,
+                           std::unique_ptr<ConcurrentCalls::Lease>* lease);
 
   MapServiceContext* const context_;
   // Map read responses hold a few hundred small messages: one arena per call instead.

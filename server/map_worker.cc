@@ -106,7 +106,7 @@ absl::Status MapWorker::LoadUpdater() {
     if (!applied.ok()) return applied.status();
     for (const StoredPassage& record : *applied) {
       absl::StatusOr<std::string> payload = store_->GetPassagePayload(record.id);
-      if (absl::IsNotFound(payload.status())) {
+      if (absl::IsNotFound(payload.status()) && record.payload_pruned_unix_ms > 0) {
         // An applied passage without its upload: a map restored from a backup brought back one
         // that was excluded and whose upload was deleted since. The joint solves need every
         // passage: the map goes on with sequential updates (MapUpdater takes none with fewer

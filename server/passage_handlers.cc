@@ -241,7 +241,8 @@ grpc::Status MapService::UploadPassageChunkedRaw(grpc::ServerContext* ctx,
 }
 
 absl::StatusOr<StoredPassage> MapService::FindRecord(int64_t id, const std::string& vehicle_id,
-                                                     const std::string& passage_id, RequestLog* log) {
+                                                     const std::string& passage_id, const Principal* own_reader,
+                                                     RequestLog* log) {
   const bool keyed = !vehicle_id.empty() || !passage_id.empty();
   if (keyed) {
     if (absl::Status s = ValidateKey(vehicle_id, passage_id); !s.ok()) return s;
@@ -249,6 +250,10 @@ absl::StatusOr<StoredPassage> MapService::FindRecord(int64_t id, const std::stri
   if (id != 0) {
     log->Add(absl::StrCat("id=", id));
     absl::StatusOr<StoredPassage> record = context_->store->GetPassage(id);
+    // Another vehicle's passage answers as a missing one, before anything else is told of it.
+    if (record.ok() && own_reader != nullptr && !own_reader->MayActFor(record->vehicle_id).ok()) {
+      return PassageIdNotFoundError(id);
+    }
     // Both given: they must name the same passage (an exclusion must not take the one the caller
     // did not mean).
     if (record.ok() && keyed && (record->vehicle_id != vehicle_id || record->passage_id != passage_id)) {
@@ -277,11 +282,9 @@ grpc::Status MapService::GetPassage(grpc::ServerContext* ctx, const pb::GetPassa
   if (own_only && request->id() == 0) {
     if (absl::Status s = who->MayActFor(request->vehicle_id()); !s.ok()) return log.Done(s);
   }
-  absl::StatusOr<StoredPassage> record = FindRecord(request->id(), request->vehicle_id(), request->passage_id(), &log);
+  absl::StatusOr<StoredPassage> record = FindRecord(request->id(), request->vehicle_id(), request->passage_id(),
+                                                    own_only ? &*who : nullptr, &log);
   if (!record.ok()) return log.Done(record.status());
-  if (own_only && !who->MayActFor(record->vehicle_id).ok()) {
-    return log.Done(PassageIdNotFoundError(request->id()));
-  }
   StoredPassageToProto(*record, response);
   return log.Done(absl::OkStatus());
 }
@@ -290,7 +293,7 @@ grpc::Status MapService::ExcludePassage(grpc::ServerContext* ctx, const pb::Excl
                                         pb::ExcludePassageResponse* response) {
   RequestLog log("ExcludePassage", ctx);
   if (auto who = CheckAccess(context_->auth, *ctx, Permission::kAdministrate, &log); !who.ok()) return log.Done(who.status());
-  absl::StatusOr<StoredPassage> record = FindRecord(request->id(), request->vehicle_id(), request->passage_id(), &log);
+  absl::StatusOr<StoredPassage> record = FindRecord(request->id(), request->vehicle_id(), request->passage_id(), nullptr, &log);
   if (!record.ok()) return log.Done(record.status());
   if (record->state != PassageState::kApplied) {
     return log.Done(absl::FailedPreconditionError(absl::StrCat(
@@ -336,7 +339,7 @@ grpc::Status MapService::ResolvePassage(grpc::ServerContext* ctx, const pb::Reso
     default:
       return log.Done(absl::InvalidArgumentError("action: must be REQUEUE, RELEASE or DISCARD"));
   }
-  absl::StatusOr<StoredPassage> record = FindRecord(request->id(), request->vehicle_id(), request->passage_id(), &log);
+  absl::StatusOr<StoredPassage> record = FindRecord(request->id(), request->vehicle_id(), request->passage_id(), nullptr, &log);
   if (!record.ok()) return log.Done(record.status());
   absl::StatusOr<StoredPassage> moved = context_->store->MovePassage(record->id, from, to, released);
   if (!moved.ok()) return log.Done(moved.status());

@@ -111,8 +111,6 @@ class InflightBytes {
   std::atomic<int64_t> held_{0};
 };
 
-// Counts the streaming calls, in all and per identity, and cancels chunked uploads that stall. A
-// watchdog thread checks the open uploads every quarter of the idle timeout (at most every second).
 // At most `max` calls of one kind at once (0 = no limit); the next one gets RESOURCE_EXHAUSTED
 // naming the setting, with a retry time. Thread-safe.
 class ConcurrentCalls {
@@ -124,6 +122,8 @@ class ConcurrentCalls {
   class Lease {
    public:
     ~Lease();
+    Lease(const Lease&) = delete;
+    Lease& operator=(const Lease&) = delete;
 
    private:
     friend class ConcurrentCalls;
@@ -140,6 +140,8 @@ class ConcurrentCalls {
   int running_ = 0;
 };
 
+// Counts the streaming calls, in all and per identity, and cancels chunked uploads that stall. A
+// watchdog thread checks the open uploads every quarter of the idle timeout (at most every second).
 class StreamLimiter {
  public:
   // Reads the stream caps and the idle timeout of `limits`.

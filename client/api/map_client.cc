@@ -68,8 +68,13 @@ std::string RetryServiceConfig(const MapClientOptions& options) {
       {"maxBackoff", Seconds(options.max_backoff)},
       {"backoffMultiplier", 2},
       {"retryableStatusCodes", {"UNAVAILABLE", "RESOURCE_EXHAUSTED"}}};
-  const nlohmann::ordered_json method = {
-      {"name", {{{"service", "mapservice.v1.MapService"}, {"method", "UploadPassage"}}}}, {"retryPolicy", policy}};
+  // Uploads are idempotent; so are the map reads, whose covariance reads the server caps
+  // (--max-covariance-reads) and answers RESOURCE_EXHAUSTED beyond.
+  nlohmann::ordered_json names = nlohmann::ordered_json::array();
+  for (const char* rpc : {"UploadPassage", "GetTile", "QueryRegion"}) {
+    names.push_back({{"service", "mapservice.v1.MapService"}, {"method", rpc}});
+  }
+  const nlohmann::ordered_json method = {{"name", names}, {"retryPolicy", policy}};
   return nlohmann::ordered_json{{"methodConfig", {method}}}.dump();
 }
 

@@ -247,6 +247,8 @@ TEST(MapClientRetries, ServiceConfigCarriesThePolicyAndOptionsAreChecked) {
   const nlohmann::json config = nlohmann::json::parse(RetryServiceConfig(options));
   const nlohmann::json& method = config["methodConfig"][0];
   EXPECT_EQ(method["name"][0]["method"], "UploadPassage") << config;
+  EXPECT_EQ(method["name"][1]["method"], "GetTile") << config;      // the reads: the server caps those
+  EXPECT_EQ(method["name"][2]["method"], "QueryRegion") << config;  // with covariances
   EXPECT_EQ(method["retryPolicy"]["maxAttempts"], 4) << config;
   EXPECT_EQ(method["retryPolicy"]["initialBackoff"], "0.050s") << config;
   EXPECT_EQ(method["retryPolicy"]["maxBackoff"], "2.000s") << config;

@@ -76,6 +76,8 @@ constexpr double kCoincidentPixelSigmas = 0.1;
 constexpr int kMinCoincidentFrames = 3;
 constexpr double kMaxCoincidentShare = 0.2;
 constexpr size_t kMinCoincidentIds = 10;
+// At most this many pairs of ids coincide in some frame.
+constexpr size_t kMaxCoincidentPairs = 1000;
 // No more than this many detections of one frame lie that close to one another.
 constexpr size_t kMaxCoincidentDetections = 16;
 
@@ -84,9 +86,11 @@ constexpr size_t kMaxCoincidentDetections = 16;
 // under new ids made 3,400 landmarks).
 absl::Status CheckLandmarksSeenOnce(const Passage& p) {
   const double close_px = kCoincidentPixelSigmas * p.noise.pixel_sigma_px;
-  std::map<LandmarkId, int> frames;                             // per id
-  std::map<std::pair<LandmarkId, LandmarkId>, int> coincident;  // per pair of ids
+  std::map<LandmarkId, int> frames;                             // per id: the frames it is seen in
+  std::map<std::pair<LandmarkId, LandmarkId>, int> coincident;  // per pair of ids: the frames they coincide in
   std::vector<const Detection*> frame;
+  std::set<LandmarkId> in_frame;
+  std::set<std::pair<LandmarkId, LandmarkId>> pairs_in_frame;
   for (size_t begin = 0; begin < p.detections.size();) {
     size_t end = begin;
     while (end < p.detections.size() && p.detections[end].t_s == p.detections[begin].t_s) ++end;
@@ -96,20 +100,29 @@ absl::Status CheckLandmarksSeenOnce(const Passage& p) {
                                   " s; a frame holds at most ", kMaxDetectionsPerFrame));
     }
     frame.clear();
+    in_frame.clear();
+    pairs_in_frame.clear();
     for (size_t i = begin; i < end; ++i) frame.push_back(&p.detections[i]);
-    std::sort(frame.begin(), frame.end(), [](const Detection* a, const Detection* b) { return a->u_px < b->u_px; });
+    std::stable_sort(frame.begin(), frame.end(),
+                     [](const Detection* a, const Detection* b) { return a->u_px < b->u_px; });
     for (size_t a = 0; a < frame.size(); ++a) {
-      ++frames[frame[a]->landmark_id];
+      if (in_frame.insert(frame[a]->landmark_id).second) ++frames[frame[a]->landmark_id];
       for (size_t b = a + 1; b < frame.size() && frame[b]->u_px - frame[a]->u_px <= close_px; ++b) {
         // (which also bounds this loop's work on a hostile frame)
         if (b - a >= kMaxCoincidentDetections) {
-          return Invalid(Field("detections", begin, "u_px"),
-                         absl::StrCat("more than ", kMaxCoincidentDetections, " detections at ",
-                                      p.detections[begin].t_s, " s within ", close_px, " px of one another"));
+          return Invalid(Field("detections", static_cast<size_t>(frame[b] - p.detections.data()), "u_px"),
+                         absl::StrCat("more than ", kMaxCoincidentDetections, " detections at ", frame[b]->t_s,
+                                      " s within ", close_px, " px of one another"));
         }
         const auto [lo, hi] = std::minmax(frame[a]->landmark_id, frame[b]->landmark_id);
-        if (lo != hi) ++coincident[{lo, hi}];
+        if (lo != hi && pairs_in_frame.insert({lo, hi}).second) ++coincident[{lo, hi}];
       }
+    }
+    // Honest data has a handful of such pairs; this bounds the memory a hostile passage takes here.
+    if (coincident.size() > kMaxCoincidentPairs) {
+      return Invalid(Field("detections", begin, "u_px"),
+                     absl::StrCat("more than ", kMaxCoincidentPairs, " pairs of landmark ids seen within ", close_px,
+                                  " px of one another by ", p.detections[begin].t_s, " s"));
     }
     begin = end;
   }
@@ -125,9 +138,10 @@ absl::Status CheckLandmarksSeenOnce(const Passage& p) {
   }
   return Invalid("detections",
                  absl::StrCat(repeating.size(), " of the passage's ", frames.size(),
-                              " landmark ids are seen at the pixels of another (within ", close_px,
-                              " px, in every frame they share; e.g. landmarks ", first_pair.first, " and ",
-                              first_pair.second, "): the same landmarks under several ids"));
+                              " landmark ids are seen at the pixel of another (within ", close_px,
+                              " px, in at least ", kMinCoincidentFrames, " frames and half of those of the one seen "
+                              "less; e.g. landmarks ", first_pair.first, " and ", first_pair.second,
+                              "): the same landmarks under several ids"));
 }
 
 }  // namespace

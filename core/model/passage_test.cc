@@ -143,7 +143,7 @@ std::vector<BadInput> BadInputs() {
          }
          p->detections = copied;
        }},
-      {"detections[0].u_px", [](Passage* p) {  // a frame of detections at one pixel
+      {"detections[16].u_px", [](Passage* p) {  // a frame of detections at one pixel: the 17th named
          std::vector<Detection> frame(17, p->detections.front());
          for (size_t k = 0; k < frame.size(); ++k) frame[k].landmark_id = 1000 + static_cast<LandmarkId>(k);
          p->detections.insert(p->detections.begin(), frame.begin(), frame.end());
@@ -205,6 +205,22 @@ TEST(ValidatePassage, AcceptsAFewLandmarksStandingTogether) {
   p.detections = with_signs;
   const absl::Status s = ValidatePassage(p);
   EXPECT_TRUE(s.ok()) << s;
+}
+
+// Frames of new ids piled at one pixel: refused once a thousand pairs of ids coincide, before the
+// check holds more (its memory on a 64 MiB upload).
+TEST(ValidatePassage, RefusesThousandsOfIdsPiledAtOnePixel) {
+  Passage p = SimulatedPassage();
+  const Detection first = p.detections.front();
+  p.detections.clear();
+  for (int frame = 0; frame < 10; ++frame) {
+    for (int k = 0; k < 15; ++k) {
+      p.detections.push_back({first.t_s + 0.1 * frame, 1000 + 15 * frame + k, first.u_px});
+    }
+  }
+  const absl::Status s = ValidatePassage(p);
+  EXPECT_EQ(s.code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_NE(s.message().find("more than 1000 pairs of landmark ids"), std::string::npos) << s;
 }
 
 TEST(ValidatePassage, AcceptsAMinimalHandMadePassageWithSimultaneousDetections) {
