@@ -263,6 +263,18 @@ TEST_F(Hostile, RolesLimitWhoReadsPassagesAndWhoAdministers) {
   EXPECT_EQ(absl::StrReplaceAll(others.message(), {{std::to_string(id), "N"}}),
             absl::StrReplaceAll(missing.message(), {{std::to_string(id + 1000), "N"}}));
   EXPECT_FALSE(absl::StrContains(others.message(), "v1")) << others;
+  // Nor by the id with a key: another vehicle's passage answers as a missing one, whatever the key.
+  for (const std::string& passage : {std::string("p1"), std::string("p2")}) {
+    grpc::ClientContext ctx;
+    ctx.AddMetadata("authorization", std::string("Bearer ") + kV2Token);
+    pb::GetPassageRequest both;
+    both.set_id(id);
+    both.set_vehicle_id("v1");
+    both.set_passage_id(passage);
+    pb::PassageStatus answer;
+    const grpc::Status status = v2->stub()->GetPassage(&ctx, both, &answer);
+    EXPECT_EQ(status.error_code(), grpc::StatusCode::NOT_FOUND) << passage << ": " << status.error_message();
+  }
   EXPECT_EQ(v2->GetPassage("v1", "p1").status().code(), absl::StatusCode::kPermissionDenied);
   EXPECT_EQ(v2->GetPassage("v1", "unknown").status().code(), absl::StatusCode::kPermissionDenied) << "the same";
   // An identifier no upload could carry is refused without being echoed.
