@@ -77,7 +77,8 @@ class ArenaMessageAllocator : public grpc::MessageAllocator<Request, Response> {
 };
 
 // The map reads (GetTile, QueryRegion) are served from memory and never block, so they use the
-// callback API and run on gRPC's own threads without a hand-off. UploadPassage does too: its
+// callback API and run on gRPC's own threads without a hand-off; those with covariances, which
+// take milliseconds to seconds, on threads of their own (map_read_handlers.cc, ServeRead). UploadPassage does too: its
 // handler waits only for the queue's group commit (a few ms), and with the synchronous API gRPC
 // 1.51 left 1-2% of the requests unread in the socket for 40-100 ms before any thread took them
 // (acknowledgement p99 85 ms, 8.8 ms as a callback; docs/results.md). The other RPCs are
@@ -135,14 +136,14 @@ class MapService final : public MapServiceBase {
   absl::Status AcceptUpload(const Principal& who, const pb::Passage& wire, size_t wire_bytes, std::string payload,
                             pb::UploadPassageResponse* response);
 
-  // The reads with covariances hold a place among those capped (MapServiceContext::covariance_reads)
-  // in `lease` until their response is sent (FinishHoldingLease).
+  // A read with covariances takes a place among those capped (MapServiceContext::covariance_reads)
+  // into `lease`, held until its response is sent; `placed`: the caller took it already.
   grpc::Status ServeTile(grpc::ServerContextBase* ctx, const pb::GetTileRequest* request,
-                         pb::GetTileResponse* response,
-                         std::unique_ptr<ConcurrentCalls::Lease>* lease);
+                         pb::GetTileResponse* response, std::unique_ptr<ConcurrentCalls::Lease>* lease,
+                         bool placed);
   grpc::Status ServeRegion(grpc::ServerContextBase* ctx, const pb::QueryRegionRequest* request,
-                           pb::QueryRegionResponse* response,
-                           std::unique_ptr<ConcurrentCalls::Lease>* lease);
+                           pb::QueryRegionResponse* response, std::unique_ptr<ConcurrentCalls::Lease>* lease,
+                           bool placed);
 
   MapServiceContext* const context_;
   // Map read responses hold a few hundred small messages: one arena per call instead.
