@@ -5,6 +5,7 @@
 #include <map>
 #include <memory>
 #include <set>
+#include <unordered_map>
 #include <unordered_set>
 
 #include <Eigen/Eigenvalues>
@@ -214,7 +215,7 @@ absl::StatusOr<PassageUpdate> SolveJointly(const std::vector<Passage>& passages,
   std::vector<std::unique_ptr<MeasurementWeights>> weights;
   std::vector<std::vector<ceres::ResidualBlockId>> blocks_of(count);
   std::vector<double> landmark_dims_of(count, 0.0);  // the landmarks' dimensions, shared by detections
-  std::unordered_set<ceres::ResidualBlockId> camera_blocks;
+  std::unordered_map<ceres::ResidualBlockId, const CameraObservation*> camera_blocks;  // the detection of each
   std::map<LandmarkId, int> detections_of;
   for (int p = 0; p < count; ++p) {
     for (size_t i = 0; i < seen[p].ids.size(); ++i) detections_of[seen[p].ids[i]] += seen[p].detections[i].size();
@@ -254,7 +255,7 @@ absl::StatusOr<PassageUpdate> SolveJointly(const std::vector<Passage>& passages,
                                                  weights[p]->loss(MeasurementWeights::kCamera),
                                                  poses[p][d->node].data(), block_of[id],
                                                  options.estimate_camera_yaw ? &yaw_offset_rad[p] : nullptr, &problem));
-        camera_blocks.insert(blocks_of[p].back());
+        camera_blocks.emplace(blocks_of[p].back(), d);
         ++summary.detections_used;
       }
       // (a landmark of the prior is fixed by it: its dimensions cost the passages nothing)
@@ -281,18 +282,27 @@ absl::StatusOr<PassageUpdate> SolveJointly(const std::vector<Passage>& passages,
   if (outlier_test && options.max_detection_residual_sigmas > 0.0) {
     int outliers = 0;
     for (int p = 0; p < count; ++p) {
+      std::unordered_set<const CameraObservation*> set_aside;
       auto outlier = [&](ceres::ResidualBlockId id) {
-        if (!camera_blocks.count(id)) return false;
+        const auto camera = camera_blocks.find(id);
+        if (camera == camera_blocks.end()) return false;
         double cost = 0.0, residual = 0.0;
         if (problem.EvaluateResidualBlock(id, /*apply_loss_function=*/false, &cost, &residual, nullptr) &&
             std::abs(residual) <= options.max_detection_residual_sigmas) {
           return false;
         }
         problem.RemoveResidualBlock(id);
+        set_aside.insert(camera->second);
         ++outliers;
         return true;
       };
       blocks_of[p].erase(std::remove_if(blocks_of[p].begin(), blocks_of[p].end(), outlier), blocks_of[p].end());
+      // The rays left are what the landmarks' creation rule below judges them on.
+      for (std::vector<const CameraObservation*>& rays : seen[p].detections) {
+        rays.erase(std::remove_if(rays.begin(), rays.end(),
+                                  [&](const CameraObservation* d) { return set_aside.count(d) > 0; }),
+                   rays.end());
+      }
     }
     if (outliers > 0) {
       summary.detections_outliers += outliers;
