@@ -12,17 +12,6 @@
 namespace crowdmap {
 namespace {
 
-// A place among the reads with covariances running at once (MapServiceContext::covariance_reads),
-// or RESOURCE_EXHAUSTED with its retry time in `ctx`'s trailers; no lease for a read without them.
-absl::StatusOr<std::unique_ptr<ConcurrentCalls::Lease>> EnterCovarianceRead(const MapServiceContext& context,
-                                                                            bool include_cross,
-                                                                            grpc::ServerContextBase* ctx) {
-  if (!include_cross || context.covariance_reads == nullptr) return nullptr;
-  absl::StatusOr<std::unique_ptr<ConcurrentCalls::Lease>> lease = context.covariance_reads->Enter();
-  if (!lease.ok()) AddRetryTrailers(lease.status(), ctx);
-  return lease;
-}
-
 // The request's box, which it must give: an absent one would read as the box (0, 0) to (0, 0).
 template <typename Request>
 absl::StatusOr<BoundingBox> RequiredBox(const Request& request) {
@@ -105,37 +94,25 @@ class LeaseHoldingReactor final : public grpc::ServerUnaryReactor {
   std::unique_ptr<ConcurrentCalls::Lease> lease_;
 };
 
-// Serves a map read through `serve` (ServeTile or ServeRegion on a lease pointer). A read with
-// covariances takes its place among the capped ones here and is computed on a thread of its own:
-// on gRPC's callback threads (two on a 2-core machine) it kept every other call waiting, uploads
-// included (0.3 to 1 s behind four 2,000-landmark reads). Any other read, and one refused its
-// place, is served on the callback thread.
+// Serves a map read through `serve` (ServeTile or ServeRegion, told whether the read got its place).
+// A read with covariances takes its place among the capped ones here and, with it, is computed on
+// a thread of its own: on gRPC's callback threads (two on a 2-core machine) it kept every other
+// call waiting, uploads included (0.3 to 1 s behind four 2,000-landmark reads). Any other read,
+// and one refused its place, is served on the callback thread.
 template <typename Serve>
 grpc::ServerUnaryReactor* ServeRead(grpc::CallbackServerContext* ctx, bool include_cross, ConcurrentCalls* cap,
                                     Serve serve) {
-  if (include_cross) {
-    absl::StatusOr<std::unique_ptr<ConcurrentCalls::Lease>> place =
-        cap != nullptr ? cap->Enter() : absl::StatusOr<std::unique_ptr<ConcurrentCalls::Lease>>(nullptr);
-    if (place.ok()) {
-      auto* reactor = new LeaseHoldingReactor();
-      std::thread([reactor, serve, held = *std::move(place)]() mutable {
-        const bool capped = held != nullptr;
-        std::unique_ptr<ConcurrentCalls::Lease> lease = std::move(held);
-        const grpc::Status status = serve(&lease, capped);
-        reactor->FinishHolding(status, std::move(lease));
-      }).detach();
-      return reactor;
-    }
-  }
-  std::unique_ptr<ConcurrentCalls::Lease> lease;
-  const grpc::Status status = serve(&lease, false);
-  if (lease == nullptr) {
-    grpc::ServerUnaryReactor* reactor = ctx->DefaultReactor();
-    reactor->Finish(status);
+  absl::StatusOr<std::unique_ptr<ConcurrentCalls::Lease>> place = std::unique_ptr<ConcurrentCalls::Lease>();
+  if (include_cross && cap != nullptr) place = cap->Enter();
+  if (include_cross && place.ok()) {
+    auto* reactor = new LeaseHoldingReactor();
+    std::thread([reactor, serve, lease = *std::move(place)]() mutable {
+      reactor->FinishHolding(serve(absl::OkStatus()), std::move(lease));
+    }).detach();
     return reactor;
   }
-  auto* reactor = new LeaseHoldingReactor();
-  reactor->FinishHolding(status, std::move(lease));
+  grpc::ServerUnaryReactor* reactor = ctx->DefaultReactor();
+  reactor->Finish(serve(place.status()));
   return reactor;
 }
 
@@ -144,8 +121,8 @@ grpc::ServerUnaryReactor* ServeRead(grpc::CallbackServerContext* ctx, bool inclu
 grpc::ServerUnaryReactor* MapService::GetTile(grpc::CallbackServerContext* ctx, const pb::GetTileRequest* request,
                                               pb::GetTileResponse* response) {
   return ServeRead(ctx, request->include_cross_covariance(), context_->covariance_reads,
-                   [this, ctx, request, response](std::unique_ptr<ConcurrentCalls::Lease>* lease, bool placed) {
-                     return ServeTile(ctx, request, response, lease, placed);
+                   [this, ctx, request, response](const absl::Status& place) {
+                     return ServeTile(ctx, request, response, place);
                    });
 }
 
@@ -153,14 +130,13 @@ grpc::ServerUnaryReactor* MapService::QueryRegion(grpc::CallbackServerContext* c
                                                   const pb::QueryRegionRequest* request,
                                                   pb::QueryRegionResponse* response) {
   return ServeRead(ctx, request->include_cross_covariance(), context_->covariance_reads,
-                   [this, ctx, request, response](std::unique_ptr<ConcurrentCalls::Lease>* lease, bool placed) {
-                     return ServeRegion(ctx, request, response, lease, placed);
+                   [this, ctx, request, response](const absl::Status& place) {
+                     return ServeRegion(ctx, request, response, place);
                    });
 }
 
 grpc::Status MapService::ServeTile(grpc::ServerContextBase* ctx, const pb::GetTileRequest* request,
-                                   pb::GetTileResponse* response, std::unique_ptr<ConcurrentCalls::Lease>* lease,
-                                   bool placed) {
+                                   pb::GetTileResponse* response, const absl::Status& place) {
   RequestLog log("GetTile", ctx);
   if (auto who = CheckAccess(context_->auth, *ctx, Permission::kReadMap, &log); !who.ok()) return log.Done(who.status());
   const TileId tile{request->tile().z(), request->tile().x(), request->tile().y()};
@@ -176,10 +152,9 @@ grpc::Status MapService::ServeTile(grpc::ServerContextBase* ctx, const pb::GetTi
   absl::StatusOr<pb::CovarianceFormat> format = CovarianceFormatFromProto(
       request->covariance_format(), request->include_cross_covariance(), "covariance_format");
   if (!format.ok()) return log.Done(format.status());
-  if (!placed) {
-    auto heavy = EnterCovarianceRead(*context_, request->include_cross_covariance(), ctx);
-    if (!heavy.ok()) return log.Done(heavy.status());
-    *lease = std::move(*heavy);
+  if (!place.ok()) {  // refused its place among the reads with covariances
+    AddRetryTrailers(place, ctx);
+    return log.Done(place);
   }
   absl::StatusOr<LandmarkPage> page = context_->store->GetTile(tile, request->include_cross_covariance());
   if (!page.ok()) return log.Done(page.status());
@@ -196,7 +171,7 @@ grpc::Status MapService::ServeTile(grpc::ServerContextBase* ctx, const pb::GetTi
 
 grpc::Status MapService::ServeRegion(grpc::ServerContextBase* ctx, const pb::QueryRegionRequest* request,
                                      pb::QueryRegionResponse* response,
-                                     std::unique_ptr<ConcurrentCalls::Lease>* lease, bool placed) {
+                                     const absl::Status& place) {
   RequestLog log("QueryRegion", ctx);
   if (auto who = CheckAccess(context_->auth, *ctx, Permission::kReadMap, &log); !who.ok()) return log.Done(who.status());
   absl::StatusOr<BoundingBox> box = RequiredBox(*request);
@@ -218,10 +193,9 @@ grpc::Status MapService::ServeRegion(grpc::ServerContextBase* ctx, const pb::Que
     return log.Done(absl::InvalidArgumentError(absl::StrCat("page_size: at most ", kMaxCovariancePage,
                                                             " with include_cross_covariance, got ", limit)));
   }
-  if (!placed) {
-    auto heavy = EnterCovarianceRead(*context_, request->include_cross_covariance(), ctx);
-    if (!heavy.ok()) return log.Done(heavy.status());
-    *lease = std::move(*heavy);
+  if (!place.ok()) {  // refused its place among the reads with covariances
+    AddRetryTrailers(place, ctx);
+    return log.Done(place);
   }
   absl::StatusOr<LandmarkPage> page =
       context_->store->QueryRegion(*box, *after, limit, request->include_cross_covariance());

@@ -136,14 +136,13 @@ class MapService final : public MapServiceBase {
   absl::Status AcceptUpload(const Principal& who, const pb::Passage& wire, size_t wire_bytes, std::string payload,
                             pb::UploadPassageResponse* response);
 
-  // A read with covariances takes a place among those capped (MapServiceContext::covariance_reads)
-  // into `lease`, held until its response is sent; `placed`: the caller took it already.
+  // `place`: whether a read with covariances got its place among those capped
+  // (MapServiceContext::covariance_reads; the caller holds it until the response is sent). A
+  // refused one is answered with it once the request is found valid.
   grpc::Status ServeTile(grpc::ServerContextBase* ctx, const pb::GetTileRequest* request,
-                         pb::GetTileResponse* response, std::unique_ptr<ConcurrentCalls::Lease>* lease,
-                         bool placed);
+                         pb::GetTileResponse* response, const absl::Status& place);
   grpc::Status ServeRegion(grpc::ServerContextBase* ctx, const pb::QueryRegionRequest* request,
-                           pb::QueryRegionResponse* response, std::unique_ptr<ConcurrentCalls::Lease>* lease,
-                           bool placed);
+                           pb::QueryRegionResponse* response, const absl::Status& place);
 
   MapServiceContext* const context_;
   // Map read responses hold a few hundred small messages: one arena per call instead.
