@@ -181,6 +181,10 @@ std::unique_ptr<CLI::App> NewMapdCommandLine(MapdConfig* config) {
                  "a detection whose residual at a subgraph's solution exceeds X pixel sigmas is set aside\n"
                  "as an outlier (0 = off)")
       ->type_name("X");
+  AddMapdSetting(app, "max-unfit-detection-fraction", &u.max_unfit_detection_fraction,
+                 "a passage more than X of whose detections do not fit (outliers, or of landmarks it\n"
+                 "disagrees with the map about; 10 at least) is quarantined, the map unchanged (0 = off)")
+      ->type_name("X");
   AddMapdSetting(app, "sensor-test-sigmas", &u.sensor_test_sigmas,
                  "a sensor (odometry, GNSS, camera) whose residuals' chi-square exceeds their redundancy by X\n"
                  "sigmas has its declared covariances scaled by their ratio for that subgraph (0 = off)")
@@ -318,7 +322,8 @@ std::string DescribeMapdConfig(const MapdConfig& config) {
       " workers=", o.worker.workers, " worker-nice=", o.worker.nice,
       " settled-upload-retention-days=", o.worker.settled_upload_retention_days, " max-queue=", o.max_queue,
       " max-message-mb=", o.max_message_mb, " max-passage-mb=", o.max_passage_mb,
-      " max-detection-residual-sigmas=", u.max_detection_residual_sigmas, " sensor-test-sigmas=", u.sensor_test_sigmas,
+      " max-detection-residual-sigmas=", u.max_detection_residual_sigmas,
+      " max-unfit-detection-fraction=", u.max_unfit_detection_fraction, " sensor-test-sigmas=", u.sensor_test_sigmas,
       " max-landmark-shift-sigmas=", std::sqrt(u.max_landmark_shift_mahalanobis2),
       " max-update-shift-sigmas=", std::sqrt(u.max_update_shift_mahalanobis2),
       " max-new-landmark-ray-sigma-m=", u.max_new_landmark_ray_sigma_m,

@@ -202,7 +202,7 @@ TEST(MapdConfig, VersionFlagIsRecognised) {
 TEST(MapdConfig, ReadsTheTrustRules) {
   auto c = ParseWithEnvironment({"--max-detection-residual-sigmas", "4", "--max-landmark-shift-sigmas=6",
                                  "--max-new-landmark-ray-sigma-m", "2.5", "--max-new-landmark-bias-sigmas", "2",
-                                 "--sensor-test-sigmas", "3"},
+                                 "--sensor-test-sigmas", "3", "--max-unfit-detection-fraction", "0.4"},
                                 {{"MAPD_MAX_CHI2_PER_DOF", "8"}, {"MAPD_MAX_UPDATE_SHIFT_SIGMAS", "4"}});
   ASSERT_TRUE(c.ok()) << c.status();
   const MapUpdateOptions& u = c->server.worker.update;
@@ -220,6 +220,10 @@ TEST(MapdConfig, ReadsTheTrustRules) {
   EXPECT_EQ(u.max_chi2_per_dof, 8.0);
   EXPECT_EQ(u.sensor_test_sigmas, 3.0);
   EXPECT_EQ(MapUpdateOptions().sensor_test_sigmas, 4.0);
+  EXPECT_EQ(u.max_unfit_detection_fraction, 0.4);
+  auto whole = ParseWithEnvironment({"--max-unfit-detection-fraction", "1"}, {});
+  ASSERT_FALSE(whole.ok());
+  EXPECT_NE(whole.status().message().find("max_unfit_detection_fraction"), std::string::npos) << whole.status();
   auto negative_test = ParseWithEnvironment({"--sensor-test-sigmas", "-1"}, {});
   ASSERT_FALSE(negative_test.ok());
   EXPECT_NE(negative_test.status().message().find("sensor_test_sigmas"), std::string::npos) << negative_test.status();

@@ -5,6 +5,7 @@
 #include <cmath>
 #include <future>
 #include <map>
+#include <random>
 #include <set>
 #include <thread>
 #include <tuple>
@@ -674,6 +675,35 @@ TEST_F(ServiceRpc, AReleasedQuarantinedPassageIsAppliedWithTheMapsChecksOffOnce)
   EXPECT_EQ(client_->client()->ResolvePassage(key, pb::ResolvePassageRequest::RELEASE).status().code(),
             absl::StatusCode::kFailedPrecondition)
       << "an applied passage";
+}
+
+// A passage whose detections carry landmark ids at random: most of them do not fit, and the
+// worker quarantines it whole; released by an operator it is applied with that check off too.
+TEST_F(ServiceRpc, APassageMostOfWhoseDetectionsDoNotFitIsQuarantined) {
+  Start(true);
+  for (int i = 0; i < 2; ++i) MustUpload(scenario_.MakePassage(i));
+  absl::StatusOr<pb::MapInfo> before = client_->WaitUntilIdle();
+  ASSERT_TRUE(before.ok()) << before.status();
+  Passage garbage = scenario_.MakePassage(2);
+  std::mt19937 rng(3);
+  std::uniform_int_distribution<LandmarkId> any(1, static_cast<LandmarkId>(scenario_.landmarks().size()));
+  for (Detection& d : garbage.detections) d.landmark_id = any(rng);
+  MustUpload(garbage);
+  absl::StatusOr<pb::MapInfo> info = client_->WaitUntilIdle();
+  ASSERT_TRUE(info.ok()) << info.status();
+  EXPECT_EQ(info->passages_quarantined(), 1);
+  EXPECT_EQ(info->map_version(), before->map_version()) << "the map is unchanged";
+  absl::StatusOr<pb::PassageStatus> status = client_->GetPassage(garbage.vehicle_id, garbage.passage_id);
+  ASSERT_TRUE(status.ok()) << status.status();
+  EXPECT_EQ(status->state(), pb::PASSAGE_STATE_QUARANTINED);
+  EXPECT_NE(status->error().find("detections do not fit"), std::string::npos) << status->error();
+  const PassageKey key{0, garbage.vehicle_id, garbage.passage_id};
+  ASSERT_TRUE(client_->client()->ResolvePassage(key, pb::ResolvePassageRequest::RELEASE).ok());
+  info = client_->WaitUntilIdle();
+  ASSERT_TRUE(info.ok()) << info.status();
+  status = client_->GetPassage(garbage.vehicle_id, garbage.passage_id);
+  ASSERT_TRUE(status.ok()) << status.status();
+  EXPECT_EQ(status->state(), pb::PASSAGE_STATE_APPLIED) << status->error();
 }
 
 TEST_F(ServiceRpc, GetTileReturnsItsLandmarksAndVersion) {

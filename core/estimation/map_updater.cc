@@ -362,6 +362,10 @@ absl::Status MapUpdateOptions::Validate() const {
     return absl::InvalidArgumentError(
         absl::StrCat("max_detection_residual_sigmas: must be >= 0 (0 = off), got ", max_detection_residual_sigmas));
   }
+  if (!(max_unfit_detection_fraction >= 0.0 && max_unfit_detection_fraction < 1.0)) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "max_unfit_detection_fraction: must lie in [0, 1) (0 = off), got ", max_unfit_detection_fraction));
+  }
   if (!(max_new_landmark_range_m > 0.0)) {
     return absl::InvalidArgumentError(
         absl::StrCat("max_new_landmark_range_m: must be > 0, got ", max_new_landmark_range_m));
@@ -563,6 +567,11 @@ absl::Status ApplyPassage(const Passage& declared, const MapUpdateOptions& optio
       progress.outliers.insert(unfit->detections.begin(), unfit->detections.end());
     }
   }
+  if (absl::Status s = CheckDetectionsFit(static_cast<int>(progress.outliers.size()),
+                                          static_cast<int>(graph->detections.size()), options);
+      !s.ok()) {
+    return absl::Status(s.code(), absl::StrCat("passage ", passage.passage_id, ": ", s.message()));
+  }
   if (progress.counted.empty()) {
     // What set its landmarks aside, so that an operator can tell a detector's fault from a
     // trajectory's (a GNSS jump or an odometry fault leaves every ray pointing somewhere else).
@@ -735,6 +744,7 @@ MapUpdater::Plan MapUpdater::PlanFor(Mode mode) const {
     plan.options.max_chi2_per_dof = 0.0;
     plan.options.max_landmark_shift_mahalanobis2 = 0.0;
     plan.options.max_update_shift_mahalanobis2 = 0.0;
+    plan.options.max_unfit_detection_fraction = 0.0;
   }
   plan.joint = joint_next() && !mode.sequential;
   if (plan.joint) plan.kept = kept_;

@@ -8,6 +8,7 @@
 
 #include <Eigen/Eigenvalues>
 
+#include "absl/strings/str_format.h"
 #include "core/estimation/factors.h"
 #include "core/estimation/triangulation.h"
 #include "core/map/sparse_threads.h"
@@ -294,6 +295,17 @@ RayGeometry NewLandmarkGeometry(const std::vector<Pose2>& poses, int first_node,
 bool WellDeterminedNewLandmark(const RayGeometry& geometry, const MapUpdateOptions& options) {
   return geometry.max_range_m <= options.max_new_landmark_range_m &&
          geometry.sigma_m <= options.max_new_landmark_ray_sigma_m;
+}
+
+absl::Status CheckDetectionsFit(int unfit, int total, const MapUpdateOptions& options) {
+  if (options.max_unfit_detection_fraction <= 0.0 || unfit < MapUpdateOptions::kMinUnfitDetections ||
+      unfit <= options.max_unfit_detection_fraction * total) {
+    return absl::OkStatus();
+  }
+  return absl::FailedPreconditionError(absl::StrFormat(
+      "detections do not fit: %d of its %d detections lie beyond %.1f pixel sigmas of the solution (more than %.0f%% "
+      "allowed); the map is unchanged (its camera reports landmarks under wrong ids, or detections of nothing)",
+      unfit, total, options.max_detection_residual_sigmas, 100.0 * options.max_unfit_detection_fraction));
 }
 
 absl::StatusOr<GraphLinearization> Linearize(ceres::Problem* problem, const std::vector<double*>& landmark_blocks,

@@ -81,6 +81,10 @@ RayGeometry NewLandmarkGeometry(const std::vector<Pose2>& poses, int first_node,
 // Whether a new landmark may enter the map with this geometry (the options' creation rule).
 bool WellDeterminedNewLandmark(const RayGeometry& geometry, const MapUpdateOptions& options);
 
+// FailedPrecondition when `unfit` of a passage's `total` detections is more than
+// options.max_unfit_detection_fraction allows (and at least MapUpdateOptions::kMinUnfitDetections).
+absl::Status CheckDetectionsFit(int unfit, int total, const MapUpdateOptions& options);
+
 // After a usable solve: the linearisation at the solution (the landmarks' marginal covariance,
 // and the factor's without `factor_leaves_out`: GraphLinearization::Compute), its time added to
 // `summary`.

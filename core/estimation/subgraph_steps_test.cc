@@ -57,6 +57,20 @@ TEST(WellDeterminedNewLandmark, AppliesTheRangeAndTheSigmaBounds) {
   EXPECT_FALSE(WellDeterminedNewLandmark({2.5, 50.0}, options));
 }
 
+TEST(CheckDetectionsFit, RefusesAPassageMoreThanTheFractionOfWhoseDetectionsDoNotFit) {
+  MapUpdateOptions options;
+  options.max_unfit_detection_fraction = 0.25;
+  EXPECT_TRUE(CheckDetectionsFit(25, 100, options).ok());  // the fraction itself is allowed
+  const absl::Status refused = CheckDetectionsFit(26, 100, options);
+  EXPECT_TRUE(absl::IsFailedPrecondition(refused)) << refused;
+  EXPECT_NE(refused.message().find("26 of its 100 detections"), absl::string_view::npos) << refused;
+  // A short passage's few: one landmark's detections under another's id are not the camera's fault.
+  EXPECT_TRUE(CheckDetectionsFit(MapUpdateOptions::kMinUnfitDetections - 1, 12, options).ok());
+  EXPECT_FALSE(CheckDetectionsFit(MapUpdateOptions::kMinUnfitDetections, 12, options).ok());
+  options.max_unfit_detection_fraction = 0.0;  // off
+  EXPECT_TRUE(CheckDetectionsFit(100, 100, options).ok());
+}
+
 
 // r = (a^T x - b) / sigma on a 2-D state.
 struct LinearResidual {
