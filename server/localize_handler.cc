@@ -1,6 +1,7 @@
 // MapService::LocalizePassage: a passage localised against the map, read-only.
 #include <algorithm>
 #include <cmath>
+#include <memory>
 #include <optional>
 #include <vector>
 
@@ -8,6 +9,7 @@
 #include "core/estimation/vehicle_calibration.h"
 #include "core/localization/passage_localizer.h"
 #include "server/map_service.h"
+#include "server/quotas.h"
 #include "server/request_log.h"
 
 namespace crowdmap {
@@ -54,6 +56,14 @@ grpc::Status MapService::LocalizePassage(grpc::ServerContext* ctx, const pb::Loc
     return log.Done(absl::InvalidArgumentError(
         absl::StrCat("passage.detections: ", detected.size(), " distinct landmarks, at most ", kMaxLocalizedLandmarks,
                      " (their joint covariance is read whole): localise the drive in parts")));
+  }
+  // Their joint covariance is read as a read with covariances reads it (2,000 landmarks: 128 MB),
+  // so the localisation takes a place among those, held until it is answered.
+  absl::StatusOr<std::unique_ptr<ConcurrentCalls::Lease>> place = std::unique_ptr<ConcurrentCalls::Lease>();
+  if (context_->covariance_reads != nullptr) place = context_->covariance_reads->Enter();
+  if (!place.ok()) {
+    AddRetryTrailers(place.status(), ctx);
+    return log.Done(place.status());
   }
   absl::StatusOr<LandmarkPage> page = context_->store->GetLandmarks(detected, /*include_cross=*/true);
   if (!page.ok()) return log.Done(page.status());

@@ -78,6 +78,8 @@ class MapServer {
   bool auth_enabled() const { return auth_ != nullptr; }
   // Chunked uploads open now (admitted under the stream caps).
   int open_uploads() const { return streams_->open_uploads(); }
+  // The cap on calls that read covariances (reads with them, localisations): tests hold places.
+  ConcurrentCalls* covariance_reads() { return covariance_reads_.get(); }
 
   // Health NOT_SERVING, refuse uploads, finish the passage being applied, end streams, stop gRPC
   // (in-flight calls get `grace`; gRPC also waits that long for idle client connections to

@@ -63,8 +63,8 @@ void AddSecuritySettings(CLI::App* mapd, MapServerOptions* options) {
       ->type_name("N")
       ->group(quotas);
   AddMapdSetting(mapd, "max-covariance-reads", &limits.max_covariance_reads,
-                 "concurrent GetTile and QueryRegion calls with include_cross_covariance; each holds its\n"
-                 "page's dense covariance, up to a few hundred MB at 2,000 landmarks (0 = off)")
+                 "concurrent GetTile and QueryRegion calls with include_cross_covariance, and LocalizePassage\n"
+                 "calls; each holds a dense covariance, up to a few hundred MB at 2,000 landmarks (0 = off)")
       ->type_name("N")
       ->group(quotas);
   AddMapdSetting(mapd, "upload-idle-timeout-s", &limits.upload_idle_timeout_s,

@@ -1,8 +1,14 @@
 // LocalizePassage against an in-process server on an ephemeral port and a temporary SQLite file.
+#include <chrono>
 #include <cmath>
+#include <memory>
+#include <thread>
+#include <vector>
 
 #include "core/estimation/map_update_options.h"
 #include "core/estimation/vehicle_calibration.h"
+#include "absl/strings/match.h"
+#include "client/api/map_client.h"
 #include "core/localization/passage_localizer.h"
 #include "server/testing/temp_dir.h"
 #include "server/wire_convert.h"
@@ -31,6 +37,41 @@ class LocalizeRpc : public ::testing::Test {
   std::unique_ptr<MockVehicle> client_;
   int64_t map_version_ = 0;
 };
+
+// A localisation reads its landmarks' joint covariance whole (up to 2,000 landmarks), as a read
+// with covariances does: it takes a place among those (mapd --max-covariance-reads) or is told to
+// retry, and the client retries it as it does the reads.
+TEST_F(LocalizeRpc, TakesAPlaceAmongTheReadsWithCovariances) {
+  std::vector<std::unique_ptr<ConcurrentCalls::Lease>> held;
+  for (;;) {
+    absl::StatusOr<std::unique_ptr<ConcurrentCalls::Lease>> place = server_->covariance_reads()->Enter();
+    if (!place.ok()) break;
+    held.push_back(*std::move(place));
+  }
+  ASSERT_FALSE(held.empty());
+  pb::Passage wire;
+  PassageToProto(scenario_.MakePassage(10), &wire);
+  MapClientOptions once;
+  once.server = server_->address();
+  once.max_attempts = 1;
+  absl::StatusOr<std::unique_ptr<MapClient>> client = MapClient::Create(once);
+  ASSERT_TRUE(client.ok()) << client.status();
+  absl::StatusOr<pb::LocalizePassageResponse> refused = (*client)->LocalizePassage(wire);
+  EXPECT_EQ(refused.status().code(), absl::StatusCode::kResourceExhausted) << refused.status();
+  EXPECT_TRUE(absl::StrContains(refused.status().message(), "--max-covariance-reads")) << refused.status();
+  std::thread give_back([&] {
+    std::this_thread::sleep_for(std::chrono::milliseconds(20));
+    held.clear();
+  });
+  MapClientOptions retrying;  // the defaults: it waits as the server's pushback says (1 s)
+  retrying.server = server_->address();
+  absl::StatusOr<std::unique_ptr<MapClient>> patient = MapClient::Create(retrying);
+  ASSERT_TRUE(patient.ok()) << patient.status();
+  absl::StatusOr<pb::LocalizePassageResponse> served = (*patient)->LocalizePassage(wire);
+  give_back.join();
+  EXPECT_TRUE(served.ok()) << served.status();
+  EXPECT_EQ(server_->covariance_reads()->running(), 0) << "its place given back";
+}
 
 TEST_F(LocalizeRpc, ReturnsTheTrajectoryWithCovarianceAndLeavesTheMapAlone) {
   const Passage passage = scenario_.MakePassage(10);

@@ -68,10 +68,10 @@ std::string RetryServiceConfig(const MapClientOptions& options) {
       {"maxBackoff", Seconds(options.max_backoff)},
       {"backoffMultiplier", 2},
       {"retryableStatusCodes", {"UNAVAILABLE", "RESOURCE_EXHAUSTED"}}};
-  // Uploads are idempotent; so are the map reads, whose covariance reads the server caps
-  // (--max-covariance-reads) and answers RESOURCE_EXHAUSTED beyond.
+  // Uploads are idempotent; so are the map reads and localisations, whose covariance reads the
+  // server caps (--max-covariance-reads) and answers RESOURCE_EXHAUSTED beyond.
   nlohmann::ordered_json names = nlohmann::ordered_json::array();
-  for (const char* rpc : {"UploadPassage", "GetTile", "QueryRegion"}) {
+  for (const char* rpc : {"UploadPassage", "GetTile", "QueryRegion", "LocalizePassage"}) {
     names.push_back({{"service", "mapservice.v1.MapService"}, {"method", rpc}});
   }
   const nlohmann::ordered_json method = {{"name", names}, {"retryPolicy", policy}};
