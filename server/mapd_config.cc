@@ -182,8 +182,8 @@ std::unique_ptr<CLI::App> NewMapdCommandLine(MapdConfig* config) {
                  "as an outlier (0 = off)")
       ->type_name("X");
   AddMapdSetting(app, "max-unfit-detection-fraction", &u.max_unfit_detection_fraction,
-                 "a passage more than X of whose detections do not fit (outliers, or of landmarks it\n"
-                 "disagrees with the map about; 10 at least) is quarantined, the map unchanged (0 = off)")
+                 "a passage more than X of whose detections are set aside as outliers (10 at least) is\n"
+                 "quarantined, the map unchanged (0 = off)")
       ->type_name("X");
   AddMapdSetting(app, "sensor-test-sigmas", &u.sensor_test_sigmas,
                  "a sensor (odometry, GNSS, camera) whose residuals' chi-square exceeds their redundancy by X\n"

@@ -60,7 +60,7 @@ TEST_F(LocalizeRpc, TakesAPlaceAmongTheReadsWithCovariances) {
   EXPECT_EQ(refused.status().code(), absl::StatusCode::kResourceExhausted) << refused.status();
   EXPECT_TRUE(absl::StrContains(refused.status().message(), "--max-covariance-reads")) << refused.status();
   std::thread give_back([&] {
-    std::this_thread::sleep_for(std::chrono::milliseconds(20));
+    std::this_thread::sleep_for(std::chrono::milliseconds(300));  // the first attempt refused, the retry 1 s later
     held.clear();
   });
   MapClientOptions retrying;  // the defaults: it waits as the server's pushback says (1 s)

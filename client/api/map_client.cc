@@ -100,6 +100,9 @@ MapClient::MapClient(const MapClientOptions& options, std::shared_ptr<grpc::Chan
   args.SetMaxReceiveMessageSize(options.max_message_mb << 20);
   args.SetMaxSendMessageSize(options.max_message_mb << 20);
   args.SetServiceConfigJSON(RetryServiceConfig(options));
+  // gRPC retries a call only while what it sent fits this buffer (256 KiB by default, under
+  // which a 1 MiB upload was tried once): a whole unary message.
+  args.SetInt(GRPC_ARG_PER_RPC_RETRY_BUFFER_SIZE, options.max_message_mb << 20);
   if (!options.security.tls_server_name.empty()) args.SetSslTargetNameOverride(options.security.tls_server_name);
   channel_ = grpc::CreateCustomChannel(options.server, credentials, args);
   stub_ = pb::MapService::NewStub(channel_);

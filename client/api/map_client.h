@@ -25,8 +25,9 @@ struct MapClientOptions {
   std::string server = "127.0.0.1:50051";         // host:port
   // Deadline of every unary call; an upload's retries (below) all fit in it.
   std::chrono::milliseconds call_deadline{10000};
-  // Uploads failing with UNAVAILABLE or RESOURCE_EXHAUSTED are retried up to this many attempts
-  // in all (1..5; gRPC's retry policy allows at most 5), after a random pause of up to
+  // Uploads, GetTile, QueryRegion and LocalizePassage failing with UNAVAILABLE or
+  // RESOURCE_EXHAUSTED (a full queue, the server's cap on reads with covariances) are retried up
+  // to this many attempts in all (1..5; gRPC's retry policy allows at most 5), after a random pause of up to
   // initial_backoff, doubled after each retry up to max_backoff; a server's pushback
   // (grpc-retry-pushback-ms, sent with a full queue) replaces the pause.
   int max_attempts = 5;
@@ -77,9 +78,9 @@ class MapClient {
   static absl::StatusOr<std::unique_ptr<MapClient>> Create(const MapClientOptions& options);
 
   // UploadPassage, or UploadPassageChunked above unary_upload_limit_bytes; retried as above. gRPC
-  // retries a streaming call only while what it sent fits its retry buffer (256 KiB), and a
-  // chunked passage is larger by definition, so chunked uploads are retried here, with the same
-  // policy (jitter, backoff, pushback).
+  // retries a call only while what it sent fits its retry buffer (the channel's is set to hold a
+  // whole unary message), and a chunked passage is larger than any, so chunked uploads are retried
+  // here, with the same policy (jitter, backoff, pushback).
   absl::StatusOr<pb::UploadPassageResponse> Upload(const pb::Passage& passage);
   absl::StatusOr<pb::PassageStatus> GetPassage(int64_t id);
   // One landmark and the passages that shaped it.
@@ -87,7 +88,7 @@ class MapClient {
   // A vehicle's estimated camera calibration; every vehicle's (operators), all pages of them.
   absl::StatusOr<pb::Vehicle> GetVehicle(const std::string& vehicle_id);
   absl::StatusOr<pb::ListVehiclesResponse> ListVehicles();
-  // Localises a passage against the map (read-only).
+  // Localises a passage against the map (read-only); retried as above.
   absl::StatusOr<pb::LocalizePassageResponse> LocalizePassage(const pb::Passage& passage);
   // Takes an applied passage out of the map (administration).
   absl::StatusOr<pb::ExcludePassageResponse> ExcludePassage(const PassageKey& key);

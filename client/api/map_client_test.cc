@@ -15,11 +15,12 @@ namespace crowdmap {
 namespace {
 
 // A valid passage of more than 4 MiB: a short scenario passage followed by a long stop.
-pb::Passage LargePassage() {
+// A passage padded with standing-still odometry to about 20 bytes times `extra_samples` more.
+pb::Passage LargePassage(int extra_samples = 240000) {
   pb::Passage wire;
   PassageToProto(ShortScenario().MakePassage(0), &wire);
   const pb::OdometrySample last = wire.odometry(wire.odometry_size() - 1);
-  for (int i = 1; i <= 240000; ++i) {  // about 20 bytes each
+  for (int i = 1; i <= extra_samples; ++i) {
     pb::OdometrySample* o = wire.add_odometry();
     *o = last;
     o->set_t_s(last.t_s() + 0.001 * i);
@@ -148,6 +149,19 @@ TEST(MapClientRetries, GrpcRetriesATransientUploadFailureUpToMaxAttempts) {
   auto gives_up = RetryingClient(full.address(), 4)->Upload(SmallPassage());
   EXPECT_EQ(gives_up.status().code(), absl::StatusCode::kResourceExhausted);
   EXPECT_EQ(always.calls(), 4);
+}
+
+// gRPC retries a call only while what it sent fits its per-call retry buffer (256 KiB by default):
+// a unary upload of 1 MiB was tried once. The client's buffer holds a whole unary message.
+TEST(MapClientRetries, AUnaryUploadAboveGrpcsDefaultRetryBufferIsRetriedToo) {
+  const pb::Passage passage = LargePassage(50000);
+  ASSERT_GT(passage.ByteSizeLong(), 512u << 10);
+  ASSERT_LT(passage.ByteSizeLong(), MapClientOptions().unary_upload_limit_bytes);
+  FlakyUploads service(2, grpc::StatusCode::UNAVAILABLE);
+  FakeServer server(&service);
+  auto r = RetryingClient(server.address(), 3)->Upload(passage);
+  ASSERT_TRUE(r.ok()) << r.status();
+  EXPECT_EQ(service.calls(), 3);
 }
 
 TEST(MapClientRetries, NoRetryOfPermanentErrorsOrWithOneAttempt) {

@@ -270,44 +270,29 @@ absl::StatusOr<PassageUpdate> SolveJointly(const std::vector<Passage>& passages,
   if (!solver_summary.IsSolutionUsable()) {
     return absl::InternalError(absl::StrCat("joint solve unusable: ", solver_summary.message));
   }
-  // Each passage's detections beyond the residual test of the sequential update
-  // (options.max_detection_residual_sigmas) at the joint solution. A passage whose detections
-  // mostly do not fit leaves the joint solution to the sequential update, which refuses it (one
-  // with random landmark ids, the 4th of a young map, moved the warm-up's landmarks by 2 to 3
-  // sigmas). An area's passages were each applied with that test: their detections beyond it are
-  // set aside here too, and the solve is repeated without them. So are a young map's from its first
-  // re-solve on (more passages than the warm-up's): each of its passages enters every later joint
-  // solve with all its detections, and a passage's detections reported under the wrong ids moved
-  // established landmarks by 3 to 4 of their sigmas through one (a 64-passage re-solve with a
-  // hostile upload; its sequential update had set all but one of them aside). In the warm-up the
-  // estimate the residuals are taken at may still be metres off, so none is set aside there.
-  std::vector<std::unordered_set<ceres::ResidualBlockId>> beyond(count);
-  if (options.max_detection_residual_sigmas > 0.0) {
-    for (int p = 0; p < count; ++p) {
-      int detections = 0;
-      for (ceres::ResidualBlockId id : blocks_of[p]) {
-        if (!camera_blocks.count(id)) continue;
-        ++detections;
-        double cost = 0.0, residual = 0.0;
-        if (!problem.EvaluateResidualBlock(id, /*apply_loss_function=*/false, &cost, &residual, nullptr) ||
-            std::abs(residual) > options.max_detection_residual_sigmas) {
-          beyond[p].insert(id);
-        }
-      }
-      if (absl::Status s = CheckDetectionsFit(static_cast<int>(beyond[p].size()), detections, options); !s.ok()) {
-        return failed(p, s);
-      }
-    }
-  }
+  // An area's passages were each applied with the residual test of the sequential update
+  // (options.max_detection_residual_sigmas): their detections beyond it are set aside here too, and
+  // the solve is repeated without them. So are a young map's from its first re-solve on (more
+  // passages than the warm-up's): each of its passages enters every later joint solve with all its
+  // detections, and a passage's detections reported under the wrong ids moved established
+  // landmarks by 3 to 4 of their sigmas through one (a 64-passage re-solve with a hostile upload;
+  // its sequential update had set all but one of them aside). In the warm-up the estimate the
+  // residuals are taken at may still be metres off.
   const bool outlier_test = area || count > options.warmup_passages;
-  if (outlier_test) {
+  if (outlier_test && options.max_detection_residual_sigmas > 0.0) {
     int outliers = 0;
     for (int p = 0; p < count; ++p) {
       std::unordered_set<const CameraObservation*> set_aside;
       auto outlier = [&](ceres::ResidualBlockId id) {
-        if (!beyond[p].count(id)) return false;
+        const auto camera = camera_blocks.find(id);
+        if (camera == camera_blocks.end()) return false;
+        double cost = 0.0, residual = 0.0;
+        if (problem.EvaluateResidualBlock(id, /*apply_loss_function=*/false, &cost, &residual, nullptr) &&
+            std::abs(residual) <= options.max_detection_residual_sigmas) {
+          return false;
+        }
         problem.RemoveResidualBlock(id);
-        set_aside.insert(camera_blocks.at(id));
+        set_aside.insert(camera->second);
         ++outliers;
         return true;
       };

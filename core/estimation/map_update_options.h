@@ -151,15 +151,15 @@ struct MapUpdateOptions {
   // A passage more than this fraction of whose detections the test above sets aside
   // (kMinUnfitDetections of them at least) is refused whole (FailedPrecondition, "detections do
   // not fit"): its camera reports landmarks under wrong ids, or detections of nothing, and what
-  // the test would leave of it is no more to be trusted. In a young map's joint solve, whose
-  // estimate cannot yet tell one passage from another, a passage with random landmark ids moved
-  // landmarks by 2 to 3 of their sigmas; 70 to 93% of such a passage's detections lie beyond the
-  // test. Honest fleets set aside none of 116,000 detections, or a few with the camera twice as
-  // noisy as declared. A quarter, counting the detections of landmarks set aside as disagreeing
-  // with the map too, refused 46 of 60 passages of a fleet whose detector gives 10% of its
-  // detections a neighbour's id, and 2 of 60 with GNSS multipath bursts (docs/results.md,
-  // "Passages whose detections do not fit"). Also per passage in the joint solves, where such a
-  // passage leaves the joint solution for the sequential update. 0 = off.
+  // the test would leave of it is no more to be trusted. 70 to 93% of the detections of a passage
+  // with random landmark ids lie beyond the test; through a young map's joint solve such a passage
+  // moved landmarks by 2 to 3 of their sigmas. Honest fleets set aside none of 116,000
+  // detections, or a few with the camera twice as noisy as declared. A quarter, counting the
+  // detections of landmarks set aside as disagreeing with the map too, refused 46 of 60 passages
+  // of a fleet whose detector gives 10% of its detections a neighbour's id, and 2 of 60 with GNSS
+  // multipath bursts (docs/results.md, "Passages whose detections do not fit"). Sequential updates
+  // only: a joint solve first makes the arriving passage's sequential update, which refuses it.
+  // 0 = off.
   double max_unfit_detection_fraction = 0.5;
   static constexpr int kMinUnfitDetections = 10;
   // Adaptive covariance inflation: when a (sub)graph solve's chi-square (2 x final cost) exceeds

@@ -567,11 +567,6 @@ absl::Status ApplyPassage(const Passage& declared, const MapUpdateOptions& optio
       progress.outliers.insert(unfit->detections.begin(), unfit->detections.end());
     }
   }
-  if (absl::Status s = CheckDetectionsFit(static_cast<int>(progress.outliers.size()),
-                                          static_cast<int>(graph->detections.size()), options);
-      !s.ok()) {
-    return absl::Status(s.code(), absl::StrCat("passage ", passage.passage_id, ": ", s.message()));
-  }
   if (progress.counted.empty()) {
     // What set its landmarks aside, so that an operator can tell a detector's fault from a
     // trajectory's (a GNSS jump or an odometry fault leaves every ray pointing somewhere else).
@@ -581,6 +576,11 @@ absl::Status ApplyPassage(const Passage& declared, const MapUpdateOptions& optio
         "a fault of its GNSS or odometry does this as well as one of its detections)",
         summary->detections_dropped, summary->landmarks_held_back, summary->landmarks_disagreeing,
         summary->detections_outliers, options.max_detection_residual_sigmas));
+  }
+  if (absl::Status s = CheckDetectionsFit(static_cast<int>(progress.outliers.size()),
+                                          static_cast<int>(graph->detections.size()), options);
+      !s.ok()) {
+    return absl::Status(s.code(), absl::StrCat("passage ", passage.passage_id, ": ", s.message()));
   }
   if (passage_prior) {
     absl::StatusOr<int> conditioned = passage_prior->Finish(overlay->version(), overlay);

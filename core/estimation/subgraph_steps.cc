@@ -304,7 +304,8 @@ absl::Status CheckDetectionsFit(int unfit, int total, const MapUpdateOptions& op
   }
   return absl::FailedPreconditionError(absl::StrFormat(
       "detections do not fit: %d of its %d detections lie beyond %.1f pixel sigmas of the solution (more than %.0f%% "
-      "allowed); the map is unchanged (its camera reports landmarks under wrong ids, or detections of nothing)",
+      "allowed); the map is unchanged (its camera reports landmarks under wrong ids or detections of nothing, or its "
+      "trajectory is wrong where it saw them)",
       unfit, total, options.max_detection_residual_sigmas, 100.0 * options.max_unfit_detection_fraction));
 }
 
