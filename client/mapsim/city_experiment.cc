@@ -317,6 +317,8 @@ absl::Status WriteCityOutputs(const CityExperimentOptions& options, const CityEx
       {"passages_correlated_gnss", result.correlated_gnss_passages},
       {"gnss_residual_lag1", Percentiles(result.gnss_residual_lag1)},
       {"sensor_test_sigmas", options.update.sensor_test_sigmas},
+      {"max_detection_residual_sigmas", options.update.max_detection_residual_sigmas},
+      {"max_unfit_detection_fraction", options.update.max_unfit_detection_fraction},
       {"sensor_inflated", SensorInflationsJson(result.sensor_inflations)},
       {"landmarks_held_back", result.landmarks_held_back},
       {"landmarks_disagreeing", result.landmarks_disagreeing},

@@ -308,6 +308,8 @@ absl::Status WriteExperimentOutputs(const ExperimentOptions& options, const Expe
       {"correlated_gnss_passages", result.correlated_gnss_passages},
       {"gnss_residual_lag1", Percentiles(result.gnss_residual_lag1)},
       {"sensor_test_sigmas", options.update.sensor_test_sigmas},
+      {"max_detection_residual_sigmas", options.update.max_detection_residual_sigmas},
+      {"max_unfit_detection_fraction", options.update.max_unfit_detection_fraction},
       {"sensor_inflated", SensorInflationsJson(result.sensor_inflations)},
       {"max_subgraph_dim", options.update.max_subgraph_dim},
       {"detections_per_landmark", options.update.detections_per_landmark},

@@ -203,6 +203,18 @@ void AddMapUpdateFlags(CLI::App* command, MapUpdateOptions* update) {
       ->check(CLI::Range(0.0, 0.999))
       ->default_val(update->correlated_gnss_min_lag1)
       ->type_name("X");
+  command->add_option("--max-detection-residual-sigmas", update->max_detection_residual_sigmas,
+                      "a detection whose residual at a subgraph's solution exceeds X pixel sigmas is set aside\n"
+                      "as an outlier, as mapd (0 = off)")
+      ->check(NonNegative())
+      ->default_val(update->max_detection_residual_sigmas)
+      ->type_name("X");
+  command->add_option("--max-unfit-detection-fraction", update->max_unfit_detection_fraction,
+                      "a passage more than X of whose detections are set aside as outliers (10 at least) is\n"
+                      "refused, as mapd (0 = off)")
+      ->check(CLI::Range(0.0, 0.999))
+      ->default_val(update->max_unfit_detection_fraction)
+      ->type_name("X");
   command->add_option("--sensor-test-sigmas", update->sensor_test_sigmas,
                       "a sensor whose residuals' chi-square exceeds their redundancy by X sigmas has its\n"
                       "covariances scaled by their ratio, as mapd (0 = off)")
