@@ -27,9 +27,9 @@ struct MapClientOptions {
   std::chrono::milliseconds call_deadline{10000};
   // Uploads, GetTile, QueryRegion and LocalizePassage failing with UNAVAILABLE or
   // RESOURCE_EXHAUSTED (a full queue, the server's cap on reads with covariances) are retried up
-  // to this many attempts in all (1..5; gRPC's retry policy allows at most 5), after a random pause of up to
-  // initial_backoff, doubled after each retry up to max_backoff; a server's pushback
-  // (grpc-retry-pushback-ms, sent with a full queue) replaces the pause.
+  // to this many attempts in all (1..5; gRPC's retry policy allows at most 5), after a random
+  // pause of up to initial_backoff, doubled after each retry up to max_backoff; a server's
+  // pushback (grpc-retry-pushback-ms, sent with a full queue or a full cap) replaces the pause.
   int max_attempts = 5;
   std::chrono::milliseconds initial_backoff{50};
   std::chrono::milliseconds max_backoff{2000};

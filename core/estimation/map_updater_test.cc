@@ -1594,5 +1594,3 @@ TEST(CameraYawEstimation, AFleetThatSharesOneCameraErrorTeachesItToNewVehicles) 
 
 }  // namespace
 }  // namespace crowdmap
-
-
